@@ -1,0 +1,1 @@
+"""Silva's orchestration: configuration, the Dask cluster, the staged workflow, the CLI, reports."""
