@@ -1,0 +1,162 @@
+"""Auto-context features: class frequencies in two spheres around each point.
+
+For C classes a point gets 2C values: the relative frequency of each class among the points
+within r1 (sphere S1), then among the points within r2 < r1 (sphere S2), the point itself
+included in both. "Hard" context counts predicted labels (the paper); "soft" context averages
+class probabilities. Before the first classification every value is 1/C, so the feature vector
+keeps the same length through the whole cascade.
+
+S1 is capped at the ``max_neighbors`` nearest points (ties broken by global id, see
+:func:`pipeline.features.neighbors.radius_neighbors`); S2 is the part of that capped list
+within r2. On very dense scans the cap can make S1 smaller than r1; raise it to keep S1 whole.
+"""
+
+import numba
+import numpy as np
+
+from pipeline.features.neighbors import radius_neighbors
+
+
+def uniform_context(n_points: int, n_classes: int) -> np.ndarray:
+    """The context before any classification: float32 (n_points, 2 * n_classes) of 1/C."""
+    if n_classes < 1:
+        raise ValueError(f"n_classes must be >= 1, got {n_classes}")
+    return np.full((n_points, 2 * n_classes), 1.0 / n_classes, dtype=np.float32)
+
+
+@numba.njit(cache=True, nogil=True)
+def _context_kernel(xyz, nbr_idx, nbr_ptr, query, r2_squared, values, hard, n_classes, out):
+    for row in range(query.shape[0]):
+        q = query[row]
+        n_outer = 0
+        n_inner = 0
+        for pos in range(nbr_ptr[row], nbr_ptr[row + 1]):
+            j = nbr_idx[pos]
+            d0 = xyz[j, 0] - xyz[q, 0]
+            d1 = xyz[j, 1] - xyz[q, 1]
+            d2 = xyz[j, 2] - xyz[q, 2]
+            inner = d0 * d0 + d1 * d1 + d2 * d2 <= r2_squared
+            n_outer += 1
+            if inner:
+                n_inner += 1
+            if hard:
+                c = int(values[j, 0])
+                out[row, c] += 1.0
+                if inner:
+                    out[row, n_classes + c] += 1.0
+            else:
+                for c in range(n_classes):
+                    out[row, c] += values[j, c]
+                    if inner:
+                        out[row, n_classes + c] += values[j, c]
+        for c in range(n_classes):
+            out[row, c] = out[row, c] / n_outer if n_outer > 0 else 1.0 / n_classes
+            out[row, n_classes + c] = (
+                out[row, n_classes + c] / n_inner if n_inner > 0 else 1.0 / n_classes
+            )
+
+
+def context_from_neighbors(
+    xyz: np.ndarray,
+    nbr_idx: np.ndarray,
+    nbr_ptr: np.ndarray,
+    query: np.ndarray,
+    r2: float,
+    *,
+    labels: np.ndarray | None = None,
+    proba: np.ndarray | None = None,
+    n_classes: int,
+) -> np.ndarray:
+    """Context features from precomputed S1 neighbourhoods.
+
+    Parameters
+    ----------
+    xyz : float64 (N, 3)
+        All points that may appear as neighbours.
+    nbr_idx, nbr_ptr : int64 CSR arrays
+        Row ``i`` lists the S1 neighbours (indices into ``xyz``) of point ``query[i]``.
+    query : int64 (Q,)
+        Indices into ``xyz`` of the points to describe.
+    r2 : float
+        Radius of the inner sphere S2.
+    labels : int (N,), optional
+        Hard class indices 0..C-1 of every point (the paper's context).
+    proba : float (N, C), optional
+        Class probabilities of every point (soft context). Exactly one of ``labels`` and
+        ``proba`` is given.
+
+    Returns
+    -------
+    float32 (Q, 2C)
+        Frequencies in S1 (columns 0..C-1) then in S2 (columns C..2C-1); each half sums to 1.
+    """
+    if (labels is None) == (proba is None):
+        raise ValueError("give exactly one of labels (hard context) or proba (soft context)")
+    if labels is not None:
+        labels = np.asarray(labels)
+        if labels.shape != (xyz.shape[0],):
+            raise ValueError(f"labels must have shape ({xyz.shape[0]},), got {labels.shape}")
+        if labels.size and (labels.min() < 0 or labels.max() >= n_classes):
+            raise ValueError(f"labels must be class indices in [0, {n_classes}), got "
+                             f"values in [{labels.min()}, {labels.max()}]")
+        values = labels.astype(np.float64).reshape(-1, 1)
+    else:
+        values = np.asarray(proba, dtype=np.float64)
+        if values.shape != (xyz.shape[0], n_classes):
+            raise ValueError(
+                f"proba must have shape ({xyz.shape[0]}, {n_classes}), got {values.shape}"
+            )
+    out = np.zeros((len(query), 2 * n_classes), dtype=np.float64)
+    _context_kernel(
+        np.ascontiguousarray(xyz, dtype=np.float64),
+        np.ascontiguousarray(nbr_idx, dtype=np.int64),
+        np.ascontiguousarray(nbr_ptr, dtype=np.int64),
+        np.ascontiguousarray(query, dtype=np.int64),
+        float(r2) ** 2,
+        np.ascontiguousarray(values),
+        labels is not None,
+        n_classes,
+        out,
+    )
+    return out.astype(np.float32)
+
+
+def context_features(
+    xyz: np.ndarray,
+    r1: float,
+    r2: float | None = None,
+    *,
+    labels: np.ndarray | None = None,
+    proba: np.ndarray | None = None,
+    n_classes: int | None = None,
+    max_neighbors: int = 256,
+    query: np.ndarray | None = None,
+    ids: np.ndarray | None = None,
+) -> np.ndarray:
+    """Relative class frequencies within r1 and r2 of each query point.
+
+    ``labels`` (hard, the paper) or ``proba`` (soft, mean probability) describe every point of
+    ``xyz``; with neither, the result is the uniform 1/C context of the first stage (then
+    ``n_classes`` is required). ``r2`` defaults to ``r1 / 2``. ``query`` and ``ids`` are as in
+    :func:`pipeline.features.neighbors.radius_neighbors`.
+
+    Returns float32 (Q, 2C): S1 frequencies, then S2 frequencies.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if r1 <= 0:
+        raise ValueError(f"r1 must be > 0, got {r1}")
+    r2 = r1 / 2 if r2 is None else r2
+    if not 0 < r2 <= r1:
+        raise ValueError(f"r2 must satisfy 0 < r2 <= r1 = {r1}, got {r2}")
+    if n_classes is None:
+        if proba is not None:
+            n_classes = np.asarray(proba).shape[1]
+        else:
+            raise ValueError("n_classes is required with hard labels or no labels")
+    query = np.arange(len(xyz), dtype=np.int64) if query is None else np.asarray(query)
+    if labels is None and proba is None:
+        return uniform_context(len(query), n_classes)
+    nbr_idx, nbr_ptr = radius_neighbors(xyz, r1, max_neighbors, query=query, ids=ids)
+    return context_from_neighbors(
+        xyz, nbr_idx, nbr_ptr, query, r2, labels=labels, proba=proba, n_classes=n_classes
+    )
