@@ -21,6 +21,9 @@ class SilvaGroup(click.Group):
         except SilvaError as err:
             click.echo(f"silva: error: {err}", err=True)
             sys.exit(1)
+        except KeyboardInterrupt:
+            click.echo("silva: interrupted; run the same command again to resume", err=True)
+            sys.exit(130)
 
 
 @click.group(cls=SilvaGroup, context_settings={"help_option_names": ["-h", "--help"]})
@@ -43,6 +46,9 @@ def synth(out_dir, seed, size, tile_size):
     for path in paths:
         click.echo(str(path))
 
+
+# The run commands live in their own module; importing it registers them on ``main``.
+from workflows import commands  # noqa: E402,F401
 
 if __name__ == "__main__":
     main()

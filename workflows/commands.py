@@ -1,0 +1,166 @@
+"""The run commands: ``run``, one command per step, ``predict``, ``status`` and ``demo``.
+
+Each step command is a target: it runs the steps up to and including its own, skipping what a
+previous run finished with the same configuration (see :mod:`workflows.workflow`).
+"""
+
+import contextlib
+import logging
+import sys
+from pathlib import Path
+
+import click
+
+from pipeline.errors import ConfigError
+from workflows.cli import main
+from workflows.config import load_config
+from workflows.engine import Engine
+from workflows.progress import say
+from workflows.run import Run, prepare_output
+from workflows.workflow import execute
+
+DEMO_CONFIG = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
+
+
+def _setup_logging(verbose: int) -> None:
+    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    for noisy in ("distributed", "bokeh", "tornado"):
+        logging.getLogger(noisy).setLevel(max(level, logging.ERROR))
+
+
+def run_options(fn):
+    """Options shared by every command that runs steps."""
+    options = [
+        click.argument("config", type=click.Path(dir_okay=False, path_type=Path)),
+        click.option("--out", "-o", type=click.Path(file_okay=False, path_type=Path),
+                     help="Output directory [default: ./silva-<config name>]."),
+        click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+                     help="Override a config value with a YAML value, e.g. tiling.chunk_size=20."),
+        click.option("--overwrite", is_flag=True, help="Start from an empty output directory."),
+        click.option("--quiet", "-q", is_flag=True, help="No progress bars: a line per step."),
+        click.option("--in-process", is_flag=True,
+                     help="Run every task in this process, without a Dask cluster."),
+        click.option("--chunk", metavar="SCENE/CHUNK",
+                     help="Rerun one chunk in this process, showing the full error."),
+        click.option("-v", "--verbose", count=True, help="More log output (-vv for debug)."),
+    ]
+    for option in reversed(options):
+        fn = option(fn)
+    return fn
+
+
+@contextlib.contextmanager
+def _engine(cfg, *, quiet, in_process, debug):
+    if in_process or debug:
+        yield Engine(None, quiet=quiet, debug=debug)
+        return
+    from workflows.cluster import dashboard_link, open_client
+
+    with open_client(cfg.cluster, quiet=quiet) as client:
+        link = dashboard_link(client)
+        if link:
+            say(f"dask dashboard: {link}", quiet=quiet)
+        yield Engine(client, quiet=quiet)
+
+
+def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, target,
+              *, model_dir=None, command=None, config_path=None):
+    """Load the config, prepare the output directory and run the steps up to ``target``."""
+    _setup_logging(verbose)
+    cfg = load_config(config_path or config, overrides)
+    out = out or Path(f"silva-{Path(config).stem}")
+    prepare_output(out, overwrite=overwrite)
+    run = Run(cfg, out, quiet=quiet, model_dir=model_dir)
+    text = run.save_config()
+    if not quiet:
+        click.echo(f"# resolved configuration (saved to {out / 'config.yaml'})\n{text}")
+    command = command or "silva " + " ".join(sys.argv[1:])
+    with _engine(cfg, quiet=quiet, in_process=in_process, debug=chunk is not None) as engine:
+        summary = execute(run, engine, target, only=chunk, command=command)
+    for key in ("metrics", "report"):
+        if key in summary:
+            click.echo(f"{key}: {summary[key]}")
+    if "macro_f1" in summary:
+        click.echo(f"macro F1 on the test points: {summary['macro_f1']:.3f}")
+    return summary
+
+
+def _step_command(target: str, doc: str):
+    @run_options
+    def command(config, out, overrides, overwrite, quiet, in_process, chunk, verbose):
+        start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, target)
+
+    command.__doc__ = doc
+    return command
+
+
+main.command("run")(_step_command(
+    "report", "Run every step on CONFIG: ingest, features, train, export, evaluate, report."))
+main.command("ingest")(_step_command(
+    "ingest", "Stream the input tiles of CONFIG into chunks with halos (store.zarr)."))
+main.command("features")(_step_command(
+    "features", "Compute the moment invariants of every chunk (after ingest)."))
+main.command("train")(_step_command(
+    "train", "Train the cascade and predict every stage (after features); saves OUT/model."))
+main.command("export")(_step_command(
+    "export", "Write predictions/<tile>.laz for every input tile (after train)."))
+main.command("evaluate")(_step_command(
+    "evaluate", "Write metrics.json for the test points (after export)."))
+main.command("report")(_step_command(
+    "report", "Write report.html with its plots (after evaluate)."))
+
+
+@main.command("predict")
+@run_options
+@click.option("--model", "model_dir", required=True,
+              type=click.Path(file_okay=False, exists=True, path_type=Path),
+              help="A model directory written by 'silva train' or 'silva run' (OUT/model).")
+def predict(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, model_dir):
+    """Classify the data of CONFIG with a saved model; evaluate when it has test labels."""
+    start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, "report",
+              model_dir=model_dir)
+
+
+@main.command("status")
+@click.argument("out", type=click.Path(file_okay=False, exists=True, path_type=Path))
+def status(out):
+    """Show how far the run in OUT got."""
+    from workflows.status import run_status
+
+    for line in run_status(out):
+        click.echo(line)
+
+
+@main.command("demo")
+@click.option("--out", "-o", type=click.Path(file_okay=False, path_type=Path),
+              default=Path("silva-demo"), show_default=True, help="Output directory.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bars: a line per step.")
+@click.option("--in-process", is_flag=True, help="Run without a Dask cluster.")
+@click.option("--overwrite", is_flag=True, help="Start from an empty output directory.")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+              help="Override a value of configs/demo.yaml.")
+@click.option("-v", "--verbose", count=True, help="More log output.")
+def demo(out, quiet, in_process, overwrite, overrides, verbose):
+    """Synthesise a training and a test forest plot, run the whole workflow, report."""
+    from pipeline.synth import write_synthetic_plot
+
+    if not DEMO_CONFIG.is_file():
+        raise ConfigError(f"{DEMO_CONFIG} not found; install Silva from its source checkout "
+                          "with pip install -e .")
+    prepare_output(out, overwrite=overwrite)
+    data = out / "data"
+    for role, seed in (("train", 1), ("test", 2)):
+        if not any((data / role).glob("*.laz")):
+            say(f"synthesising the {role} plot (seed {seed}) into {data / role}", quiet=quiet)
+            write_synthetic_plot(data / role, seed=seed)
+    overrides = (
+        f"data.train=[{(data / 'train').resolve()}/*.laz]",
+        f"data.test=[{(data / 'test').resolve()}/*.laz]",
+        *overrides,
+    )
+    summary = start_run(DEMO_CONFIG, out, overrides, False, quiet, in_process, None, verbose,
+                        "report", command="silva demo")
+    if "report" in summary:
+        click.echo(f"open {summary['report']} in a browser to see the report")
+    return summary

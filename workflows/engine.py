@@ -1,0 +1,113 @@
+"""Running one step's tasks: on a Dask cluster or in this process, with progress and errors.
+
+Tasks receive small descriptions (a store path, a chunk name, parameters) and return small
+summaries; workers read and write the store themselves, so a lost worker loses nothing and its
+tasks simply run again elsewhere. A failing task does not stop the others: the step finishes
+what it can, then raises one :class:`StepFailed` that lists every failed item with the command
+that reproduces it.
+"""
+
+import logging
+import time
+import traceback
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from pipeline.errors import ChunkError, SilvaError
+from workflows.progress import StepProgress
+
+log = logging.getLogger(__name__)
+
+
+class StepFailed(SilvaError, RuntimeError):
+    """Some items of a step failed; the message summarises them."""
+
+
+@dataclass(frozen=True)
+class Task:
+    """One unit of work: ``fn(**kwargs)``, named for progress, errors and Dask keys."""
+
+    key: str  # stable and unique within a step, e.g. "features-test-3_4"
+    fn: Callable[..., Any]
+    kwargs: dict
+    where: str  # what a failure names: "chunk 3_4 of scene 'test' (tiles a.laz, b.laz)"
+    reproduce: str  # the command that reruns just this item in the foreground
+
+
+def _run_task(fn, kwargs, where, reproduce):
+    """Runs on the worker: turns any failure into one picklable, self-describing error."""
+    try:
+        return fn(**kwargs)
+    except Exception as err:  # noqa: BLE001 - every failure must name its chunk
+        reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+        if not isinstance(err, SilvaError):
+            reason = f"{type(err).__name__}: {reason}"
+        raise ChunkError(f"{where}: {reason} (reproduce with: {reproduce})") from None
+
+
+class Engine:
+    """Maps tasks over a Dask client, or runs them here when ``client`` is None."""
+
+    def __init__(self, client=None, *, quiet: bool = False, retries: int = 1, debug=False):
+        self.client = client
+        self.quiet = quiet
+        self.retries = retries
+        self.debug = debug  # in this process: let errors through with their traceback
+
+    def map(self, step: str, tasks: list[Task]) -> dict[str, Any]:
+        """Run every task; return {key: result}; raise StepFailed after all have finished."""
+        results, failures = {}, []
+        if not tasks:
+            return results
+        started = time.monotonic()
+        with StepProgress(step, len(tasks), quiet=self.quiet) as progress:
+            if self.client is None:
+                for task in tasks:
+                    try:
+                        results[task.key] = task.fn(**task.kwargs)
+                    except SilvaError:
+                        raise
+                    except Exception as err:
+                        if self.debug:
+                            raise
+                        log.debug("%s failed:\n%s", task.key, traceback.format_exc())
+                        raise ChunkError(f"{task.where}: {type(err).__name__}: {err}") from err
+                    progress.advance()
+            else:
+                results, failures = self._map_dask(tasks, progress)
+        log.info("%s: %d tasks in %.1f s", step, len(tasks), time.monotonic() - started)
+        if failures:
+            lines = "; ".join(failures[:5])
+            more = f" (and {len(failures) - 5} more)" if len(failures) > 5 else ""
+            raise StepFailed(f"{step}: {len(failures)} of {len(tasks)} failed: {lines}{more}")
+        return results
+
+    def _map_dask(self, tasks, progress):
+        from distributed import as_completed
+
+        futures = {}
+        for task in tasks:
+            future = self.client.submit(
+                _run_task,
+                task.fn,
+                task.kwargs,
+                task.where,
+                task.reproduce,
+                key=task.key,
+                retries=self.retries,
+                pure=False,
+            )
+            futures[future] = task
+        results, failures = {}, []
+        for future in as_completed(futures):
+            task = futures[future]
+            try:
+                results[task.key] = future.result()
+            except SilvaError as err:
+                failures.append(str(err))
+            except Exception as err:  # a worker that died too often, a lost connection
+                failures.append(f"{task.where}: {type(err).__name__}: {err} "
+                                f"(reproduce with: {task.reproduce})")
+            progress.advance()
+            future.release()
+        return results, failures

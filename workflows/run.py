@@ -1,0 +1,154 @@
+"""One run: its configuration, output directory layout, store and class table.
+
+The output directory of a run::
+
+    OUT/
+      config.yaml        the resolved configuration
+      store.zarr/        chunks, features, per-stage context and probabilities
+      model/             model.json + one forest per stage (loadable by 'silva predict')
+      work/              out-of-fold forests and other intermediate files
+      predictions/       <input tile name>.laz, every input point with its prediction
+      metrics.json       test-set metrics, written last, only by a complete evaluation
+      report.html        the report with its plots
+"""
+
+import os
+import shutil
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+from pipeline.errors import ConfigError
+from pipeline.store import open_store
+from workflows.config import SilvaConfig, dump_config, fingerprint
+
+SCENES = ("train", "test", "predict")
+
+
+@dataclass
+class Run:
+    """Everything the steps of one run share."""
+
+    cfg: SilvaConfig
+    out: Path
+    quiet: bool = False
+    model_dir: Path | None = None  # a saved model to apply instead of training
+    _store: object = field(default=None, repr=False)
+
+    # -- layout ---------------------------------------------------------------------------
+    @property
+    def store_path(self) -> Path:
+        return self.out / "store.zarr"
+
+    @property
+    def model_path(self) -> Path:
+        return self.model_dir if self.model_dir is not None else self.out / "model"
+
+    @property
+    def work_path(self) -> Path:
+        return self.out / "work"
+
+    @property
+    def predictions_path(self) -> Path:
+        return self.out / "predictions"
+
+    @property
+    def metrics_path(self) -> Path:
+        return self.out / "metrics.json"
+
+    @property
+    def report_path(self) -> Path:
+        return self.out / "report.html"
+
+    @property
+    def store(self):
+        if self._store is None:
+            self.out.mkdir(parents=True, exist_ok=True)
+            self._store = open_store(self.store_path)
+        return self._store
+
+    # -- derived configuration ------------------------------------------------------------
+    @property
+    def r1(self) -> float:
+        return float(self.cfg.features.r1)
+
+    @property
+    def r2(self) -> float:
+        r2 = self.cfg.features.r2
+        return float(r2) if r2 is not None else self.r1 / 2
+
+    @property
+    def halo(self) -> float:
+        halo = self.cfg.tiling.halo
+        return float(halo) if halo is not None else self.r1
+
+    @cached_property
+    def classes(self) -> list[str]:
+        """Class names the model learns and predicts (ignored classes removed), in order."""
+        ignored = {name for name in self.cfg.data.ignore if isinstance(name, str)}
+        return [name for name in self.cfg.data.classes if name not in ignored]
+
+    @cached_property
+    def class_codes(self) -> list[int]:
+        """The output code of each class: the first of its source codes."""
+        return [int(self.cfg.data.classes[name][0]) for name in self.classes]
+
+    @cached_property
+    def code_to_class(self) -> dict[int, int]:
+        """Source label code -> class index; ignored codes and classes are absent."""
+        ignored_codes = {int(c) for c in self.cfg.data.ignore if not isinstance(c, str)}
+        table = {}
+        for index, name in enumerate(self.classes):
+            for code in self.cfg.data.classes[name]:
+                if int(code) not in ignored_codes:
+                    table[int(code)] = index
+        return table
+
+    @property
+    def n_classes(self) -> int:
+        return len(self.classes)
+
+    def fingerprint(self, step: str) -> str:
+        return fingerprint(self.cfg, step)
+
+    def stage_fingerprint(self, stage: int) -> str:
+        """Fingerprint of cascade stage ``stage`` (0-based): its config and its stage number."""
+        return f"{self.fingerprint('stage')}-{stage + 1}"
+
+    def feature_description(self) -> dict:
+        """What a model must agree with to be applied to this run's features."""
+        return {
+            "feature_set": self.cfg.features.set,
+            "r1": self.r1,
+            "r2": self.r2,
+            "max_neighbors": int(self.cfg.features.max_neighbors),
+            "context_max_neighbors": int(self.cfg.features.context_max_neighbors),
+            "context": self.cfg.cascade.context,
+        }
+
+    # -- housekeeping ---------------------------------------------------------------------
+    def save_config(self) -> str:
+        """Write OUT/config.yaml (the resolved configuration) and return its text."""
+        text = dump_config(self.cfg)
+        self.out.mkdir(parents=True, exist_ok=True)
+        tmp = self.out / ".config.yaml.partial"
+        tmp.write_text(text)
+        os.replace(tmp, self.out / "config.yaml")
+        return text
+
+    def forget_results(self) -> None:
+        """Remove metrics and report: they are rewritten only when a run completes."""
+        for path in (self.metrics_path, self.report_path):
+            path.unlink(missing_ok=True)
+
+
+def prepare_output(out: Path, *, overwrite: bool) -> None:
+    """Create the output directory; with ``overwrite`` start from an empty one."""
+    if overwrite and out.exists():
+        if not (out / "store.zarr").exists() and any(out.iterdir()):
+            raise ConfigError(
+                f"--overwrite refuses to empty {out}: it does not look like a Silva output "
+                "directory (no store.zarr); choose another --out"
+            )
+        shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,39 @@
+"""``silva status``: how far a run got, read from its store and output directory."""
+
+from pathlib import Path
+
+from pipeline.model import MODEL_FILE, read_description
+from pipeline.store import chunk_path, open_store
+
+
+def run_status(out: Path) -> list[str]:
+    """Lines describing each step of the run in ``out``."""
+    store_path = out / "store.zarr"
+    if not store_path.exists():
+        return [f"{out}: nothing ingested yet (no store.zarr)"]
+    root = open_store(store_path, mode="r")
+    layout = root.attrs.get("layout")
+    if not layout:
+        return [f"{out}: ingest did not finish; rerun the command to resume"]
+    lines = [f"{out}: {len(layout['tiles'])} tiles, "
+             f"{sum(t['n_points'] for t in layout['tiles']):,} points"]
+    for scene, info in layout["scenes"].items():
+        steps: dict[str, int] = {}
+        for chunk in info["chunks"]:
+            path = chunk_path(scene, chunk)
+            done = root[path].attrs.get("done", {}) if path in root else {}
+            for step in done:
+                steps[step] = steps.get(step, 0) + 1
+        total = len(info["chunks"])
+        order = sorted(steps, key=lambda s: (s.rstrip("0123456789"), int(s[len(s.rstrip("0123456789")):] or 0)))
+        done_text = ", ".join(f"{s} {steps[s]}/{total}" for s in order) or "no chunk step done"
+        lines.append(f"scene {scene}: {total} chunks; {done_text}")
+    model = out / "model"
+    if (model / MODEL_FILE).is_file():
+        stages = read_description(model)["stages"]
+        lines.append(f"model: {len(stages)} stage(s) trained in {model}")
+    predictions = sorted((out / "predictions").glob("*.la[sz]")) if (out / "predictions").is_dir() else []
+    lines.append(f"predictions: {len(predictions)} of {len(layout['tiles'])} tiles exported")
+    metrics = out / "metrics.json"
+    lines.append(f"metrics: {metrics}" if metrics.is_file() else "metrics: not written (run incomplete)")
+    return lines

@@ -1,0 +1,1 @@
+"""The steps of a run; each module holds its worker tasks and its coordinator function."""

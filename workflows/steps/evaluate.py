@@ -1,0 +1,84 @@
+"""Evaluate: test-set metrics for every cascade stage, and samples for the report's plots.
+
+Confusion matrices are additive, so each chunk returns its own and the coordinator sums them:
+the metrics are exact over every test point, whatever the chunking. Points for the
+precision-recall curves and the top-down picture are sampled by a hash of their global id.
+"""
+
+import json
+import os
+
+import numpy as np
+
+from pipeline.cascade import id_hash, labels_from_proba
+from pipeline.metrics import confusion_matrix, scores_from_confusion
+from pipeline.store import ROLE_TEST, chunk_path, open_store, read_array
+from workflows.run import Run
+from workflows.steps.features import chunk_tasks
+
+PLOT_POINTS = 200_000  # points drawn in the report's plots
+
+
+def chunk_evaluation(store_path, scene, chunk, n_stages, n_classes, sample_fraction):
+    """Worker task: per-stage confusion of the chunk's test points, and plot samples."""
+    group = open_store(store_path)[chunk_path(scene, chunk)]
+    label, role, gid = (read_array(group, k) for k in ("label", "role", "gid"))
+    test = (role == ROLE_TEST) & (label >= 0)
+    confusions, final = [], None
+    for stage in range(n_stages):
+        final = read_array(group, f"stage{stage}_proba")
+        confusions.append(confusion_matrix(label[test], labels_from_proba(final[test]), n_classes))
+    picked = id_hash(gid, 7) < sample_fraction
+    xyz = read_array(group, "xyz")
+    test_pick = picked & test
+    return {
+        "confusions": confusions,
+        "pr_true": label[test_pick],
+        "pr_proba": final[test_pick],
+        "map_x": xyz[picked, 0],
+        "map_y": xyz[picked, 1],
+        "map_label": labels_from_proba(final[picked]),
+        "n_points": len(gid),
+    }
+
+
+def evaluate(run: Run, engine, layout: dict, n_stages: int) -> dict:
+    """Return the metrics dict (metrics.json) and the report's plot data."""
+    total = sum(t["n_points"] for t in layout["tiles"])
+    fraction = min(1.0, PLOT_POINTS / max(total, 1))
+    tasks = chunk_tasks(
+        run, layout, "evaluate", chunk_evaluation,
+        lambda scene, chunk, info: dict(
+            store_path=str(run.store_path), scene=scene, chunk=chunk, n_stages=n_stages,
+            n_classes=run.n_classes, sample_fraction=fraction),
+        run.fingerprint("evaluate"), "evaluate",
+    )
+    results = list(engine.map("evaluate", tasks).values())
+    background = list(run.cfg.data.background)
+    stages = []
+    for stage in range(n_stages):
+        confusion = sum(r["confusions"][stage] for r in results)
+        stages.append(scores_from_confusion(confusion, run.classes, exclude=background))
+    metrics = {**stages[-1], "stages": stages}
+    plots = {
+        "pr_data": {
+            "y_true": np.concatenate([r["pr_true"] for r in results]),
+            "proba": np.concatenate([r["pr_proba"] for r in results]),
+            "class_names": run.classes,
+            "exclude": background,
+        },
+        "topdown": {
+            "x": np.concatenate([r["map_x"] for r in results]),
+            "y": np.concatenate([r["map_y"] for r in results]),
+            "label": np.concatenate([r["map_label"] for r in results]),
+            "class_names": run.classes,
+        },
+    }
+    return metrics, plots
+
+
+def write_metrics(run: Run, metrics: dict) -> None:
+    """metrics.json, written atomically: it exists only for a complete evaluation."""
+    tmp = run.metrics_path.with_name(".metrics.json.partial")
+    tmp.write_text(json.dumps(metrics, indent=2))
+    os.replace(tmp, run.metrics_path)

@@ -1,0 +1,125 @@
+"""Export: one classified LAS/LAZ per input tile, every point in its original order.
+
+Each task streams its input tile, finds each point's chunk from its coordinates (the same grid
+as ingest) and its row there by global id, and writes the original dimensions plus the
+predicted class, one probability per class and a confidence. Files are written atomically.
+"""
+
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import StoreError
+from pipeline.io import ExtraDim, export_with_extra_dims
+from pipeline.store import chunk_path, is_done, mark_done, open_store, read_array
+from pipeline.tiling import Grid, global_ids
+from workflows.engine import Task
+from workflows.run import Run
+
+PREDICTED = "PredictedClassification"
+CONFIDENCE = "Confidence"
+
+
+def probability_dim(name: str) -> str:
+    return f"Probability_{name}"
+
+
+def extra_dims(classes: list[str], codes: list[int], probabilities: bool) -> list[ExtraDim]:
+    """The dimensions Silva adds to every exported point."""
+    dtype = "uint8" if max(codes) <= 255 else "uint16"
+    dims = [
+        ExtraDim(PREDICTED, dtype, "Silva predicted class code"),
+        ExtraDim(CONFIDENCE, "float32", "Probability of the predicted class"),
+    ]
+    if probabilities:
+        dims += [ExtraDim(probability_dim(n), "float32", f"Probability of {n}"[:32])
+                 for n in classes]
+    return dims
+
+
+class _ChunkPredictions:
+    """Final probabilities of the chunks a tile touches, loaded once each."""
+
+    def __init__(self, root, scene, grid, stage):
+        self.root, self.scene, self.grid, self.stage = root, scene, grid, stage
+        self.cache = {}
+
+    def lookup(self, xyz, gid):
+        chunks = self.grid.chunk_of(xyz)
+        proba = None
+        for chunk in np.unique(chunks):
+            rows = np.flatnonzero(chunks == chunk)
+            if chunk not in self.cache:
+                if len(self.cache) >= 8:  # bounded memory on tiles spanning many chunks
+                    self.cache.clear()
+                group = self.root[chunk_path(self.scene, self.grid.chunk_name(int(chunk)))]
+                self.cache[chunk] = (
+                    read_array(group, "gid"), read_array(group, f"stage{self.stage}_proba"))
+            ids, chunk_proba = self.cache[chunk]
+            pos = np.minimum(np.searchsorted(ids, gid[rows]), len(ids) - 1)
+            if not np.array_equal(ids[pos], gid[rows]):
+                raise StoreError(f"points of scene '{self.scene}' missing from chunk "
+                                 f"{self.grid.chunk_name(int(chunk))}; rerun with --overwrite")
+            if proba is None:
+                proba = np.empty((len(gid), chunk_proba.shape[1]), dtype=np.float32)
+            proba[rows] = chunk_proba[pos]
+        return proba
+
+
+def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilities,
+                write_classification, read_batch, fingerprint):
+    """Worker task: write the classified copy of one input tile."""
+    root = open_store(store_path)
+    marker = root.require_group(f"exports/{tile['index']}")
+    if is_done(marker, "export", fingerprint) and Path(dst).is_file():
+        return dst
+    predictions = _ChunkPredictions(root, tile["scene"], Grid(**grid), stage)
+    codes_array = np.asarray(codes)
+
+    def compute(batch):
+        gid = global_ids(tile["index"], batch.start, len(batch.xyz))
+        proba = predictions.lookup(batch.xyz, gid)
+        best = np.argmax(proba, axis=1)
+        values = {
+            PREDICTED: codes_array[best],
+            CONFIDENCE: proba[np.arange(len(best)), best],
+        }
+        if probabilities:
+            for index, name in enumerate(classes):
+                values[probability_dim(name)] = proba[:, index]
+        if write_classification:
+            values["classification"] = codes_array[best]
+        return values
+
+    export_with_extra_dims(
+        tile["path"], dst, extra_dims(classes, codes, probabilities), compute,
+        batch_size=read_batch, set_classification=write_classification,
+    )
+    mark_done(marker, "export", fingerprint)
+    return dst
+
+
+def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> list[str]:
+    """Write predictions/<tile>.laz (or .las) for every input tile."""
+    fingerprint = f"{run.fingerprint('export')}-{stage_fp}"
+    out_dir = run.predictions_path
+    out_dir.mkdir(parents=True, exist_ok=True)
+    suffix = "." + run.cfg.output.format
+    tasks = []
+    for tile in layout["tiles"]:
+        dst = out_dir / f"{tile['name']}{suffix}"
+        tasks.append(Task(
+            key=f"export-{tile['index']}-{fingerprint[:8]}",
+            fn=export_tile,
+            kwargs=dict(
+                store_path=str(run.store_path), tile=tile,
+                grid=layout["scenes"][tile["scene"]]["grid"], stage=final_stage,
+                classes=run.classes, codes=run.class_codes, dst=str(dst),
+                probabilities=bool(run.cfg.output.probabilities),
+                write_classification=bool(run.cfg.output.write_classification),
+                read_batch=int(run.cfg.tiling.read_batch), fingerprint=fingerprint,
+            ),
+            where=f"export of tile {tile['path']}",
+            reproduce=f"silva export CONFIG --out {run.out} --in-process",
+        ))
+    return list(engine.map("export", tasks).values())

@@ -1,0 +1,185 @@
+"""Ingest: stream every input tile into the store, cut into chunk cores and halos.
+
+The grid of a scene comes from the tiles' headers (no point read); then one task per tile
+streams it in batches and appends each batch's points to the parts of the chunks (and halos)
+they fall in. Memory is bounded by the read batch, not by the tile or survey size.
+"""
+
+import numpy as np
+
+from pipeline.io import map_labels, read_info
+from pipeline.io import iter_points
+from pipeline.errors import InputError
+from pipeline.store import (
+    ROLE_PREDICT,
+    ROLE_TEST,
+    ROLE_TRAIN,
+    append_arrays,
+    is_done,
+    mark_done,
+    open_store,
+    part_path,
+)
+from pipeline.tiling import Grid, global_ids
+from workflows.config import expand_inputs
+from workflows.engine import Task
+from workflows.run import SCENES, Run
+
+AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def plan_tiles(run: Run) -> list[dict]:
+    """Every input tile with its scene and global index, from the headers."""
+    tiles, seen = [], {}
+    for scene in SCENES:
+        patterns = list(getattr(run.cfg.data, scene))
+        if not patterns:
+            continue
+        for path in expand_inputs(patterns):
+            info = read_info(path)
+            if info.n_points == 0:
+                raise InputError(f"tile {path} holds no points; remove it from data.{scene}")
+            name = path.name.split(".")[0]
+            if name in seen and seen[name] != path:
+                raise InputError(
+                    f"tiles {seen[name]} and {path} have the same name '{name}', so their "
+                    "predictions would overwrite each other; rename one"
+                )
+            seen[name] = path
+            tiles.append(
+                {
+                    "index": len(tiles),
+                    "path": str(path),
+                    "name": name,
+                    "scene": scene,
+                    "n_points": int(info.n_points),
+                    "mins": list(info.mins),
+                    "maxs": list(info.maxs),
+                    "crs_wkt": info.crs_wkt,
+                    "format": info.format,
+                }
+            )
+    if not tiles:
+        raise InputError("no input tiles: set data.train, data.test or data.predict")
+    return tiles
+
+
+def plan_scenes(run: Run, tiles: list[dict]) -> dict:
+    """The chunk grid of each scene, covering all its tiles."""
+    scenes = {}
+    for scene in SCENES:
+        members = [t for t in tiles if t["scene"] == scene]
+        if not members:
+            continue
+        mins = np.min([t["mins"] for t in members], axis=0)
+        maxs = np.max([t["maxs"] for t in members], axis=0)
+        grid = Grid.covering(mins, maxs, float(run.cfg.tiling.chunk_size))
+        scenes[scene] = {"tiles": [t["index"] for t in members], "grid": grid.to_dict()}
+    return scenes
+
+
+def point_roles(scene: str, xyz: np.ndarray, split) -> np.ndarray:
+    """int8 role of each point: train scenes split by a plane when asked, else by scene."""
+    if scene == "train" and split is not None:
+        below = xyz[:, AXES[split.axis]] < float(split.at)
+        return np.where(below, ROLE_TRAIN, ROLE_TEST).astype(np.int8)
+    role = {"train": ROLE_TRAIN, "test": ROLE_TEST, "predict": ROLE_PREDICT}[scene]
+    return np.full(len(xyz), role, dtype=np.int8)
+
+
+def ingest_tile(
+    store_path, scene, tile, grid, halo, label_field, code_to_class, split, read_batch, fingerprint
+):
+    """Worker task: append one tile's points to the chunk parts of its scene."""
+    root = open_store(store_path)
+    marker = root.require_group(f"scenes/{scene}/parts/{tile['index']}")
+    if is_done(marker, "ingest", fingerprint):
+        return marker.attrs["core_counts"]
+    for name in list(marker.group_keys()):  # a half-written earlier attempt
+        del marker[name]
+    grid = Grid(**grid)
+    labelled = scene != "predict"
+    codes = np.array(sorted(code_to_class), dtype=np.int64)
+    classes = np.array([code_to_class[c] for c in codes], dtype=np.int16)
+    counts: dict[str, int] = {}
+    fields = (label_field,) if labelled else ()
+    for batch in iter_points(tile["path"], batch_size=read_batch, fields=fields):
+        n = len(batch.xyz)
+        gid = global_ids(tile["index"], batch.start, n)
+        label = np.full(n, -1, dtype=np.int16)
+        if labelled:
+            raw = np.asarray(batch.fields[label_field]).astype(np.int64)
+            pos = np.clip(np.searchsorted(codes, raw), 0, max(len(codes) - 1, 0))
+            known = codes[pos] == raw if len(codes) else np.zeros(n, bool)
+            label[known] = classes[pos[known]]
+        role = point_roles(scene, batch.xyz, split)
+        chunk = grid.chunk_of(batch.xyz)
+        order = np.argsort(chunk, kind="stable")
+        bounds = np.flatnonzero(np.diff(chunk[order])) + 1
+        for rows in np.split(order, bounds):
+            name = grid.chunk_name(int(chunk[rows[0]]))
+            part = root.require_group(part_path(scene, tile["index"], name))
+            append_arrays(
+                part,
+                {
+                    "core_xyz": batch.xyz[rows],
+                    "core_gid": gid[rows],
+                    "core_label": label[rows],
+                    "core_role": role[rows],
+                },
+            )
+            counts[name] = counts.get(name, 0) + len(rows)
+        for target, rows in grid.halo_members(batch.xyz, halo):
+            part = root.require_group(part_path(scene, tile["index"], grid.chunk_name(target)))
+            append_arrays(part, {"halo_xyz": batch.xyz[rows], "halo_gid": gid[rows]})
+    mark_done(marker, "ingest", fingerprint, core_counts=counts)
+    return counts
+
+
+def ingest(run: Run, engine) -> dict:
+    """Plan the scenes, stream every tile into the store, record the chunk layout."""
+    fingerprint = run.fingerprint("ingest")
+    root = run.store
+    layout = root.attrs.get("layout")
+    if layout is not None and layout.get("fingerprint") == fingerprint:
+        return layout
+    if layout is not None or "scenes" in root:
+        # Inputs or chunking changed: nothing stored is valid any more.
+        if "scenes" in root:
+            del root["scenes"]
+        root.attrs["layout"] = None
+    tiles = plan_tiles(run)
+    scenes = plan_scenes(run, tiles)
+    tasks = []
+    for tile in tiles:
+        scene = tile["scene"]
+        tasks.append(
+            Task(
+                key=f"ingest-{scene}-{tile['index']}-{fingerprint[:8]}",
+                fn=ingest_tile,
+                kwargs=dict(
+                    store_path=str(run.store_path),
+                    scene=scene,
+                    tile=tile,
+                    grid=scenes[scene]["grid"],
+                    halo=run.halo,
+                    label_field=run.cfg.data.label_field,
+                    code_to_class=run.code_to_class,
+                    split=run.cfg.data.split,
+                    read_batch=int(run.cfg.tiling.read_batch),
+                    fingerprint=fingerprint,
+                ),
+                where=f"tile {tile['path']} (scene '{scene}')",
+                reproduce=f"silva ingest CONFIG --out {run.out} --in-process",
+            )
+        )
+    results = engine.map("ingest", tasks)
+    for scene, info in scenes.items():
+        names = set()
+        for task in tasks:
+            if task.kwargs["scene"] == scene:
+                names.update(results[task.key])
+        info["chunks"] = sorted(names)
+    layout = {"fingerprint": fingerprint, "tiles": tiles, "scenes": scenes}
+    root.attrs["layout"] = layout
+    return layout

@@ -1,0 +1,93 @@
+"""The steps of a run, in order, each resumable: ingest, features, train (the cascade),
+export, evaluate, report.
+
+Every command is a target: it runs the steps up to and including its own. Steps skip the work
+a previous run finished with the same configuration, so rerunning a killed command resumes it.
+"""
+
+import logging
+import platform
+import time
+from datetime import datetime, timezone
+
+from pipeline import __version__
+from workflows.progress import say
+from workflows.run import Run
+from workflows.steps.cascade import cascade
+from workflows.steps.evaluate import evaluate, write_metrics
+from workflows.steps.export import export
+from workflows.steps.features import features
+from workflows.steps.ingest import ingest
+
+log = logging.getLogger(__name__)
+
+STEPS = ("ingest", "features", "train", "export", "evaluate", "report")
+
+
+def execute(run: Run, engine, target: str, *, only: str | None = None, command: str = "") -> dict:
+    """Run the steps up to ``target``; return a summary (durations, counts, output paths)."""
+    last = STEPS.index(target)
+    timings, summary = {}, {"out": str(run.out)}
+    run.forget_results()
+
+    def timed(step, fn, *args, **kwargs):
+        started = time.monotonic()
+        result = fn(*args, **kwargs)
+        timings[step] = round(time.monotonic() - started, 2)
+        return result
+
+    layout = timed("ingest", ingest, run, engine)
+    summary["points"] = sum(t["n_points"] for t in layout["tiles"])
+    summary["chunks"] = sum(len(s["chunks"]) for s in layout["scenes"].values())
+    if last < 1:
+        return summary
+    counts = timed("features", features, run, engine, layout, only)
+    if last < 2:
+        return summary
+    fit = run.model_dir is None
+    timed("train" if fit else "apply", cascade, run, engine, layout, counts, fit=fit, only=only)
+    if only is not None or last < 3:
+        return summary
+    from pipeline.model import read_description
+
+    stages = read_description(run.model_path)["stages"]
+    n_stages = len(stages)
+    summary["predictions"] = timed(
+        "export", export, run, engine, layout, n_stages - 1, stages[-1]["fingerprint"]
+    )
+    if last < 4:
+        return summary
+    has_test = _has_test_points(run, layout)
+    if not has_test:
+        say("evaluate: no labelled test points (data.test or data.split): no metrics",
+            quiet=run.quiet)
+        return summary
+    metrics, plots = timed("evaluate", evaluate, run, engine, layout, n_stages)
+    if last < 5:
+        write_metrics(run, metrics)
+        summary["metrics"] = str(run.metrics_path)
+        return summary
+    from workflows.report import write_report
+
+    run_info = {
+        "command": command,
+        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "software": f"silva {__version__}, Python {platform.python_version()}",
+        "input points": summary["points"],
+        "chunks": summary["chunks"],
+        "durations (s)": ", ".join(f"{k} {v}" for k, v in timings.items()),
+    }
+    write_report(run.out, metrics, pr_data=plots["pr_data"], topdown=plots["topdown"],
+                 run_info=run_info, config_text=(run.out / "config.yaml").read_text())
+    # metrics.json last: its presence means the whole run completed.
+    write_metrics(run, metrics)
+    summary.update(metrics=str(run.metrics_path), report=str(run.report_path),
+                   macro_f1=metrics["macro"]["f1"])
+    summary["timings"] = timings
+    return summary
+
+
+def _has_test_points(run: Run, layout: dict) -> bool:
+    return "test" in layout["scenes"] or (
+        "train" in layout["scenes"] and run.cfg.data.split is not None
+    )
