@@ -49,6 +49,3 @@ def synth(out_dir, seed, size, tile_size):
 
 # The run commands live in their own module; importing it registers them on ``main``.
 from workflows import commands  # noqa: E402,F401
-
-if __name__ == "__main__":
-    main()

@@ -1,0 +1,55 @@
+"""Fixtures for workflow tests: small synthetic surveys and configs that run in seconds."""
+
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+import yaml
+
+SMALL_PLOT = 14.0  # metres: a few tens of thousands of points
+SMALL_TILE = 7.0
+
+
+@pytest.fixture(scope="session")
+def survey(tmp_path_factory) -> dict[str, Path]:
+    """A training and a test plot, each as several LAZ tiles."""
+    from pipeline.synth import write_synthetic_plot
+
+    root = tmp_path_factory.mktemp("survey")
+    for role, seed in (("train", 1), ("test", 2)):
+        write_synthetic_plot(root / role, seed=seed, size=SMALL_PLOT, tile_size=SMALL_TILE)
+    return {"train": root / "train", "test": root / "test"}
+
+
+def write_config(path: Path, survey: dict, **sections) -> Path:
+    """A quick config for ``survey``; keyword arguments update whole sections."""
+    config = {
+        "data": {
+            "train": [str(survey["train"] / "*.laz")],
+            "test": [str(survey["test"] / "*.laz")],
+            "classes": {"terrain": [2], "tree": [5], "dead_wood": [64], "misc": [1]},
+            "background": ["misc"],
+        },
+        "tiling": {"chunk_size": 100.0},
+        "features": {"r1": 0.5},
+        "cascade": {"stages": 2, "n_estimators": 6, "min_samples_leaf": 15,
+                    "max_train_points": 8000, "seed": 3},
+        "cluster": {"kind": "local", "n_workers": 1, "threads_per_worker": 1,
+                    "dashboard": False},
+    }
+    for section, values in sections.items():
+        config[section] = {**config.get(section, {}), **values}
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def read_predictions(out: Path) -> dict[str, dict[str, np.ndarray]]:
+    """Exported dimensions of every predictions/*.laz, by tile name."""
+    result = {}
+    for path in sorted((out / "predictions").glob("*.laz")):
+        las = laspy.read(path)
+        dims = {name: np.asarray(las[name]) for name in las.point_format.dimension_names}
+        dims["xyz"] = np.c_[las.x, las.y, las.z]
+        result[path.stem] = dims
+    return result

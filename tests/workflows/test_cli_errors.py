@@ -1,0 +1,95 @@
+"""Bad input gets one clear line, exit code 1, and no output passed off as complete."""
+
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from tests.workflows.conftest import write_config
+from workflows.cli import main
+
+
+def silva(*args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+def _error_line(result) -> str:
+    lines = [line for line in result.output.splitlines() if line.startswith("silva: error:")]
+    assert len(lines) == 1, result.output
+    assert "Traceback" not in result.output
+    return lines[0]
+
+
+def test_unknown_config_key(tmp_path, survey):
+    config = write_config(tmp_path / "c.yaml", survey, tiling={"chunksize": 3})
+    result = silva("run", config, "--out", tmp_path / "out", "--in-process", "--quiet")
+    assert result.exit_code == 1
+    assert "tiling.chunksize" in _error_line(result)
+
+
+def test_bad_override(tmp_path, survey):
+    config = write_config(tmp_path / "c.yaml", survey)
+    result = silva("run", config, "--out", tmp_path / "out", "--set", "features.r1=-1")
+    assert result.exit_code == 1
+    assert "features.r1" in _error_line(result)
+
+
+def test_missing_config_file(tmp_path):
+    result = silva("run", tmp_path / "nope.yaml", "--out", tmp_path / "out")
+    assert result.exit_code == 1
+    assert "nope.yaml" in _error_line(result)
+
+
+def test_corrupt_tile_names_the_file(tmp_path, survey):
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "broken.laz").write_bytes(b"LASF" + bytes(300))
+    config = write_config(tmp_path / "c.yaml", survey)
+    result = silva("run", config, "--out", tmp_path / "out", "--in-process", "--quiet",
+                   "--set", f"data.test=[{bad}/*.laz]")
+    assert result.exit_code == 1
+    assert "broken.laz" in _error_line(result)
+    assert not (tmp_path / "out" / "metrics.json").exists()
+
+
+def test_glob_matching_nothing(tmp_path, survey):
+    config = write_config(tmp_path / "c.yaml", survey)
+    result = silva("run", config, "--out", tmp_path / "out", "--in-process", "--quiet",
+                   "--set", f"data.test=[{tmp_path}/none/*.laz]")
+    assert result.exit_code == 1
+    assert "none/*.laz" in _error_line(result)
+
+
+def test_class_without_training_points(tmp_path, survey):
+    config = write_config(tmp_path / "c.yaml", survey, data={
+        "train": [str(survey["train"] / "*.laz")], "test": [str(survey["test"] / "*.laz")],
+        "classes": {"terrain": [2], "tree": [5], "dead_wood": [64], "misc": [1],
+                    "building": [6]}, "background": ["misc"]})
+    result = silva("run", config, "--out", tmp_path / "out", "--in-process", "--quiet")
+    assert result.exit_code == 1
+    line = _error_line(result)
+    assert "building" in line and "data.classes" in line
+    assert not (tmp_path / "out" / "metrics.json").exists()
+
+
+def test_failing_chunk_names_itself_and_the_reproduce_command():
+    from pipeline.errors import SilvaError
+    from workflows.engine import Engine, StepFailed, Task
+
+    def explode(n):
+        raise ZeroDivisionError("boom")
+
+    tasks = [Task("features-test-1_2-x", explode, {"n": 1},
+                  "chunk 1_2 of scene 'test' (tiles a)", "silva features C --chunk test/1_2")]
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        with pytest.raises(StepFailed) as info:
+            Engine(client, quiet=True, retries=0).map("features", tasks)
+    message = str(info.value)
+    assert isinstance(info.value, SilvaError)
+    assert "chunk 1_2 of scene 'test'" in message
+    assert "ZeroDivisionError: boom" in message
+    assert "silva features C --chunk test/1_2" in message
+    assert "\n" not in message

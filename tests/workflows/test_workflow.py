@@ -1,0 +1,175 @@
+"""The distributed workflow end to end, on a real LocalCluster on loopback.
+
+Central properties: the same predictions whatever the chunking and the number of workers;
+a run killed at any moment resumes to exactly the uninterrupted result without redoing
+finished chunks; a lost worker changes nothing.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from tests.workflows.conftest import read_predictions, write_config
+from workflows.cli import main
+
+pytestmark = pytest.mark.slow
+
+
+def silva(*args):
+    result = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+    return result
+
+
+@pytest.fixture(scope="module")
+def reference(survey, tmp_path_factory):
+    """One chunk, one worker: the run every other run must reproduce."""
+    root = tmp_path_factory.mktemp("reference")
+    config = write_config(root / "one.yaml", survey)
+    result = silva("run", config, "--out", root / "out", "--quiet")
+    assert result.exit_code == 0, result.output
+    return root / "out"
+
+
+def _assert_same_predictions(a: Path, b: Path):
+    pa, pb = read_predictions(a), read_predictions(b)
+    assert pa.keys() == pb.keys() and pa
+    for tile in pa:
+        for dim in ("PredictedClassification", "Confidence", "Probability_tree"):
+            assert np.array_equal(pa[tile][dim], pb[tile][dim]), (tile, dim)
+
+
+def test_outputs_of_a_complete_run(reference, survey):
+    metrics = json.loads((reference / "metrics.json").read_text())
+    assert metrics["classes"] == ["terrain", "tree", "dead_wood", "misc"]
+    assert set(metrics["macro"]) >= {"precision", "recall", "f1", "iou"}
+    assert len(metrics["stages"]) == 2
+    assert metrics["macro"]["f1"] > 0.5
+    assert metrics["n_test_points"] > 1000
+    assert (reference / "report.html").stat().st_size > 10_000
+    assert (reference / "model" / "model.json").is_file()
+    assert (reference / "config.yaml").is_file()
+    # every input point comes back, in order, with its original dimensions
+    import laspy
+
+    for tile in sorted(survey["test"].glob("*.laz")):
+        source = laspy.read(tile)
+        out = laspy.read(reference / "predictions" / tile.name)
+        assert len(out.points) == len(source.points)
+        assert np.array_equal(out.X, source.X) and np.array_equal(out.Z, source.Z)
+        assert np.array_equal(out.classification, source.classification)
+        assert out.header.parse_crs() is not None or out.header.vlrs
+        assert set(np.unique(out["PredictedClassification"])) <= {1, 2, 5, 64}
+        assert np.allclose(
+            sum(out[f"Probability_{c}"] for c in ("terrain", "tree", "dead_wood", "misc")), 1,
+            atol=1e-5)
+
+
+def test_chunk_invariance_many_chunks_two_workers(reference, survey, tmp_path):
+    config = write_config(
+        tmp_path / "many.yaml", survey, tiling={"chunk_size": 3.0},
+        cluster={"kind": "local", "n_workers": 2, "threads_per_worker": 1, "dashboard": False},
+    )
+    result = silva("run", config, "--out", tmp_path / "out", "--quiet")
+    assert result.exit_code == 0, result.output
+    layout_chunks = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert layout_chunks["n_test_points"] == json.loads(
+        (reference / "metrics.json").read_text())["n_test_points"]
+    _assert_same_predictions(reference, tmp_path / "out")
+
+
+def _invariant_mtimes(out: Path) -> dict[str, float]:
+    return {
+        str(p.parent): p.stat().st_mtime_ns
+        for p in (out / "store.zarr").glob("scenes/*/chunks/*/invariants/zarr.json")
+    }
+
+
+def test_resume_after_sigkill(reference, survey, tmp_path):
+    config = write_config(tmp_path / "kill.yaml", survey, tiling={"chunk_size": 3.5})
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "workflows", "run", str(config), "--out", str(out),
+               "--quiet", "--in-process"]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and len(_invariant_mtimes(out)) < 3:
+        time.sleep(0.2)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    done_before = _invariant_mtimes(out)
+    assert done_before, "the run was killed before any chunk finished"
+    assert not (out / "metrics.json").exists()
+    result = silva("run", config, "--out", out, "--quiet")
+    assert result.exit_code == 0, result.output
+    after = _invariant_mtimes(out)
+    for chunk, mtime in done_before.items():
+        assert after[chunk] == mtime, f"{chunk} was recomputed"
+    _assert_same_predictions(reference, out)
+
+
+def test_changed_config_invalidates_only_what_it_affects(reference, survey, tmp_path):
+    out = tmp_path / "out"
+    config = write_config(tmp_path / "c.yaml", survey)
+    assert silva("run", config, "--out", out, "--quiet", "--in-process").exit_code == 0
+    features_before = _invariant_mtimes(out)
+    model_before = (out / "model" / "stage1.skops").stat().st_mtime_ns
+    result = silva("run", config, "--out", out, "--quiet", "--in-process",
+                   "--set", "cascade.n_estimators=4")
+    assert result.exit_code == 0, result.output
+    assert _invariant_mtimes(out) == features_before  # features kept
+    assert (out / "model" / "stage1.skops").stat().st_mtime_ns != model_before  # refitted
+    result = silva("run", config, "--out", out, "--quiet", "--in-process", "--overwrite")
+    assert result.exit_code == 0
+    assert all(_invariant_mtimes(out)[k] != v for k, v in features_before.items())
+    _assert_same_predictions(reference, out)
+
+
+def test_lost_worker_does_not_change_the_result(reference, survey, tmp_path):
+    from distributed import Client, LocalCluster
+
+    from workflows.config import load_config
+    from workflows.engine import Engine
+    from workflows.run import Run
+    from workflows.workflow import execute
+
+    config = write_config(tmp_path / "lost.yaml", survey, tiling={"chunk_size": 3.0})
+    out = tmp_path / "out"
+    with LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1",
+                      dashboard_address=None, processes=True) as cluster, Client(cluster) as client:
+        pids = list(client.run(os.getpid).values())
+        killed = []
+
+        def kill_when_busy():
+            while time.monotonic() < stop_at and len(_invariant_mtimes(out)) < 4:
+                time.sleep(0.05)
+            os.kill(pids[0], signal.SIGKILL)
+            killed.append(pids[0])
+
+        stop_at = time.monotonic() + 240
+        thread = threading.Thread(target=kill_when_busy)
+        thread.start()
+        run = Run(load_config(config), out, quiet=True)
+        run.save_config()
+        execute(run, Engine(client, quiet=True, retries=2), "report")
+        thread.join()
+    assert killed
+    _assert_same_predictions(reference, out)
+
+
+def test_predict_with_a_saved_model(reference, survey, tmp_path):
+    config = write_config(tmp_path / "p.yaml", survey)
+    result = silva("predict", config, "--model", reference / "model", "--out", tmp_path / "out",
+                   "--quiet", "--in-process", "--set", "data.train=[]")
+    assert result.exit_code == 0, result.output
+    pa, pb = read_predictions(reference), read_predictions(tmp_path / "out")
+    for tile in pb:
+        assert np.array_equal(pa[tile]["PredictedClassification"],
+                              pb[tile]["PredictedClassification"])
