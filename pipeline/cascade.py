@@ -12,9 +12,8 @@ from typing import Iterator
 import numpy as np
 from sklearn.ensemble import RandomForestClassifier
 
-from pipeline.features.context import context_from_neighbors, uniform_context
+from pipeline.features.context import context_features, uniform_context
 from pipeline.features.local import local_invariants
-from pipeline.features.neighbors import radius_neighbors
 
 _MASK64 = np.uint64(0xFFFFFFFFFFFFFFFF)
 
@@ -115,14 +114,17 @@ def labels_from_proba(proba: np.ndarray) -> np.ndarray:
     return np.argmax(proba, axis=1).astype(np.int16)
 
 
-def stage_context(xyz, nbr_idx, nbr_ptr, query, r2, proba, mode: str) -> np.ndarray:
-    """The context of the next stage from this stage's probabilities of every point."""
-    n_classes = proba.shape[1]
-    if mode == "hard":
-        return context_from_neighbors(
-            xyz, nbr_idx, nbr_ptr, query, r2, labels=labels_from_proba(proba), n_classes=n_classes
-        )
-    return context_from_neighbors(xyz, nbr_idx, nbr_ptr, query, r2, proba=proba, n_classes=n_classes)
+def stage_context(xyz, proba, mode: str, *, r1, r2, max_neighbors, query=None, ids=None):
+    """The context of the next stage from this stage's probabilities of every point of ``xyz``.
+
+    Returns float32 (Q, 2C) for the ``query`` points (default all); ``mode`` is "hard" (the
+    paper: frequencies of predicted labels) or "soft" (mean probabilities).
+    """
+    values = {"labels": labels_from_proba(proba)} if mode == "hard" else {"proba": proba}
+    return context_features(
+        xyz, r1, r2, n_classes=proba.shape[1], max_neighbors=max_neighbors, query=query,
+        ids=ids, **values,
+    )
 
 
 def fit_stage(
@@ -260,17 +262,17 @@ class CascadedForest:
         return r2
 
     def _describe(self, xyz, ids):
-        """Moment invariants and S1 neighbourhoods of a cloud: computed once, used by all stages."""
+        """Coordinates, ids and moment invariants of a cloud: computed once for all stages."""
         xyz = np.asarray(xyz, dtype=np.float64)
         if xyz.ndim != 2 or xyz.shape[1] != 3:
             raise ValueError(f"xyz must have shape (N, 3), got {xyz.shape}")
         ids = np.arange(len(xyz), dtype=np.int64) if ids is None else np.asarray(ids, np.int64)
         invariants = local_invariants(xyz, self.r1, self.max_neighbors, ids=ids)
-        query = np.arange(len(xyz), dtype=np.int64)
-        nbr_idx, nbr_ptr = radius_neighbors(
-            xyz, self.r1, self.context_max_neighbors, query=query, ids=ids
-        )
-        return xyz, ids, invariants, (nbr_idx, nbr_ptr, query)
+        return xyz, ids, invariants
+
+    def _context(self, xyz, ids, proba):
+        return stage_context(xyz, proba, self.context, r1=self.r1, r2=self.r2_,
+                             max_neighbors=self.context_max_neighbors, ids=ids)
 
     def _check_fitted(self):
         if not hasattr(self, "stages_"):
@@ -292,7 +294,7 @@ class CascadedForest:
         labels = np.full(len(y), -1, dtype=np.int64)
         known = np.isin(y, self.classes_)
         labels[known] = np.searchsorted(self.classes_, y[known])
-        xyz, ids, invariants, nbr = self._describe(xyz, ids)
+        xyz, ids, invariants = self._describe(xyz, ids)
         if len(labels) != len(xyz):
             raise ValueError(f"y has {len(labels)} labels for {len(xyz)} points")
 
@@ -306,7 +308,7 @@ class CascadedForest:
             self.n_estimators, self.min_samples_leaf, self.max_features, self.n_jobs
         )
         context = uniform_context(len(xyz), n_classes)
-        self.stages_, self.n_features_in_, self.seed_ = [], 3, seed
+        self.stages_, self.n_features_in_, self.seed_, self.r2_ = [], 3, seed, r2
         for stage in range(int(self.stages)):
             features = feature_matrix(invariants, context)
             forest, fold_forests = fit_stage(
@@ -324,21 +326,20 @@ class CascadedForest:
                 proba = predict_stage(
                     forest, fold_forests, features, ids, train, n_classes=n_classes, seed=seed
                 )
-                context = stage_context(xyz, *nbr, r2, proba, self.context)
-        self.r2_ = r2
+                context = self._context(xyz, ids, proba)
         return self
 
     def staged_predict_proba(self, xyz, ids=None) -> Iterator[np.ndarray]:
         """Yield float32 (N, C) probabilities after each stage, in order."""
         self._check_fitted()
-        xyz, ids, invariants, nbr = self._describe(xyz, ids)
+        xyz, ids, invariants = self._describe(xyz, ids)
         n_classes = len(self.classes_)
         context = uniform_context(len(xyz), n_classes)
         for stage, forest in enumerate(self.stages_):
             proba = predict_stage_proba(forest, feature_matrix(invariants, context), n_classes)
             yield proba
             if stage + 1 < len(self.stages_):
-                context = stage_context(xyz, *nbr, self.r2_, proba, self.context)
+                context = self._context(xyz, ids, proba)
 
     def staged_predict(self, xyz, ids=None) -> Iterator[np.ndarray]:
         """Yield the predicted labels after each stage, in order."""

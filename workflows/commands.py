@@ -140,8 +140,10 @@ def status(out):
 @click.option("--overwrite", is_flag=True, help="Start from an empty output directory.")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="Override a value of configs/demo.yaml.")
+@click.option("--plot-size", type=float, default=None,
+              help="Side of the synthetic plots in metres [default: the generator's].")
 @click.option("-v", "--verbose", count=True, help="More log output.")
-def demo(out, quiet, in_process, overwrite, overrides, verbose):
+def demo(out, quiet, in_process, overwrite, overrides, plot_size, verbose):
     """Synthesise a training and a test forest plot, run the whole workflow, report."""
     from pipeline.synth import write_synthetic_plot
 
@@ -153,7 +155,8 @@ def demo(out, quiet, in_process, overwrite, overrides, verbose):
     for role, seed in (("train", 1), ("test", 2)):
         if not any((data / role).glob("*.laz")):
             say(f"synthesising the {role} plot (seed {seed}) into {data / role}", quiet=quiet)
-            write_synthetic_plot(data / role, seed=seed)
+            size = {} if plot_size is None else {"size": plot_size, "tile_size": plot_size / 2}
+            write_synthetic_plot(data / role, seed=seed, **size)
     overrides = (
         f"data.train=[{(data / 'train').resolve()}/*.laz]",
         f"data.test=[{(data / 'test').resolve()}/*.laz]",

@@ -16,6 +16,8 @@ import numpy as np
 
 from pipeline.features.neighbors import radius_neighbors
 
+QUERY_BLOCK = 100_000  # query points per neighbour search
+
 
 def uniform_context(n_points: int, n_classes: int) -> np.ndarray:
     """The context before any classification: float32 (n_points, 2 * n_classes) of 1/C."""
@@ -156,7 +158,12 @@ def context_features(
     query = np.arange(len(xyz), dtype=np.int64) if query is None else np.asarray(query)
     if labels is None and proba is None:
         return uniform_context(len(query), n_classes)
-    nbr_idx, nbr_ptr = radius_neighbors(xyz, r1, max_neighbors, query=query, ids=ids)
-    return context_from_neighbors(
-        xyz, nbr_idx, nbr_ptr, query, r2, labels=labels, proba=proba, n_classes=n_classes
-    )
+    out = np.empty((len(query), 2 * n_classes), dtype=np.float32)
+    # Queries in blocks: the CSR lists of a whole chunk would need gigabytes at 256 per point.
+    for start in range(0, len(query), QUERY_BLOCK):
+        block = query[start : start + QUERY_BLOCK]
+        nbr_idx, nbr_ptr = radius_neighbors(xyz, r1, max_neighbors, query=block, ids=ids)
+        out[start : start + len(block)] = context_from_neighbors(
+            xyz, nbr_idx, nbr_ptr, block, r2, labels=labels, proba=proba, n_classes=n_classes
+        )
+    return out

@@ -16,7 +16,6 @@ import numpy as np
 from pipeline import cascade as method
 from pipeline.errors import ConfigError, StoreError
 from pipeline.features.context import uniform_context
-from pipeline.features.neighbors import radius_neighbors
 from pipeline.model import (
     check_compatible,
     load_forest,
@@ -72,11 +71,10 @@ def chunk_context(store_path, scene, chunk, grid, stage, r1, r2, max_neighbors, 
         read_array(group, f"stage{stage - 1}_proba"),
         _halo_proba(root, scene, grid, halo_xyz, halo_gid, stage - 1, n_classes),
     ])
-    all_xyz = np.concatenate([xyz, halo_xyz])
-    ids = np.concatenate([gid, halo_gid])
-    query = np.arange(len(gid), dtype=np.int64)
-    nbr_idx, nbr_ptr = radius_neighbors(all_xyz, r1, max_neighbors, query=query, ids=ids)
-    context = method.stage_context(all_xyz, nbr_idx, nbr_ptr, query, r2, proba, mode)
+    context = method.stage_context(
+        np.concatenate([xyz, halo_xyz]), proba, mode, r1=r1, r2=r2, max_neighbors=max_neighbors,
+        query=np.arange(len(gid), dtype=np.int64), ids=np.concatenate([gid, halo_gid]),
+    )
     write_arrays(group, {f"stage{stage}_context": context})
     mark_done(group, f"context{stage}", fingerprint)
     return None
