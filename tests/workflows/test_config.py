@@ -1,0 +1,465 @@
+"""Configuration: defaults, validation errors naming the key, overrides, round trips, fingerprints."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.errors import ConfigError, InputError, MissingFileError
+from workflows.config import (
+    SilvaConfig,
+    dump_config,
+    expand_inputs,
+    fingerprint,
+    load_config,
+    validate_config,
+)
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+CLASSES = {"terrain": [2], "tree": [5], "dead_wood": [64], "misc": [1]}
+STEPS = ("ingest", "features", "stage", "export", "evaluate")
+
+
+def write(path: Path, mapping) -> Path:
+    path.write_text(yaml.safe_dump(mapping, sort_keys=False))
+    return path
+
+
+def config_error(raw=None, overrides=(), tmp_path=None) -> str:
+    """The message of the ConfigError that ``raw`` + ``overrides`` raise."""
+    with pytest.raises(ConfigError) as info:
+        if overrides:
+            load_config(write(tmp_path / "c.yaml", raw or {}), overrides)
+        else:
+            validate_config(raw)
+    message = str(info.value)
+    assert "\n" not in message and message.startswith("config error: ")
+    return message
+
+
+# -- ready configs and defaults --------------------------------------------------------------
+@pytest.mark.parametrize("name", ["demo.yaml", "forest.yaml", "oakland.yaml"])
+def test_ready_configs_validate(name):
+    cfg = load_config(CONFIGS / name)
+    assert cfg.features.set == "paper" and cfg.cascade.stages == 3
+    assert load_config(CONFIGS / name) == cfg
+
+
+def test_demo_config_choices():
+    cfg = load_config(CONFIGS / "demo.yaml")
+    assert cfg.data.train == [] and cfg.data.test == []
+    assert cfg.data.classes == CLASSES and cfg.data.background == ["misc"]
+    assert cfg.features.r1 == 0.5 and cfg.cascade.n_estimators == 20
+    assert cfg.cascade.min_samples_leaf == 15
+
+
+def test_oakland_config_uses_the_benchmark_mapping(shared_data):
+    cfg = load_config(CONFIGS / "oakland.yaml")
+    oakland = shared_data / "oakland"
+    assert expand_inputs(cfg.data.train) == [oakland / "oakland_part3_an.xyz_label_conf"]
+    assert expand_inputs(cfg.data.test) == [oakland / "oakland_part3_am.xyz_label_conf"]
+    assert cfg.data.label_field == "label"
+    assert cfg.data.class_names == ["vegetation", "wire", "pole", "ground", "facade"]
+    assert cfg.data.code_to_class == {
+        1300: 0, 1101: 1, 1102: 1, 1103: 2, 1110: 2, 1302: 2, 1303: 2,
+        1200: 3, 1202: 3, 1203: 3, 1400: 4, 1401: 4,
+    }
+
+
+def test_defaults():
+    cfg = load_config(None)
+    assert cfg == SilvaConfig()
+    d = cfg.model_dump()
+    assert d["data"] == {"train": [], "test": [], "predict": [], "label_field": "classification",
+                         "classes": {}, "ignore": [], "background": [], "split": None}
+    assert d["tiling"] == {"chunk_size": 50.0, "halo": 0.5, "read_batch": 1_000_000}
+    assert d["features"] == {"set": "paper", "r1": 0.5, "r2": 0.25, "max_neighbors": 64,
+                             "context_max_neighbors": 256}
+    assert d["cascade"] == {"stages": 3, "n_estimators": 20, "min_samples_leaf": 15,
+                            "max_features": "sqrt", "context": "hard", "out_of_fold": False,
+                            "folds": 5, "max_train_points": 200_000, "balanced": False,
+                            "seed": 0}
+    assert d["cluster"]["kind"] == "local" and d["cluster"]["n_workers"] is None
+    assert d["cluster"]["memory_limit"] == "auto" and d["cluster"]["dashboard"] is True
+    assert d["cluster"]["slurm"] == {"queue": None, "account": None, "cores": 4, "processes": 1,
+                                     "memory": "16GiB", "walltime": "08:00:00", "jobs": 2,
+                                     "job_extra_directives": [], "local_directory": None}
+    assert d["output"] == {"format": "laz", "write_classification": False,
+                           "probabilities": True}
+
+
+def test_derived_radii_and_halo():
+    cfg = validate_config({"features": {"r1": 0.8}})
+    assert cfg.features.r2 == cfg.features.radius2 == 0.4
+    assert cfg.tiling.halo == cfg.halo == cfg.tiling.halo_resolved(cfg.features) == 0.8
+    cfg = validate_config({"features": {"r1": 0.8, "r2": 0.3}, "tiling": {"halo": 2.0}})
+    assert cfg.features.radius2 == 0.3 and cfg.halo == 2.0
+
+
+def test_empty_values_mean_defaults(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("data:\ntiling:\n  chunk_size:\ncascade:\n  stages:\ncluster:\n  slurm:\n")
+    assert load_config(path) == SilvaConfig()
+    (tmp_path / "empty.yaml").write_text("")
+    assert load_config(tmp_path / "empty.yaml") == SilvaConfig()
+
+
+def test_config_is_frozen():
+    cfg = SilvaConfig()
+    with pytest.raises(Exception):
+        cfg.tiling.chunk_size = 3.0
+    assert cfg.tiling.chunk_size == 50.0
+
+
+def test_class_helpers():
+    cfg = validate_config({"data": {
+        "classes": {"ground": [2, 11], "low": [3], "tree": [4, 5], "noise": [7], "misc": [1]},
+        "ignore": ["noise", 11], "background": ["misc"],
+    }})
+    data = cfg.data
+    assert data.class_names == ["ground", "low", "tree", "misc"]
+    assert data.class_codes == [2, 3, 4, 1]
+    assert data.code_to_class == {2: 0, 3: 1, 4: 2, 5: 2, 1: 3}
+    assert data.background_indices == [3]
+
+
+def test_a_single_code_or_path_is_a_list():
+    cfg = validate_config({"data": {"train": "a.laz", "classes": {"tree": 5}}})
+    assert cfg.data.train == ["a.laz"] and cfg.data.classes == {"tree": [5]}
+
+
+# -- validation errors -----------------------------------------------------------------------
+@pytest.mark.parametrize("raw, expected", [
+    ({"tiling": {"chunksize": 3}}, "unknown key 'tiling.chunksize' (did you mean 'chunk_size'?)"),
+    ({"tiling": {"chunk_size": 0}}, "tiling.chunk_size must be > 0, got 0"),
+    ({"features": {"r1": -1}}, "features.r1 must be > 0, got -1"),
+    ({"features": {"r1": float("inf")}}, "features.r1 must be a finite number, got inf"),
+    ({"features": {"r1": float("nan")}}, "features.r1 must be > 0, got nan"),
+    ({"tiling": {"halo": 0.2}},
+     "tiling.halo 0.2 is smaller than the largest radius 0.5; use a halo >= 0.5 or leave it "
+     "unset"),
+    ({"features": {"r1": 1.0, "r2": 1.5}}, "features.r2 must be > 0 and <= features.r1 (1.0), "
+                                           "got 1.5"),
+    ({"features": {"set": "enhanced"}}, "features.set must be one of the feature sets 'paper', "
+                                        "got 'enhanced'"),
+    ({"features": {"max_neighbors": 2}}, "features.max_neighbors must be >= 3, got 2"),
+    ({"features": {"context_max_neighbors": 0}}, "features.context_max_neighbors must be >= 1"),
+    ({"cascade": {"stages": 0}}, "cascade.stages must be >= 1, got 0"),
+    ({"cascade": {"stages": True}}, "cascade.stages must be an integer, got true"),
+    ({"cascade": {"n_estimators": 2.5}}, "cascade.n_estimators must be an integer, got 2.5"),
+    ({"cascade": {"folds": 1}}, "cascade.folds must be >= 2, got 1"),
+    ({"cascade": {"context": "fuzzy"}}, "cascade.context must be 'hard' or 'soft', got 'fuzzy'"),
+    ({"cascade": {"max_features": "all"}}, "cascade.max_features must be 'sqrt', 'log2', an "
+                                           "integer >= 1 or a number in (0, 1], got 'all'"),
+    ({"cascade": {"max_features": 1.5}}, "cascade.max_features must be"),
+    ({"cascade": {"max_features": 0}}, "cascade.max_features must be"),
+    ({"cascade": {"seed": -1}}, "cascade.seed must be >= 0, got -1"),
+    ({"cluster": {"kind": "cloud"}}, "cluster.kind must be 'local', 'address' or 'slurm', "
+                                     "got 'cloud'"),
+    ({"cluster": {"kind": "address"}}, "cluster.address is required when cluster.kind is "
+                                       "'address'"),
+    ({"cluster": {"n_workers": 0}}, "cluster.n_workers must be >= 1, got 0"),
+    ({"cluster": {"memory_limit": "lots"}}, "cluster.memory_limit must be 'auto', a size such "
+                                            "as '4GiB' or a number of bytes, got 'lots'"),
+    ({"cluster": {"dashboard": "maybe"}}, "cluster.dashboard must be true or false"),
+    ({"cluster": {"slurm": {"walltime": 43200}}}, "cluster.slurm.walltime must be a SLURM time"),
+    ({"cluster": {"slurm": {"memory": "much"}}}, "cluster.slurm.memory must be 'auto', a size"),
+    ({"cluster": {"slurm": {"cores": 2, "processes": 4}}},
+     "cluster.slurm.processes (4) is more than cluster.slurm.cores (2)"),
+    ({"output": {"format": "ply"}}, "output.format must be 'laz' or 'las', got 'ply'"),
+    ({"data": {"train": ["a.laz"]}}, "data.classes is empty but data.train is given"),
+    ({"data": {"test": ["a.laz"]}}, "data.classes is empty but data.test is given"),
+    ({"data": {"train": 3}}, "data.train must be a list, got 3"),
+    ({"data": {"label_field": ""}}, "data.label_field must not be empty"),
+    ({"data": {"classes": {"a": [1], "b": [2, 1]}}},
+     "data.classes: label code 1 is listed under both 'a' and 'b'"),
+    ({"data": {"classes": {"a": [1, 1]}}}, "data.classes: label code 1 is listed twice under 'a'"),
+    ({"data": {"classes": {"a": []}}}, "data.classes.a has no label codes"),
+    ({"data": {"classes": {"a": ["two"]}}}, "data.classes.a[0] must be an integer, got 'two'"),
+    ({"data": {"classes": {"a": [1]}, "ignore": ["b"]}},
+     "data.ignore[0] 'b' is not a class in data.classes (classes: a)"),
+    ({"data": {"classes": {"a": [1]}, "ignore": [1.5]}},
+     "data.ignore[0] must be a class name or an integer label code, got 1.5"),
+    ({"data": {"classes": {"a": [1], "b": [2]}, "background": ["a", "c"]}},
+     "data.background[1] 'c' is not a class in data.classes (classes: a, b)"),
+    ({"data": {"classes": {"a": [1], "b": [2]}, "background": ["a"], "ignore": ["a"]}},
+     "data.background 'a' is also in data.ignore"),
+    ({"data": {"classes": {"a": [1, 3], "b": [2]}, "ignore": [1, 3]}},
+     "data.ignore drops every code of class 'a'"),
+    ({"data": {"classes": {"a": [1]}, "ignore": ["a"]}}, "data.ignore drops every class"),
+    ({"data": {"split": {"axis": "y", "at": 528.0}}}, "data.split cuts the data.train cloud"),
+    ({"data": {"train": ["a"], "classes": {"a": [1]}, "split": {"axis": "w", "at": 1}}},
+     "data.split.axis must be 'x', 'y' or 'z', got 'w'"),
+    ({"data": {"train": ["a"], "classes": {"a": [1]}, "split": {"axis": "y"}}},
+     "data.split.at is required"),
+    ({"features": 3}, "features must be a mapping of keys to values, got 3"),
+])
+def test_errors_name_the_key(raw, expected):
+    assert expected in config_error(raw)
+
+
+def test_several_errors_are_counted():
+    message = config_error({"features": {"r1": -1}, "cascade": {"stages": 0, "folds": 1}})
+    assert message.endswith("(and 2 more)")
+    assert "features.r1 must be > 0, got -1" in message
+
+
+@pytest.mark.parametrize("loc, valid", [
+    ((), "tiling"), (("data",), "classes"), (("tiling",), "halo"), (("features",), "r2"),
+    (("cascade",), "seed"), (("cluster",), "slurm"), (("cluster", "slurm"), "queue"),
+    (("output",), "format"),
+])
+def test_unknown_keys_at_every_level(loc, valid):
+    raw = node = {}
+    for part in loc:
+        node = node.setdefault(part, {})
+    node["zebra"] = "striped"
+    message = config_error(raw)
+    key = ".".join((*loc, "zebra"))
+    assert f"unknown key '{key}'" in message
+    assert valid in message  # no close match: the valid keys are listed
+
+
+def test_unknown_key_in_the_split():
+    raw = {"data": {"train": ["a"], "classes": {"a": [1]},
+                    "split": {"axis": "y", "at": 1, "att": 2}}}
+    assert "unknown key 'data.split.att' (did you mean 'at'?)" in config_error(raw)
+
+
+def test_yaml_syntax_error_names_file_and_line(tmp_path):
+    path = tmp_path / "broken.yaml"
+    path.write_text("data:\n  train: [a.laz\n  test: b\n")
+    with pytest.raises(ConfigError, match=r"broken\.yaml line 3: "):
+        load_config(path)
+
+
+def test_duplicate_yaml_key_is_refused(tmp_path):
+    path = tmp_path / "dup.yaml"
+    path.write_text("data:\n  classes:\n    tree: [5]\n    tree: [6]\n")
+    with pytest.raises(ConfigError, match=r"dup\.yaml line 4: duplicate key 'tree'"):
+        load_config(path)
+
+
+def test_config_that_is_not_a_mapping(tmp_path):
+    path = tmp_path / "list.yaml"
+    path.write_text("- data\n- tiling\n")
+    with pytest.raises(ConfigError, match="must hold a mapping of sections"):
+        load_config(path)
+
+
+def test_missing_config_file(tmp_path):
+    with pytest.raises(MissingFileError, match="nope.yaml"):
+        load_config(tmp_path / "nope.yaml")
+
+
+# -- overrides -------------------------------------------------------------------------------
+def test_overrides_scalars_lists_and_nested_keys(tmp_path):
+    path = write(tmp_path / "c.yaml", {"data": {"train": ["/t/*.laz"], "classes": CLASSES},
+                                       "tiling": {"chunk_size": 9}})
+    cfg = load_config(path, [
+        "tiling.chunk_size=20",
+        "cascade.context=soft",
+        "cascade.max_features=0.5",
+        "cluster.slurm.queue=short",
+        "cluster.slurm.job_extra_directives=[--exclusive, '--gres=gpu:1']",
+        "data.classes.tree=[5, 6]",
+        "data.background=[misc]",
+        "data.split={axis: y, at: 528}",
+        "output.write_classification=true",
+        "features.r1=0.6",
+    ])
+    assert cfg.tiling.chunk_size == 20.0 and cfg.cascade.context == "soft"
+    assert cfg.cascade.max_features == 0.5
+    assert cfg.cluster.slurm.queue == "short"
+    assert cfg.cluster.slurm.job_extra_directives == ["--exclusive", "--gres=gpu:1"]
+    assert cfg.data.classes["tree"] == [5, 6] and cfg.data.background == ["misc"]
+    assert cfg.data.split.axis == "y" and cfg.data.split.at == 528.0
+    assert cfg.output.write_classification is True
+    # derived values follow the overridden radius
+    assert cfg.features.r2 == 0.3 and cfg.halo == 0.6
+
+
+def test_later_override_wins(tmp_path):
+    cfg = load_config(None, ["cascade.stages=2", "cascade.stages=5"])
+    assert cfg.cascade.stages == 5
+
+
+def test_paths_from_the_file_and_from_overrides(tmp_path, monkeypatch):
+    conf_dir = tmp_path / "conf"
+    conf_dir.mkdir()
+    path = write(conf_dir / "c.yaml", {"data": {
+        "train": ["tiles/*.laz", "/abs/x.laz", "../up/y.laz"], "classes": CLASSES}})
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    cfg = load_config(path, ["data.test=[a.laz, b/*.laz]", "data.predict=c/**/*.laz"])
+    assert cfg.data.train == [str(conf_dir / "tiles/*.laz"), "/abs/x.laz", str(tmp_path / "up/y.laz")]
+    assert cfg.data.test == [str(work / "a.laz"), str(work / "b/*.laz")]
+    assert cfg.data.predict == [str(work / "c/**/*.laz")]
+    # base_dir replaces the file's directory
+    other = load_config(path, base_dir=tmp_path)
+    assert other.data.train[0] == str(tmp_path / "tiles/*.laz")
+    # without a file, relative paths are taken from the current directory
+    assert load_config(None, ["data.predict=[p.laz]"]).data.predict == [str(work / "p.laz")]
+
+
+@pytest.mark.parametrize("override, expected", [
+    ("tiling.chunk_size", "--set 'tiling.chunk_size' has no '='; use KEY=VALUE"),
+    ("=3", "--set '=3' has an empty key or key part; use KEY=VALUE"),
+    ("tiling..halo=1", "has an empty key or key part; use KEY=VALUE"),
+    ("tiling.chunk_size.x=1", "'tiling.chunk_size' is a value, not a section, so it has no "
+                              "key 'x'; use KEY=VALUE"),
+    ("data.classes.tree.x=1", "'data.classes.tree' holds [5], not a mapping"),
+    ("data.test=[*.laz]", "the value of --set 'data.test=[*.laz]' is not valid YAML"),
+    ("tiling.chunksize=3", "unknown key 'tiling.chunksize' (did you mean 'chunk_size'?)"),
+    ("features.r1=-1", "features.r1 must be > 0, got -1"),
+    ("colour=green", "unknown key 'colour'"),
+])
+def test_malformed_or_invalid_overrides(tmp_path, override, expected):
+    raw = {"data": {"classes": {"tree": [5]}}}
+    assert expected in config_error(raw, [override], tmp_path)
+
+
+# -- dump and load ---------------------------------------------------------------------------
+def test_dump_load_round_trip(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    cfg = load_config(None, [
+        "data.train=[train dir/*.laz, 'x: y.laz']",
+        f"data.classes={CLASSES}",
+        "data.ignore=[7, dead_wood]",
+        "data.background=[misc]",
+        "data.split={axis: x, at: -1.5}",
+        "tiling.chunk_size=12.5",
+        "features.r1=0.3",
+        "cascade.max_features=3",
+        "cluster.kind=address",
+        "cluster.address=tcp://10.0.0.1:8786",
+        "cluster.memory_limit=4GiB",
+        "cluster.slurm.walltime='12:00:00'",
+        "cluster.slurm.job_extra_directives=['--constraint=a&b']",
+        "output.format=las",
+    ])
+    text = dump_config(cfg)
+    assert "r2: 0.15" in text and "halo: 0.3" in text  # derived values written out
+    saved = tmp_path / "elsewhere" / "config.yaml"
+    saved.parent.mkdir()
+    saved.write_text(text)
+    again = load_config(saved)
+    assert again == cfg
+    assert dump_config(again) == text
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    r1=st.floats(1e-3, 10.0), extra_halo=st.floats(0.0, 5.0),
+    chunk=st.floats(1e-2, 1e4), stages=st.integers(1, 9),
+    fraction=st.floats(1e-6, 1.0), seed=st.integers(0, 2**32 - 1),
+)
+def test_dump_load_round_trip_property(r1, extra_halo, chunk, stages, fraction, seed):
+    cfg = validate_config({
+        "tiling": {"chunk_size": chunk, "halo": r1 + extra_halo},
+        "features": {"r1": r1},
+        "cascade": {"stages": stages, "max_features": fraction, "seed": seed},
+    })
+    assert validate_config(yaml.safe_load(dump_config(cfg))) == cfg
+
+
+# -- fingerprints ----------------------------------------------------------------------------
+BASE = {"data": {"train": ["/d/train/*.laz"], "test": ["/d/test/*.laz"], "classes": CLASSES,
+                 "background": ["misc"]},
+        "tiling": {"halo": 1.0}}
+
+
+def changed_steps(**sections) -> set[str]:
+    """The steps whose fingerprint changes when ``sections`` update BASE."""
+    a = validate_config(BASE)
+    raw = {k: dict(v) for k, v in BASE.items()}
+    for section, values in sections.items():
+        raw[section] = {**raw.get(section, {}), **values}
+    b = validate_config(raw)
+    return {step for step in STEPS if fingerprint(a, step) != fingerprint(b, step)}
+
+
+@pytest.mark.parametrize("sections, expected", [
+    ({"features": {"r1": 0.6}}, {"features", "stage", "export", "evaluate"}),
+    ({"features": {"max_neighbors": 32}}, {"features", "stage", "export", "evaluate"}),
+    ({"features": {"r2": 0.2}}, {"stage", "export", "evaluate"}),
+    ({"features": {"context_max_neighbors": 100}}, {"stage", "export", "evaluate"}),
+    ({"cascade": {"n_estimators": 30}}, {"stage", "export", "evaluate"}),
+    ({"cascade": {"context": "soft"}}, {"stage", "export", "evaluate"}),
+    ({"cascade": {"stages": 5}}, set()),
+    ({"cluster": {"n_workers": 7}}, set()),
+    ({"cluster": {"kind": "slurm"}}, set()),
+    ({"tiling": {"read_batch": 1000}}, set()),
+    ({"output": {"format": "las"}}, {"export"}),
+    ({"output": {"probabilities": False}}, {"export"}),
+    ({"data": {"background": []}}, {"evaluate"}),
+    ({"tiling": {"chunk_size": 20}}, set(STEPS)),
+    ({"tiling": {"halo": 2.0}}, set(STEPS)),
+    ({"data": {"label_field": "label"}}, set(STEPS)),
+    ({"data": {"ignore": [7]}}, set(STEPS)),
+    ({"data": {"predict": ["/d/more.laz"]}}, set(STEPS)),
+    ({"data": {"train": ["/d/test/*.laz"], "test": ["/d/train/*.laz"]}}, set(STEPS)),
+    ({"data": {"classes": dict(reversed(CLASSES.items()))}}, set(STEPS)),  # class order
+    ({"data": {"train": ["/d/train/*.laz", "/d/train/*.laz"]}}, set()),
+])
+def test_fingerprints_change_with_exactly_what_they_cover(sections, expected):
+    assert changed_steps(**sections) == expected
+
+
+def test_unset_halo_follows_r1_into_ingest():
+    a = validate_config({"features": {"r1": 0.5}})
+    b = validate_config({"features": {"r1": 0.6}})
+    assert fingerprint(a, "ingest") != fingerprint(b, "ingest")
+    # the same halo written out or left to its default is the same ingest
+    c = validate_config({"features": {"r1": 0.5}, "tiling": {"halo": 0.5}})
+    assert all(fingerprint(a, step) == fingerprint(c, step) for step in STEPS)
+
+
+def test_fingerprint_is_short_and_stable_across_processes(tmp_path):
+    cfg = validate_config(BASE)
+    values = [fingerprint(cfg, step) for step in STEPS]
+    assert len(set(values)) == len(STEPS)
+    assert all(len(v) == 16 and int(v, 16) >= 0 for v in values)
+    path = write(tmp_path / "c.yaml", BASE)
+    code = ("import sys; from workflows.config import load_config, fingerprint; "
+            f"c = load_config(sys.argv[1]); print(*(fingerprint(c, s) for s in {STEPS!r}))")
+    env = {**os.environ, "PYTHONHASHSEED": "12345"}
+    out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True,
+                         text=True, check=True, env=env,
+                         cwd=Path(__file__).resolve().parents[2]).stdout.split()
+    assert out == values
+
+
+def test_unknown_step():
+    with pytest.raises(ConfigError, match="unknown step 'train'"):
+        fingerprint(SilvaConfig(), "train")
+
+
+# -- inputs ----------------------------------------------------------------------------------
+def test_expand_inputs(tmp_path):
+    for name in ("a/t2.laz", "a/t1.laz", "a/notes.txt", "b/deep/t3.las", "b/t4.laz"):
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_bytes(b"")
+    (tmp_path / "a" / "dir.laz").mkdir()  # a directory is never an input
+    found = expand_inputs([str(tmp_path / "b/**/*.la?"), str(tmp_path / "a/*.laz"),
+                           str(tmp_path / "a/t1.laz"), tmp_path / "a" / ".." / "a" / "t2.laz"])
+    assert [p.relative_to(tmp_path).as_posix() for p in found] == [
+        "a/t1.laz", "a/t2.laz", "b/deep/t3.las", "b/t4.laz"]
+
+
+def test_expand_inputs_refuses_what_matches_nothing(tmp_path):
+    (tmp_path / "a.laz").write_bytes(b"")
+    pattern = str(tmp_path / "none" / "*.laz")
+    with pytest.raises(MissingFileError) as info:
+        expand_inputs([str(tmp_path / "a.laz"), pattern])
+    assert pattern in str(info.value)
+    with pytest.raises(MissingFileError, match=r"missing\.laz' in data\.test"):
+        expand_inputs([str(tmp_path / "missing.laz")], key="data.test")
+    with pytest.raises(InputError, match="is a directory"):
+        expand_inputs([str(tmp_path)])

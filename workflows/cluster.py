@@ -1,0 +1,212 @@
+"""The Dask client Silva's steps run on: a local cluster, a running scheduler or SLURM jobs.
+
+``cluster.kind`` chooses:
+
+- ``local``: a :class:`distributed.LocalCluster` of worker processes on this machine, every
+  socket (scheduler, workers, dashboard) bound to the loopback interface;
+- ``address``: connect to a scheduler someone started (``dask scheduler`` and
+  ``dask worker`` on other machines);
+- ``slurm``: a :class:`dask_jobqueue.SLURMCluster` that submits ``cluster.slurm.jobs`` batch
+  jobs (``pip install 'silva[slurm]'``). Site settings that are not in Silva's config
+  (network interface, log directory, ...) come from dask's own ``jobqueue.slurm`` config.
+"""
+
+import importlib.util
+import logging
+import os
+import weakref
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
+
+from pipeline.errors import ConfigError, SilvaError
+
+log = logging.getLogger(__name__)
+
+LOOPBACK = "127.0.0.1"
+SCHEDULER_PLACEHOLDER = "tcp://<scheduler-address>:8786"
+JOB_NAME = "silva-worker"
+
+# The dashboard link of each client opened here (None: no dashboard). A scheduler always
+# serves HTTP (health checks), so its address alone does not tell whether a dashboard runs.
+_LINKS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+@contextmanager
+def open_client(
+    cluster_cfg,
+    *,
+    quiet: bool = False,
+    local_directory: str | os.PathLike | None = None,
+    timeout: float = 10.0,
+) -> Iterator["distributed.Client"]:  # noqa: F821
+    """Start or connect to the cluster of ``cluster_cfg`` and yield a client to it.
+
+    Parameters
+    ----------
+    cluster_cfg
+        A :class:`workflows.config.ClusterConfig`.
+    quiet
+        Keep the cluster's own log messages to errors.
+    local_directory
+        Scratch directory of local workers (spilled data); for SLURM workers
+        ``cluster.slurm.local_directory`` takes precedence.
+    timeout
+        Seconds to wait for the scheduler of ``kind: address``.
+
+    Everything started here (cluster, workers, jobs, client) is closed on exit, also when
+    the body raises. Raises :class:`ConfigError` naming the address when the scheduler
+    cannot be reached, :class:`SilvaError` when the slurm kind lacks dask-jobqueue.
+    """
+    from distributed import Client
+
+    kind = cluster_cfg.kind
+    with ExitStack() as stack:
+        if kind == "local":
+            cluster = stack.enter_context(_local_cluster(cluster_cfg, quiet, local_directory))
+            client = stack.enter_context(Client(cluster))
+            wanted = _dashboard_possible(cluster_cfg.dashboard)
+        elif kind == "address":
+            client = stack.enter_context(_connect(cluster_cfg.address, timeout))
+            wanted = True
+        elif kind == "slurm":
+            cluster = stack.enter_context(_slurm_cluster(cluster_cfg, quiet, local_directory))
+            client = stack.enter_context(Client(cluster))
+            wanted = _dashboard_possible(cluster_cfg.dashboard)
+        else:  # the config model admits no other kind
+            raise ConfigError(f"config error: cluster.kind must be 'local', 'address' or "
+                              f"'slurm', got {kind!r}")
+        link = _link_of(client) if wanted else None
+        _LINKS[client] = link
+        if link:
+            log.info("dask dashboard: %s", link)
+        yield client
+
+
+def dashboard_link(client) -> str | None:
+    """The dashboard address of ``client``'s scheduler, or None when it serves none."""
+    if client in _LINKS:
+        return _LINKS[client]
+    return _link_of(client)
+
+
+def slurm_job_script(cluster_cfg) -> str:
+    """The batch script one SLURM job of ``cluster_cfg.slurm`` runs, without submitting it.
+
+    The scheduler address, known only once a cluster runs, is shown as
+    ``tcp://<scheduler-address>:8786``.
+    """
+    _jobqueue()
+    from dask_jobqueue.slurm import SLURMJob
+
+    job = SLURMJob(SCHEDULER_PLACEHOLDER, name=JOB_NAME, **_slurm_kwargs(cluster_cfg, None))
+    return job.job_script()
+
+
+# -- the three kinds -------------------------------------------------------------------------
+@contextmanager
+def _local_cluster(cfg, quiet, local_directory):
+    from distributed import LocalCluster
+
+    n_workers = cfg.n_workers or os.cpu_count() or 1
+    extra = {"local_directory": os.fspath(local_directory)} if local_directory else {}
+    log.info("starting a local Dask cluster: %d workers x %d threads", n_workers,
+             cfg.threads_per_worker)
+    with LocalCluster(
+        n_workers=n_workers,
+        threads_per_worker=cfg.threads_per_worker,
+        memory_limit=cfg.memory_limit,
+        processes=True,
+        host=LOOPBACK,
+        # The scheduler's HTTP server (health checks, and the dashboard when enabled) also
+        # stays on loopback, on a free port.
+        dashboard_address=f"{LOOPBACK}:0",
+        scheduler_kwargs={"dashboard": _dashboard_possible(cfg.dashboard)},
+        silence_logs=logging.ERROR if quiet else logging.WARNING,
+        **extra,
+    ) as cluster:
+        yield cluster
+
+
+def _connect(address: str, timeout: float):
+    from distributed import Client
+
+    try:
+        client = Client(address, timeout=timeout)
+    except (OSError, TimeoutError, ValueError) as exc:
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+        raise ConfigError(
+            f"cannot connect to the Dask scheduler at {address} (cluster.address) within "
+            f"{timeout:g} s: {reason}; start it with 'dask scheduler' or fix cluster.address"
+        ) from None
+    if not client.scheduler_info().get("workers"):
+        log.warning("the scheduler at %s has no workers yet; tasks wait until one joins",
+                    address)
+    return client
+
+
+@contextmanager
+def _slurm_cluster(cfg, quiet, local_directory):
+    SLURMCluster = _jobqueue().SLURMCluster
+    slurm = cfg.slurm
+    cluster = SLURMCluster(
+        silence_logs="error" if quiet else "warning",
+        scheduler_options={"dashboard": _dashboard_possible(cfg.dashboard)},
+        **_slurm_kwargs(cfg, local_directory),
+    )
+    with cluster:
+        # n_workers counts worker processes; by default every configured job is submitted.
+        if cfg.n_workers:
+            cluster.scale(n=cfg.n_workers)
+        else:
+            cluster.scale(jobs=slurm.jobs)
+        log.info("submitted SLURM jobs for %s workers",
+                 cfg.n_workers or slurm.jobs * slurm.processes)
+        yield cluster
+
+
+def _slurm_kwargs(cfg, local_directory) -> dict:
+    """Keyword arguments shared by SLURMCluster and SLURMJob."""
+    slurm = cfg.slurm
+    kwargs = {
+        "cores": slurm.cores,
+        "processes": slurm.processes,
+        "memory": slurm.memory,
+        "walltime": slurm.walltime,
+        "job_extra_directives": list(slurm.job_extra_directives),
+        "job_name": JOB_NAME,
+    }
+    if slurm.queue:
+        kwargs["queue"] = slurm.queue
+    if slurm.account:
+        kwargs["account"] = slurm.account
+    directory = slurm.local_directory or (os.fspath(local_directory) if local_directory else None)
+    if directory:
+        kwargs["local_directory"] = directory
+    return kwargs
+
+
+def _jobqueue():
+    try:
+        import dask_jobqueue
+    except ImportError:
+        raise SilvaError(
+            "cluster.kind 'slurm' needs dask-jobqueue; install silva[slurm] "
+            "(pip install 'silva[slurm]')"
+        ) from None
+    return dask_jobqueue
+
+
+# -- dashboard -------------------------------------------------------------------------------
+def _dashboard_possible(wanted: bool) -> bool:
+    """Whether to serve a dashboard: asked for, and bokeh (which draws it) is installed."""
+    if wanted and importlib.util.find_spec("bokeh") is None:
+        log.info("the Dask dashboard needs bokeh (pip install 'bokeh>=3.1'); running without")
+        return False
+    return bool(wanted)
+
+
+def _link_of(client) -> str | None:
+    try:
+        return client.dashboard_link or None
+    except Exception:  # noqa: BLE001 - a scheduler without HTTP services has no link
+        return None
