@@ -12,10 +12,10 @@ The output directory of a run::
       report.html        the report with its plots
 """
 
+import hashlib
 import os
 import shutil
 from dataclasses import dataclass, field
-from functools import cached_property
 from pathlib import Path
 
 from pipeline.errors import ConfigError
@@ -33,6 +33,7 @@ class Run:
     out: Path
     quiet: bool = False
     model_dir: Path | None = None  # a saved model to apply instead of training
+    inputs_digest: str = ""  # the input files as ingest found them (paths, sizes, times)
     _store: object = field(default=None, repr=False)
 
     # -- layout ---------------------------------------------------------------------------
@@ -74,42 +75,35 @@ class Run:
 
     @property
     def r2(self) -> float:
-        r2 = self.cfg.features.r2
-        return float(r2) if r2 is not None else self.r1 / 2
+        return float(self.cfg.features.radius2)
 
     @property
     def halo(self) -> float:
-        halo = self.cfg.tiling.halo
-        return float(halo) if halo is not None else self.r1
+        return float(self.cfg.halo)
 
-    @cached_property
+    @property
     def classes(self) -> list[str]:
         """Class names the model learns and predicts (ignored classes removed), in order."""
-        ignored = {name for name in self.cfg.data.ignore if isinstance(name, str)}
-        return [name for name in self.cfg.data.classes if name not in ignored]
+        return self.cfg.data.class_names
 
-    @cached_property
+    @property
     def class_codes(self) -> list[int]:
         """The output code of each class: the first of its source codes."""
-        return [int(self.cfg.data.classes[name][0]) for name in self.classes]
+        return self.cfg.data.class_codes
 
-    @cached_property
+    @property
     def code_to_class(self) -> dict[int, int]:
         """Source label code -> class index; ignored codes and classes are absent."""
-        ignored_codes = {int(c) for c in self.cfg.data.ignore if not isinstance(c, str)}
-        table = {}
-        for index, name in enumerate(self.classes):
-            for code in self.cfg.data.classes[name]:
-                if int(code) not in ignored_codes:
-                    table[int(code)] = index
-        return table
+        return self.cfg.data.code_to_class
 
     @property
     def n_classes(self) -> int:
         return len(self.classes)
 
     def fingerprint(self, step: str) -> str:
-        return fingerprint(self.cfg, step)
+        """Fingerprint of a step: its configuration and the input files it reads."""
+        digest = hashlib.sha256(f"{fingerprint(self.cfg, step)}|{self.inputs_digest}".encode())
+        return digest.hexdigest()[:16]
 
     def stage_fingerprint(self, stage: int) -> str:
         """Fingerprint of cascade stage ``stage`` (0-based): its config and its stage number."""

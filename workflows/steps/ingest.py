@@ -5,6 +5,10 @@ streams it in batches and appends each batch's points to the parts of the chunks
 they fall in. Memory is bounded by the read batch, not by the tile or survey size.
 """
 
+import hashlib
+import json
+import os
+
 import numpy as np
 
 from pipeline.io import map_labels, read_info
@@ -35,7 +39,7 @@ def plan_tiles(run: Run) -> list[dict]:
         patterns = list(getattr(run.cfg.data, scene))
         if not patterns:
             continue
-        for path in expand_inputs(patterns):
+        for path in expand_inputs(patterns, key=f"data.{scene}"):
             info = read_info(path)
             if info.n_points == 0:
                 raise InputError(f"tile {path} holds no points; remove it from data.{scene}")
@@ -136,8 +140,17 @@ def ingest_tile(
     return counts
 
 
+def inputs_digest(tiles: list[dict]) -> str:
+    """A digest of the input files: a replaced or added file invalidates the stored chunks."""
+    state = [(t["path"], t["scene"], os.stat(t["path"]).st_size, os.stat(t["path"]).st_mtime_ns)
+             for t in tiles]
+    return hashlib.sha256(json.dumps(state).encode()).hexdigest()[:16]
+
+
 def ingest(run: Run, engine) -> dict:
     """Plan the scenes, stream every tile into the store, record the chunk layout."""
+    tiles = plan_tiles(run)
+    run.inputs_digest = inputs_digest(tiles)
     fingerprint = run.fingerprint("ingest")
     root = run.store
     layout = root.attrs.get("layout")
@@ -148,7 +161,6 @@ def ingest(run: Run, engine) -> dict:
         if "scenes" in root:
             del root["scenes"]
         root.attrs["layout"] = None
-    tiles = plan_tiles(run)
     scenes = plan_scenes(run, tiles)
     tasks = []
     for tile in tiles:
