@@ -1,0 +1,213 @@
+"""The synthetic forest plot: determinism, content, TLS-like sampling and the LAZ tiles."""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from pipeline.errors import ConfigError
+from pipeline.synth import (
+    CRS_WKT,
+    DEFAULT_ORIGIN,
+    DEFAULT_SIZE,
+    SYNTH_CLASSES,
+    Stem,
+    _occluded,
+    synthetic_plot,
+    synthetic_scene,
+    write_synthetic_plot,
+)
+
+TERRAIN, TREE = SYNTH_CLASSES["terrain"], SYNTH_CLASSES["tree"]
+DEAD_WOOD, MISC = SYNTH_CLASSES["dead_wood"], SYNTH_CLASSES["misc"]
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """The default plot (seed 0, DEFAULT_SIZE)."""
+    return synthetic_scene(0)
+
+
+@pytest.fixture(scope="module")
+def height(scene):
+    """Height of every point above the true ground (m)."""
+    xyz = scene.xyz
+    return xyz[:, 2] - scene.ground_height(xyz[:, 0], xyz[:, 1])
+
+
+def test_same_seed_same_plot_different_seed_different_plot():
+    xyz, labels = synthetic_plot(seed=5, size=12.0)
+    again_xyz, again_labels = synthetic_plot(seed=5, size=12.0)
+    assert np.array_equal(xyz, again_xyz)
+    assert np.array_equal(labels, again_labels)
+    other_xyz, _ = synthetic_plot(seed=6, size=12.0)
+    assert other_xyz.shape != xyz.shape or not np.allclose(other_xyz, xyz)
+    # Not merely a permutation: the point sets differ.
+    assert not np.allclose(np.sort(other_xyz[:, 2])[:1000], np.sort(xyz[:, 2])[:1000])
+
+
+def test_types_coordinates_and_point_budget(scene):
+    xyz, labels = scene.xyz, scene.labels
+    assert xyz.dtype == np.float64 and xyz.shape[1] == 3
+    assert labels.dtype == np.uint8 and labels.shape == (len(xyz),)
+    assert 150_000 <= len(xyz) <= 250_000
+    assert set(np.unique(labels)) == set(SYNTH_CLASSES.values())
+    # Inside the half-open square at UTM-like coordinates, ground near the origin's z.
+    local = xyz[:, :2] - np.asarray(DEFAULT_ORIGIN[:2])
+    assert local.min() >= 0.0 and local.max() < DEFAULT_SIZE
+    assert np.ptp(local[:, 0]) > 0.95 * DEFAULT_SIZE and np.ptp(local[:, 1]) > 0.95 * DEFAULT_SIZE
+    assert abs(np.median(xyz[labels == TERRAIN, 2]) - DEFAULT_ORIGIN[2]) < 5.0
+
+
+@pytest.mark.parametrize("seed, size", [(0, DEFAULT_SIZE), (1, 14.0), (2, 14.0), (3, 8.0)])
+def test_every_class_with_plausible_shares(seed, size):
+    _, labels = synthetic_plot(seed, size)
+    share = {name: np.mean(labels == code) for name, code in SYNTH_CLASSES.items()}
+    assert 0.2 <= share["terrain"] <= 0.7, share
+    assert 0.2 <= share["tree"] <= 0.7, share
+    assert 0.01 <= share["dead_wood"] <= 0.15, share
+    assert 0.01 <= share["misc"] <= 0.15, share
+
+
+def test_terrain_is_the_lowest_surface(scene, height):
+    labels = scene.labels
+    local = scene.xyz[:, :2] - np.asarray(scene.origin[:2])
+    cell = np.floor(local[:, 0]).astype(np.int64) * 1000 + np.floor(local[:, 1]).astype(np.int64)
+    order = np.lexsort((scene.xyz[:, 2], cell))
+    lowest = order[np.r_[True, np.diff(cell[order]) != 0]]  # lowest point of each 1 m cell
+    assert len(lowest) > 0.95 * DEFAULT_SIZE**2
+    assert np.mean(labels[lowest] == TERRAIN) > 0.95
+    # Terrain points lie on the ground (roughness and noise of a few cm only) ...
+    assert np.percentile(np.abs(height[labels == TERRAIN]), 99) < 0.05
+    # ... and the ground is uneven: a slope or relief of more than a metre over the plot.
+    assert np.ptp(scene.xyz[labels == TERRAIN, 2]) > 1.0
+
+
+def test_trees_are_tall_and_dead_wood_and_misc_lie_low(scene, height):
+    labels = scene.labels
+    tree_h = height[labels == TREE]
+    assert tree_h.max() > 15.0
+    assert np.mean(tree_h > 8.0) > 0.2  # crowns, not only stems and low branches
+    dead_h = height[labels == DEAD_WOOD]
+    assert np.mean(dead_h < 2.0) > 0.8  # logs and fallen branches; snags are the rest
+    assert dead_h.max() < 6.0
+    assert np.mean(dead_h < 0.1) > 0.02  # lying wood in contact with the ground
+    assert np.percentile(height[labels == MISC], 99) < 3.0
+    # Nothing but noise below the ground.
+    assert np.percentile(height[labels != TERRAIN], 0.1) > -0.05
+
+
+def test_density_falls_with_distance_from_the_scanners(scene):
+    terrain = scene.xyz[scene.labels == TERRAIN]
+    dist = cKDTree(scene.scanners[:, :2]).query(terrain[:, :2])[0]
+    near = np.sum(dist < 2.0) / (len(scene.scanners) * np.pi * 2.0**2)
+    # Area farther than 10 m from every scanner, on a fine grid of the plot.
+    step = 0.1
+    g = np.arange(step / 2, scene.size, step)
+    grid = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2) + np.asarray(scene.origin[:2])
+    far_area = np.mean(cKDTree(scene.scanners[:, :2]).query(grid)[0] > 10.0) * scene.size**2
+    assert far_area > 10.0
+    far = np.sum(dist > 10.0) / far_area
+    assert near > 2.5 * far, (near, far)
+    assert near < 3000.0  # capped like a real TLS point cloud
+    assert far > 15.0  # still enough points for 0.5 m neighbourhoods
+
+
+def test_scanners_are_inside_the_plot_above_the_ground(scene):
+    sc = scene.scanners
+    assert 3 <= len(sc) <= 5
+    local = sc[:, :2] - np.asarray(scene.origin[:2])
+    assert np.all((local > 0) & (local < scene.size))
+    above = sc[:, 2] - scene.ground_height(sc[:, 0], sc[:, 1])
+    assert np.allclose(above, 1.5)
+
+
+def test_stem_hides_what_is_behind_it():
+    stem = Stem(base=np.array([5.0, 0.0, 0.0]), lean=np.zeros(2),
+                knots_z=np.array([0.0, 10.0]), knots_r=np.array([0.3, 0.3]))
+    scanner = np.array([0.0, 0.0, 1.5])
+    points = np.array([
+        [10.0, 0.0, 0.0],  # behind the stem
+        [10.0, 3.0, 0.0],  # beside it
+        [4.71, 0.0, 1.5],  # its near side
+        [5.29, 0.0, 1.5],  # its far side
+        [10.0, 0.0, 30.0],  # behind, but the ray passes over the top
+        [3.0, 0.0, 0.0],  # between scanner and stem
+        [-10.0, 0.0, 0.0],  # the other way
+    ])
+    assert _occluded(scanner, points, stem).tolist() == [
+        True, False, False, True, False, False, False]
+
+
+def test_stems_cast_shadows_on_the_ground(scene):
+    """Ground 1 m behind a stem, on the ray from its nearest scanner, is sparser than ground
+    at the same range 1 m to either side (other scans fill the shadow only in part)."""
+    terrain = cKDTree(scene.xyz[scene.labels == TERRAIN][:, :2])
+    behind = beside = 0.0
+    for x, y, _, _ in scene.stems:
+        dist = np.linalg.norm(scene.scanners[:, :2] - [x, y], axis=1)
+        k = int(np.argmin(dist))
+        if not 2.0 < dist[k] < 7.0:
+            continue
+        scanner = scene.scanners[k, :2]
+        u = ([x, y] - scanner) / dist[k]
+        reach = dist[k] + 1.0
+        behind += len(terrain.query_ball_point(scanner + reach * u, 0.2))
+        for angle in (-1.0 / reach, 1.0 / reach):
+            c, s = np.cos(angle), np.sin(angle)
+            side = scanner + reach * np.array([c * u[0] - s * u[1], s * u[0] + c * u[1]])
+            beside += len(terrain.query_ball_point(side, 0.2)) / 2
+    assert beside > 50
+    assert behind < 0.6 * beside, (behind, beside)
+
+
+@pytest.mark.parametrize("kwargs, name", [
+    ({"size": -1.0}, "size"), ({"size": 2.0}, "size"), ({"size": float("nan")}, "size"),
+    ({"seed": -1}, "seed"), ({"seed": 1.5}, "seed"), ({"origin": (0.0, 1.0)}, "origin"),
+])
+def test_invalid_arguments_are_refused(kwargs, name):
+    with pytest.raises(ConfigError, match=name):
+        synthetic_plot(**kwargs)
+
+
+def test_tiles_hold_every_point_once(tmp_path):
+    from pipeline.io import read_info, read_points
+
+    seed, size, tile = 4, 12.0, 5.0
+    xyz, labels = synthetic_plot(seed, size)
+    paths = write_synthetic_plot(tmp_path / "plot", seed=seed, size=size, tile_size=tile)
+    assert [p.name for p in paths] == [f"plot_s{seed}_{ix}_{iy}.laz"
+                                       for ix in range(3) for iy in range(3)]
+    got_xyz, got_labels = [], []
+    for path in paths:
+        info = read_info(path)
+        assert path.suffix == ".laz" and info.version == "1.4" and info.point_format == 6
+        assert info.scale == pytest.approx((0.001, 0.001, 0.001))
+        assert info.crs_wkt is not None and "25832" in info.crs_wkt
+        assert info.crs_wkt.replace(" ", "") == CRS_WKT.replace(" ", "")
+        batch = read_points(path, fields=("classification",))
+        ix, iy = (int(v) for v in path.stem.split("_")[-2:])
+        corner = np.asarray(DEFAULT_ORIGIN[:2]) + tile * np.array([ix, iy])
+        local = batch.xyz[:, :2] - corner
+        assert local.min() >= -0.0005 and local.max() <= tile + 0.0005  # its own cell
+        got_xyz.append(batch.xyz)
+        got_labels.append(batch.fields["classification"])
+    got_xyz, got_labels = np.concatenate(got_xyz), np.concatenate(got_labels)
+    assert len(got_xyz) == len(xyz)
+    # A one-to-one match within half a millimetre per axis, with the same labels.
+    dist, idx = cKDTree(xyz).query(got_xyz)
+    assert dist.max() <= 0.0005 * np.sqrt(3) + 1e-9
+    assert len(np.unique(idx)) == len(xyz)
+    assert np.array_equal(got_labels, labels[idx])
+    with open(paths[0], "rb") as f:
+        assert f.read(4) == b"LASF"
+
+
+def test_writing_again_overwrites_and_another_tiling_is_refused(tmp_path):
+    first = write_synthetic_plot(tmp_path, seed=7, size=8.0, tile_size=4.0)
+    again = write_synthetic_plot(tmp_path, seed=7, size=8.0, tile_size=4.0)
+    assert first == again
+    assert sorted(tmp_path.glob("*.laz")) == sorted(first)
+    with pytest.raises(ConfigError, match="another tiling"):
+        write_synthetic_plot(tmp_path, seed=7, size=8.0, tile_size=8.0)
+    with pytest.raises(ConfigError, match="tile_size"):
+        write_synthetic_plot(tmp_path / "x", seed=7, size=8.0, tile_size=0.0)

@@ -1,0 +1,43 @@
+"""``silva synth``: a labelled synthetic plot as LAZ tiles, one printed path per tile."""
+
+from pathlib import Path
+
+import numpy as np
+from click.testing import CliRunner
+
+from pipeline.io import read_info
+from pipeline.synth import SYNTH_CLASSES, synthetic_plot
+from workflows.cli import main
+
+
+def silva(*args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+def test_synth_writes_the_tiles_and_prints_their_paths(tmp_path):
+    out = tmp_path / "plot"
+    result = silva("synth", out, "--seed", 3, "--size", 10, "--tile-size", 5)
+    assert result.exit_code == 0, result.output
+    printed = result.stdout.splitlines()
+    assert printed == [str(out / f"plot_s3_{ix}_{iy}.laz") for ix in range(2) for iy in range(2)]
+    assert sorted(out.glob("*.laz")) == sorted(Path(p) for p in printed)
+    _, labels = synthetic_plot(3, 10.0)
+    infos = [read_info(p) for p in printed]
+    assert sum(info.n_points for info in infos) == len(labels)
+    assert all(info.version == "1.4" and info.crs_wkt for info in infos)
+    assert set(np.unique(labels)) == set(SYNTH_CLASSES.values())
+
+
+def test_synth_default_tiling_and_seed(tmp_path):
+    # 12 m is smaller than the default 15 m tile: one tile, seed 0.
+    result = silva("synth", tmp_path, "--size", 12)
+    assert result.exit_code == 0, result.output
+    assert result.stdout.splitlines() == [str(tmp_path / "plot_s0_0_0.laz")]
+
+
+def test_synth_bad_size_is_one_error_line(tmp_path):
+    result = silva("synth", tmp_path / "plot", "--size", -3)
+    assert result.exit_code == 1
+    assert result.output.startswith("silva: error: size")
+    assert "Traceback" not in result.output
+    assert not (tmp_path / "plot").exists()
