@@ -54,7 +54,7 @@ INVARIANT_NAMES: tuple[str, ...] = (
 N_INVARIANTS = len(INVARIANT_NAMES)
 
 #: Rows per block. Bounds the temporaries (about 100 complex values per row) and keeps them
-#: in cache: 8192 rows ran 1.7x faster than 32768 here.
+#: in cache: blocks of 16384 rows or more ran over 1.5x slower.
 BLOCK_ROWS = 8192
 
 
@@ -340,6 +340,7 @@ def _evaluate(moments, normalise, dtype) -> np.ndarray:
             if normalise == "area":
                 mu = _normalise_t(mu)
             result = _invariants_t(mu)
+        valid &= np.isfinite(result).all(axis=0)  # e.g. overflow of a near-zero area
         result[:, ~valid] = np.nan
         out[start : start + BLOCK_ROWS] = (result if dtype == np.complex128 else result.real).T
     return out.reshape(arr.shape[:-1] + (N_INVARIANTS,))
@@ -373,8 +374,8 @@ def moment_invariants(moments: np.ndarray, normalise: str | None = "area") -> np
     -------
     float64 array (..., 11)
         Columns in :data:`INVARIANT_NAMES` order; invariant under translations, rotations
-        and reflections of the patch. Rows with M000 <= 0 (no surface) or any non-finite
-        moment are all NaN; no exception is raised for them.
+        and reflections of the patch. Rows with M000 <= 0 (no surface), with any non-finite
+        moment, or whose invariants overflow are all NaN; no exception is raised for them.
 
     Raises
     ------

@@ -455,19 +455,20 @@ def test_leading_dimensions_and_blocks(random_moments, monkeypatch):
 
 
 def test_rows_without_surface_or_finite_values_are_nan(random_moments):
-    bad = random_moments[:6].copy()
+    bad = random_moments[:7].copy()
     bad[0] = 0.0  # no surface at all
     bad[1, 0] = 0.0  # M000 == 0 with stray higher moments
     bad[2, 0] = -1.0  # negative area
     bad[3, 7] = np.nan
     bad[4, 15] = np.inf
+    bad[5, 0] = 1e-300  # inconsistent, near-zero area: the central moments overflow
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         out = moment_invariants(bad)
         out_raw = moment_invariants(bad, normalise=None)
         mu = central_moments(bad[:2])
-    assert np.isnan(out[:5]).all() and np.isnan(out_raw[:5]).all()
-    np.testing.assert_array_equal(out[5], moment_invariants(random_moments[5]))
+    assert np.isnan(out[:6]).all() and np.isnan(out_raw[:6]).all()
+    np.testing.assert_array_equal(out[6], moment_invariants(random_moments[6]))
     assert np.isnan(mu[:, 1:]).all() and np.array_equal(mu[:, 0], bad[:2, 0])
 
 
