@@ -10,7 +10,7 @@ Layout::
           xyz, gid, label, role              core points sorted by global id
           halo_xyz, halo_gid                 halo copies sorted by global id
           invariants (n, 11) f8
-          stage<t>_context (n, 2C) f4, stage<t>_proba (n, C) f4
+          stage<t>_context (n, 2C) f4, stage<t>_proba (n, C) f4   (t = 1, 2, ...)
         attrs: done = {step: fingerprint}, counts
 
 A step marks a group done only after all its arrays are written (zarr's local store writes
@@ -102,6 +102,16 @@ def clear_done(group: zarr.Group, prefix: str = "") -> None:
 def require_group(root: zarr.Group, path: str) -> zarr.Group:
     """The group at ``path`` (slash-separated), created with its parents when missing."""
     return root.require_group(path)
+
+
+def proba_array(stage: int) -> str:
+    """Name of the probabilities array of cascade stage ``stage`` (0-based; named from 1)."""
+    return f"stage{stage + 1}_proba"
+
+
+def context_array(stage: int) -> str:
+    """Name of the context array that feeds cascade stage ``stage`` (0-based; named from 1)."""
+    return f"stage{stage + 1}_context"
 
 
 def chunk_path(scene: str, chunk_name: str) -> str:

@@ -25,15 +25,15 @@ def run_status(out: Path) -> list[str]:
             for step in done:
                 steps[step] = steps.get(step, 0) + 1
         total = len(info["chunks"])
-        order = sorted(steps, key=lambda s: (s.rstrip("0123456789"), int(s[len(s.rstrip("0123456789")):] or 0)))
-        done_text = ", ".join(f"{s} {steps[s]}/{total}" for s in order) or "no chunk step done"
+        # steps in the order they ran (the order of the chunks' done records)
+        done_text = ", ".join(f"{s} {n}/{total}" for s, n in steps.items()) or "no step done"
         lines.append(f"scene {scene}: {total} chunks; {done_text}")
     model = out / "model"
     if (model / MODEL_FILE).is_file():
         stages = read_description(model)["stages"]
         lines.append(f"model: {len(stages)} stage(s) trained in {model}")
-    predictions = sorted((out / "predictions").glob("*.la[sz]")) if (out / "predictions").is_dir() else []
+    predictions = list((out / "predictions").glob("*.la[sz]"))
     lines.append(f"predictions: {len(predictions)} of {len(layout['tiles'])} tiles exported")
     metrics = out / "metrics.json"
-    lines.append(f"metrics: {metrics}" if metrics.is_file() else "metrics: not written (run incomplete)")
+    lines.append(f"metrics: {metrics}" if metrics.is_file() else "metrics: not written yet")
     return lines

@@ -24,8 +24,17 @@ from pipeline.model import (
     stage_file,
     write_description,
 )
-from pipeline.store import ROLE_TRAIN, chunk_path, is_done, mark_done, open_store, read_array
-from pipeline.store import write_arrays
+from pipeline.store import (
+    ROLE_TRAIN,
+    chunk_path,
+    context_array,
+    is_done,
+    mark_done,
+    open_store,
+    proba_array,
+    read_array,
+    write_arrays,
+)
 from pipeline.tiling import Grid
 from workflows.run import Run
 from workflows.steps.features import chunk_tasks
@@ -37,7 +46,7 @@ log = logging.getLogger(__name__)
 def _stage_context(group, stage, n_classes):
     if stage == 0:
         return uniform_context(int(group.attrs["n_core"]), n_classes)
-    return read_array(group, f"stage{stage}_context")
+    return read_array(group, context_array(stage))
 
 
 def _halo_proba(root, scene, grid, halo_xyz, halo_gid, stage, n_classes):
@@ -53,7 +62,7 @@ def _halo_proba(root, scene, grid, halo_xyz, halo_gid, stage, n_classes):
         if not np.array_equal(gid[pos], halo_gid[rows]):
             raise StoreError(f"halo points of scene '{scene}' missing from their owner chunk "
                              f"{grid.chunk_name(int(owner))}; rerun with --overwrite")
-        proba[rows] = read_array(group, f"stage{stage}_proba")[pos]
+        proba[rows] = read_array(group, proba_array(stage))[pos]
     return proba
 
 
@@ -62,21 +71,21 @@ def chunk_context(store_path, scene, chunk, grid, stage, r1, r2, max_neighbors, 
     """Worker task: the context features of stage ``stage`` (>= 1) for one chunk's core."""
     root = open_store(store_path)
     group = root[chunk_path(scene, chunk)]
-    if is_done(group, f"context{stage}", fingerprint):
+    if is_done(group, f"context{stage + 1}", fingerprint):
         return None
     grid = Grid(**grid)
     xyz, gid = read_array(group, "xyz"), read_array(group, "gid")
     halo_xyz, halo_gid = read_array(group, "halo_xyz"), read_array(group, "halo_gid")
     proba = np.concatenate([
-        read_array(group, f"stage{stage - 1}_proba"),
+        read_array(group, proba_array(stage - 1)),
         _halo_proba(root, scene, grid, halo_xyz, halo_gid, stage - 1, n_classes),
     ])
     context = method.stage_context(
         np.concatenate([xyz, halo_xyz]), proba, mode, r1=r1, r2=r2, max_neighbors=max_neighbors,
         query=np.arange(len(gid), dtype=np.int64), ids=np.concatenate([gid, halo_gid]),
     )
-    write_arrays(group, {f"stage{stage}_context": context})
-    mark_done(group, f"context{stage}", fingerprint)
+    write_arrays(group, {context_array(stage): context})
+    mark_done(group, f"context{stage + 1}", fingerprint)
     return None
 
 
@@ -105,7 +114,7 @@ def chunk_predict(store_path, scene, chunk, stage, forest_path, fold_paths, n_cl
                   fractions, seed, fingerprint):
     """Worker task: stage probabilities of one chunk's core points."""
     group = open_store(store_path)[chunk_path(scene, chunk)]
-    if is_done(group, f"predict{stage}", fingerprint):
+    if is_done(group, f"predict{stage + 1}", fingerprint):
         return None
     label, role, gid = (read_array(group, k) for k in ("label", "role", "gid"))
     features = method.feature_matrix(
@@ -121,8 +130,8 @@ def chunk_predict(store_path, scene, chunk, stage, forest_path, fold_paths, n_cl
         n_classes=n_classes,
         seed=seed,
     )
-    write_arrays(group, {f"stage{stage}_proba": proba})
-    mark_done(group, f"predict{stage}", fingerprint)
+    write_arrays(group, {proba_array(stage): proba})
+    mark_done(group, f"predict{stage + 1}", fingerprint)
     return None
 
 
@@ -150,7 +159,7 @@ def _fit(run: Run, engine, layout, stage, fractions, seed, fingerprint):
         fingerprint,
         "train",
     )
-    rows = [r for r in engine.map(f"sample {stage + 1}", tasks).values() if r is not None]
+    rows = [r for r in engine.map(f"sample-{stage + 1}", tasks).values() if r is not None]
     if not rows:
         raise ConfigError("no labelled training points: check data.train, data.classes and "
                           "data.label_field")

@@ -12,7 +12,7 @@ import numpy as np
 
 from pipeline.cascade import id_hash, labels_from_proba
 from pipeline.metrics import confusion_matrix, scores_from_confusion
-from pipeline.store import ROLE_TEST, chunk_path, open_store, read_array
+from pipeline.store import ROLE_TEST, chunk_path, open_store, proba_array, read_array
 from workflows.run import Run
 from workflows.steps.features import chunk_tasks
 
@@ -26,7 +26,7 @@ def chunk_evaluation(store_path, scene, chunk, n_stages, n_classes, sample_fract
     test = (role == ROLE_TEST) & (label >= 0)
     confusions, final = [], None
     for stage in range(n_stages):
-        final = read_array(group, f"stage{stage}_proba")
+        final = read_array(group, proba_array(stage))
         confusions.append(confusion_matrix(label[test], labels_from_proba(final[test]), n_classes))
     picked = id_hash(gid, 7) < sample_fraction
     xyz = read_array(group, "xyz")

@@ -11,7 +11,7 @@ import numpy as np
 
 from pipeline.errors import StoreError
 from pipeline.io import ExtraDim, export_with_extra_dims
-from pipeline.store import chunk_path, is_done, mark_done, open_store, read_array
+from pipeline.store import chunk_path, is_done, mark_done, open_store, proba_array, read_array
 from pipeline.tiling import Grid, global_ids
 from workflows.engine import Task
 from workflows.run import Run
@@ -28,8 +28,8 @@ def extra_dims(classes: list[str], codes: list[int], probabilities: bool) -> lis
     """The dimensions Silva adds to every exported point."""
     dtype = "uint8" if max(codes) <= 255 else "uint16"
     dims = [
-        ExtraDim(PREDICTED, dtype, "Silva predicted class code"),
-        ExtraDim(CONFIDENCE, "float32", "Probability of the predicted class"),
+        ExtraDim(PREDICTED, dtype, "Predicted class code"),
+        ExtraDim(CONFIDENCE, "float32", "Probability of predicted class"),
     ]
     if probabilities:
         dims += [ExtraDim(probability_dim(n), "float32", f"Probability of {n}"[:32])
@@ -54,7 +54,7 @@ class _ChunkPredictions:
                     self.cache.clear()
                 group = self.root[chunk_path(self.scene, self.grid.chunk_name(int(chunk)))]
                 self.cache[chunk] = (
-                    read_array(group, "gid"), read_array(group, f"stage{self.stage}_proba"))
+                    read_array(group, "gid"), read_array(group, proba_array(self.stage)))
             ids, chunk_proba = self.cache[chunk]
             pos = np.minimum(np.searchsorted(ids, gid[rows]), len(ids) - 1)
             if not np.array_equal(ids[pos], gid[rows]):
