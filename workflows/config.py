@@ -160,6 +160,12 @@ class DataConfig(_Section):
     split: SplitConfig | None = Field(
         None, description="Cut the labelled training cloud into a training and a test part.",
     )
+    drop_unlisted: bool = Field(
+        False,
+        description="Remove labelled points whose code is in no class and not in ignore "
+        "before anything is computed (the Oakland benchmark protocol); they are exported "
+        "with PredictedClassification 0. By default they stay as unlabelled neighbours.",
+    )
 
     @field_validator("classes", mode="before")
     @classmethod
@@ -249,6 +255,12 @@ class DataConfig(_Section):
             for code in self.classes[name]
             if code not in ignored_codes
         }
+
+    @property
+    def listed_codes(self) -> list[int]:
+        """Every source code named by a class or by ignore (kept by drop_unlisted)."""
+        codes = {code for codes in self.classes.values() for code in codes}
+        return sorted(codes | {c for c in self.ignore if isinstance(c, int)})
 
     @property
     def background_indices(self) -> list[int]:
@@ -744,7 +756,8 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
                 export, which both build on stage)
     ==========  ========================================================================
     ingest      data.train/test/predict (patterns, order ignored), data.label_field,
-                data.classes, data.ignore, data.split; tiling.chunk_size, tiling.halo
+                data.classes, data.ignore, data.split, data.drop_unlisted;
+                tiling.chunk_size, tiling.halo
     features    + features.set, features.r1, features.max_neighbors
     stage       + features.r2, features.context_max_neighbors, every cascade key except
                 cascade.stages (adding stages keeps the finished ones)
@@ -766,7 +779,7 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
         "version": _FINGERPRINT_VERSION,
         "ingest": {
             **{scene: sorted(set(data[scene])) for scene in SCENES},
-            **{k: data[k] for k in ("label_field", "ignore", "split")},
+            **{k: data[k] for k in ("label_field", "ignore", "split", "drop_unlisted")},
             # a list of pairs: the class order is the class index (sort_keys would lose it)
             "classes": [[name, codes] for name, codes in data["classes"].items()],
             "chunk_size": cfg.tiling.chunk_size,

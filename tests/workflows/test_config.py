@@ -76,7 +76,8 @@ def test_defaults():
     assert cfg == SilvaConfig()
     d = cfg.model_dump()
     assert d["data"] == {"train": [], "test": [], "predict": [], "label_field": "classification",
-                         "classes": {}, "ignore": [], "background": [], "split": None}
+                         "classes": {}, "ignore": [], "background": [], "split": None,
+                         "drop_unlisted": False}
     assert d["tiling"] == {"chunk_size": 50.0, "halo": 0.5, "read_batch": 1_000_000}
     assert d["features"] == {"set": "paper", "r1": 0.5, "r2": 0.25, "max_neighbors": 64,
                              "context_max_neighbors": 256}

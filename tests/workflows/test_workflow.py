@@ -173,3 +173,20 @@ def test_predict_with_a_saved_model(reference, survey, tmp_path):
     for tile in pb:
         assert np.array_equal(pa[tile]["PredictedClassification"],
                               pb[tile]["PredictedClassification"])
+
+
+def test_drop_unlisted_leaves_points_out_and_exports_them_as_class_0(survey, tmp_path):
+    config = write_config(tmp_path / "d.yaml", survey, data={
+        "train": [str(survey["train"] / "*.laz")], "test": [str(survey["test"] / "*.laz")],
+        "classes": {"terrain": [2], "tree": [5], "dead_wood": [64]},
+        "drop_unlisted": True})
+    out = tmp_path / "out"
+    result = silva("run", config, "--out", out, "--quiet", "--in-process")
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    for dims in read_predictions(out).values():
+        misc = dims["classification"] == 1
+        assert misc.any()
+        assert np.all(dims["PredictedClassification"][misc] == 0)
+        assert np.all(dims["PredictedClassification"][~misc] > 0)
+    assert metrics["classes"] == ["terrain", "tree", "dead_wood"]

@@ -40,13 +40,16 @@ def extra_dims(classes: list[str], codes: list[int], probabilities: bool) -> lis
 class _ChunkPredictions:
     """Final probabilities of the chunks a tile touches, loaded once each."""
 
-    def __init__(self, root, scene, grid, stage):
+    def __init__(self, root, scene, grid, stage, allow_missing):
         self.root, self.scene, self.grid, self.stage = root, scene, grid, stage
+        self.allow_missing = allow_missing  # points left out at ingest (data.drop_unlisted)
         self.cache = {}
 
-    def lookup(self, xyz, gid):
+    def lookup(self, xyz, gid, n_classes):
+        """float32 (n, C) probabilities and a bool mask of the points the store holds."""
         chunks = self.grid.chunk_of(xyz)
-        proba = None
+        proba = np.zeros((len(gid), n_classes), dtype=np.float32)
+        found = np.ones(len(gid), dtype=bool)
         for chunk in np.unique(chunks):
             rows = np.flatnonzero(chunks == chunk)
             if chunk not in self.cache:
@@ -56,39 +59,40 @@ class _ChunkPredictions:
                 self.cache[chunk] = (
                     read_array(group, "gid"), read_array(group, proba_array(self.stage)))
             ids, chunk_proba = self.cache[chunk]
-            pos = np.minimum(np.searchsorted(ids, gid[rows]), len(ids) - 1)
-            if not np.array_equal(ids[pos], gid[rows]):
+            pos = np.minimum(np.searchsorted(ids, gid[rows]), max(len(ids) - 1, 0))
+            hit = ids[pos] == gid[rows] if len(ids) else np.zeros(len(rows), bool)
+            if not hit.all() and not self.allow_missing:
                 raise StoreError(f"points of scene '{self.scene}' missing from chunk "
                                  f"{self.grid.chunk_name(int(chunk))}; rerun with --overwrite")
-            if proba is None:
-                proba = np.empty((len(gid), chunk_proba.shape[1]), dtype=np.float32)
-            proba[rows] = chunk_proba[pos]
-        return proba
+            proba[rows[hit]] = chunk_proba[pos[hit]]
+            found[rows[~hit]] = False
+        return proba, found
 
 
 def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilities,
-                write_classification, read_batch, fingerprint):
+                write_classification, read_batch, fingerprint, allow_missing=False):
     """Worker task: write the classified copy of one input tile."""
     root = open_store(store_path)
     marker = root.require_group(f"exports/{tile['index']}")
     if is_done(marker, "export", fingerprint) and Path(dst).is_file():
         return dst
-    predictions = _ChunkPredictions(root, tile["scene"], Grid(**grid), stage)
+    predictions = _ChunkPredictions(root, tile["scene"], Grid(**grid), stage, allow_missing)
     codes_array = np.asarray(codes)
 
     def compute(batch):
         gid = global_ids(tile["index"], batch.start, len(batch.xyz))
-        proba = predictions.lookup(batch.xyz, gid)
+        proba, found = predictions.lookup(batch.xyz, gid, len(classes))
         best = np.argmax(proba, axis=1)
+        predicted = np.where(found, codes_array[best], 0)  # 0: never classified (LAS)
         values = {
-            PREDICTED: codes_array[best],
+            PREDICTED: predicted,
             CONFIDENCE: proba[np.arange(len(best)), best],
         }
         if probabilities:
             for index, name in enumerate(classes):
                 values[probability_dim(name)] = proba[:, index]
         if write_classification:
-            values["classification"] = codes_array[best]
+            values["classification"] = predicted
         return values
 
     export_with_extra_dims(
@@ -118,6 +122,7 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
                 probabilities=bool(run.cfg.output.probabilities),
                 write_classification=bool(run.cfg.output.write_classification),
                 read_batch=int(run.cfg.tiling.read_batch), fingerprint=fingerprint,
+                allow_missing=bool(run.cfg.data.drop_unlisted) and tile["scene"] != "predict",
             ),
             where=f"export of tile {tile['path']}",
             reproduce=f"silva export CONFIG --out {run.out} --in-process",

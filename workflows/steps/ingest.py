@@ -92,9 +92,13 @@ def point_roles(scene: str, xyz: np.ndarray, split) -> np.ndarray:
 
 
 def ingest_tile(
-    store_path, scene, tile, grid, halo, label_field, code_to_class, split, read_batch, fingerprint
+    store_path, scene, tile, grid, halo, label_field, code_to_class, split, read_batch, fingerprint,
+    keep_codes=None,
 ):
-    """Worker task: append one tile's points to the chunk parts of its scene."""
+    """Worker task: append one tile's points to the chunk parts of its scene.
+
+    With ``keep_codes`` (data.drop_unlisted), labelled points with other codes are left out.
+    """
     root = open_store(store_path)
     marker = root.require_group(f"scenes/{scene}/parts/{tile['index']}")
     if is_done(marker, "ingest", fingerprint):
@@ -108,16 +112,19 @@ def ingest_tile(
     counts: dict[str, int] = {}
     fields = (label_field,) if labelled else ()
     for batch in iter_points(tile["path"], batch_size=read_batch, fields=fields):
-        n = len(batch.xyz)
-        gid = global_ids(tile["index"], batch.start, n)
-        label = np.full(n, -1, dtype=np.int16)
+        xyz = batch.xyz
+        gid = global_ids(tile["index"], batch.start, len(xyz))
+        label = np.full(len(xyz), -1, dtype=np.int16)
         if labelled:
             raw = np.asarray(batch.fields[label_field]).astype(np.int64)
             pos = np.clip(np.searchsorted(codes, raw), 0, max(len(codes) - 1, 0))
-            known = codes[pos] == raw if len(codes) else np.zeros(n, bool)
+            known = codes[pos] == raw if len(codes) else np.zeros(len(xyz), bool)
             label[known] = classes[pos[known]]
-        role = point_roles(scene, batch.xyz, split)
-        chunk = grid.chunk_of(batch.xyz)
+            if keep_codes is not None:
+                kept = np.isin(raw, keep_codes)
+                xyz, gid, label = xyz[kept], gid[kept], label[kept]
+        role = point_roles(scene, xyz, split)
+        chunk = grid.chunk_of(xyz)
         order = np.argsort(chunk, kind="stable")
         bounds = np.flatnonzero(np.diff(chunk[order])) + 1
         for rows in np.split(order, bounds):
@@ -126,16 +133,16 @@ def ingest_tile(
             append_arrays(
                 part,
                 {
-                    "core_xyz": batch.xyz[rows],
+                    "core_xyz": xyz[rows],
                     "core_gid": gid[rows],
                     "core_label": label[rows],
                     "core_role": role[rows],
                 },
             )
             counts[name] = counts.get(name, 0) + len(rows)
-        for target, rows in grid.halo_members(batch.xyz, halo):
+        for target, rows in grid.halo_members(xyz, halo):
             part = root.require_group(part_path(scene, tile["index"], grid.chunk_name(target)))
-            append_arrays(part, {"halo_xyz": batch.xyz[rows], "halo_gid": gid[rows]})
+            append_arrays(part, {"halo_xyz": xyz[rows], "halo_gid": gid[rows]})
     mark_done(marker, "ingest", fingerprint, core_counts=counts)
     return counts
 
@@ -180,6 +187,8 @@ def ingest(run: Run, engine) -> dict:
                     split=run.cfg.data.split,
                     read_batch=int(run.cfg.tiling.read_batch),
                     fingerprint=fingerprint,
+                    keep_codes=(run.cfg.data.listed_codes if run.cfg.data.drop_unlisted
+                                else None),
                 ),
                 where=f"tile {tile['path']} (scene '{scene}')",
                 reproduce=f"silva ingest CONFIG --out {run.out} --in-process",
