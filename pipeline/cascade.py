@@ -344,10 +344,11 @@ class CascadedForest:
     def staged_predict(self, xyz, ids=None) -> Iterator[np.ndarray]:
         """Yield the predicted labels after each stage, in order."""
         for proba in self.staged_predict_proba(xyz, ids):
-            yield self.classes_[labels_from_proba(proba)]
+            yield self.classes_[labels_from_proba(proba)]  # fitted: the generator checked
 
     def predict_proba(self, xyz, ids=None) -> np.ndarray:
         """float32 (N, C) probabilities of the last stage, columns in ``classes_`` order."""
+        self._check_fitted()
         proba = None
         for proba in self.staged_predict_proba(xyz, ids):
             pass
@@ -355,4 +356,5 @@ class CascadedForest:
 
     def predict(self, xyz, ids=None) -> np.ndarray:
         """Labels of the last stage (values from ``classes_``)."""
-        return self.classes_[labels_from_proba(self.predict_proba(xyz, ids))]
+        proba = self.predict_proba(xyz, ids)
+        return self.classes_[labels_from_proba(proba)]
