@@ -1,0 +1,168 @@
+"""Radius neighbourhoods: brute-force oracle, exact tie-breaking by id, chunk invariance."""
+
+import numpy as np
+import pytest
+
+from pipeline.errors import InputError
+from pipeline.features.neighbors import RadiusIndex, neighbor_counts, radius_neighbors
+
+
+def brute_force(xyz, radius, cap, query=None, ids=None):
+    """Row indices of the neighbours: all pairs, d2 as specified, sorted by (d2, id), cut."""
+    n = len(xyz)
+    query = np.arange(n) if query is None else np.asarray(query)
+    ids = np.arange(n) if ids is None else np.asarray(ids)
+    rows = []
+    for q in query:
+        d = xyz - xyz[q]
+        d2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]
+        inside = np.flatnonzero(d2 <= radius * radius)
+        inside = inside[np.lexsort((ids[inside], d2[inside]))]
+        rows.append(inside if cap is None else inside[:cap])
+    return rows
+
+
+def csr_rows(nbr_idx, nbr_ptr):
+    return [nbr_idx[nbr_ptr[i] : nbr_ptr[i + 1]] for i in range(len(nbr_ptr) - 1)]
+
+
+def assert_same_rows(got, want):
+    assert len(got) == len(want)
+    for i, (g, w) in enumerate(zip(got, want)):
+        np.testing.assert_array_equal(g, w, err_msg=f"row {i}")
+
+
+@pytest.fixture(scope="module")
+def random_cloud():
+    rng = np.random.default_rng(0)
+    return rng.uniform(0, 3, size=(2500, 3)) * [1.0, 1.0, 0.3]
+
+
+@pytest.fixture(scope="module")
+def grid_cloud():
+    """Integer grid: exact distance ties everywhere, most of them at the cap."""
+    g = np.arange(7.0)
+    return np.stack(np.meshgrid(g, g, g[:4], indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("cap", [1, 7, 32, None])
+def test_random_cloud_matches_brute_force(random_cloud, cap):
+    nbr_idx, nbr_ptr = radius_neighbors(random_cloud, 0.35, cap)
+    assert nbr_idx.dtype == np.int64 and nbr_ptr.dtype == np.int64
+    assert nbr_ptr.shape == (len(random_cloud) + 1,)
+    assert_same_rows(csr_rows(nbr_idx, nbr_ptr), brute_force(random_cloud, 0.35, cap))
+
+
+@pytest.mark.parametrize("cap", [5, 9, 14, 19, None])
+@pytest.mark.parametrize("radius", [1.0, 1.5, np.sqrt(3.0)])
+def test_ties_are_broken_by_id(grid_cloud, cap, radius):
+    rng = np.random.default_rng(1)
+    ids = rng.permutation(len(grid_cloud)) * 7 + 1_000_000  # any unique int64 ids
+    nbr_idx, nbr_ptr = radius_neighbors(grid_cloud, radius, cap, ids=ids)
+    assert_same_rows(csr_rows(nbr_idx, nbr_ptr), brute_force(grid_cloud, radius, cap, ids=ids))
+    # the ids do matter at the cap: another permutation cuts other points
+    if cap in (5, 9):
+        other = rng.permutation(len(grid_cloud))
+        a = csr_rows(*radius_neighbors(grid_cloud, radius, cap, ids=other))
+        assert any(not np.array_equal(x, y) for x, y in zip(a, csr_rows(nbr_idx, nbr_ptr)))
+
+
+def test_query_subset_in_any_order(random_cloud):
+    rng = np.random.default_rng(2)
+    query = rng.choice(len(random_cloud), 300, replace=False)
+    ids = rng.permutation(len(random_cloud))
+    nbr_idx, nbr_ptr = radius_neighbors(random_cloud, 0.3, 16, query=query, ids=ids)
+    assert nbr_ptr.shape == (301,)
+    assert_same_rows(
+        csr_rows(nbr_idx, nbr_ptr), brute_force(random_cloud, 0.3, 16, query=query, ids=ids)
+    )
+    # repeated query points get identical rows
+    twice = np.concatenate([query[:5], query[:5]])
+    rows = csr_rows(*radius_neighbors(random_cloud, 0.3, 16, query=twice, ids=ids))
+    for i in range(5):
+        np.testing.assert_array_equal(rows[i], rows[i + 5])
+
+
+def test_query_point_first_and_counts(random_cloud):
+    nbr_idx, nbr_ptr = radius_neighbors(random_cloud, 0.3, 16)
+    np.testing.assert_array_equal(nbr_idx[nbr_ptr[:-1]], np.arange(len(random_cloud)))
+    counts = neighbor_counts(nbr_ptr)
+    assert counts.min() >= 1 and counts.max() <= 16
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (512_345.67, 5_123_456.78, 312.3)])
+@pytest.mark.parametrize("chunk_size", [0.7, 1.3])
+def test_chunk_invariance(offset, chunk_size):
+    """A chunk = its core points + every point within the halo distance: the rows of its core
+    points, as global ids, equal the whole-cloud rows bit for bit."""
+    rng = np.random.default_rng(3)
+    # coordinates rounded to 1 cm, as in survey files: exact ties are common
+    xyz = np.round(rng.uniform(0, 3, size=(3000, 3)) * [1, 1, 0.2], 2) + offset
+    gid = rng.permutation(len(xyz)).astype(np.int64) + 10**12
+    radius, cap = 0.25, 12
+    whole = csr_rows(*radius_neighbors(xyz, radius, cap, ids=gid))
+    x_rel = xyz[:, 0] - offset[0]
+    edges = np.arange(0.0, 3.0 + chunk_size, chunk_size)
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        core = np.flatnonzero((x_rel >= lo) & (x_rel < hi))
+        halo = np.flatnonzero(((x_rel >= lo - radius - 0.01) & (x_rel < lo))
+                              | ((x_rel >= hi) & (x_rel < hi + radius + 0.01)))  # fmt: skip
+        # chunk arrays in a shuffled order: positions must not matter either
+        members = rng.permutation(np.concatenate([core, halo]))
+        local_query = np.flatnonzero(np.isin(members, core))
+        rows = csr_rows(*radius_neighbors(xyz[members], radius, cap, query=local_query,
+                                          ids=gid[members]))  # fmt: skip
+        for q, row in zip(members[local_query], rows):
+            np.testing.assert_array_equal(gid[members[row]], gid[whole[q]])
+
+
+def test_index_reused_for_blocks_equals_single_call(random_cloud):
+    index = RadiusIndex(random_cloud, 0.3)
+    full = csr_rows(*index.query(None, 10))
+    parts = []
+    for block in np.array_split(np.arange(len(random_cloud)), 7):
+        parts += csr_rows(*index.query(block, 10))
+    assert_same_rows(parts, full)
+
+
+def test_uncapped_dense_spot():
+    # a dense clump far above any cap, next to sparse points
+    rng = np.random.default_rng(4)
+    xyz = np.vstack([rng.normal(0, 0.01, size=(600, 3)), rng.uniform(-1, 1, size=(200, 3))])
+    got = csr_rows(*radius_neighbors(xyz, 0.2, None))
+    assert_same_rows(got, brute_force(xyz, 0.2, None))
+    assert max(len(r) for r in got) >= 600
+
+
+def test_isolated_points_and_empty_query():
+    xyz = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
+    rows = csr_rows(*radius_neighbors(xyz, 0.5))
+    assert [r.tolist() for r in rows] == [[0, 2], [1], [2, 0]]
+    nbr_idx, nbr_ptr = radius_neighbors(xyz, 0.5, query=np.array([], dtype=np.int64))
+    assert nbr_idx.shape == (0,) and nbr_ptr.tolist() == [0]
+    nbr_idx, nbr_ptr = radius_neighbors(np.zeros((0, 3)), 0.5)
+    assert nbr_idx.shape == (0,) and nbr_ptr.tolist() == [0]
+
+
+def test_huge_extent_small_radius():
+    # cells are coarsened when the grid would overflow: still exact
+    xyz = np.array([[0.0, 0.0, 0.0], [1e7, 1e7, 1e4], [1e-4, 0.0, 0.0], [1e7, 1e7 + 1e-4, 1e4]])
+    rows = csr_rows(*radius_neighbors(xyz, 1e-3))
+    assert [r.tolist() for r in rows] == [[0, 2], [1, 3], [2, 0], [3, 1]]
+
+
+def test_rejects_bad_input(random_cloud):
+    bad = random_cloud.copy()
+    bad[17, 1] = np.nan
+    with pytest.raises(InputError, match="row 17"):
+        radius_neighbors(bad, 0.3)
+    with pytest.raises(InputError, match="shape"):
+        radius_neighbors(random_cloud[:, :2], 0.3)
+    with pytest.raises(ValueError, match="radius"):
+        radius_neighbors(random_cloud, 0.0)
+    with pytest.raises(ValueError, match="max_neighbors"):
+        radius_neighbors(random_cloud, 0.3, 0)
+    with pytest.raises(InputError, match="query"):
+        radius_neighbors(random_cloud, 0.3, query=np.array([0, len(random_cloud)]))
+    with pytest.raises(InputError, match="ids"):
+        radius_neighbors(random_cloud, 0.3, ids=np.arange(5))
