@@ -40,7 +40,7 @@ def write_config(path: Path, survey: dict, **sections) -> Path:
     }
     for section, values in sections.items():
         config[section] = {**config.get(section, {}), **values}
-    path.write_text(yaml.safe_dump(config))
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
     return path
 
 
