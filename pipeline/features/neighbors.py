@@ -14,8 +14,11 @@ should two points share an id, by their row.
 
 The search runs on a regular grid of cubic cells of side slightly above ``radius``: the
 candidates of a query are the points of the 27 cells around its own, read as 9 contiguous runs
-of the cell-sorted cloud. Queries are processed in cell order (random order is several times
-slower) and the rows put back in the caller's order.
+of the cell-sorted cloud, and the selection is a bucket sort on d2. On dense clouds (terrestrial
+scans hold thousands of points within 0.5 m) a capped query needs only the nearest few: there
+the cells are ``span`` times smaller and the search grows ring by ring until the cap is met
+(see :meth:`RadiusIndex.span_for`); the result is the same. Queries are processed in cell order
+(random order is several times slower) and the rows put back in the caller's order.
 """
 
 import math
@@ -28,6 +31,11 @@ from pipeline.errors import InputError
 #: Relative margin between the cell side and the radius: the cell index of a coordinate may be
 #: off by rounding, the margin keeps every point within ``radius`` in the 27 cells.
 CELL_MARGIN = 1e-6
+#: At most this many cells per axis: the rounding of a cell index, about 2**-52 times the
+#: index times a few, then stays below CELL_MARGIN of a cell.
+MAX_CELLS_PER_AXIS = 2.0**28
+#: Largest number of small cells per radius on dense clouds.
+MAX_SPAN = 8
 #: Bound on block rows x neighbours of one query block (the (rows, max_neighbors) work array).
 BLOCK_ENTRIES = 4_000_000
 
@@ -50,42 +58,6 @@ def _cell_keys(xyz, origin, cell, dims):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _cell_runs(xq, yq, zq, ukeys, ustart, origin, cell, dims, runs):
-    """Point ranges [runs[k, 0], runs[k, 1]) of the 27 cells around a point; returns their
-    number (at most 9: the 3 cells of a z column are consecutive in the sorted cloud)."""
-    n_cells = ukeys.shape[0]
-    nx, ny, nz = dims[0], dims[1], dims[2]
-    cx = min(max(int(math.floor((xq - origin[0]) / cell)), 0), nx - 1)
-    cy = min(max(int(math.floor((yq - origin[1]) / cell)), 0), ny - 1)
-    cz = min(max(int(math.floor((zq - origin[2]) / cell)), 0), nz - 1)
-    z0 = max(cz - 1, 0)
-    z1 = min(cz + 1, nz - 1)
-    n_runs = 0
-    for gx in range(max(cx - 1, 0), min(cx + 2, nx)):
-        for gy in range(max(cy - 1, 0), min(cy + 2, ny)):
-            base = (gx * ny + gy) * nz
-            key0 = base + z0
-            key1 = base + z1
-            lo = 0  # first non-empty cell with key >= key0
-            hi = n_cells
-            while lo < hi:
-                mid = (lo + hi) >> 1
-                if ukeys[mid] < key0:
-                    lo = mid + 1
-                else:
-                    hi = mid
-            if lo == n_cells or ukeys[lo] > key1:
-                continue
-            last = lo
-            while last + 1 < n_cells and ukeys[last + 1] <= key1:
-                last += 1
-            runs[n_runs, 0] = ustart[lo]
-            runs[n_runs, 1] = ustart[last + 1]
-            n_runs += 1
-    return n_runs
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
 def _before(d2, ids, rows, a, b):
     """Is candidate a before candidate b in (d2, id, row) order?"""
     if d2[a] != d2[b]:
@@ -96,106 +68,164 @@ def _before(d2, ids, rows, a, b):
 
 
 @_jit
+def _select(cd2, cid, crow, n, m, r2, perm, bucket_end):
+    """Sort the first min(n, m) of n candidates by (d2, id, row) into perm[:size].
+
+    Counting sort into n buckets of d2 (monotone: d2 <= d2' gives bucket <= bucket'), then
+    an insertion sort of each bucket, stopping once m are out: linear time, no
+    unpredictable heap branches. Returns size = min(n, m).
+    """
+    scale = n / r2
+    for k in range(n + 1):
+        bucket_end[k] = 0
+    for k in range(n):
+        bucket_end[min(int(cd2[k] * scale), n - 1) + 1] += 1
+    for k in range(n):
+        bucket_end[k + 1] += bucket_end[k]
+    for k in range(n):
+        key = min(int(cd2[k] * scale), n - 1)
+        perm[bucket_end[key]] = k
+        bucket_end[key] += 1
+    size = min(n, m)
+    lo = 0
+    for key in range(n):
+        if lo >= size:
+            break
+        hi = bucket_end[key]
+        for i in range(lo + 1, hi):
+            v = perm[i]
+            j = i - 1
+            while j >= lo and _before(cd2, cid, crow, v, perm[j]):
+                perm[j + 1] = perm[j]
+                j -= 1
+            perm[j + 1] = v
+        lo = hi
+    return size
+
+
+@_jit
 def _search_block(
-    xyz, qrows, sxyz, sids, srows, ukeys, ustart, origin, cell, dims, r2, m, out, counts
-):
+    xyz, qrows, sxyz, sids, srows, ukeys, ustart, origin, cell, dims, span, r2, m, capped, out,
+    counts,
+):  # fmt: skip
     """The m nearest neighbours of each xyz[qrows[b]] into out[b, :counts[b]], in ascending
     (d2, id, row) order.
 
-    The candidates within the radius are gathered, then sorted exactly by a bucket sort on
-    d2 (buckets are monotone in d2, so only ties within a bucket need comparing), stopping
-    once m are out. Cheaper than a heap: no unpredictable sift branches.
+    The cells (side ``cell``) within Chebyshev distance ``span`` of the query's cell hold
+    every point within the radius. With span > 1 (dense clouds, small cells) the search
+    grows: the cells within distance k = 1, 2, ... are read, keeping the points closer than
+    k sides; once there are m of them, no other point can come before them and the search
+    stops. Each z column of cells is one contiguous run of the cell-sorted cloud.
     """
-    runs = np.empty((9, 2), dtype=np.int64)
     capacity = 256
     cd2 = np.empty(capacity)
     cid = np.empty(capacity, dtype=np.int64)
     crow = np.empty(capacity, dtype=np.int64)
     perm = np.empty(capacity, dtype=np.int64)
-    bucket_start = np.empty(capacity + 1, dtype=np.int64)
+    bucket_end = np.empty(capacity + 1, dtype=np.int64)
+    n_cells = ukeys.shape[0]
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    # a point outside the cells within Chebyshev distance k of the query's is at least k
+    # sides away, up to the rounding of cell indices (see CELL_MARGIN): k * shell is a safe
+    # strict bound on its distance
+    shell = cell * (1.0 - 1e-5)
     for b in range(qrows.shape[0]):
         q = qrows[b]
         xq = xyz[q, 0]
         yq = xyz[q, 1]
         zq = xyz[q, 2]
-        n_runs = _cell_runs(xq, yq, zq, ukeys, ustart, origin, cell, dims, runs)
-        n = 0
-        for r in range(n_runs):
-            if n + runs[r, 1] - runs[r, 0] > capacity:
-                while n + runs[r, 1] - runs[r, 0] > capacity:
-                    capacity *= 2
-                new_d2 = np.empty(capacity)
-                new_id = np.empty(capacity, dtype=np.int64)
-                new_row = np.empty(capacity, dtype=np.int64)
-                new_d2[:n] = cd2[:n]
-                new_id[:n] = cid[:n]
-                new_row[:n] = crow[:n]
-                cd2, cid, crow = new_d2, new_id, new_row
-                perm = np.empty(capacity, dtype=np.int64)
-                bucket_start = np.empty(capacity + 1, dtype=np.int64)
-            for s in range(runs[r, 0], runs[r, 1]):
-                d0 = sxyz[s, 0] - xq
-                d1 = sxyz[s, 1] - yq
-                dz = sxyz[s, 2] - zq
-                d2 = d0 * d0 + d1 * d1 + dz * dz
-                if d2 <= r2:
-                    cd2[n] = d2
-                    cid[n] = sids[s]
-                    crow[n] = srows[s]
-                    n += 1
-        # counting sort into n buckets of d2 (monotone: d2 <= d2' => bucket <= bucket')
-        scale = n / r2
-        for k in range(n + 1):
-            bucket_start[k] = 0
-        for k in range(n):
-            bucket_start[min(int(cd2[k] * scale), n - 1) + 1] += 1
-        for k in range(n):
-            bucket_start[k + 1] += bucket_start[k]
-        for k in range(n):
-            key = min(int(cd2[k] * scale), n - 1)
-            perm[bucket_start[key]] = k
-            bucket_start[key] += 1
-        # bucket_start[k] is now the end of bucket k; sort each by (d2, id, row), emit
-        size = 0
-        lo = 0
-        for key in range(n):
-            hi = bucket_start[key]
-            for i in range(lo + 1, hi):
-                v = perm[i]
-                j = i - 1
-                while j >= lo and _before(cd2, cid, crow, v, perm[j]):
-                    perm[j + 1] = perm[j]
-                    j -= 1
-                perm[j + 1] = v
-            for i in range(lo, hi):
-                if size == m:
-                    break
-                out[b, size] = crow[perm[i]]
-                size += 1
-            if size == m:
+        cx = min(max(int(math.floor((xq - origin[0]) / cell)), 0), nx - 1)
+        cy = min(max(int(math.floor((yq - origin[1]) / cell)), 0), ny - 1)
+        cz = min(max(int(math.floor((zq - origin[2]) / cell)), 0), nz - 1)
+        far = 1 if capped else span
+        while True:
+            # the cells within Chebyshev distance `far`, points closer than `far` sides
+            bound = r2 if far >= span else min(r2, (far * shell) ** 2)
+            n = 0
+            for gx in range(max(cx - far, 0), min(cx + far + 1, nx)):
+                for gy in range(max(cy - far, 0), min(cy + far + 1, ny)):
+                    z0 = max(cz - far, 0)
+                    z1 = min(cz + far, nz - 1)
+                    base = (gx * ny + gy) * nz
+                    key0 = base + z0
+                    key1 = base + z1
+                    lo = 0  # first non-empty cell with key >= key0
+                    hi = n_cells
+                    while lo < hi:
+                        mid = (lo + hi) >> 1
+                        if ukeys[mid] < key0:
+                            lo = mid + 1
+                        else:
+                            hi = mid
+                    if lo == n_cells or ukeys[lo] > key1:
+                        continue
+                    last = lo
+                    while last + 1 < n_cells and ukeys[last + 1] <= key1:
+                        last += 1
+                    start = ustart[lo]
+                    stop = ustart[last + 1]
+                    if n + stop - start > capacity:
+                        while n + stop - start > capacity:
+                            capacity *= 2
+                        new_d2 = np.empty(capacity)
+                        new_id = np.empty(capacity, dtype=np.int64)
+                        new_row = np.empty(capacity, dtype=np.int64)
+                        new_d2[:n] = cd2[:n]
+                        new_id[:n] = cid[:n]
+                        new_row[:n] = crow[:n]
+                        cd2, cid, crow = new_d2, new_id, new_row
+                        perm = np.empty(capacity, dtype=np.int64)
+                        bucket_end = np.empty(capacity + 1, dtype=np.int64)
+                    for s in range(start, stop):
+                        d0 = sxyz[s, 0] - xq
+                        d1 = sxyz[s, 1] - yq
+                        dz = sxyz[s, 2] - zq
+                        d2 = d0 * d0 + d1 * d1 + dz * dz
+                        if d2 <= bound:
+                            cd2[n] = d2
+                            cid[n] = sids[s]
+                            crow[n] = srows[s]
+                            n += 1
+            if far >= span or n >= m:
                 break
-            lo = hi
+            far += 1
+        size = _select(cd2, cid, crow, n, m, bound, perm, bucket_end)
+        for k in range(size):
+            out[b, k] = crow[perm[k]]
         counts[b] = size
 
 
 @_jit
-def _count_block(xyz, qrows, sxyz, ukeys, ustart, origin, cell, dims, r2, counts):
+def _count_block(xyz, qrows, sxyz, ukeys, ustart, origin, cell, dims, span, r2, counts):
     """Number of points within the radius of each xyz[qrows[b]] (no cap)."""
-    runs = np.empty((9, 2), dtype=np.int64)
+    n_cells = ukeys.shape[0]
+    nx, ny, nz = dims[0], dims[1], dims[2]
     for b in range(qrows.shape[0]):
         q = qrows[b]
         xq = xyz[q, 0]
         yq = xyz[q, 1]
         zq = xyz[q, 2]
-        n_runs = _cell_runs(xq, yq, zq, ukeys, ustart, origin, cell, dims, runs)
+        cx = min(max(int(math.floor((xq - origin[0]) / cell)), 0), nx - 1)
+        cy = min(max(int(math.floor((yq - origin[1]) / cell)), 0), ny - 1)
+        cz = min(max(int(math.floor((zq - origin[2]) / cell)), 0), nz - 1)
+        z0 = max(cz - span, 0)
+        z1 = min(cz + span, nz - 1)
         count = 0
-        for r in range(n_runs):
-            for s in range(runs[r, 0], runs[r, 1]):
-                d0 = sxyz[s, 0] - xq
-                d1 = sxyz[s, 1] - yq
-                dz = sxyz[s, 2] - zq
-                if d0 * d0 + d1 * d1 + dz * dz <= r2:
-                    count += 1
+        for gx in range(max(cx - span, 0), min(cx + span + 1, nx)):
+            for gy in range(max(cy - span, 0), min(cy + span + 1, ny)):
+                base = (gx * ny + gy) * nz
+                lo = np.searchsorted(ukeys, base + z0)
+                if lo == n_cells or ukeys[lo] > base + z1:
+                    continue
+                last = lo
+                while last + 1 < n_cells and ukeys[last + 1] <= base + z1:
+                    last += 1
+                for s in range(ustart[lo], ustart[last + 1]):
+                    d0 = sxyz[s, 0] - xq
+                    d1 = sxyz[s, 1] - yq
+                    dz = sxyz[s, 2] - zq
+                    if d0 * d0 + d1 * d1 + dz * dz <= r2:
+                        count += 1
         counts[b] = count
 
 
@@ -275,6 +305,29 @@ def _check_ids(ids, n_points: int) -> np.ndarray:
     return np.ascontiguousarray(arr, dtype=np.int64)
 
 
+class _Grid:
+    """The cloud sorted by cubic cells of one side, with the start of each non-empty cell."""
+
+    def __init__(self, xyz, ids, origin, extent, cell):
+        # Coarser cells when the grid would overflow int64 keys or when cell indices would
+        # carry more rounding than CELL_MARGIN covers: still exact, only slower.
+        cell = max(cell, float(extent.max()) / MAX_CELLS_PER_AXIS)
+        while math.prod(int(e // cell) + 1 for e in extent) >= 2**62:
+            cell *= 2.0
+        n = len(xyz)
+        self.cell = cell
+        self.dims = np.array([int(e // cell) + 1 for e in extent], dtype=np.int64)
+        self.keys = _cell_keys(xyz, origin, cell, self.dims)
+        order = np.argsort(self.keys, kind="stable")
+        sorted_keys = self.keys[order]
+        self.rows = order.astype(np.int64)
+        self.xyz = np.ascontiguousarray(xyz[order])
+        self.ids = np.ascontiguousarray(ids[order])
+        starts = np.flatnonzero(np.diff(sorted_keys, prepend=-1)) if n else order[:0]
+        self.ukeys = np.ascontiguousarray(sorted_keys[starts])
+        self.ustart = np.concatenate([starts, [n]]).astype(np.int64)
+
+
 class RadiusIndex:
     """A cloud prepared for repeated exact radius searches (see the module docstring).
 
@@ -290,6 +343,11 @@ class RadiusIndex:
     ids : int64 (N,), optional
         Global ids that break ties between equal distances (default: row numbers). Keep them
         unique: they define the neighbour order across chunks.
+
+    The grid has cells of side ``radius`` (27 cells hold every neighbour). On dense clouds,
+    where a capped query needs far fewer points than those 27 cells hold, a second grid of
+    cells ``span`` times smaller is built on demand (see :meth:`span_for`): the 27 nearest
+    small cells usually settle the query.
     """
 
     def __init__(self, xyz, radius, ids=None):
@@ -297,33 +355,37 @@ class RadiusIndex:
         self.radius = _check_radius(radius)
         self.ids = _check_ids(ids, len(self.xyz))
         self.r2 = self.radius * self.radius
-        n = len(self.xyz)
-        if n == 0:
-            self.origin = np.zeros(3)
-            self.cell = self.radius
-            self.dims = np.ones(3, dtype=np.int64)
-            self.keys = np.empty(0, dtype=np.int64)
-        else:
+        if len(self.xyz):
             self.origin = self.xyz.min(axis=0)
-            extent = self.xyz.max(axis=0) - self.origin
-            cell = self.radius * (1.0 + CELL_MARGIN)
-            # Coarser cells when the grid would overflow int64 keys or lose the rounding
-            # margin: still exact, only slower.
-            cell = max(cell, float(extent.max()) / 2.0**40)
-            while math.prod(int(e // cell) + 1 for e in extent) >= 2**62:
-                cell *= 2.0
-            self.cell = cell
-            self.dims = np.array([int(e // cell) + 1 for e in extent], dtype=np.int64)
-            self.keys = _cell_keys(self.xyz, self.origin, self.cell, self.dims)
-        order = np.argsort(self.keys, kind="stable")
-        sorted_keys = self.keys[order]
-        self._srows = order.astype(np.int64)
-        self._sxyz = np.ascontiguousarray(self.xyz[order])
-        self._sids = np.ascontiguousarray(self.ids[order])
-        first = np.flatnonzero(np.diff(sorted_keys)) + 1 if n else np.empty(0, dtype=np.int64)
-        starts = np.concatenate([[0], first]) if n else np.empty(0, dtype=np.int64)
-        self._ukeys = np.ascontiguousarray(sorted_keys[starts])
-        self._ustart = np.concatenate([starts, [n]]).astype(np.int64)
+            self.extent = self.xyz.max(axis=0) - self.origin
+        else:
+            self.origin = np.zeros(3)
+            self.extent = np.zeros(3)
+        coarse = _Grid(self.xyz, self.ids, self.origin, self.extent,
+                       self.radius * (1.0 + CELL_MARGIN))  # fmt: skip
+        self._grids = {1: coarse}
+        self.keys = coarse.keys
+        populations = np.diff(coarse.ustart).astype(np.float64)
+        #: mean number of points in the radius-sized cell of a point (its local density)
+        self.cell_population = float((populations**2).sum() / max(len(self.xyz), 1))
+
+    def span_for(self, max_neighbors: int | None) -> int:
+        """Cells per radius for a query capped at ``max_neighbors``: 1 on sparse clouds.
+
+        On a surface, the points within one small cell side h = radius / span of a query
+        number about cell_population * pi / span**2; the span keeps that near twice the cap,
+        so the 27 nearest small cells usually hold the whole answer.
+        """
+        if max_neighbors is None or len(self.xyz) == 0:
+            return 1
+        span = int(math.sqrt(math.pi * self.cell_population / (2.0 * max_neighbors)))
+        return min(max(span, 1), MAX_SPAN)
+
+    def _grid(self, span: int) -> _Grid:
+        if span not in self._grids:
+            self._grids[span] = _Grid(self.xyz, self.ids, self.origin, self.extent,
+                                      self._grids[1].cell / span)  # fmt: skip
+        return self._grids[span]
 
     def spatial_order(self, query: np.ndarray) -> np.ndarray:
         """Permutation of ``query`` (int64 row indices) that sorts it by cell."""
@@ -340,12 +402,19 @@ class RadiusIndex:
         nbr_ptr = np.zeros(n_query + 1, dtype=np.int64)
         if n_query == 0:
             return np.empty(0, dtype=np.int64), nbr_ptr
-        order = self.spatial_order(query)
+        span = self.span_for(cap)
+        grid = self._grid(span)
+        # cells of the fine grid are whole fractions of the coarse ones only in the ideal
+        # case; what matters is that span fine cells cover the radius
+        span = max(1, int(math.ceil(self._grids[1].cell / grid.cell - 1e-9)))
+        order = np.argsort(grid.keys[query], kind="stable")
         sorted_query = query[order]
+        args = (grid.xyz, grid.ids, grid.rows, grid.ukeys, grid.ustart, self.origin,
+                grid.cell, grid.dims, span, self.r2)  # fmt: skip
         if cap is None:
             counts = np.empty(n_query, dtype=np.int64)
-            _count_block(self.xyz, sorted_query, self._sxyz, self._ukeys, self._ustart,
-                         self.origin, self.cell, self.dims, self.r2, counts)  # fmt: skip
+            _count_block(self.xyz, sorted_query, grid.xyz, grid.ukeys, grid.ustart,
+                         self.origin, grid.cell, grid.dims, span, self.r2, counts)  # fmt: skip
             width = max(1, int(counts.max()))
         else:
             width = cap
@@ -356,9 +425,7 @@ class RadiusIndex:
             block = sorted_query[start : start + rows_per_block]
             out = np.empty((len(block), width), dtype=np.int64)
             block_counts = np.empty(len(block), dtype=np.int64)
-            _search_block(self.xyz, block, self._sxyz, self._sids, self._srows, self._ukeys,
-                          self._ustart, self.origin, self.cell, self.dims, self.r2, width, out,
-                          block_counts)  # fmt: skip
+            _search_block(self.xyz, block, *args, width, cap is not None, out, block_counts)
             flat = np.empty(int(block_counts.sum()), dtype=np.int64)
             _compact(out, block_counts, flat, 0)
             flat_parts.append(flat)

@@ -116,6 +116,49 @@ def test_chunk_invariance(offset, chunk_size):
             np.testing.assert_array_equal(gid[members[row]], gid[whole[q]])
 
 
+@pytest.fixture(scope="module")
+def dense_cloud():
+    """A dense scan at 1 cm rounding: far more points within the radius than any cap."""
+    rng = np.random.default_rng(6)
+    ground = np.column_stack([rng.uniform(0, 1.2, size=(12000, 2)), rng.normal(0, 0.01, 12000)])
+    trunk = np.column_stack([rng.normal(0.6, 0.05, size=(6000, 2)), rng.uniform(0, 1, 6000)])
+    return np.round(np.vstack([ground, trunk]), 2)
+
+
+@pytest.mark.parametrize("span", [None, 1, 2, 3, 5, 8])
+@pytest.mark.parametrize("cap", [8, 40])
+def test_dense_cloud_small_cells_are_exact(dense_cloud, span, cap):
+    """Dense clouds use cells smaller than the radius and a growing search; any cell size
+    must give the brute-force rows, ties by id included."""
+    rng = np.random.default_rng(7)
+    ids = rng.permutation(len(dense_cloud)).astype(np.int64)
+    query = rng.choice(len(dense_cloud), 400, replace=False)
+    index = RadiusIndex(dense_cloud, 0.3, ids)
+    if span is None:
+        assert index.span_for(cap) > 1  # the heuristic does pick small cells here
+    else:
+        index.span_for = lambda max_neighbors: span
+    got = csr_rows(*index.query(query, cap))
+    assert_same_rows(got, brute_force(dense_cloud, 0.3, cap, query=query, ids=ids))
+
+
+def test_dense_cloud_chunk_invariance(dense_cloud):
+    """A chunk away from the trunk is less dense than the whole cloud, so it gets larger
+    cells (another span): the rows must not change."""
+    rng = np.random.default_rng(8)
+    gid = rng.permutation(len(dense_cloud)).astype(np.int64)
+    members = np.flatnonzero(dense_cloud[:, 0] >= 0.9 - 0.21)
+    query = np.flatnonzero(dense_cloud[:, 0] >= 0.9)[:300]
+    assert RadiusIndex(dense_cloud, 0.2).span_for(32) != RadiusIndex(
+        dense_cloud[members], 0.2).span_for(32)  # fmt: skip
+    whole = csr_rows(*radius_neighbors(dense_cloud, 0.2, 32, query=query, ids=gid))
+    local_query = np.searchsorted(members, query)
+    part = csr_rows(*radius_neighbors(dense_cloud[members], 0.2, 32, query=local_query,
+                                      ids=gid[members]))  # fmt: skip
+    for a, b in zip(part, whole):
+        np.testing.assert_array_equal(gid[members[a]], gid[b])
+
+
 def test_index_reused_for_blocks_equals_single_call(random_cloud):
     index = RadiusIndex(random_cloud, 0.3)
     full = csr_rows(*index.query(None, 10))
