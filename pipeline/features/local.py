@@ -229,6 +229,37 @@ def _surface_moments(rel, tri, m, out):
 
 
 @_jit
+def _radial_order(xy, n, order, bucket):
+    """order[:n] = the points by distance from their centroid, roughly (n buckets, stable).
+
+    The triangulation inserts points fastest from the centre outwards (each new point then
+    lies outside the current hull); exact order does not matter, so a counting sort will do.
+    """
+    cx = 0.0
+    cy = 0.0
+    for k in range(n):
+        cx += xy[k, 0]
+        cy += xy[k, 1]
+    cx /= n
+    cy /= n
+    far = 0.0
+    for k in range(n):
+        far = max(far, (xy[k, 0] - cx) ** 2 + (xy[k, 1] - cy) ** 2)
+    scale = (n - 1) / far if far > 0.0 else 0.0
+    for k in range(n + 1):
+        bucket[k] = 0
+    for k in range(n):
+        key = int(((xy[k, 0] - cx) ** 2 + (xy[k, 1] - cy) ** 2) * scale)
+        bucket[key + 1] += 1
+    for k in range(n):
+        bucket[k + 1] += bucket[k]
+    for k in range(n):
+        key = int(((xy[k, 0] - cx) ** 2 + (xy[k, 1] - cy) ** 2) * scale)
+        order[bucket[key]] = k
+        bucket[key] += 1
+
+
+@_jit
 def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, out):
     """Moments of each query's triangulated neighbourhood into out[row] (zeros if none)."""
     n_query = query.shape[0]
@@ -239,7 +270,8 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, out):
     tri = workspace[TRIANGLES]
     rel = np.empty((max_n, 3))
     xy = np.empty((max_n, 2))
-    order = np.arange(max_n)
+    order = np.empty(max_n, dtype=np.int64)
+    bucket = np.empty(max_n + 1, dtype=np.int64)
     basis = np.empty((2, 3))
     for row in range(n_query):
         for col in range(out.shape[1]):
@@ -259,7 +291,7 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, out):
         for k in range(n):
             xy[k, 0] = rel[k, 0] * basis[0, 0] + rel[k, 1] * basis[0, 1] + rel[k, 2] * basis[0, 2]
             xy[k, 1] = rel[k, 0] * basis[1, 0] + rel[k, 1] * basis[1, 1] + rel[k, 2] * basis[1, 2]
-        # neighbours come by distance from q: the fast insertion order
+        _radial_order(xy, n, order, bucket)
         m = triangulate_into(xy, order, n, workspace)
         _surface_moments(rel, tri, m, out[row])
 
