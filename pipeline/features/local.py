@@ -56,12 +56,13 @@ LINE_VARIANCE_RATIO = 1e-12
 
 
 @_jit
-def _plane_basis(rel, n, basis):
+def _plane_basis(rel, n, basis, a, v):
     """Unit vectors of the two largest principal axes of rel[:n] into basis[0], basis[1].
 
     Covariance about the mean, diagonalised by cyclic Jacobi rotations (at most 50 sweeps;
     3 to 5 in practice). Ties between eigenvalues keep the lower axis index. Returns False
-    when the points lie on a line up to rounding (see ``LINE_VARIANCE_RATIO``).
+    when the points lie on a line up to rounding (see ``LINE_VARIANCE_RATIO``). ``a`` and
+    ``v`` are float64 (3, 3) work arrays.
     """
     mx = 0.0
     my = 0.0
@@ -73,7 +74,10 @@ def _plane_basis(rel, n, basis):
     mx /= n
     my /= n
     mz /= n
-    a = np.zeros((3, 3))
+    for i in range(3):
+        for j in range(3):
+            a[i, j] = 0.0
+            v[i, j] = 1.0 if i == j else 0.0
     for k in range(n):
         dx = rel[k, 0] - mx
         dy = rel[k, 1] - my
@@ -87,7 +91,6 @@ def _plane_basis(rel, n, basis):
     a[1, 0] = a[0, 1]
     a[2, 0] = a[0, 2]
     a[2, 1] = a[1, 2]
-    v = np.eye(3)
     for _ in range(50):
         if a[0, 1] == 0.0 and a[0, 2] == 0.0 and a[1, 2] == 0.0:
             break
@@ -273,6 +276,8 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, out):
     order = np.empty(max_n, dtype=np.int64)
     bucket = np.empty(max_n + 1, dtype=np.int64)
     basis = np.empty((2, 3))
+    cov = np.empty((3, 3))
+    axes = np.empty((3, 3))
     for row in range(n_query):
         for col in range(out.shape[1]):
             out[row, col] = 0.0
@@ -286,7 +291,7 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, out):
             rel[k, 0] = xyz[j, 0] - xyz[q, 0]
             rel[k, 1] = xyz[j, 1] - xyz[q, 1]
             rel[k, 2] = xyz[j, 2] - xyz[q, 2]
-        if not _plane_basis(rel, n, basis):
+        if not _plane_basis(rel, n, basis, cov, axes):
             continue
         for k in range(n):
             xy[k, 0] = rel[k, 0] * basis[0, 0] + rel[k, 1] * basis[0, 1] + rel[k, 2] * basis[0, 2]
