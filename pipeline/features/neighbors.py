@@ -72,8 +72,8 @@ def _select(cd2, cid, crow, n, m, r2, perm, bucket_end):
     """Sort the first min(n, m) of n candidates by (d2, id, row) into perm[:size].
 
     Counting sort into n buckets of d2 (monotone: d2 <= d2' gives bucket <= bucket'), then
-    an insertion sort of each bucket, stopping once m are out: linear time, no
-    unpredictable heap branches. Returns size = min(n, m).
+    an insertion sort of each bucket (merge sorts for a crowded one), stopping once m are
+    out: linear time in practice, no unpredictable heap branches. Returns min(n, m).
     """
     scale = n / r2
     for k in range(n + 1):
@@ -92,13 +92,21 @@ def _select(cd2, cid, crow, n, m, r2, perm, bucket_end):
         if lo >= size:
             break
         hi = bucket_end[key]
-        for i in range(lo + 1, hi):
-            v = perm[i]
-            j = i - 1
-            while j >= lo and _before(cd2, cid, crow, v, perm[j]):
-                perm[j + 1] = perm[j]
-                j -= 1
-            perm[j + 1] = v
+        if hi - lo > 32:
+            # many ties (duplicate points): stable merge sorts by row, id, then d2
+            items = perm[lo:hi].copy()
+            items = items[np.argsort(crow[items], kind="mergesort")]
+            items = items[np.argsort(cid[items], kind="mergesort")]
+            items = items[np.argsort(cd2[items], kind="mergesort")]
+            perm[lo:hi] = items
+        else:
+            for i in range(lo + 1, hi):
+                v = perm[i]
+                j = i - 1
+                while j >= lo and _before(cd2, cid, crow, v, perm[j]):
+                    perm[j + 1] = perm[j]
+                    j -= 1
+                perm[j + 1] = v
         lo = hi
     return size
 

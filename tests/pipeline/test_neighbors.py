@@ -177,6 +177,18 @@ def test_uncapped_dense_spot():
     assert max(len(r) for r in got) >= 600
 
 
+@pytest.mark.parametrize("cap", [10, 64, None])
+def test_many_duplicate_points(cap):
+    # thousands of copies of one point: exact d2 ties resolved by id in a crowded bucket
+    rng = np.random.default_rng(9)
+    xyz = np.vstack([np.zeros((1500, 3)), rng.uniform(-0.2, 0.2, size=(800, 3)),
+                     np.tile([0.1, 0.1, 0.0], (200, 1))])  # fmt: skip
+    ids = rng.permutation(len(xyz))
+    query = rng.choice(len(xyz), 150, replace=False)
+    got = csr_rows(*radius_neighbors(xyz, 0.3, cap, query=query, ids=ids))
+    assert_same_rows(got, brute_force(xyz, 0.3, cap, query=query, ids=ids))
+
+
 def test_isolated_points_and_empty_query():
     xyz = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
     rows = csr_rows(*radius_neighbors(xyz, 0.5))
