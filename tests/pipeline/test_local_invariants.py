@@ -293,9 +293,13 @@ def test_isolated_and_collinear_points_give_nan(caplog):
     rng = np.random.default_rng(2)
     blob = rng.normal(0, 0.05, size=(50, 3))
     line = np.column_stack([np.linspace(5, 5.5, 6), np.zeros(6), np.zeros(6)])
-    xyz = np.vstack([blob, [[10.0, 10.0, 10.0]], [[20.0, 0.0, 0.0], [20.1, 0.0, 0.0]], line])
+    # a tilted line at 1 cm rounding (seen in Oakland): exactly collinear in 3D, but its
+    # projection is off the line by rounding; it must not become a sliver surface
+    tilted = np.array([[1.37, 2.71, 0.33], [1.34, 2.67, 0.8], [1.4, 2.75, -0.14]]) + 30.0
+    xyz = np.vstack([blob, [[10.0, 10.0, 10.0]], [[20.0, 0.0, 0.0], [20.1, 0.0, 0.0]], line,
+                     tilted])  # fmt: skip
     with caplog.at_level(logging.INFO, logger="pipeline.features.local"):
-        got, n_degenerate = local_invariants(xyz, 0.3, return_degenerate=True)
+        got, n_degenerate = local_invariants(xyz, 0.5, return_degenerate=True)
     assert np.isfinite(got[:50]).all()
     assert np.isnan(got[50:]).all()
     assert n_degenerate == len(xyz) - 50
