@@ -79,24 +79,15 @@ def _split(a):
     return hi, a - hi
 
 
-@_inline
-def _two_product(a, b):
-    """a * b = x + y exactly, x = fl(a * b)."""
-    x = a * b
-    a_hi, a_lo = _split(a)
-    b_hi, b_lo = _split(b)
-    err = x - a_hi * b_hi
-    err -= a_lo * b_hi
-    err -= a_hi * b_lo
-    return x, a_lo * b_lo - err
-
-
 # --- expansion arithmetic (components nonoverlapping, increasing magnitude) ------------------
 
 
 @_jit
 def _scale_expansion(e, elen, b, h):
-    """h = e * b exactly, zero components eliminated; returns the length of h."""
+    """h = e * b exactly, zero components eliminated; returns the length of h.
+
+    Each product e[i] * b is split exactly (Dekker's two-product, b split once).
+    """
     b_hi, b_lo = _split(b)
     q = e[0] * b
     a_hi, a_lo = _split(e[0])
@@ -584,8 +575,8 @@ def _locate(xy, ver, nbr, n_tri, start, p):
     """Triangle holding p (inside or on the hull) and where: returns (t, e, on_edge).
 
     ``on_edge`` is 0 when p is strictly inside t, 1 when it lies on the edge opposite
-    ver[t, e], 2 when it coincides with a vertex. Visibility walk from ``start``, then a full scan as a guard (the walk cannot loop on a
-    Delaunay mesh with exact predicates).
+    ver[t, e], 2 when it coincides with a vertex. Visibility walk from ``start``, then a full
+    scan as a guard (the walk cannot loop on a Delaunay mesh with exact predicates).
     """
     t = start
     for step in range(4 * n_tri + 16):

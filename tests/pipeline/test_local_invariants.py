@@ -148,8 +148,8 @@ def _read_oakland(path):
 
 
 def _exact_incircle(a, b, c, d) -> Fraction:
-    rows = [(Fraction(float(v[0])) - Fraction(float(d[0])), Fraction(float(v[1])) - Fraction(float(d[1])))
-            for v in (a, b, c)]  # fmt: skip
+    dx, dy = Fraction(float(d[0])), Fraction(float(d[1]))
+    rows = [(Fraction(float(v[0])) - dx, Fraction(float(v[1])) - dy) for v in (a, b, c)]
     (ax, ay), (bx, by), (cx, cy) = rows
     return ((ax * ax + ay * ay) * (bx * cy - cx * by) + (bx * bx + by * by) * (cx * ay - ax * cy)
             + (cx * cx + cy * cy) * (ax * by - bx * ay))  # fmt: skip
