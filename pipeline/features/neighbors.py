@@ -2,12 +2,12 @@
 
 Row i of the result lists the at most ``max_neighbors`` nearest points j of query point q with
 
-    d2 = (x_j - x_q)**2 + (y_j - y_q)**2 + (z_j - z_q)**2 <= radius**2
+    d2 = (x_j - x_q)**2 + (y_j - y_q)**2 + (z_j - z_q)**2 <= radius * radius
 
-(the query point itself included), each difference taken first in float64 and the three terms
-added in this order, sorted by (d2, global id). Every point of the cloud is tested with exactly
-this expression and the selection is an exact sort on (d2, id), so a row does not depend on
-which other points are present: a chunk that holds a point and every point within ``radius``
+(the query point itself included), each difference taken first in float64, squared by a
+multiplication and the three terms added in this order, sorted by (d2, global id). Every point
+of the cloud is tested with exactly this expression and the selection is an exact sort on
+(d2, id), so a row does not depend on which other points are present: a chunk that holds a point and every point within ``radius``
 of it gives the same row (as global ids) as the whole cloud, bit for bit, whatever the
 chunking. Ties at the cap (common on coordinates rounded to 1 cm) are broken by the global id;
 should two points share an id, by their row.
@@ -457,7 +457,7 @@ def radius_neighbors(xyz, radius, max_neighbors=64, *, query=None, ids=None):
         Coordinates, finite; any magnitude.
     radius : float
         Search radius, > 0. A point j is a neighbour of q when
-        (x_j - x_q)**2 + (y_j - y_q)**2 + (z_j - z_q)**2 <= radius**2 in float64.
+        (x_j - x_q)**2 + (y_j - y_q)**2 + (z_j - z_q)**2 <= radius * radius in float64.
     max_neighbors : int or None
         Cap on the row length (the nearest are kept, ties broken by ``ids``). ``None`` keeps
         every point within ``radius``: beware, rows then grow with the density (on mobile
