@@ -9,8 +9,8 @@ multiplication and the three terms added in this order, sorted by (d2, global id
 of the cloud is tested with exactly this expression and the selection is an exact sort on
 (d2, id), so a row does not depend on which other points are present: a chunk that holds a
 point and every point within ``radius`` of it gives the same row (as global ids) as the whole
-cloud, bit for bit, whatever the chunking. Ties at the cap (common on coordinates rounded to 1 cm) are broken by the global id;
-should two points share an id, by their row.
+cloud, bit for bit, whatever the chunking. Ties at the cap (common on coordinates rounded to
+1 cm) are broken by the global id; should two points share an id, by their row.
 
 The search runs on a regular grid of cubic cells of side slightly above ``radius``: the
 candidates of a query are the points of the 27 cells around its own, read as 9 contiguous runs
