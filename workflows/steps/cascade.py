@@ -43,9 +43,9 @@ log = logging.getLogger(__name__)
 
 
 # -- worker side ----------------------------------------------------------------------------
-def _stage_context(group, stage, n_classes):
+def _stage_context(group, stage, n_classes, n_points):
     if stage == 0:
-        return uniform_context(int(group.attrs["n_core"]), n_classes)
+        return uniform_context(n_points, n_classes)
     return read_array(group, context_array(stage))
 
 
@@ -97,7 +97,7 @@ def chunk_training_rows(store_path, scene, chunk, stage, n_classes, fractions, s
     if not mask.any():
         return None
     invariants = read_array(group, "invariants")[mask]
-    context = _stage_context(group, stage, n_classes)[mask]
+    context = _stage_context(group, stage, n_classes, len(gid))[mask]
     return method.feature_matrix(invariants, context), label[mask].astype(np.int64), gid[mask]
 
 
@@ -118,7 +118,7 @@ def chunk_predict(store_path, scene, chunk, stage, forest_path, fold_paths, n_cl
         return None
     label, role, gid = (read_array(group, k) for k in ("label", "role", "gid"))
     features = method.feature_matrix(
-        read_array(group, "invariants"), _stage_context(group, stage, n_classes)
+        read_array(group, "invariants"), _stage_context(group, stage, n_classes, len(gid))
     )
     training = method.training_mask(gid, np.where(role == ROLE_TRAIN, label, -1), fractions, seed)
     proba = method.predict_stage(
