@@ -14,7 +14,7 @@ within r2. On very dense scans the cap can make S1 smaller than r1; raise it to 
 import numba
 import numpy as np
 
-from pipeline.features.neighbors import radius_neighbors
+from pipeline.features.neighbors import RadiusIndex
 
 QUERY_BLOCK = 100_000  # query points per neighbour search
 
@@ -159,10 +159,11 @@ def context_features(
     if labels is None and proba is None:
         return uniform_context(len(query), n_classes)
     out = np.empty((len(query), 2 * n_classes), dtype=np.float32)
+    index = RadiusIndex(xyz, r1, ids)  # built once, searched block by block
     # Queries in blocks: the CSR lists of a whole chunk would need gigabytes at 256 per point.
     for start in range(0, len(query), QUERY_BLOCK):
         block = query[start : start + QUERY_BLOCK]
-        nbr_idx, nbr_ptr = radius_neighbors(xyz, r1, max_neighbors, query=block, ids=ids)
+        nbr_idx, nbr_ptr = index.query(block, max_neighbors)
         out[start : start + len(block)] = context_from_neighbors(
             xyz, nbr_idx, nbr_ptr, block, r2, labels=labels, proba=proba, n_classes=n_classes
         )
