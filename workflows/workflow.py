@@ -27,7 +27,8 @@ STEPS = ("ingest", "features", "train", "export", "evaluate", "report")
 def execute(run: Run, engine, target: str, *, only: str | None = None, command: str = "") -> dict:
     """Run the steps up to ``target``; return a summary (durations, counts, output paths)."""
     last = STEPS.index(target)
-    timings, summary = {}, {"out": str(run.out)}
+    timings = {}
+    summary = {"out": str(run.out), "timings": timings}  # timings fill in as steps finish
     run.forget_results()
 
     def timed(step, fn, *args, **kwargs):
@@ -83,7 +84,6 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     write_metrics(run, metrics)
     summary.update(metrics=str(run.metrics_path), report=str(run.report_path),
                    macro_f1=metrics["macro"]["f1"])
-    summary["timings"] = timings
     return summary
 
 
