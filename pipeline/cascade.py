@@ -15,9 +15,6 @@ from sklearn.ensemble import RandomForestClassifier
 from pipeline.features.context import context_features, uniform_context
 from pipeline.features.local import local_invariants
 
-_MASK64 = np.uint64(0xFFFFFFFFFFFFFFFF)
-
-
 @dataclass(frozen=True)
 class ForestParams:
     """The configuration shared by every stage's forest (paper: 20 trees, 15 per leaf)."""

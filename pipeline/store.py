@@ -93,17 +93,6 @@ def mark_done(group: zarr.Group, step: str, fingerprint: str, **attrs) -> None:
     group.attrs.update({"done": done, **attrs})
 
 
-def clear_done(group: zarr.Group, prefix: str = "") -> None:
-    """Forget completed steps whose name starts with ``prefix`` (all by default)."""
-    done = {k: v for k, v in group.attrs.get("done", {}).items() if not k.startswith(prefix)}
-    group.attrs["done"] = done
-
-
-def require_group(root: zarr.Group, path: str) -> zarr.Group:
-    """The group at ``path`` (slash-separated), created with its parents when missing."""
-    return root.require_group(path)
-
-
 def proba_array(stage: int) -> str:
     """Name of the probabilities array of cascade stage ``stage`` (0-based; named from 1)."""
     return f"stage{stage + 1}_proba"

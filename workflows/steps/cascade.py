@@ -174,10 +174,8 @@ def _fit(run: Run, engine, layout, stage, fractions, seed, fingerprint):
         features, labels, ids, params=params, seed=seed, stage=stage,
         out_of_fold=bool(cascade.out_of_fold), folds=int(cascade.folds),
     )
-    for param in ("n_jobs",):  # workers predict single-threaded, in parallel across chunks
-        forest.set_params(**{param: 1})
-        for f in fold_forests:
-            f.set_params(**{param: 1})
+    for fitted in (forest, *fold_forests):  # workers predict single-threaded, in parallel
+        fitted.set_params(n_jobs=1)
     save_forest(stage_file(run.model_path, stage), forest)
     for k, fold_forest in enumerate(fold_forests):
         save_forest(stage_file(run.work_path / "folds", stage, k), fold_forest)
