@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -13,3 +14,11 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real LiDAR data not found at {SHARED_DATA}")
     return SHARED_DATA
+
+
+# The suite is deterministic: each property test draws the same examples on every run, so a
+# failure in CI is reproducible and never a matter of luck. To search for new counterexamples,
+# run the property tests with fresh random draws: pytest --hypothesis-profile=explore
+settings.register_profile("default", derandomize=True, database=None)
+settings.register_profile("explore", derandomize=False, database=None)
+settings.load_profile("default")

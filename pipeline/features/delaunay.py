@@ -24,9 +24,18 @@ exactly with floating-point expansions (two_sum / two_product arithmetic, as in 
 "Adaptive precision floating-point arithmetic and fast robust geometric predicates", 1997).
 Hence no infinite loop and no crash on degenerate input.
 
+The expansions are exact only while no product underflows, so the points are first rounded to
+a grid: scaled by a power of two (exact, and the signs of both predicates are unchanged) to
+|x| < 1, then rounded to multiples of 2^-60. Every exact intermediate value is then a multiple
+of 2^-240, far above the smallest normal float. The rounding moves a point by at most 2^-61 of
+the largest coordinate magnitude (below 1e-18 of it): coordinates as large as 2^-7 of the
+largest are not changed at all, and smaller ones keep 60 bits of absolute precision.
+
 Every kernel is ``nogil`` so threads can triangulate in parallel; :func:`make_workspace` and
 :func:`triangulate_into` let a caller reuse work arrays across calls.
 """
+
+import math
 
 import numba
 import numpy as np
@@ -41,6 +50,7 @@ _SPLITTER = 2.0**27 + 1.0  # Dekker's splitter for float64
 _CCW_BOUND = (3.0 + 16.0 * _EPS) * _EPS
 _ICC_BOUND = (10.0 + 96.0 * _EPS) * _EPS
 _EXPANSION_CAPACITY = 2048  # longest intermediate expansion of the exact incircle is 1536
+_GRID = 2.0**60  # points are rounded to multiples of 1 / _GRID after scaling to |x| < 1
 
 
 # --- error-free transformations --------------------------------------------------------------
@@ -368,6 +378,33 @@ def _incircle_idx(xy, a, b, c, d):
     return _incircle_exact(
         xy[a, 0], xy[a, 1], xy[b, 0], xy[b, 1], xy[c, 0], xy[c, 1], xy[d, 0], xy[d, 1]
     )
+
+
+@_jit
+def _snap_to_grid(xy, order, n):
+    """Round xy[order[:n]] in place to the predicates' grid (module docstring)."""
+    largest = 0.0
+    for i in range(n):
+        p = order[i]
+        largest = max(largest, abs(xy[p, 0]), abs(xy[p, 1]))
+    if largest == 0.0:
+        return
+    exponent = math.frexp(largest)[1]  # largest < 2**exponent
+    for i in range(n):
+        p = order[i]
+        for k in range(2):
+            # both multiplications by powers of two are exact; so is the rounding
+            xy[p, k] = np.round(math.ldexp(xy[p, k], -exponent) * _GRID) / _GRID
+
+
+def snap_to_grid(xy: np.ndarray) -> np.ndarray:
+    """The points exactly as the triangulation sees them: a rounded, power-of-two scaled copy.
+
+    Exposed so tests can check the triangulation in exact arithmetic against its real input.
+    """
+    arr = np.array(xy, dtype=np.float64, order="C")
+    _snap_to_grid(arr, np.arange(len(arr)), len(arr))
+    return arr
 
 
 # --- triangle mesh ------------------------------------------------------------------------
@@ -775,16 +812,20 @@ def triangulate_into(xy, order, n, workspace):
     ``order`` (int64) is the insertion order: any order of the points to triangulate gives a
     Delaunay triangulation, but increasing distance from their centre is the fast one (from a
     point at the edge, or in random order, most insertions need a walk: 1.3 to 2 times
-    slower); of exact duplicates the first in this order is kept. ``workspace`` comes from
+    slower); of exact duplicates the first in this order is kept. The points are first rounded
+    in place to the predicates' grid (module docstring), so xy must be a scratch array.
+    ``workspace`` comes from
     :func:`make_workspace` (capacity >= n). On return ``workspace[TRIANGLES][:m]`` holds the
     triangles as counter-clockwise indices into xy. See the module docstring for the method.
     """
+    _snap_to_grid(xy, order, n)
     return _triangulate_core(xy, order, n, workspace)
 
 
 @_jit
 def _triangulate(xy):
     n = xy.shape[0]
+    _snap_to_grid(xy, np.arange(n), n)  # first, so the order below is scale-invariant too
     # by distance from the mean, stable: the fast insertion order, duplicates in input order
     cx = 0.0
     cy = 0.0
@@ -817,9 +858,11 @@ def triangulate(xy: np.ndarray) -> np.ndarray:
         points exactly and no point lies strictly inside any triangle's circumcircle. Exact
         duplicates are dropped (the first in input order is kept); fewer than 3 distinct
         points or collinear points give m = 0. For co-circular points any valid Delaunay
-        triangulation may come out, always the same for the same input order.
+        triangulation may come out, always the same for the same input order. All of this holds
+        exactly for the points as rounded by :func:`snap_to_grid` (moved by less than 1e-18 of
+        the largest coordinate magnitude).
     """
-    arr = np.ascontiguousarray(xy, dtype=np.float64)
+    arr = np.array(xy, dtype=np.float64, order="C")  # a copy: triangulate_into rounds it
     if arr.ndim != 2 or arr.shape[1] != 2:
         raise InputError(f"xy must have shape (n, 2), got {arr.shape}")
     if not np.isfinite(arr).all():

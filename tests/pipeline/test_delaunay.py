@@ -4,7 +4,7 @@ from fractions import Fraction
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy.spatial import Delaunay
 
@@ -14,6 +14,7 @@ from pipeline.features.delaunay import (
     incircle,
     make_workspace,
     orient2d,
+    snap_to_grid,
     triangulate,
     triangulate_into,
 )
@@ -71,7 +72,8 @@ def first_occurrences(xy: np.ndarray) -> set[int]:
 def check_triangulation(xy: np.ndarray, tri: np.ndarray, delaunay: bool = True) -> None:
     """Assert tri is a Delaunay triangulation of the distinct points of xy covering the hull.
 
-    All in exact rational arithmetic on the float inputs:
+    All in exact rational arithmetic on the points as the triangulation sees them (rounded by
+    ``snap_to_grid``, tested on its own below):
     - every triangle is counter-clockwise with positive area;
     - every directed edge appears once (an edge-to-edge mesh without folds);
     - the triangle areas add up exactly to the hull area (coverage without overlap);
@@ -80,6 +82,7 @@ def check_triangulation(xy: np.ndarray, tri: np.ndarray, delaunay: bool = True) 
     - no point lies strictly inside any circumcircle (``delaunay``).
     """
     assert tri.dtype == np.int64 and tri.ndim == 2 and tri.shape[1] == 3
+    xy = snap_to_grid(xy)
     area = exact_hull_area(xy)
     if area == 0:
         assert len(tri) == 0
@@ -181,6 +184,10 @@ def test_matches_scipy_in_general_position(seed, n):
 
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.tuples(st.floats(-1, 1), st.floats(-1, 1)), min_size=3, max_size=40))
+# tiny coordinates next to large ones: products underflow without the grid rounding
+@example([(0.0, 0.0), (0.0, 1.1758891127567872e-161), (4.209489904037624e-197, 0.0)])
+@example([(0.0, 0.0), (0.0, 1.0), (1.1758891127567872e-161, 0.0), (4.209489904037624e-197, 1.0)])
+@example([(0.0, 0.0), (0.0, 1.0), (1.0, 1.0), (3.0769468424406977e-226, 6.61684527970664e-18)])
 def test_hypothesis_random_points(points):
     xy = np.array(points, dtype=np.float64)
     tri = triangulate(xy)
@@ -197,6 +204,38 @@ def test_hypothesis_degenerate_grid_points(points):
     xy = np.array(points, dtype=np.float64).reshape(-1, 2)
     tri = triangulate(xy)
     check_triangulation(xy, tri)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.tuples(st.floats(-1e3, 1e3), st.floats(-1e3, 1e3)), min_size=1, max_size=20),
+    st.integers(-300, 300),
+)
+def test_snap_to_grid_moves_points_by_less_than_1e_18_of_their_size(points, shift):
+    xy = np.array(points) * 2.0**shift
+    snapped = snap_to_grid(xy)
+    largest = np.abs(xy).max()
+    if largest == 0:
+        assert (snapped == 0).all()
+        return
+    exponent = np.frexp(largest)[1]
+    assert np.abs(snapped).max() < 1.0
+    assert np.all(np.abs(np.ldexp(snapped, exponent) - xy) <= largest * 2.0**-60)
+    # on the grid: 2^60 times a coordinate is an integer
+    assert np.all(snapped * 2.0**60 == np.round(snapped * 2.0**60))
+    np.testing.assert_array_equal(snap_to_grid(snapped), snapped)  # idempotent
+
+
+def test_snap_keeps_coordinates_near_the_largest():
+    xy = np.random.default_rng(0).uniform(0.5, 1.0, size=(50, 2)) * 3.7e5
+    np.testing.assert_array_equal(np.ldexp(snap_to_grid(xy), np.frexp(xy.max())[1]), xy)
+
+
+@pytest.mark.parametrize("power", [-900, -500, -30, 0, 30, 500])
+def test_power_of_two_scaling_gives_the_same_triangles(power):
+    xy = np.random.default_rng(power % 7).normal(size=(50, 2))
+    xy[:5] = np.round(xy[:5])  # some exact degeneracies
+    np.testing.assert_array_equal(triangulate(xy * 2.0**power), triangulate(xy))
 
 
 def test_grid_is_covered_exactly():
@@ -279,7 +318,7 @@ def test_collinear_then_off_line_point():
     xy = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [-1.0, 0.0], [3.0, 0.0], [1.0, 1.0]])
     for order in ([0, 1, 2, 3, 4, 5], [5, 0, 1, 2, 3, 4], [2, 0, 1, 3, 4, 5], [0, 3, 1, 4, 2, 5]):
         workspace = make_workspace(6)
-        m = triangulate_into(xy, np.array(order, dtype=np.int64), 6, workspace)
+        m = triangulate_into(xy.copy(), np.array(order, dtype=np.int64), 6, workspace)
         check_triangulation(xy, workspace[TRIANGLES][:m].copy())
 
 
@@ -289,8 +328,9 @@ def test_any_insertion_order_gives_a_delaunay_mesh(seed):
     xy = np.round(rng.uniform(0, 1, size=(40, 2)), 1)  # many duplicates and co-circular sets
     for order in (np.arange(40), rng.permutation(40), np.argsort(-xy[:, 0], kind="stable")):
         workspace = make_workspace(40)
-        m = triangulate_into(xy, order.astype(np.int64), 40, workspace)
+        m = triangulate_into(xy.copy(), order.astype(np.int64), 40, workspace)
         tri = workspace[TRIANGLES][:m].copy()
+        xy = snap_to_grid(xy)  # the coordinates the triangulation saw
         doubled = [exact_orient(*xy[t]) for t in tri]
         assert all(d > 0 for d in doubled) and sum(doubled) / 2 == exact_hull_area(xy)
         for t in tri:
