@@ -7,6 +7,7 @@ finished chunks; a lost worker changes nothing.
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -14,10 +15,12 @@ import threading
 import time
 from pathlib import Path
 
+import laspy
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from pipeline.io import write_las
 from tests.workflows.conftest import read_predictions, write_config
 from workflows.cli import main
 
@@ -179,10 +182,17 @@ def test_predict_with_a_saved_model(reference, survey, tmp_path):
 
 
 def test_drop_unlisted_leaves_points_out_and_exports_them_as_class_0(survey, tmp_path):
+    # plus a tile of unlisted points only, away from the others: its chunks hold no point
+    test_dir = tmp_path / "test"
+    shutil.copytree(survey["test"], test_dir)
+    las = laspy.read(sorted(test_dir.glob("*.laz"))[0])
+    misc = las.classification == 1
+    xyz = np.c_[las.x, las.y, las.z][misc] + [40.0, 0.0, 0.0]
+    write_las(test_dir / "far.laz", xyz, fields={"classification": np.ones(len(xyz), np.uint8)})
     config = write_config(tmp_path / "d.yaml", survey, data={
-        "train": [str(survey["train"] / "*.laz")], "test": [str(survey["test"] / "*.laz")],
+        "train": [str(survey["train"] / "*.laz")], "test": [str(test_dir / "*.laz")],
         "classes": {"terrain": [2], "tree": [5], "dead_wood": [64]},
-        "background": [], "drop_unlisted": True})
+        "background": [], "drop_unlisted": True}, tiling={"chunk_size": 10.0})
     out = tmp_path / "out"
     result = silva("run", config, "--out", out, "--quiet", "--in-process")
     assert result.exit_code == 0, result.output
@@ -194,3 +204,4 @@ def test_drop_unlisted_leaves_points_out_and_exports_them_as_class_0(survey, tmp
     assert np.all(predicted[misc] == 0)
     assert np.all(predicted[~misc] > 0)
     assert metrics["classes"] == ["terrain", "tree", "dead_wood"]
+    assert np.all(read_predictions(out)["far"]["PredictedClassification"] == 0)

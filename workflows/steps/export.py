@@ -45,6 +45,19 @@ class _ChunkPredictions:
         self.allow_missing = allow_missing  # points left out at ingest (data.drop_unlisted)
         self.cache = {}
 
+    def _load(self, chunk, n_classes):
+        """(sorted global ids, probabilities) of one chunk; empty for a chunk never stored."""
+        name = self.grid.chunk_name(chunk)
+        try:
+            group = self.root[chunk_path(self.scene, name)]
+        except KeyError:
+            # ingest stores only chunks with points: every point here was left out
+            if not self.allow_missing:
+                raise StoreError(f"chunk {name} of scene '{self.scene}' is missing from the "
+                                 "store; rerun with --overwrite") from None
+            return np.empty(0, np.int64), np.empty((0, n_classes), np.float32)
+        return read_array(group, "gid"), read_array(group, proba_array(self.stage))
+
     def lookup(self, xyz, gid, n_classes):
         """float32 (n, C) probabilities and a bool mask of the points the store holds."""
         chunks = self.grid.chunk_of(xyz)
@@ -55,9 +68,7 @@ class _ChunkPredictions:
             if chunk not in self.cache:
                 if len(self.cache) >= 8:  # bounded memory on tiles spanning many chunks
                     self.cache.clear()
-                group = self.root[chunk_path(self.scene, self.grid.chunk_name(int(chunk)))]
-                self.cache[chunk] = (
-                    read_array(group, "gid"), read_array(group, proba_array(self.stage)))
+                self.cache[chunk] = self._load(int(chunk), n_classes)
             ids, chunk_proba = self.cache[chunk]
             pos = np.minimum(np.searchsorted(ids, gid[rows]), max(len(ids) - 1, 0))
             hit = ids[pos] == gid[rows] if len(ids) else np.zeros(len(rows), bool)

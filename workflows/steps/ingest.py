@@ -123,6 +123,8 @@ def ingest_tile(
             if keep_codes is not None:
                 kept = np.isin(raw, keep_codes)
                 xyz, gid, label = xyz[kept], gid[kept], label[kept]
+                if len(xyz) == 0:
+                    continue
         role = point_roles(scene, xyz, split)
         chunk = grid.chunk_of(xyz)
         order = np.argsort(chunk, kind="stable")
