@@ -45,6 +45,25 @@ def _run_task(fn, kwargs, where, reproduce):
         raise ChunkError(f"{where}: {reason} (reproduce with: {reproduce})") from None
 
 
+class _DropReportedFailures(logging.Filter):
+    """Drops a worker's "Compute Failed" traceback of a task that raised a ChunkError.
+
+    The step reports each such failure in its summary, with the command to reproduce it;
+    the worker's copy would only repeat it as a multi-line traceback in the run's log.
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not (str(record.msg).startswith("Compute Failed")
+                    and "ChunkError(" in repr(record.args))
+
+
+def _quieten_worker(dask_worker=None):
+    """Runs on each worker (also ones that join later): installs the filter once."""
+    worker_log = logging.getLogger("distributed.worker")
+    if not any(isinstance(f, _DropReportedFailures) for f in worker_log.filters):
+        worker_log.addFilter(_DropReportedFailures())
+
+
 class Engine:
     """Maps tasks over a Dask client, or runs them here when ``client`` is None."""
 
@@ -53,6 +72,8 @@ class Engine:
         self.quiet = quiet
         self.retries = retries
         self.debug = debug  # in this process: let errors through with their traceback
+        if client is not None:
+            client.register_worker_callbacks(setup=_quieten_worker)
 
     def map(self, step: str, tasks: list[Task]) -> dict[str, Any]:
         """Run every task; return {key: result}; raise StepFailed after all have finished."""

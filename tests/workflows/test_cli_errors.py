@@ -72,7 +72,7 @@ def test_class_without_training_points(tmp_path, survey):
     assert not (tmp_path / "out" / "metrics.json").exists()
 
 
-def test_failing_chunk_names_itself_and_the_reproduce_command():
+def test_failing_chunk_names_itself_and_the_reproduce_command(caplog):
     from pipeline.errors import SilvaError
     from workflows.engine import Engine, StepFailed, Task
 
@@ -93,3 +93,5 @@ def test_failing_chunk_names_itself_and_the_reproduce_command():
     assert "ZeroDivisionError: boom" in message
     assert "silva features C --chunk test/1_2" in message
     assert "\n" not in message
+    # the worker does not log its own multi-line copy of the failure
+    assert not any("Compute Failed" in r.getMessage() for r in caplog.records)
