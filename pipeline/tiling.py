@@ -4,6 +4,8 @@ Every point belongs to exactly one chunk's core: half-open cells [x0 + i s, x0 +
 points beyond the grid's edge clamped into the edge cells, so none is lost or duplicated. The
 halo of a chunk holds copies of the points of other chunks within distance ``halo`` of its cell
 (a square margin, a superset of every sphere of radius <= halo around a core point).
+
+:func:`auto_chunk_size` picks the cell size from a scene's header statistics.
 """
 
 import math
@@ -13,6 +15,10 @@ import numpy as np
 
 # Global point id = tile index << TILE_SHIFT | index of the point in its tile.
 TILE_SHIFT = 40
+
+# Automatic chunk sides are one of these mantissas times a power of ten: readable numbers
+# whose neighbours differ by at most a factor 4/3.
+SIZE_SERIES = (1.0, 1.2, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0)
 
 
 def global_ids(tile_index: int, start: int, count: int) -> np.ndarray:
@@ -26,6 +32,114 @@ def split_global_ids(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(tile index, index in tile) of global ids."""
     ids = np.asarray(ids, dtype=np.int64)
     return ids >> np.int64(TILE_SHIFT), ids & np.int64((1 << TILE_SHIFT) - 1)
+
+
+def auto_chunk_size(
+    n_points: int, area: float, halo: float, target_points: int, *, extent: float | None = None
+) -> float:
+    """The side in metres of square chunks holding about ``target_points`` points each.
+
+    A worker holds one chunk's core and halo in memory at a time, so the number of points in
+    a chunk, not its side, is what must stay bounded: a dense terrestrial scan (thousands of
+    points per m²) needs chunks of a few metres, a sparse airborne survey chunks of hundreds.
+    Only header statistics are needed, so the grid is known before any point is read.
+
+    The points are assumed spread uniformly over the scene's XY box, of area ``area`` (m²)
+    and larger side ``extent`` (m; default: the side of a square of that area). A window of
+    side w = s + 2 * halo (a core and its halo) then holds
+    ``n_points * min(w, W) / W * min(w, H) / H`` points (W = extent, H = area / extent; a
+    side of length 0 counts as fully covered), so
+
+    * in a box wider than the window, ``w = sqrt(target_points * area / n_points)``;
+    * in a strip narrower than the window (H < w, e.g. a transect or points on a line of
+      length W, area 0), ``w = target_points * W / n_points``;
+
+    and ``s = w - 2 * halo``. Real scans are not uniform (a terrestrial scan is densest
+    around its scanner positions), so chunks in dense parts hold more than the mean.
+
+    The side is then rounded *down* to the series 1, 1.2, 1.5, 2, 2.5, 3, 4, 5, 6, 8 times a
+    power of ten (:data:`SIZE_SERIES`; at most 4/3 below the exact side, so a chunk holds
+    between about 0.56 and 1 times ``target_points`` points) and clamped:
+
+    * not above the scene's larger side rounded *up* to the series: a larger chunk would not
+      make fewer chunks. A scene of at most ``target_points`` points (or none) gets this
+      size, the smallest one chunk side that spans the scene (the grid is aligned to
+      multiples of the size, so the scene may still straddle a cell border);
+    * not below ``4 * halo`` rounded up to the series: a smaller chunk would be mostly halo,
+      copies of its neighbours' points, read and processed for nothing. This bound wins
+      over the one above (such a scene fits one chunk side anyway), and it is also the size
+      for points all at one XY location (area and extent 0), which no chunking can split.
+
+    So the result never increases when ``n_points`` grows with the box fixed, and it is
+    always one of the series values.
+
+    Parameters
+    ----------
+    n_points : int
+        Points in the scene, >= 0.
+    area : float
+        Area in m² of the scene's XY bounding box, >= 0.
+    halo : float
+        Halo width in metres, > 0.
+    target_points : int
+        Wanted points per chunk, core and halo together, >= 1.
+    extent : float, optional
+        Larger side in metres of the XY bounding box, >= sqrt(area).
+
+    Raises
+    ------
+    ValueError
+        A negative, non-finite or inconsistent argument (naming it and its value).
+    """
+    if not _is_integer(n_points) or n_points < 0:
+        raise ValueError(f"n_points must be an integer >= 0, got {n_points!r}")
+    if not _is_integer(target_points) or target_points < 1:
+        raise ValueError(f"target_points must be an integer >= 1, got {target_points!r}")
+    if not (math.isfinite(halo) and halo > 0):
+        raise ValueError(f"halo must be a finite number > 0, got {halo!r}")
+    if not (math.isfinite(area) and area >= 0):
+        raise ValueError(f"area must be a finite number >= 0, got {area!r}")
+    if extent is None:
+        extent = math.sqrt(area)
+    elif not (math.isfinite(extent) and extent >= 0):
+        raise ValueError(f"extent must be a finite number >= 0, got {extent!r}")
+    elif area > extent * extent * (1 + 1e-9):
+        raise ValueError(f"extent {extent!r} is smaller than the side of a square of area "
+                         f"{area!r}; give the larger side of the bounding box")
+    n_points, target_points = int(n_points), int(target_points)
+    lower = _series_ceil(4 * halo)
+    if extent == 0:  # every point at one XY location
+        return lower
+    upper = _series_ceil(extent)
+    if n_points <= target_points:
+        return max(lower, upper)
+    width, height = extent, area / extent
+    window = math.sqrt(target_points * area / n_points)
+    if window >= height:  # the window is as wide as the strip or wider (a line: both 0)
+        window = target_points * width / n_points
+    side = window - 2 * halo
+    exact = _series_floor(side) if side > 0 else 0.0
+    return max(lower, min(exact, upper))
+
+
+def _is_integer(value) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def _series_values(x: float) -> list[float]:
+    """The :data:`SIZE_SERIES` values around ``x`` > 0, ascending (exact decimal floats)."""
+    k = math.floor(math.log10(x))
+    return [float(f"{m:g}e{e}") for e in (k - 1, k, k + 1, k + 2) for m in SIZE_SERIES]
+
+
+def _series_floor(x: float) -> float:
+    """The largest series value <= ``x`` (> 0), allowing for rounding in ``x``."""
+    return max(v for v in _series_values(x) if v <= x * (1 + 1e-9))
+
+
+def _series_ceil(x: float) -> float:
+    """The smallest series value >= ``x`` (> 0), allowing for rounding in ``x``."""
+    return min(v for v in _series_values(x) if v >= x * (1 - 1e-9))
 
 
 @dataclass(frozen=True)
