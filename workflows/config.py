@@ -23,6 +23,7 @@ import difflib
 import glob
 import hashlib
 import json
+import math
 import os
 import re
 import types
@@ -317,10 +318,33 @@ class FeaturesConfig(_Section):
         return max(self.r1, self.radius2)
 
 
+def _chunk_size(value: Any) -> Any:
+    if isinstance(value, str) and value == "auto":
+        return value
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or not math.isfinite(value) or value <= 0:
+        raise _field_error("must be 'auto' or a number of metres > 0")
+    return float(value)
+
+
+ChunkSize = Annotated[Union[Literal["auto"], float], BeforeValidator(_chunk_size)]
+
+
 class TilingConfig(_Section):
     """The chunk grid the tiles are cut into, and how they are streamed."""
 
-    chunk_size: Number = Field(50.0, gt=0, description="Side of a square chunk in metres.")
+    chunk_size: ChunkSize = Field(
+        "auto",
+        description="Side of a square chunk in metres, or 'auto': sized per scene from the "
+        "tiles' headers so that a chunk with its halo holds about tiling.target_points "
+        "points at the scene's mean density.",
+    )
+    target_points: Integer = Field(
+        2_000_000, ge=1,
+        description="With chunk_size 'auto': points wanted in a chunk with its halo; a "
+        "worker holds one chunk at a time, so this bounds its memory. Ignored when "
+        "chunk_size is a number.",
+    )
     halo: Number | None = Field(
         None, gt=0,
         description="Width in metres of the copies of neighbouring points around a chunk; "
@@ -757,7 +781,8 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
     ==========  ========================================================================
     ingest      data.train/test/predict (patterns, order ignored), data.label_field,
                 data.classes, data.ignore, data.split, data.drop_unlisted;
-                tiling.chunk_size, tiling.halo
+                tiling.chunk_size, tiling.halo, tiling.target_points (only with chunk_size
+                auto)
     features    + features.set, features.r1, features.max_neighbors
     stage       + features.r2, features.context_max_neighbors, every cascade key except
                 cascade.stages (adding stages keeps the finished ones)
@@ -767,8 +792,10 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
 
     Never hashed: cluster.*, tiling.read_batch (they change how, not what, is computed).
     The halo is hashed resolved, so with ``tiling.halo`` unset, changing ``features.r1``
-    also changes the halo and thus ``ingest``. Globs are hashed as written, not the files
-    they match. Returns 16 hexadecimal digits of the SHA-256 of the canonical JSON.
+    also changes the halo and thus ``ingest``. With ``chunk_size: auto`` the size ingest
+    resolves also depends on the tiles' headers, which the run's inputs digest covers. Globs
+    are hashed as written, not the files they match. Returns 16 hexadecimal digits of the
+    SHA-256 of the canonical JSON.
     """
     if step not in STEPS:
         raise ConfigError(f"config error: unknown step '{step}' for a fingerprint; "
@@ -786,6 +813,9 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
             "halo": cfg.halo,
         },
     }
+    if cfg.tiling.chunk_size == "auto":
+        # only then does it matter; an explicit size keeps the fingerprint it always had
+        parts["ingest"]["target_points"] = cfg.tiling.target_points
     if step != "ingest":
         parts["features"] = {k: d["features"][k] for k in ("set", "r1", "max_neighbors")}
     if step in ("stage", "export", "evaluate"):

@@ -78,7 +78,8 @@ def test_defaults():
     assert d["data"] == {"train": [], "test": [], "predict": [], "label_field": "classification",
                          "classes": {}, "ignore": [], "background": [], "split": None,
                          "drop_unlisted": False}
-    assert d["tiling"] == {"chunk_size": 50.0, "halo": 0.5, "read_batch": 1_000_000}
+    assert d["tiling"] == {"chunk_size": "auto", "target_points": 2_000_000, "halo": 0.5,
+                           "read_batch": 1_000_000}
     assert d["features"] == {"set": "paper", "r1": 0.5, "r2": 0.25, "max_neighbors": 64,
                              "context_max_neighbors": 256}
     assert d["cascade"] == {"stages": 3, "n_estimators": 20, "min_samples_leaf": 15,
@@ -110,11 +111,20 @@ def test_empty_values_mean_defaults(tmp_path):
     assert load_config(tmp_path / "empty.yaml") == SilvaConfig()
 
 
+def test_chunk_size_is_auto_or_a_number():
+    assert validate_config({"tiling": {"chunk_size": "auto"}}).tiling.chunk_size == "auto"
+    cfg = validate_config({"tiling": {"chunk_size": 20, "target_points": 500_000}})
+    assert cfg.tiling.chunk_size == 20.0 and isinstance(cfg.tiling.chunk_size, float)
+    assert cfg.tiling.target_points == 500_000
+    # "key:" left empty is the default, auto
+    assert validate_config({"tiling": {"chunk_size": None}}).tiling.chunk_size == "auto"
+
+
 def test_config_is_frozen():
     cfg = SilvaConfig()
     with pytest.raises(Exception):
         cfg.tiling.chunk_size = 3.0
-    assert cfg.tiling.chunk_size == 50.0
+    assert cfg.tiling.chunk_size == "auto"
 
 
 def test_class_helpers():
@@ -137,7 +147,21 @@ def test_a_single_code_or_path_is_a_list():
 # -- validation errors -----------------------------------------------------------------------
 @pytest.mark.parametrize("raw, expected", [
     ({"tiling": {"chunksize": 3}}, "unknown key 'tiling.chunksize' (did you mean 'chunk_size'?)"),
-    ({"tiling": {"chunk_size": 0}}, "tiling.chunk_size must be > 0, got 0"),
+    ({"tiling": {"chunk_size": 0}}, "tiling.chunk_size must be 'auto' or a number of metres > 0, "
+                                    "got 0"),
+    ({"tiling": {"chunk_size": -2.5}}, "tiling.chunk_size must be 'auto' or a number of metres "
+                                       "> 0, got -2.5"),
+    ({"tiling": {"chunk_size": "big"}}, "tiling.chunk_size must be 'auto' or a number of metres "
+                                        "> 0, got 'big'"),
+    ({"tiling": {"chunk_size": "AUTO"}}, "tiling.chunk_size must be 'auto' or a number"),
+    ({"tiling": {"chunk_size": True}}, "tiling.chunk_size must be 'auto' or a number"),
+    ({"tiling": {"chunk_size": float("inf")}}, "tiling.chunk_size must be 'auto' or a number"),
+    ({"tiling": {"chunk_size": [20]}}, "tiling.chunk_size must be 'auto' or a number"),
+    ({"tiling": {"target_points": 0}}, "tiling.target_points must be >= 1, got 0"),
+    ({"tiling": {"target_points": -5}}, "tiling.target_points must be >= 1, got -5"),
+    ({"tiling": {"target_points": 2.5}}, "tiling.target_points must be an integer, got 2.5"),
+    ({"tiling": {"target_points": "big"}}, "tiling.target_points must be an integer, got 'big'"),
+    ({"tiling": {"target_points": "auto"}}, "tiling.target_points must be an integer"),
     ({"features": {"r1": -1}}, "features.r1 must be > 0, got -1"),
     ({"features": {"r1": float("inf")}}, "features.r1 must be a finite number, got inf"),
     ({"features": {"r1": float("nan")}}, "features.r1 must be > 0, got nan"),
@@ -326,6 +350,20 @@ def test_malformed_or_invalid_overrides(tmp_path, override, expected):
     assert expected in config_error(raw, [override], tmp_path)
 
 
+def test_chunk_size_overrides(tmp_path):
+    path = write(tmp_path / "c.yaml", {"tiling": {"chunk_size": 9, "target_points": 10}})
+    assert load_config(path).tiling.chunk_size == 9.0
+    cfg = load_config(path, ["tiling.chunk_size=auto", "tiling.target_points=3_000_000"])
+    assert cfg.tiling.chunk_size == "auto" and cfg.tiling.target_points == 3_000_000
+    assert load_config(None, ["tiling.chunk_size=20"]).tiling.chunk_size == 20.0
+    assert load_config(None, ["tiling.chunk_size=2.5e+1"]).tiling.chunk_size == 25.0
+    for value, got in (("0", "0"), ("-1", "-1"), ("big", "'big'")):
+        assert config_error(None, [f"tiling.chunk_size={value}"], tmp_path).endswith(
+            f"tiling.chunk_size must be 'auto' or a number of metres > 0, got {got}")
+    assert config_error(None, ["tiling.target_points=0"], tmp_path).endswith(
+        "tiling.target_points must be >= 1, got 0")
+
+
 # -- dump and load ---------------------------------------------------------------------------
 def test_dump_load_round_trip(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
@@ -355,10 +393,17 @@ def test_dump_load_round_trip(tmp_path, monkeypatch):
     assert dump_config(again) == text
 
 
+def test_auto_chunk_size_round_trips(tmp_path):
+    cfg = load_config(None, ["tiling.chunk_size=auto", "tiling.target_points=123456"])
+    text = dump_config(cfg)
+    assert "chunk_size: auto" in text and "target_points: 123456" in text
+    assert validate_config(yaml.safe_load(text)) == cfg
+
+
 @settings(max_examples=30, deadline=None)
 @given(
     r1=st.floats(1e-3, 10.0), extra_halo=st.floats(0.0, 5.0),
-    chunk=st.floats(1e-2, 1e4), stages=st.integers(1, 9),
+    chunk=st.one_of(st.just("auto"), st.floats(1e-2, 1e4)), stages=st.integers(1, 9),
     fraction=st.floats(1e-6, 1.0), seed=st.integers(0, 2**32 - 1),
 )
 def test_dump_load_round_trip_property(r1, extra_halo, chunk, stages, fraction, seed):
@@ -401,6 +446,7 @@ def changed_steps(**sections) -> set[str]:
     ({"output": {"probabilities": False}}, {"export"}),
     ({"data": {"background": []}}, {"evaluate"}),
     ({"tiling": {"chunk_size": 20}}, set(STEPS)),
+    ({"tiling": {"target_points": 1_000_000}}, set(STEPS)),  # BASE sizes chunks automatically
     ({"tiling": {"halo": 2.0}}, set(STEPS)),
     ({"data": {"label_field": "label"}}, set(STEPS)),
     ({"data": {"ignore": [7]}}, set(STEPS)),
@@ -411,6 +457,17 @@ def changed_steps(**sections) -> set[str]:
 ])
 def test_fingerprints_change_with_exactly_what_they_cover(sections, expected):
     assert changed_steps(**sections) == expected
+
+
+def test_target_points_matters_only_with_auto_chunks():
+    def ingest(**tiling):
+        return fingerprint(validate_config({**BASE, "tiling": {"halo": 1.0, **tiling}}), "ingest")
+
+    assert ingest() == ingest(chunk_size="auto")
+    assert ingest(target_points=10**6) != ingest(target_points=10**7)
+    assert ingest(chunk_size=20, target_points=10**6) == ingest(chunk_size=20,
+                                                               target_points=10**7)
+    assert ingest(chunk_size=20) != ingest(chunk_size=30) != ingest()
 
 
 def test_unset_halo_follows_r1_into_ingest():
