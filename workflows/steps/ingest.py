@@ -24,9 +24,10 @@ from pipeline.store import (
     open_store,
     part_path,
 )
-from pipeline.tiling import Grid, global_ids
+from pipeline.tiling import Grid, auto_chunk_size, global_ids
 from workflows.config import expand_inputs
 from workflows.engine import Task
+from workflows.progress import say
 from workflows.run import SCENES, Run
 
 AXES = {"x": 0, "y": 1, "z": 2}
@@ -69,7 +70,11 @@ def plan_tiles(run: Run) -> list[dict]:
 
 
 def plan_scenes(run: Run, tiles: list[dict]) -> dict:
-    """The chunk grid of each scene, covering all its tiles."""
+    """The chunk grid of each scene, covering all its tiles.
+
+    With ``tiling.chunk_size: auto`` each scene gets its own chunk size, from its tiles'
+    header point counts and combined XY bounding box (see :func:`scene_chunk_size`).
+    """
     scenes = {}
     for scene in SCENES:
         members = [t for t in tiles if t["scene"] == scene]
@@ -77,9 +82,20 @@ def plan_scenes(run: Run, tiles: list[dict]) -> dict:
             continue
         mins = np.min([t["mins"] for t in members], axis=0)
         maxs = np.max([t["maxs"] for t in members], axis=0)
-        grid = Grid.covering(mins, maxs, float(run.cfg.tiling.chunk_size))
+        size = scene_chunk_size(run, sum(t["n_points"] for t in members), mins, maxs)
+        grid = Grid.covering(mins, maxs, size)
         scenes[scene] = {"tiles": [t["index"] for t in members], "grid": grid.to_dict()}
     return scenes
+
+
+def scene_chunk_size(run: Run, n_points: int, mins, maxs) -> float:
+    """The chunk side in metres for a scene of ``n_points`` in the XY box [mins, maxs]."""
+    tiling = run.cfg.tiling
+    if tiling.chunk_size != "auto":
+        return float(tiling.chunk_size)
+    width, height = (max(0.0, float(maxs[i]) - float(mins[i])) for i in (0, 1))
+    return auto_chunk_size(n_points, width * height, run.halo, int(tiling.target_points),
+                           extent=max(width, height))
 
 
 def point_roles(scene: str, xyz: np.ndarray, split) -> np.ndarray:
@@ -171,6 +187,10 @@ def ingest(run: Run, engine) -> dict:
             del root["scenes"]
         root.attrs["layout"] = None
     scenes = plan_scenes(run, tiles)
+    for scene, info in scenes.items():
+        grid = info["grid"]
+        say(f"ingest: scene {scene} in chunks of {grid['size']:g} m "
+            f"({grid['nx']} x {grid['ny']} grid)", quiet=run.quiet)
     tasks = []
     for tile in tiles:
         scene = tile["scene"]
