@@ -340,7 +340,7 @@ class TilingConfig(_Section):
         "points at the scene's mean density.",
     )
     target_points: Integer = Field(
-        2_000_000, ge=1,
+        1_000_000, ge=1,
         description="With chunk_size 'auto': points wanted in a chunk with its halo; a "
         "worker holds one chunk at a time, so this bounds its memory. Ignored when "
         "chunk_size is a number.",

@@ -78,7 +78,7 @@ def test_defaults():
     assert d["data"] == {"train": [], "test": [], "predict": [], "label_field": "classification",
                          "classes": {}, "ignore": [], "background": [], "split": None,
                          "drop_unlisted": False}
-    assert d["tiling"] == {"chunk_size": "auto", "target_points": 2_000_000, "halo": 0.5,
+    assert d["tiling"] == {"chunk_size": "auto", "target_points": 1_000_000, "halo": 0.5,
                            "read_batch": 1_000_000}
     assert d["features"] == {"set": "paper", "r1": 0.5, "r2": 0.25, "max_neighbors": 64,
                              "context_max_neighbors": 256}
@@ -446,7 +446,7 @@ def changed_steps(**sections) -> set[str]:
     ({"output": {"probabilities": False}}, {"export"}),
     ({"data": {"background": []}}, {"evaluate"}),
     ({"tiling": {"chunk_size": 20}}, set(STEPS)),
-    ({"tiling": {"target_points": 1_000_000}}, set(STEPS)),  # BASE sizes chunks automatically
+    ({"tiling": {"target_points": 2_000_000}}, set(STEPS)),  # BASE sizes chunks automatically
     ({"tiling": {"halo": 2.0}}, set(STEPS)),
     ({"data": {"label_field": "label"}}, set(STEPS)),
     ({"data": {"ignore": [7]}}, set(STEPS)),
