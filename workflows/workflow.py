@@ -40,6 +40,8 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     layout = timed("ingest", ingest, run, engine)
     summary["points"] = sum(t["n_points"] for t in layout["tiles"])
     summary["chunks"] = sum(len(s["chunks"]) for s in layout["scenes"].values())
+    summary["chunk size (m)"] = ", ".join(
+        f"{scene} {info['grid']['size']:g}" for scene, info in layout["scenes"].items())
     if last < 1:
         return summary
     counts = timed("features", features, run, engine, layout, only)
@@ -76,6 +78,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
         "software": f"silva {__version__}, Python {platform.python_version()}",
         "input points": summary["points"],
         "chunks": summary["chunks"],
+        "chunk size (m)": summary["chunk size (m)"],
         "durations (s)": ", ".join(f"{k} {v}" for k, v in timings.items()),
     }
     write_report(run.out, metrics, pr_data=plots["pr_data"], topdown=plots["topdown"],

@@ -18,6 +18,8 @@ def test_demo_runs_end_to_end(tmp_path):
         catch_exceptions=False)
     assert result.exit_code == 0, result.output
     assert f"report: {out / 'report.html'}" in result.output
+    report = (out / "report.html").read_text()
+    assert "chunk size (m)" in report and "train 15" in report  # configs/demo.yaml
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["macro"]["f1"] > 0.5
     assert sorted(p.name for p in (out / "data" / "train").glob("*.laz"))
