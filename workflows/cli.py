@@ -1,7 +1,8 @@
 """The ``silva`` command line.
 
-Every command turns a :class:`pipeline.errors.SilvaError` into one line on stderr and exit
-code 1, so batch logs show what went wrong and how to fix it instead of a traceback.
+Every command turns a :class:`pipeline.errors.SilvaError`, and a usage error, into one line
+on stderr and exit code 1, so batch logs show what went wrong and how to fix it instead of a
+traceback or a usage screen.
 """
 
 import sys
@@ -12,8 +13,20 @@ import click
 from pipeline.errors import SilvaError
 
 
+def _usage_error(err: click.UsageError):
+    where = err.ctx.command_path if err.ctx else "silva"
+    click.echo(f"silva: error: {err.format_message()} (see '{where} --help')", err=True)
+    sys.exit(1)
+
+
 class SilvaGroup(click.Group):
     """A click group that reports Silva's errors as one clear line and exit code 1."""
+
+    def make_context(self, info_name, args, parent=None, **extra):
+        try:
+            return super().make_context(info_name, args, parent=parent, **extra)
+        except click.UsageError as err:  # an unknown option of silva itself
+            _usage_error(err)
 
     def invoke(self, ctx):
         try:
@@ -21,12 +34,15 @@ class SilvaGroup(click.Group):
         except SilvaError as err:
             click.echo(f"silva: error: {err}", err=True)
             sys.exit(1)
+        except click.UsageError as err:  # a subcommand's missing argument or unknown option
+            _usage_error(err)
         except KeyboardInterrupt:
             click.echo("silva: interrupted; run the same command again to resume", err=True)
             sys.exit(130)
 
 
-@click.group(cls=SilvaGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(name="silva", cls=SilvaGroup,
+             context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="silva")
 def main():
     """Classify every point of large LiDAR scans with 3D moment invariants and auto-context."""

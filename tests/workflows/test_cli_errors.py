@@ -40,6 +40,26 @@ def test_missing_config_file(tmp_path):
     assert "nope.yaml" in _error_line(result)
 
 
+@pytest.mark.parametrize("args, expected", [
+    (["status", "/nonexistent/run"], "'/nonexistent/run' does not exist. (see 'silva status --help')"),
+    (["run"], "Missing argument 'CONFIG'. (see 'silva run --help')"),
+    (["run", "c.yaml", "--bogus"], "No such option '--bogus'"),
+    (["frobnicate"], "No such command 'frobnicate'. (see 'silva --help')"),
+    (["--bogus"], "No such option '--bogus'. (see 'silva --help')"),
+])
+def test_usage_errors_are_one_line_and_exit_1(args, expected):
+    result = silva(*args)
+    assert result.exit_code == 1
+    assert expected in _error_line(result)
+    assert "Usage:" not in result.output
+
+
+def test_help_and_version_still_exit_0():
+    assert silva("--help").exit_code == 0 and "Commands:" in silva("--help").output
+    assert silva("run", "--help").exit_code == 0
+    assert silva("--version").exit_code == 0
+
+
 def test_corrupt_tile_names_the_file(tmp_path, survey):
     bad = tmp_path / "bad"
     bad.mkdir()
