@@ -18,6 +18,10 @@ then prints points per second for
 - the slow reference (Python loop: cKDTree, numpy eigh, scipy Delaunay, surface_moments) on a
   small subset, and the speed-up over it,
 
+- peer libraries on the same data, when installed (``pip install -e ".[bench]"``): pgeof's
+  covariance features on the very neighbourhoods above (the per-point kernel against ours),
+  and jakteristics' covariance features end to end (its own radius search, the same cap),
+
 and the peak resident memory of the process (also right after loading the scene: the
 difference bounds what the feature computation adds). Everything runs on ONE thread: the thread
 counts of numba and of the BLAS are pinned to 1 before numpy is imported.
@@ -96,6 +100,34 @@ def reference_invariants(xyz: np.ndarray, r1: float, cap: int, query: np.ndarray
     return moment_invariants(moments)
 
 
+def peer_rows(xyz, r1, cap, nbr_idx, nbr_ptr, query, repeat) -> list[tuple]:
+    """Timings of the covariance-feature libraries of the ``bench`` extra, where installed."""
+    rows = []
+    try:
+        import pgeof
+    except ImportError:
+        print("pgeof not installed: pip install -e '.[bench]'")
+    else:
+        # pgeof wants row i to describe point i: put the rows back in point order
+        rows_of = np.empty_like(query)
+        rows_of[query] = np.arange(len(query))
+        counts = np.diff(nbr_ptr)[rows_of]
+        ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.uint32)
+        idx = np.concatenate([nbr_idx[nbr_ptr[r]:nbr_ptr[r + 1]] for r in rows_of])
+        seconds, _ = timed(pgeof.compute_features, xyz.astype(np.float32),
+                           idx.astype(np.uint32), ptr, repeat=repeat)
+        rows.append(("pgeof covariance features, same neighbours", seconds, len(xyz)))
+    try:
+        import jakteristics
+    except ImportError:
+        print("jakteristics not installed: pip install -e '.[bench]'")
+    else:
+        seconds, _ = timed(jakteristics.compute_features, xyz, r1, max_k_neighbors=cap,
+                           num_threads=1, repeat=repeat)
+        rows.append(("jakteristics covariance features, end to end", seconds, len(xyz)))
+    return rows
+
+
 def timed(fn, *args, repeat: int = 3, **kwargs):
     """Best wall time of ``repeat`` runs, and the last result."""
     best = np.inf
@@ -148,6 +180,7 @@ def main() -> None:
         ("moment invariants (NumPy)", t_inv, n),
         ("local_invariants, end to end", t_total, n),
         (f"slow reference (Python loop, {m:,} points)", t_ref, m),
+        *peer_rows(xyz, r1, cap, nbr_idx, nbr_ptr, query[order], args.repeat),
     ]
     print(f"neighbours per point: mean {counts.mean():.1f}, "
           f"{np.mean(counts < 3) * 100:.2f}% below 3; NaN rows: "
