@@ -92,6 +92,36 @@ def _split(a):
 # --- expansion arithmetic (components nonoverlapping, increasing magnitude) ------------------
 
 
+@_inline
+def _two_product_presplit(a, b, b_hi, b_lo):
+    """a * b = x + y exactly, x = fl(a * b), with b = b_hi + b_lo already split (Dekker)."""
+    x = a * b
+    a_hi, a_lo = _split(a)
+    err = x - a_hi * b_hi
+    err -= a_lo * b_hi
+    err -= a_hi * b_lo
+    return x, a_lo * b_lo - err
+
+
+@_inline
+def _append_nonzero(h, n, x):
+    """Append x to the expansion h[:n] unless it is zero; returns the new length."""
+    if x != 0.0:
+        h[n] = x
+        return n + 1
+    return n
+
+
+@_inline
+def _append_last(h, n, q):
+    """Append the largest component q, kept even when zero if h[:n] is empty (an expansion
+    has at least one component); returns the final length."""
+    if q != 0.0 or n == 0:
+        h[n] = q
+        return n + 1
+    return n
+
+
 @_jit
 def _scale_expansion(e, elen, b, h):
     """h = e * b exactly, zero components eliminated; returns the length of h.
@@ -99,104 +129,41 @@ def _scale_expansion(e, elen, b, h):
     Each product e[i] * b is split exactly (Dekker's two-product, b split once).
     """
     b_hi, b_lo = _split(b)
-    q = e[0] * b
-    a_hi, a_lo = _split(e[0])
-    err = q - a_hi * b_hi
-    err -= a_lo * b_hi
-    err -= a_hi * b_lo
-    hh = a_lo * b_lo - err
-    n = 0
-    if hh != 0.0:
-        h[n] = hh
-        n += 1
+    q, hh = _two_product_presplit(e[0], b, b_hi, b_lo)
+    n = _append_nonzero(h, 0, hh)
     for i in range(1, elen):
-        enow = e[i]
-        p1 = enow * b
-        a_hi, a_lo = _split(enow)
-        err = p1 - a_hi * b_hi
-        err -= a_lo * b_hi
-        err -= a_hi * b_lo
-        p0 = a_lo * b_lo - err
+        p1, p0 = _two_product_presplit(e[i], b, b_hi, b_lo)
         s, hh = _two_sum(q, p0)
-        if hh != 0.0:
-            h[n] = hh
-            n += 1
+        n = _append_nonzero(h, n, hh)
         q, hh = _fast_two_sum(p1, s)
-        if hh != 0.0:
-            h[n] = hh
-            n += 1
-    if q != 0.0 or n == 0:
-        h[n] = q
-        n += 1
-    return n
+        n = _append_nonzero(h, n, hh)
+    return _append_last(h, n, q)
+
+
+@_inline
+def _next_component(e, ei, elen, f, fi, flen):
+    """The next component of the merge of e and f by increasing magnitude, with the indices
+    past it: the smaller of e[ei] and f[fi], or what is left once one list is used up."""
+    if fi == flen or (ei < elen and (f[fi] > e[ei]) == (f[fi] > -e[ei])):
+        return e[ei], ei + 1, fi
+    return f[fi], ei, fi + 1
 
 
 @_jit
 def _expansion_sum(e, elen, f, flen, h):
-    """h = e + f exactly, zero components eliminated; returns the length of h."""
-    ei = 0
-    fi = 0
-    enow = e[0]
-    fnow = f[0]
-    if (fnow > enow) == (fnow > -enow):
-        q = enow
-        ei += 1
-        if ei < elen:
-            enow = e[ei]
-    else:
-        q = fnow
-        fi += 1
-        if fi < flen:
-            fnow = f[fi]
+    """h = e + f exactly, zero components eliminated; returns the length of h.
+
+    Shewchuk's fast expansion sum: the components of both, merged by increasing magnitude,
+    are added one by one with two_sum (his fast_two_sum for the second one gives the same
+    exact result).
+    """
+    q, ei, fi = _next_component(e, 0, elen, f, 0, flen)
     n = 0
-    if ei < elen and fi < flen:
-        if (fnow > enow) == (fnow > -enow):
-            q, hh = _fast_two_sum(enow, q)
-            ei += 1
-            if ei < elen:
-                enow = e[ei]
-        else:
-            q, hh = _fast_two_sum(fnow, q)
-            fi += 1
-            if fi < flen:
-                fnow = f[fi]
-        if hh != 0.0:
-            h[n] = hh
-            n += 1
-        while ei < elen and fi < flen:
-            if (fnow > enow) == (fnow > -enow):
-                q, hh = _two_sum(q, enow)
-                ei += 1
-                if ei < elen:
-                    enow = e[ei]
-            else:
-                q, hh = _two_sum(q, fnow)
-                fi += 1
-                if fi < flen:
-                    fnow = f[fi]
-            if hh != 0.0:
-                h[n] = hh
-                n += 1
-    while ei < elen:
-        q, hh = _two_sum(q, enow)
-        ei += 1
-        if ei < elen:
-            enow = e[ei]
-        if hh != 0.0:
-            h[n] = hh
-            n += 1
-    while fi < flen:
-        q, hh = _two_sum(q, fnow)
-        fi += 1
-        if fi < flen:
-            fnow = f[fi]
-        if hh != 0.0:
-            h[n] = hh
-            n += 1
-    if q != 0.0 or n == 0:
-        h[n] = q
-        n += 1
-    return n
+    while ei < elen or fi < flen:
+        x, ei, fi = _next_component(e, ei, elen, f, fi, flen)
+        q, hh = _two_sum(q, x)
+        n = _append_nonzero(h, n, hh)
+    return _append_last(h, n, q)
 
 
 @_jit
@@ -416,22 +383,46 @@ def snap_to_grid(xy: np.ndarray) -> np.ndarray:
 
 
 @_inline
-def _replace_neighbor(nbr, t, old, new):
-    if nbr[t, 0] == old:
-        nbr[t, 0] = new
-    elif nbr[t, 1] == old:
-        nbr[t, 1] = new
-    else:
-        nbr[t, 2] = new
+def _index_in_row(table, t, x):
+    """Position of x in row t of ver or nbr (2 when it is not among the first two)."""
+    if table[t, 0] == x:
+        return 0
+    if table[t, 1] == x:
+        return 1
+    return 2
 
 
 @_inline
-def _index_of_neighbor(nbr, u, t):
-    if nbr[u, 0] == t:
-        return 0
-    if nbr[u, 1] == t:
-        return 1
-    return 2
+def _replace_neighbor(nbr, t, old, new):
+    nbr[t, _index_in_row(nbr, t, old)] = new
+
+
+@_inline
+def _set_triangle(ver, nbr, t, a, b, c, na, nb, nc):
+    """Triangle t = (a, b, c), with na across b-c, nb across c-a and nc across a-b."""
+    ver[t, 0] = a
+    ver[t, 1] = b
+    ver[t, 2] = c
+    nbr[t, 0] = na
+    nbr[t, 1] = nb
+    nbr[t, 2] = nc
+
+
+@_inline
+def _hand_over_edge(nbr, hull_tri, across, old, new, start):
+    """The edge from ``start`` moved from triangle old to new: tell the triangle across it,
+    or, on the hull (across = -1), record new as the hull triangle of start."""
+    if across >= 0:
+        _replace_neighbor(nbr, across, old, new)
+    else:
+        hull_tri[start] = new
+
+
+@_inline
+def _link_hull(hull_next, hull_prev, v, w):
+    """Make v -> w an edge of the hull list."""
+    hull_next[v] = w
+    hull_prev[w] = v
 
 
 @_inline
@@ -453,33 +444,16 @@ def _insert_inside(ver, nbr, hull_tri, n_tri, t, p, stack):
     a = ver[t, 0]
     b = ver[t, 1]
     c = ver[t, 2]
+    na = nbr[t, 0]
     nb = nbr[t, 1]
     nc = nbr[t, 2]
     t1 = n_tri
     t2 = n_tri + 1
-    ver[t, 0] = p
-    nbr[t, 1] = t1
-    nbr[t, 2] = t2
-    ver[t1, 0] = p
-    ver[t1, 1] = c
-    ver[t1, 2] = a
-    nbr[t1, 0] = nb
-    nbr[t1, 1] = t2
-    nbr[t1, 2] = t
-    ver[t2, 0] = p
-    ver[t2, 1] = a
-    ver[t2, 2] = b
-    nbr[t2, 0] = nc
-    nbr[t2, 1] = t
-    nbr[t2, 2] = t1
-    if nb >= 0:
-        _replace_neighbor(nbr, nb, t, t1)
-    else:
-        hull_tri[c] = t1
-    if nc >= 0:
-        _replace_neighbor(nbr, nc, t, t2)
-    else:
-        hull_tri[a] = t2
+    _set_triangle(ver, nbr, t, p, b, c, na, t1, t2)
+    _set_triangle(ver, nbr, t1, p, c, a, nb, t2, t)
+    _set_triangle(ver, nbr, t2, p, a, b, nc, t, t1)
+    _hand_over_edge(nbr, hull_tri, nb, t, t1, c)
+    _hand_over_edge(nbr, hull_tri, nc, t, t2, a)
     stack[0] = t
     stack[1] = t1
     stack[2] = t2
@@ -497,61 +471,25 @@ def _insert_on_edge(ver, nbr, hull_next, hull_prev, hull_tri, n_tri, t, e, p, st
     nb = nbr[t, (e + 1) % 3]
     nc = nbr[t, (e + 2) % 3]
     t1 = n_tri
-    ver[t, 0] = p
-    ver[t, 1] = a
-    ver[t, 2] = b
-    ver[t1, 0] = p
-    ver[t1, 1] = c
-    ver[t1, 2] = a
-    if nb >= 0:
-        _replace_neighbor(nbr, nb, t, t1)
-    else:
-        hull_tri[c] = t1
+    u1 = n_tri + 1 if u >= 0 else -1  # no u on the hull: -1 across b -> p and p -> c
+    _set_triangle(ver, nbr, t, p, a, b, nc, u, t1)
+    _set_triangle(ver, nbr, t1, p, c, a, nb, t, u1)
+    _hand_over_edge(nbr, hull_tri, nb, t, t1, c)
+    stack[0] = t
+    stack[1] = t1
     if u < 0:
-        nbr[t, 0] = nc
-        nbr[t, 1] = -1
-        nbr[t, 2] = t1
-        nbr[t1, 0] = nb
-        nbr[t1, 1] = t
-        nbr[t1, 2] = -1
-        hull_next[b] = p
-        hull_prev[p] = b
-        hull_next[p] = c
-        hull_prev[c] = p
+        _link_hull(hull_next, hull_prev, b, p)
+        _link_hull(hull_next, hull_prev, p, c)
         hull_tri[b] = t
         hull_tri[p] = t1
-        stack[0] = t
-        stack[1] = t1
         return n_tri + 1, 2
-    j = _index_of_neighbor(nbr, u, t)
+    j = _index_in_row(nbr, u, t)
     d = ver[u, j]
     u_bd = nbr[u, (j + 1) % 3]
     u_dc = nbr[u, (j + 2) % 3]
-    u1 = n_tri + 1
-    nbr[t, 0] = nc
-    nbr[t, 1] = u
-    nbr[t, 2] = t1
-    nbr[t1, 0] = nb
-    nbr[t1, 1] = t
-    nbr[t1, 2] = u1
-    ver[u, 0] = p
-    ver[u, 1] = b
-    ver[u, 2] = d
-    nbr[u, 0] = u_bd
-    nbr[u, 1] = u1
-    nbr[u, 2] = t
-    ver[u1, 0] = p
-    ver[u1, 1] = d
-    ver[u1, 2] = c
-    nbr[u1, 0] = u_dc
-    nbr[u1, 1] = t1
-    nbr[u1, 2] = u
-    if u_dc >= 0:
-        _replace_neighbor(nbr, u_dc, u, u1)
-    else:
-        hull_tri[d] = u1
-    stack[0] = t
-    stack[1] = t1
+    _set_triangle(ver, nbr, u, p, b, d, u_bd, u1, t)
+    _set_triangle(ver, nbr, u1, p, d, c, u_dc, t1, u)
+    _hand_over_edge(nbr, hull_tri, u_dc, u, u1, d)
     stack[2] = u
     stack[3] = u1
     return n_tri + 2, 4
@@ -570,7 +508,7 @@ def _legalize(xy, ver, nbr, hull_tri, stack, sp):
         u = nbr[t, 0]
         if u < 0:
             continue
-        j = _index_of_neighbor(nbr, u, t)
+        j = _index_in_row(nbr, u, t)
         p = ver[t, 0]
         b = ver[t, 1]
         c = ver[t, 2]
@@ -583,17 +521,10 @@ def _legalize(xy, ver, nbr, hull_tri, stack, sp):
         j2 = j1 + 1 if j1 < 2 else 0
         n_bd = nbr[u, j1]
         n_dc = nbr[u, j2]
-        ver[t, 2] = d
-        nbr[t, 0] = n_bd
-        nbr[t, 1] = u
-        nbr[t, 2] = n_pb
-        ver[u, 0] = p
-        ver[u, 1] = d
-        ver[u, 2] = c
-        nbr[u, 0] = n_dc
-        nbr[u, 1] = n_cp
-        nbr[u, 2] = t
-        # the edges c -> p and b -> d changed triangle
+        _set_triangle(ver, nbr, t, p, b, d, n_bd, u, n_pb)
+        _set_triangle(ver, nbr, u, p, d, c, n_dc, n_cp, t)
+        # the edges c -> p and b -> d changed triangle; written out, as through
+        # _hand_over_edge numba would count references to the arrays in this hot loop
         if n_cp >= 0:
             _replace_neighbor(nbr, n_cp, t, u)
         else:
@@ -679,18 +610,10 @@ def _triangulate_core(xy, order, n, workspace):
     c = order[ic]
     if _orient_idx(xy, a, b, c) < 0.0:
         b, c = c, b
-    ver[0, 0] = a
-    ver[0, 1] = b
-    ver[0, 2] = c
-    nbr[0, 0] = -1
-    nbr[0, 1] = -1
-    nbr[0, 2] = -1
-    hull_next[a] = b
-    hull_next[b] = c
-    hull_next[c] = a
-    hull_prev[b] = a
-    hull_prev[c] = b
-    hull_prev[a] = c
+    _set_triangle(ver, nbr, 0, a, b, c, -1, -1, -1)
+    _link_hull(hull_next, hull_prev, a, b)
+    _link_hull(hull_next, hull_prev, b, c)
+    _link_hull(hull_next, hull_prev, c, a)
     hull_tri[a] = 0
     hull_tri[b] = 0
     hull_tri[c] = 0
@@ -752,19 +675,9 @@ def _triangulate_core(xy, order, n, workspace):
             w = hull_next[v]
             t = n_tri
             n_tri += 1
-            ver[t, 0] = p
-            ver[t, 1] = w
-            ver[t, 2] = v
             old = hull_tri[v]  # holds the edge v -> w
-            nbr[t, 0] = old
-            if ver[old, 0] == w:
-                nbr[old, 1] = t
-            elif ver[old, 1] == w:
-                nbr[old, 2] = t
-            else:
-                nbr[old, 0] = t
-            nbr[t, 1] = previous
-            nbr[t, 2] = -1
+            _set_triangle(ver, nbr, t, p, w, v, old, previous, -1)
+            nbr[old, (_index_in_row(ver, old, w) + 1) % 3] = t  # across v -> w, ending at w
             if previous >= 0:
                 nbr[previous, 2] = t
                 hull_next[v] = -1  # v leaves the hull
@@ -775,10 +688,8 @@ def _triangulate_core(xy, order, n, workspace):
             sp += 1
             v = w
         hull_tri[p] = previous  # new hull edge p -> last
-        hull_next[first] = p
-        hull_prev[p] = first
-        hull_next[p] = last
-        hull_prev[last] = p
+        _link_hull(hull_next, hull_prev, first, p)
+        _link_hull(hull_next, hull_prev, p, last)
         hull_hash[h] = p
         hull_hash[_hash_key(xy[first, 0], xy[first, 1], hx, hy, n_hash)] = first
         _legalize(xy, ver, nbr, hull_tri, stack, sp)
