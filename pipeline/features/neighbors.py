@@ -40,6 +40,13 @@ MAX_SPAN = 8
 BLOCK_ENTRIES = 4_000_000
 
 _jit = numba.njit(cache=True, nogil=True)
+_inline = numba.njit(cache=True, nogil=True, inline="always")
+
+
+@_inline
+def _cell_index(x, lowest, cell, n):
+    """Index along one axis of the cell holding coordinate x, clamped to [0, n)."""
+    return min(max(int(math.floor((x - lowest) / cell)), 0), n - 1)
 
 
 @_jit
@@ -50,14 +57,52 @@ def _cell_keys(xyz, origin, cell, dims):
     for i in range(n):
         key = 0
         for k in range(3):
-            c = int(math.floor((xyz[i, k] - origin[k]) / cell))
-            c = min(max(c, 0), dims[k] - 1)
-            key = key * dims[k] + c
+            key = key * dims[k] + _cell_index(xyz[i, k], origin[k], cell, dims[k])
         keys[i] = key
     return keys
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@_inline
+def _query_cell(xyz, q, origin, cell, dims):
+    """Coordinates of point q of xyz and the indices of its cell along x, y and z."""
+    xq = xyz[q, 0]
+    yq = xyz[q, 1]
+    zq = xyz[q, 2]
+    cx = _cell_index(xq, origin[0], cell, dims[0])
+    cy = _cell_index(yq, origin[1], cell, dims[1])
+    cz = _cell_index(zq, origin[2], cell, dims[2])
+    return xq, yq, zq, cx, cy, cz
+
+
+@_inline
+def _column_run(ukeys, ustart, key0, key1):
+    """The points of the non-empty cells with keys in [key0, key1] (one z column of cells):
+    (start, stop) of their run in the cell-sorted cloud, empty when there are none."""
+    n_cells = ukeys.shape[0]
+    lo = 0  # first non-empty cell with key >= key0
+    hi = n_cells
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if ukeys[mid] < key0:
+            lo = mid + 1
+        else:
+            hi = mid
+    end = lo  # past the last cell with key <= key1
+    while end < n_cells and ukeys[end] <= key1:
+        end += 1
+    return ustart[lo], ustart[end]
+
+
+@_inline
+def _squared_distance(sxyz, s, xq, yq, zq):
+    """d2 of the module docstring between point s of sxyz and (xq, yq, zq)."""
+    d0 = sxyz[s, 0] - xq
+    d1 = sxyz[s, 1] - yq
+    dz = sxyz[s, 2] - zq
+    return d0 * d0 + d1 * d1 + dz * dz
+
+
+@_inline
 def _before(d2, ids, rows, a, b):
     """Is candidate a before candidate b in (d2, id, row) order?"""
     if d2[a] != d2[b]:
@@ -131,20 +176,13 @@ def _search_block(
     crow = np.empty(capacity, dtype=np.int64)
     perm = np.empty(capacity, dtype=np.int64)
     bucket_end = np.empty(capacity + 1, dtype=np.int64)
-    n_cells = ukeys.shape[0]
     nx, ny, nz = dims[0], dims[1], dims[2]
     # a point outside the cells within Chebyshev distance k of the query's is at least k
     # sides away, up to the rounding of cell indices (see CELL_MARGIN): k * shell is a safe
     # strict bound on its distance
     shell = cell * (1.0 - 1e-5)
     for b in range(qrows.shape[0]):
-        q = qrows[b]
-        xq = xyz[q, 0]
-        yq = xyz[q, 1]
-        zq = xyz[q, 2]
-        cx = min(max(int(math.floor((xq - origin[0]) / cell)), 0), nx - 1)
-        cy = min(max(int(math.floor((yq - origin[1]) / cell)), 0), ny - 1)
-        cz = min(max(int(math.floor((zq - origin[2]) / cell)), 0), nz - 1)
+        xq, yq, zq, cx, cy, cz = _query_cell(xyz, qrows[b], origin, cell, dims)
         far = 1 if capped else span
         while True:
             # the cells within Chebyshev distance `far`, points closer than `far` sides
@@ -155,23 +193,7 @@ def _search_block(
                     z0 = max(cz - far, 0)
                     z1 = min(cz + far, nz - 1)
                     base = (gx * ny + gy) * nz
-                    key0 = base + z0
-                    key1 = base + z1
-                    lo = 0  # first non-empty cell with key >= key0
-                    hi = n_cells
-                    while lo < hi:
-                        mid = (lo + hi) >> 1
-                        if ukeys[mid] < key0:
-                            lo = mid + 1
-                        else:
-                            hi = mid
-                    if lo == n_cells or ukeys[lo] > key1:
-                        continue
-                    last = lo
-                    while last + 1 < n_cells and ukeys[last + 1] <= key1:
-                        last += 1
-                    start = ustart[lo]
-                    stop = ustart[last + 1]
+                    start, stop = _column_run(ukeys, ustart, base + z0, base + z1)
                     if n + stop - start > capacity:
                         while n + stop - start > capacity:
                             capacity *= 2
@@ -185,10 +207,7 @@ def _search_block(
                         perm = np.empty(capacity, dtype=np.int64)
                         bucket_end = np.empty(capacity + 1, dtype=np.int64)
                     for s in range(start, stop):
-                        d0 = sxyz[s, 0] - xq
-                        d1 = sxyz[s, 1] - yq
-                        dz = sxyz[s, 2] - zq
-                        d2 = d0 * d0 + d1 * d1 + dz * dz
+                        d2 = _squared_distance(sxyz, s, xq, yq, zq)
                         if d2 <= bound:
                             cd2[n] = d2
                             cid[n] = sids[s]
@@ -206,33 +225,18 @@ def _search_block(
 @_jit
 def _count_block(xyz, qrows, sxyz, ukeys, ustart, origin, cell, dims, span, r2, counts):
     """Number of points within the radius of each xyz[qrows[b]] (no cap)."""
-    n_cells = ukeys.shape[0]
     nx, ny, nz = dims[0], dims[1], dims[2]
     for b in range(qrows.shape[0]):
-        q = qrows[b]
-        xq = xyz[q, 0]
-        yq = xyz[q, 1]
-        zq = xyz[q, 2]
-        cx = min(max(int(math.floor((xq - origin[0]) / cell)), 0), nx - 1)
-        cy = min(max(int(math.floor((yq - origin[1]) / cell)), 0), ny - 1)
-        cz = min(max(int(math.floor((zq - origin[2]) / cell)), 0), nz - 1)
+        xq, yq, zq, cx, cy, cz = _query_cell(xyz, qrows[b], origin, cell, dims)
         z0 = max(cz - span, 0)
         z1 = min(cz + span, nz - 1)
         count = 0
         for gx in range(max(cx - span, 0), min(cx + span + 1, nx)):
             for gy in range(max(cy - span, 0), min(cy + span + 1, ny)):
                 base = (gx * ny + gy) * nz
-                lo = np.searchsorted(ukeys, base + z0)
-                if lo == n_cells or ukeys[lo] > base + z1:
-                    continue
-                last = lo
-                while last + 1 < n_cells and ukeys[last + 1] <= base + z1:
-                    last += 1
-                for s in range(ustart[lo], ustart[last + 1]):
-                    d0 = sxyz[s, 0] - xq
-                    d1 = sxyz[s, 1] - yq
-                    dz = sxyz[s, 2] - zq
-                    if d0 * d0 + d1 * d1 + dz * dz <= r2:
+                start, stop = _column_run(ukeys, ustart, base + z0, base + z1)
+                for s in range(start, stop):
+                    if _squared_distance(sxyz, s, xq, yq, zq) <= r2:
                         count += 1
         counts[b] = count
 
