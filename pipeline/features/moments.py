@@ -14,6 +14,9 @@ and C_ijk = sum_v v_i v_j v_k, the integrals of the monomials over its surface a
 import numba
 import numpy as np
 
+_jit = numba.njit(cache=True, nogil=True)
+_inline = numba.njit(cache=True, nogil=True, inline="always")
+
 #: The 20 exponent triples (k, l, n) with k + l + n <= 3, in the column order of every moment
 #: array: graded by order, then lexicographically descending within an order.
 MOMENT_EXPONENTS: tuple[tuple[int, int, int], ...] = (
@@ -96,47 +99,109 @@ def surface_moments(triangles: np.ndarray) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def add_triangle_moments(a, b, c, axes, out):
-    """Add the 20 surface moments of triangle (a, b, c) to ``out`` (float64 (20,)).
+#: Divisor of each column's area-weighted vertex sum (the A, A / 3, A / 12 and A / 60 of the
+#: module docstring), in ``MOMENT_EXPONENTS`` order.
+_DIVISORS = (1.0,) + (3.0,) * 3 + (12.0,) * 6 + (60.0,) * 10
+_NO_SUMS = (0.0,) * N_MOMENTS
 
-    ``a``, ``b``, ``c`` are float64 (3,) vertices; ``axes`` is ``MOMENT_AXES``. The numba twin
-    of :func:`surface_moments` for the per-point kernels.
+
+@_inline
+def _add_weighted_sums(sums, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """``sums`` (a 20-tuple) plus the moments of triangle (a, b, c) times ``_DIVISORS``.
+
+    The terms A, A S_i, A (S_i S_j + Q_ij) and A (S_i S_j S_k + ... + 2 C_ijk) of the module
+    docstring, in ``MOMENT_EXPONENTS`` order: summed over triangles before the division, they
+    keep a loop's running sums in registers.
     """
-    ux = b[0] - a[0]
-    uy = b[1] - a[1]
-    uz = b[2] - a[2]
-    vx = c[0] - a[0]
-    vy = c[1] - a[1]
-    vz = c[2] - a[2]
+    (s0, s1x, s1y, s1z, s2xx, s2xy, s2xz, s2yy, s2yz, s2zz,
+     s3xxx, s3xxy, s3xxz, s3xyy, s3xyz, s3xzz, s3yyy, s3yyz, s3yzz, s3zzz) = sums  # fmt: skip
+    ux = bx - ax
+    uy = by - ay
+    uz = bz - az
+    vx = cx - ax
+    vy = cy - ay
+    vz = cz - az
     nx = uy * vz - uz * vy
     ny = uz * vx - ux * vz
     nz = ux * vy - uy * vx
     area = 0.5 * np.sqrt(nx * nx + ny * ny + nz * nz)
-    if area == 0.0:
-        return
-    s0 = a[0] + b[0] + c[0]
-    s1 = a[1] + b[1] + c[1]
-    s2 = a[2] + b[2] + c[2]
-    s = (s0, s1, s2)
-    for col in range(axes.shape[0]):
-        i = axes[col, 0]
-        j = axes[col, 1]
-        k = axes[col, 2]
-        if i < 0:
-            out[col] += area
-        elif j < 0:
-            out[col] += area * s[i] / 3.0
-        elif k < 0:
-            q_ij = a[i] * a[j] + b[i] * b[j] + c[i] * c[j]
-            out[col] += area / 12.0 * (s[i] * s[j] + q_ij)
-        else:
-            q_ij = a[i] * a[j] + b[i] * b[j] + c[i] * c[j]
-            q_ik = a[i] * a[k] + b[i] * b[k] + c[i] * c[k]
-            q_jk = a[j] * a[k] + b[j] * b[k] + c[j] * c[k]
-            c_ijk = a[i] * a[j] * a[k] + b[i] * b[j] * b[k] + c[i] * c[j] * c[k]
-            out[col] += (
-                area
-                / 60.0
-                * (s[i] * s[j] * s[k] + q_ij * s[k] + q_ik * s[j] + q_jk * s[i] + 2.0 * c_ijk)
-            )
+    sx = ax + bx + cx
+    sy = ay + by + cy
+    sz = az + bz + cz
+    qxx = ax * ax + bx * bx + cx * cx
+    qxy = ax * ay + bx * by + cx * cy
+    qxz = ax * az + bx * bz + cx * cz
+    qyy = ay * ay + by * by + cy * cy
+    qyz = ay * az + by * bz + cy * cz
+    qzz = az * az + bz * bz + cz * cz
+    cxxx = ax * ax * ax + bx * bx * bx + cx * cx * cx
+    cxxy = ax * ax * ay + bx * bx * by + cx * cx * cy
+    cxxz = ax * ax * az + bx * bx * bz + cx * cx * cz
+    cxyy = ax * ay * ay + bx * by * by + cx * cy * cy
+    cxyz = ax * ay * az + bx * by * bz + cx * cy * cz
+    cxzz = ax * az * az + bx * bz * bz + cx * cz * cz
+    cyyy = ay * ay * ay + by * by * by + cy * cy * cy
+    cyyz = ay * ay * az + by * by * bz + cy * cy * cz
+    cyzz = ay * az * az + by * bz * bz + cy * cz * cz
+    czzz = az * az * az + bz * bz * bz + cz * cz * cz
+    return (
+        s0 + area,
+        s1x + area * sx,
+        s1y + area * sy,
+        s1z + area * sz,
+        s2xx + area * (sx * sx + qxx),
+        s2xy + area * (sx * sy + qxy),
+        s2xz + area * (sx * sz + qxz),
+        s2yy + area * (sy * sy + qyy),
+        s2yz + area * (sy * sz + qyz),
+        s2zz + area * (sz * sz + qzz),
+        s3xxx + area * (sx * sx * sx + 3.0 * qxx * sx + 2.0 * cxxx),
+        s3xxy + area * (sx * sx * sy + qxx * sy + 2.0 * qxy * sx + 2.0 * cxxy),
+        s3xxz + area * (sx * sx * sz + qxx * sz + 2.0 * qxz * sx + 2.0 * cxxz),
+        s3xyy + area * (sx * sy * sy + qyy * sx + 2.0 * qxy * sy + 2.0 * cxyy),
+        s3xyz + area * (sx * sy * sz + qxy * sz + qxz * sy + qyz * sx + 2.0 * cxyz),
+        s3xzz + area * (sx * sz * sz + qzz * sx + 2.0 * qxz * sz + 2.0 * cxzz),
+        s3yyy + area * (sy * sy * sy + 3.0 * qyy * sy + 2.0 * cyyy),
+        s3yyz + area * (sy * sy * sz + qyy * sz + 2.0 * qyz * sy + 2.0 * cyyz),
+        s3yzz + area * (sy * sz * sz + qzz * sy + 2.0 * qyz * sz + 2.0 * cyzz),
+        s3zzz + area * (sz * sz * sz + 3.0 * qzz * sz + 2.0 * czzz),
+    )
+
+
+@_inline
+def _add_divided(sums, out):
+    """out[k] += sums[k] / _DIVISORS[k] for every column k."""
+    for k in range(N_MOMENTS):
+        out[k] += sums[k] / _DIVISORS[k]
+
+
+@_inline
+def add_triangle_moments(a, b, c, axes, out):
+    """Add the 20 surface moments of triangle (a, b, c) to ``out`` (float64 (20,)).
+
+    ``a``, ``b``, ``c`` are float64 (3,) vertices; ``axes`` is ``MOMENT_AXES``, the column
+    order the formulas follow. The numba twin of :func:`surface_moments` for the per-point
+    kernels; a degenerate triangle adds nothing.
+    """
+    sums = _add_weighted_sums(_NO_SUMS, a[0], a[1], a[2], b[0], b[1], b[2], c[0], c[1], c[2])
+    _add_divided(sums, out)
+
+
+@_jit
+def add_mesh_moments(xyz, tri, m, out):
+    """Add the 20 surface moments of the triangles xyz[tri[:m]] to ``out`` (float64 (20,)).
+
+    ``xyz`` is float64 (n, 3), ``tri`` int64 (>= m, 3) vertex indices. The formulas of
+    :func:`add_triangle_moments`, each column's area-weighted sum taken over all the triangles
+    before its one division (so the last bits may differ from a call per triangle).
+    """
+    sums = _NO_SUMS
+    for t in range(m):
+        a = tri[t, 0]
+        b = tri[t, 1]
+        c = tri[t, 2]
+        sums = _add_weighted_sums(
+            sums, xyz[a, 0], xyz[a, 1], xyz[a, 2], xyz[b, 0], xyz[b, 1], xyz[b, 2],
+            xyz[c, 0], xyz[c, 1], xyz[c, 2],
+        )  # fmt: skip
+    _add_divided(sums, out)

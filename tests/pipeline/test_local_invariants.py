@@ -15,8 +15,8 @@ from scipy.spatial.transform import Rotation
 from pipeline.errors import ConfigError, InputError
 from pipeline.features.delaunay import triangulate
 from pipeline.features.invariants import INVARIANT_NAMES, moment_invariants
-from pipeline.features.local import _surface_moments, local_invariants, local_moments
-from pipeline.features.moments import MOMENT_AXES, add_triangle_moments, surface_moments
+from pipeline.features.local import local_invariants, local_moments
+from pipeline.features.moments import surface_moments
 from pipeline.features.neighbors import radius_neighbors
 
 N_INV = len(INVARIANT_NAMES)
@@ -99,19 +99,6 @@ def cloud():
     surface = np.column_stack([xy, z])
     scatter = rng.uniform([0, 0, -0.5], [4, 4, 1.0], size=(400, 3))
     return np.vstack([surface, scatter])
-
-
-def test_surface_moments_kernel_equals_add_triangle_moments():
-    rng = np.random.default_rng(0)
-    rel = rng.normal(size=(40, 3))
-    tri = rng.integers(0, 40, size=(70, 3)).astype(np.int64)
-    got = np.zeros(20)
-    _surface_moments(rel, tri, len(tri), got)
-    want = np.zeros(20)
-    for a, b, c in tri:
-        add_triangle_moments(rel[a], rel[b], rel[c], MOMENT_AXES, want)
-    np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13 * np.abs(want).max())
-    np.testing.assert_allclose(got, surface_moments(rel[tri]).sum(axis=0), rtol=1e-12, atol=1e-12)
 
 
 def test_local_moments_match_reference(cloud):

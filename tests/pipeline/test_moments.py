@@ -6,6 +6,7 @@ import pytest
 from pipeline.features.moments import (
     MOMENT_AXES,
     MOMENT_EXPONENTS,
+    add_mesh_moments,
     add_triangle_moments,
     moment_index,
     surface_moments,
@@ -153,6 +154,24 @@ def test_numba_twin_equals_vectorised_moments():
         np.testing.assert_allclose(single, surface_moments(tri[t : t + 1])[0], rtol=1e-13)
         add_triangle_moments(tri[t, 0], tri[t, 1], tri[t, 2], MOMENT_AXES, total)
     np.testing.assert_allclose(total, surface_moments(tri).sum(axis=0), rtol=1e-12)
+
+
+def test_mesh_moments_equal_sums_over_triangles():
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(40, 3))
+    tri = rng.integers(0, 40, size=(70, 3)).astype(np.int64)  # some degenerate: repeated vertex
+    got = np.full(20, 0.5)
+    add_mesh_moments(xyz, tri, len(tri), got)  # adds to what out holds
+    want = np.full(20, 0.5)
+    for a, b, c in tri:
+        add_triangle_moments(xyz[a], xyz[b], xyz[c], MOMENT_AXES, want)
+    np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13 * np.abs(want).max())
+    np.testing.assert_allclose(got - 0.5, surface_moments(xyz[tri]).sum(axis=0), rtol=1e-12,
+                               atol=1e-12)  # fmt: skip
+    head = np.zeros(20)
+    add_mesh_moments(xyz, tri, 10, head)  # only the first m triangles
+    np.testing.assert_allclose(head, surface_moments(xyz[tri[:10]]).sum(axis=0), rtol=1e-12,
+                               atol=1e-12)  # fmt: skip
 
 
 @pytest.mark.parametrize("shape", [(4, 3), (4, 3, 2), (3, 3), (4, 2, 3), (2, 4, 3, 3)])
