@@ -1,8 +1,12 @@
 """Per-point features: exact local 3D moment invariants and auto-context class frequencies.
 
 Neighbourhoods are CSR arrays (``nbr_idx``, ``nbr_ptr``) from one search shared by every
-feature; the per-point kernels are compiled with numba.
+feature; the per-point kernels are compiled with numba, cached by a digest of their sources.
 """
+
+from pipeline.features.numba_cache import use_source_keyed_cache
+
+use_source_keyed_cache()  # before any module below defines a cached kernel
 
 from pipeline.features.context import context_features, context_from_neighbors, uniform_context
 from pipeline.features.invariants import INVARIANT_NAMES, moment_invariants
