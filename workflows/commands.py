@@ -97,20 +97,20 @@ def _step_command(target: str, doc: str):
     return command
 
 
-main.command("run")(_step_command(
-    "report", "Run every step on CONFIG: ingest, features, train, export, evaluate, report."))
-main.command("ingest")(_step_command(
-    "ingest", "Stream the input tiles of CONFIG into chunks with halos (store.zarr)."))
-main.command("features")(_step_command(
-    "features", "Compute the moment invariants of every chunk (after ingest)."))
-main.command("train")(_step_command(
-    "train", "Train the cascade and predict every stage (after features); saves OUT/model."))
-main.command("export")(_step_command(
-    "export", "Write predictions/<tile>.laz for every input tile (after train)."))
-main.command("evaluate")(_step_command(
-    "evaluate", "Write metrics.json for the test points (after export)."))
-main.command("report")(_step_command(
-    "report", "Write report.html with its plots (after evaluate)."))
+# command -> (the step it runs up to, its help)
+STEP_COMMANDS = {
+    "run": ("report", "Run every step on CONFIG: ingest, features, train, export, evaluate, "
+                      "report."),
+    "ingest": ("ingest", "Stream the input tiles of CONFIG into chunks with halos (store.zarr)."),
+    "features": ("features", "Compute the moment invariants of every chunk (after ingest)."),
+    "train": ("train", "Train the cascade and predict every stage (after features); saves "
+                       "OUT/model."),
+    "export": ("export", "Write predictions/<tile>.laz for every input tile (after train)."),
+    "evaluate": ("evaluate", "Write metrics.json for the test points (after export)."),
+    "report": ("report", "Write report.html with its plots (after evaluate)."),
+}
+for _name, (_target, _doc) in STEP_COMMANDS.items():
+    main.command(_name)(_step_command(_target, _doc))
 
 
 @main.command("predict")
