@@ -15,7 +15,7 @@ from pipeline.errors import ConfigError
 from workflows.cli import main
 from workflows.config import load_config
 from workflows.engine import Engine
-from workflows.progress import say
+from workflows.progress import counted, say
 from workflows.run import Run, prepare_output
 from workflows.workflow import execute
 
@@ -80,6 +80,9 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
     command = command or "silva " + " ".join(sys.argv[1:])
     with _engine(cfg, quiet=quiet, in_process=in_process, debug=chunk is not None) as engine:
         summary = execute(run, engine, target, only=chunk, command=command)
+    if summary.get("predictions"):
+        click.echo(f"predictions: {run.predictions_path} "
+                   f"({counted(len(summary['predictions']), 'tile')})")
     for key in ("metrics", "report"):
         if key in summary:
             click.echo(f"{key}: {summary[key]}")

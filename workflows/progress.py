@@ -25,6 +25,11 @@ def say(message: str, *, quiet: bool = False) -> None:
         click.echo(message, err=True)
 
 
+def counted(n: int, noun: str) -> str:
+    """'1 tile', '3 tiles', '1,200 points'."""
+    return f"{n:,} {noun}{'' if n == 1 else 's'}"
+
+
 class StepProgress:
     """Context manager tracking one step's items."""
 
@@ -49,7 +54,7 @@ class StepProgress:
             self._bar.start()
             self._task = self._bar.add_task(self.step, total=self.total)
         else:
-            say(f"{self.step}: {self.total} items", quiet=self.quiet)
+            say(f"{self.step}: {counted(self.total, 'item')}", quiet=self.quiet)
         return self
 
     def advance(self) -> None:

@@ -25,6 +25,11 @@ from workflows.config import SilvaConfig, dump_config, fingerprint
 SCENES = ("train", "test", "predict")
 
 
+def has_test_points(layout: dict, split) -> bool:
+    """Whether a run holds labelled test points: a test scene, or a train scene split in two."""
+    return "test" in layout["scenes"] or ("train" in layout["scenes"] and split is not None)
+
+
 @dataclass
 class Run:
     """Everything the steps of one run share."""

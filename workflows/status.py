@@ -2,8 +2,12 @@
 
 from pathlib import Path
 
+import yaml
+
 from pipeline.model import MODEL_FILE, read_description
 from pipeline.store import chunk_path, open_store
+from workflows.progress import counted
+from workflows.run import has_test_points
 
 
 def run_status(out: Path) -> list[str]:
@@ -15,8 +19,8 @@ def run_status(out: Path) -> list[str]:
     layout = root.attrs.get("layout")
     if not layout:
         return [f"{out}: ingest did not finish; rerun the command to resume"]
-    lines = [f"{out}: {len(layout['tiles'])} tiles, "
-             f"{sum(t['n_points'] for t in layout['tiles']):,} points"]
+    lines = [f"{out}: {counted(len(layout['tiles']), 'tile')}, "
+             f"{counted(sum(t['n_points'] for t in layout['tiles']), 'point')}"]
     for scene, info in layout["scenes"].items():
         steps: dict[str, int] = {}
         for chunk in info["chunks"]:
@@ -35,5 +39,19 @@ def run_status(out: Path) -> list[str]:
     predictions = list((out / "predictions").glob("*.la[sz]"))
     lines.append(f"predictions: {len(predictions)} of {len(layout['tiles'])} tiles exported")
     metrics = out / "metrics.json"
-    lines.append(f"metrics: {metrics}" if metrics.is_file() else "metrics: not written yet")
+    if metrics.is_file():
+        lines.append(f"metrics: {metrics}")
+    elif has_test_points(layout, _saved_split(out)):
+        lines.append("metrics: not written yet")
+    else:
+        lines.append("metrics: none (no labelled test points: data.test or data.split)")
     return lines
+
+
+def _saved_split(out: Path):
+    """data.split of the configuration saved in ``out`` (None when absent or unreadable)."""
+    try:
+        saved = yaml.safe_load((out / "config.yaml").read_text()) or {}
+    except (OSError, yaml.YAMLError):
+        return None
+    return (saved.get("data") or {}).get("split")

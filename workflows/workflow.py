@@ -12,7 +12,7 @@ from datetime import datetime, timezone
 
 from pipeline import __version__
 from workflows.progress import say
-from workflows.run import Run
+from workflows.run import Run, has_test_points
 from workflows.steps.cascade import cascade
 from workflows.steps.evaluate import evaluate, write_metrics
 from workflows.steps.export import export
@@ -60,8 +60,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     )
     if last < 4:
         return summary
-    has_test = _has_test_points(run, layout)
-    if not has_test:
+    if not has_test_points(layout, run.cfg.data.split):
         say("evaluate: no labelled test points (data.test or data.split): no metrics",
             quiet=run.quiet)
         return summary
@@ -88,9 +87,3 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     summary.update(metrics=str(run.metrics_path), report=str(run.report_path),
                    macro_f1=metrics["macro"]["f1"])
     return summary
-
-
-def _has_test_points(run: Run, layout: dict) -> bool:
-    return "test" in layout["scenes"] or (
-        "train" in layout["scenes"] and run.cfg.data.split is not None
-    )

@@ -181,6 +181,25 @@ def test_predict_with_a_saved_model(reference, survey, tmp_path):
                               pb[tile]["PredictedClassification"])
 
 
+def test_predict_unlabelled_data_reports_predictions_and_no_metrics(reference, survey, tmp_path):
+    config = write_config(tmp_path / "p.yaml", survey, data={
+        "train": [], "test": [], "predict": [str(survey["test"] / "*.laz")]})
+    out = tmp_path / "out"
+    result = silva("predict", config, "--model", reference / "model", "--out", out,
+                   "--quiet", "--in-process")
+    assert result.exit_code == 0, result.output
+    tiles = sorted(survey["test"].glob("*.laz"))
+    assert f"predictions: {out / 'predictions'} ({len(tiles)} tiles)" in result.output
+    assert not (out / "metrics.json").exists()
+    predicted = read_predictions(out)
+    assert sorted(predicted) == sorted(t.stem for t in tiles)
+    assert all((dims["PredictedClassification"] > 0).all() for dims in predicted.values())
+    status = silva("status", out)
+    assert status.exit_code == 0
+    assert f"predictions: {len(tiles)} of {len(tiles)} tiles exported" in status.output
+    assert "metrics: none (no labelled test points" in status.output
+
+
 def test_drop_unlisted_leaves_points_out_and_exports_them_as_class_0(survey, tmp_path):
     # plus a tile of unlisted points only, away from the others: its chunks hold no point
     test_dir = tmp_path / "test"
