@@ -29,11 +29,18 @@ def source_digest(folder: Path = SOURCES) -> str:
     return digest.hexdigest()[:16]
 
 
+def _user() -> str:
+    try:
+        return getpass.getuser()
+    except (KeyError, OSError):  # a container's uid without a passwd entry
+        return "user"
+
+
 def cache_dir(digest: str) -> Path:
     """A writable directory for the kernels of this source digest."""
     base = os.environ.get("NUMBA_CACHE_DIR") or os.environ.get("XDG_CACHE_HOME")
     candidates = [Path(base) if base else Path.home() / ".cache",
-                  Path(tempfile.gettempdir()) / f"silva-{getpass.getuser()}"]
+                  Path(tempfile.gettempdir()) / f"silva-{_user()}"]
     for root in candidates:
         folder = root / "silva-numba" / digest
         try:
