@@ -5,7 +5,7 @@ a second synthetic plot) with the saved model, twice in this process: once with 
 this process (one core, the baseline) and once on a LocalCluster. Prints points/s for each
 step and the ratio of the two runs.
 
-    python benchmarks/bench_workflow.py [--tile PATH] [--workers 2] [--plot-size 30]
+    python benchmarks/bench_workflow.py [--tile PATH] [--workers 2] [--plot-size 30] [--chunk-size auto]
 
 Default tile: ../shared/data/tls/LPine1_demo.laz (1.54 M points) when present.
 """
@@ -28,10 +28,10 @@ from workflows.workflow import execute
 DEFAULT_TILE = Path(__file__).resolve().parents[2] / "shared" / "data" / "tls" / "LPine1_demo.laz"
 
 
-def _config(path: Path, data: dict, workers: int) -> Path:
+def _config(path: Path, data: dict, workers: int, chunk_size="auto") -> Path:
     path.write_text(yaml.safe_dump({
         "data": {**data, "classes": {"terrain": [2], "tree": [5], "dead_wood": [64], "misc": [1]}},
-        "tiling": {"chunk_size": 15.0},
+        "tiling": {"chunk_size": chunk_size},
         "cascade": {"stages": 3, "max_train_points": 60_000},
         "cluster": {"kind": "local", "n_workers": workers, "dashboard": False},
     }, sort_keys=False))
@@ -52,6 +52,8 @@ def main() -> None:
     parser.add_argument("--tile", type=Path, default=DEFAULT_TILE)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--plot-size", type=float, default=30.0)
+    parser.add_argument("--chunk-size", default="auto",
+                        help="tiling.chunk_size of the classified tile: metres or auto")
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="silva-bench-"))
     try:
@@ -62,7 +64,8 @@ def main() -> None:
             print(f"{tile} not found: classifying a synthetic plot instead")
             tile = write_synthetic_plot(work / "other", seed=2, size=args.plot_size)[0]
         train_config = _config(work / "train.yaml", {"train": [str(train / "*.laz")]}, 1)
-        config = _config(work / "bench.yaml", {"predict": [str(tile)]}, args.workers)
+        chunk_size = args.chunk_size if args.chunk_size == "auto" else float(args.chunk_size)
+        config = _config(work / "bench.yaml", {"predict": [str(tile)]}, args.workers, chunk_size)
         # the model: trained once, in this process
         trained = _timed_run(train_config, work / "train-out", None, None)
         print(f"training run ({trained['points']:,} points): {trained['total']:.1f} s "
