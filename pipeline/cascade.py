@@ -191,8 +191,9 @@ class CascadedForest:
         Radii of the feature/context sphere S1 and the inner context sphere S2 (r1 / 2).
     max_neighbors : int
         Nearest points within r1 used for the triangulation.
-    context_max_neighbors : int
-        Nearest points within r1 counted for the context.
+    context_max_neighbors : int or None
+        None (the paper): every point within r1 counts for the context; a number: only that
+        many nearest points (see :mod:`pipeline.features.context`).
     context : {"hard", "soft"}
         Frequencies of predicted labels (the paper) or mean probabilities.
     out_of_fold : bool
@@ -218,7 +219,7 @@ class CascadedForest:
         r1=0.5,
         r2=None,
         max_neighbors=64,
-        context_max_neighbors=256,
+        context_max_neighbors=None,
         context="hard",
         out_of_fold=False,
         folds=5,

@@ -286,8 +286,10 @@ class FeaturesConfig(_Section):
     max_neighbors: Integer = Field(
         64, ge=3, description="At most this many nearest points of S1 form the local surface."
     )
-    context_max_neighbors: Integer = Field(
-        256, ge=1, description="At most this many nearest points count in a context sphere."
+    context_max_neighbors: Integer | None = Field(
+        None, ge=1, description="Unset: every point within r1 counts in the context (the "
+        "paper; exact and fast at any density). A number: only that many nearest points, "
+        "which on dense scans shrinks the context sphere well below r1.",
     )
 
     @field_validator("set")

@@ -121,7 +121,7 @@ class Run:
             "r1": self.r1,
             "r2": self.r2,
             "max_neighbors": int(self.cfg.features.max_neighbors),
-            "context_max_neighbors": int(self.cfg.features.context_max_neighbors),
+            "context_max_neighbors": self.cfg.features.context_max_neighbors,
             "context": self.cfg.cascade.context,
         }
 

@@ -242,6 +242,41 @@ def _count_block(xyz, qrows, sxyz, ukeys, ustart, origin, cell, dims, span, r2, 
 
 
 @_jit
+def _sphere_sums_block(
+    xyz, qrows, sxyz, slabels, sweights, ukeys, ustart, origin, cell, dims, span, r2, r2_inner,
+    n_classes, out,
+):  # fmt: skip
+    """Per-class sums over every point within the radius of each xyz[qrows[b]] (columns
+    0..C-1) and within the inner radius (C..2C-1): counts of ``slabels`` when it is not
+    empty, else sums of the int64 ``sweights`` rows. Integer sums: exact in any order."""
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    hard = slabels.shape[0] > 0
+    for b in range(qrows.shape[0]):
+        xq, yq, zq, cx, cy, cz = _query_cell(xyz, qrows[b], origin, cell, dims)
+        z0 = max(cz - span, 0)
+        z1 = min(cz + span, nz - 1)
+        for gx in range(max(cx - span, 0), min(cx + span + 1, nx)):
+            for gy in range(max(cy - span, 0), min(cy + span + 1, ny)):
+                base = (gx * ny + gy) * nz
+                start, stop = _column_run(ukeys, ustart, base + z0, base + z1)
+                for s in range(start, stop):
+                    d2 = _squared_distance(sxyz, s, xq, yq, zq)
+                    if d2 > r2:
+                        continue
+                    inner = d2 <= r2_inner
+                    if hard:
+                        c = slabels[s]
+                        out[b, c] += 1
+                        if inner:
+                            out[b, n_classes + c] += 1
+                    else:
+                        for c in range(n_classes):
+                            out[b, c] += sweights[s, c]
+                            if inner:
+                                out[b, n_classes + c] += sweights[s, c]
+
+
+@_jit
 def _compact(out, counts, flat_idx, flat_start):
     """Rows out[b, :counts[b]] one after the other into flat_idx from flat_start."""
     pos = flat_start
@@ -450,6 +485,73 @@ class RadiusIndex:
         _scatter_rows(np.concatenate(flat_parts), sorted_counts, order.astype(np.int64),
                       nbr_ptr, nbr_idx)  # fmt: skip
         return nbr_idx, nbr_ptr
+
+
+    def sphere_sums(self, query, inner_radius, *, labels=None, weights=None, n_classes=None):
+        """Exact per-class sums over every point within the radius and within ``inner_radius``.
+
+        Parameters
+        ----------
+        query : int64 (Q,)
+            Row indices of the query points.
+        inner_radius : float
+            Radius of the inner sphere, 0 < inner_radius <= radius.
+        labels : int (N,), optional
+            Class index 0..C-1 of every point: the sums count the points of each class.
+        weights : int64 (N, C), optional
+            Integer weights of every point (e.g. fixed-point probabilities): the sums add them.
+            Exactly one of ``labels`` and ``weights`` is given.
+        n_classes : int, optional
+            C with ``labels`` (default: the largest label + 1).
+
+        Returns
+        -------
+        int64 (Q, 2C)
+            Sums within the radius (columns 0..C-1), then within ``inner_radius``. The
+            sphere is tested with the same expression as :meth:`query`, without a cap, and
+            integer sums do not depend on the order of the points: a chunk holding every
+            point within the radius of a query gives the same row as the whole cloud.
+        """
+        query = _check_query(query, len(self.xyz))
+        inner = _check_radius(inner_radius, "inner_radius")
+        if inner > self.radius:
+            raise InputError(f"inner_radius must be <= the radius {self.radius}, got {inner}")
+        if (labels is None) == (weights is None):
+            raise InputError("give exactly one of labels or weights")
+        if labels is not None:
+            slabels = np.asarray(labels, dtype=np.int64)
+            top = int(slabels.max()) + 1 if slabels.size else 1
+            n_classes = top if n_classes is None else int(n_classes)
+            if slabels.size and (slabels.min() < 0 or top > n_classes):
+                raise InputError(f"labels must be class indices in [0, {n_classes}), got "
+                                 f"values in [{slabels.min()}, {top - 1}]")
+            weights2d = np.zeros((0, n_classes), dtype=np.int64)
+        else:
+            weights2d = np.asarray(weights, dtype=np.int64)
+            n_classes = weights2d.shape[1]
+            slabels = np.zeros(0, dtype=np.int64)
+        rows = slabels if labels is not None else weights2d
+        if len(rows) != len(self.xyz):
+            raise InputError(f"labels or weights must have one row per point "
+                             f"({len(self.xyz)}), got {len(rows)}")
+        out = np.zeros((len(query), 2 * n_classes), dtype=np.int64)
+        if len(query) == 0:
+            return out
+        # smaller cells on dense clouds: fewer points outside the sphere are tested
+        span = 2 if self.cell_population > 64 else 1
+        grid = self._grid(span)
+        span = max(1, int(math.ceil(self._grids[1].cell / grid.cell - 1e-9)))
+        order = np.argsort(grid.keys[query], kind="stable")
+        sorted_out = np.zeros_like(out)
+        _sphere_sums_block(
+            self.xyz, query[order], grid.xyz,
+            slabels[grid.rows] if labels is not None else slabels,
+            weights2d[grid.rows] if weights is not None else weights2d,
+            grid.ukeys, grid.ustart, self.origin, grid.cell, grid.dims, span, self.r2,
+            inner * inner, n_classes, sorted_out,
+        )  # fmt: skip
+        out[order] = sorted_out
+        return out
 
 
 def radius_neighbors(xyz, radius, max_neighbors=64, *, query=None, ids=None):

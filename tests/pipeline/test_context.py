@@ -32,7 +32,7 @@ def _brute_force(xyz, values, r1, r2, cap, hard, n_classes):
 
 
 @pytest.mark.parametrize("hard", [True, False])
-@pytest.mark.parametrize("cap", [8, 256])
+@pytest.mark.parametrize("cap", [8, 256, None])
 def test_matches_brute_force(scene, hard, cap):
     xyz, labels, proba = scene
     kwargs = {"labels": labels} if hard else {"proba": proba}
@@ -62,6 +62,38 @@ def test_query_subset_equals_full(scene):
     query = np.arange(100, 400)
     part = context_features(xyz, 0.5, labels=labels, n_classes=4, query=query)
     assert np.array_equal(part, full[query])
+
+
+@pytest.mark.parametrize("hard", [True, False])
+def test_a_chunk_with_its_halo_gives_the_whole_cloud_values_bit_for_bit(scene, hard):
+    xyz, labels, proba = scene
+    kwargs = {"labels": labels} if hard else {"proba": proba}
+    full = context_features(xyz, 0.5, n_classes=4, **kwargs)
+    # a chunk (1 <= x - x0 < 2) plus every point within r1 of it, in another order
+    x = xyz[:, 0] - xyz[:, 0].min()
+    kept = np.flatnonzero((x >= 0.5) & (x < 2.5))[::-1]
+    core = np.flatnonzero((x[kept] >= 1.0) & (x[kept] < 2.0))
+    sub = {"labels": labels[kept]} if hard else {"proba": proba[kept]}
+    part = context_features(xyz[kept], 0.5, n_classes=4, query=core, ids=kept, **sub)
+    assert np.array_equal(part, full[kept[core]])
+
+
+def test_without_cap_the_spheres_keep_their_radii_on_dense_clouds():
+    # 40,000 points on a 1 m square: thousands within r1 = 0.3 m of each point
+    rng = np.random.default_rng(3)
+    xyz = np.c_[rng.uniform(0, 1, (40_000, 2)), np.zeros(40_000)]
+    labels = (xyz[:, 0] > 0.5).astype(np.int64)  # two half planes
+    query = np.array([np.argmin(np.abs(xyz[:, 0] - 0.4) + np.abs(xyz[:, 1] - 0.5))])
+    got = context_features(xyz, 0.3, labels=labels, n_classes=2, query=query)[0]
+    capped = context_features(xyz, 0.3, labels=labels, n_classes=2, query=query,
+                              max_neighbors=256)[0]
+    d2 = ((xyz - xyz[query[0]]) ** 2).sum(1)
+    for half, radius in ((0, 0.3), (1, 0.15)):
+        inside = d2 <= radius * radius
+        want = np.bincount(labels[inside], minlength=2) / inside.sum()
+        np.testing.assert_allclose(got[2 * half:2 * half + 2], want, atol=1e-6)
+    assert got[1] > 0.2  # S1 reaches across x = 0.5, 0.1 m away
+    assert capped[1] == 0.0  # the 256 nearest lie within ~5 cm: the cap hides the other class
 
 
 def test_bad_input(scene):

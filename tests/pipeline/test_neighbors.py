@@ -221,3 +221,35 @@ def test_rejects_bad_input(random_cloud):
         radius_neighbors(random_cloud, 0.3, query=np.array([0, len(random_cloud)]))
     with pytest.raises(InputError, match="ids"):
         radius_neighbors(random_cloud, 0.3, ids=np.arange(5))
+
+
+@pytest.mark.parametrize("n, side", [(3000, 3.0), (30_000, 1.0)])  # sparse, then dense cells
+def test_sphere_sums_match_brute_force(n, side):
+    rng = np.random.default_rng(n)
+    xyz = rng.uniform(0, side, (n, 3)) * [1, 1, 0.2] + [500_000.0, 4_000_000.0, 0.0]
+    labels = rng.integers(0, 3, n)
+    weights = rng.integers(0, 1000, (n, 3))
+    index = RadiusIndex(xyz, 0.3)
+    query = rng.choice(n, 300, replace=False)
+    counts = index.sphere_sums(query, 0.1, labels=labels, n_classes=4)
+    sums = index.sphere_sums(query, 0.1, weights=weights)
+    for row, q in enumerate(query):
+        d0, d1, d2 = (xyz[:, k] - xyz[q, k] for k in range(3))
+        dist2 = d0 * d0 + d1 * d1 + d2 * d2
+        for half, radius in ((0, 0.3), (1, 0.1)):
+            inside = dist2 <= radius * radius
+            assert np.array_equal(counts[row, 4 * half:4 * half + 4],
+                                  np.bincount(labels[inside], minlength=4))
+            assert np.array_equal(sums[row, 3 * half:3 * half + 3], weights[inside].sum(0))
+
+
+def test_sphere_sums_reject_bad_input():
+    index = RadiusIndex(np.zeros((4, 3)), 1.0)
+    with pytest.raises(InputError, match="inner_radius"):
+        index.sphere_sums([0], 2.0, labels=[0, 1, 0, 1])
+    with pytest.raises(InputError, match="exactly one"):
+        index.sphere_sums([0], 0.5)
+    with pytest.raises(InputError, match="one row per point"):
+        index.sphere_sums([0], 0.5, labels=[0, 1])
+    with pytest.raises(InputError, match="class indices"):
+        index.sphere_sums([0], 0.5, labels=[0, 1, 2, 3], n_classes=2)

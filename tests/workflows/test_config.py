@@ -81,7 +81,7 @@ def test_defaults():
     assert d["tiling"] == {"chunk_size": "auto", "target_points": 1_000_000, "halo": 0.5,
                            "read_batch": 1_000_000}
     assert d["features"] == {"set": "paper", "r1": 0.5, "r2": 0.25, "max_neighbors": 64,
-                             "context_max_neighbors": 256}
+                             "context_max_neighbors": None}
     assert d["cascade"] == {"stages": 3, "n_estimators": 20, "min_samples_leaf": 15,
                             "max_features": "sqrt", "context": "hard", "out_of_fold": False,
                             "folds": 5, "max_train_points": 200_000, "balanced": False,

@@ -239,7 +239,7 @@ def cascade(run: Run, engine, layout: dict, train_counts: np.ndarray | None, *, 
         if stage > 0:
             per_chunk(f"context-{stage + 1}", chunk_context, lambda info: dict(
                 grid=info["grid"], stage=stage, r1=run.r1, r2=run.r2,
-                max_neighbors=int(run.cfg.features.context_max_neighbors),
+                max_neighbors=run.cfg.features.context_max_neighbors,
                 n_classes=run.n_classes, mode=run.cfg.cascade.context, fingerprint=extra_fp))
         if not fitted:
             n_rows = _fit(run, engine, layout, stage, fractions, seed, extra_fp)
