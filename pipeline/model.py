@@ -81,8 +81,13 @@ def load_forest(path: Path):
 def check_compatible(description: dict, expected: dict, model_dir) -> None:
     """ModelError unless the model's feature description equals ``expected`` key by key."""
     for key, value in expected.items():
-        if description.get(key) != value:
+        if key not in description:
+            raise ModelError(f"model {model_dir} does not record {key}: it was written by "
+                             "another version of Silva; retrain it")
+        trained = description[key]
+        if trained != value:
             raise ModelError(
-                f"model {model_dir} was trained with {key}={description.get(key)!r} but the "
-                f"configuration asks for {value!r}; use a matching configuration or retrain"
+                f"model {model_dir} was trained with {key}={json.dumps(trained)} but the "
+                f"configuration has {json.dumps(value)}; set {key}={json.dumps(trained)} "
+                "(e.g. with --set) or retrain"
             )

@@ -116,13 +116,14 @@ class Run:
 
     def feature_description(self) -> dict:
         """What a model must agree with to be applied to this run's features."""
+        # keyed by config path, so a mismatch names the key to set
         return {
-            "feature_set": self.cfg.features.set,
-            "r1": self.r1,
-            "r2": self.r2,
-            "max_neighbors": int(self.cfg.features.max_neighbors),
-            "context_max_neighbors": self.cfg.features.context_max_neighbors,
-            "context": self.cfg.cascade.context,
+            "features.set": self.cfg.features.set,
+            "features.r1": self.r1,
+            "features.r2": self.r2,
+            "features.max_neighbors": int(self.cfg.features.max_neighbors),
+            "features.context_max_neighbors": self.cfg.features.context_max_neighbors,
+            "cascade.context": self.cfg.cascade.context,
         }
 
     # -- housekeeping ---------------------------------------------------------------------

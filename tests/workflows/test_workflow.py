@@ -179,6 +179,13 @@ def test_predict_with_a_saved_model(reference, survey, tmp_path):
     for tile in pb:
         assert np.array_equal(pa[tile]["PredictedClassification"],
                               pb[tile]["PredictedClassification"])
+    # features the model was not trained on: refused, naming the key and the value to set
+    result = silva("predict", config, "--model", reference / "model", "--out", tmp_path / "o2",
+                   "--quiet", "--in-process", "--set", "data.train=[]",
+                   "--set", "features.context_max_neighbors=32")
+    assert result.exit_code == 1
+    assert ("was trained with features.context_max_neighbors=null but the configuration has "
+            "32; set features.context_max_neighbors=null") in result.output
 
 
 def test_predict_unlabelled_data_reports_predictions_and_no_metrics(reference, survey, tmp_path):
