@@ -31,7 +31,8 @@ def run_status(out: Path) -> list[str]:
         total = len(info["chunks"])
         # steps in the order they ran (the order of the chunks' done records)
         done_text = ", ".join(f"{s} {n}/{total}" for s, n in steps.items()) or "no step done"
-        lines.append(f"scene {scene}: {total} chunks of {info['grid']['size']:g} m; {done_text}")
+        lines.append(f"scene {scene}: {counted(total, 'chunk')} of {info['grid']['size']:g} m; "
+                     f"{done_text}")
     model = out / "model"
     if (model / MODEL_FILE).is_file():
         stages = read_description(model)["stages"]
