@@ -6,10 +6,10 @@ included in both. "Hard" context counts predicted labels (the paper); "soft" con
 class probabilities. Before the first classification every value is 1/C, so the feature vector
 keeps the same length through the whole cascade.
 
-By default every point within r1 counts, as in the paper: the class sums are integers (soft
-context rounds each probability to a multiple of 2^-40 first), so they are exact in any order
-and a chunk gives the same values as the whole cloud. Counting without a cap is also the fast
-way on dense scans: no neighbour list is built or sorted.
+The class sums are integers (soft context rounds each probability to a multiple of 2^-40
+first), so they are exact in any order and a chunk gives the same values as the whole cloud.
+By default every point within r1 counts, as in the paper. Counting without a cap is also the
+fast way on dense scans: no neighbour list is built or sorted.
 
 With ``max_neighbors`` S1 is instead the ``max_neighbors`` nearest points (ties broken by
 global id, see :func:`pipeline.features.neighbors.radius_neighbors`) and S2 the part of that
@@ -20,7 +20,7 @@ r1 = 0.5 m the 256th nearest point is a median 0.19 m away, inside r2.
 import numba
 import numpy as np
 
-from pipeline.features.neighbors import RadiusIndex
+from pipeline.features.neighbors import RadiusIndex, squared_distance
 
 QUERY_BLOCK = 100_000  # query points per neighbour search
 SOFT_SCALE = 2.0**40  # soft context: probabilities as exact multiples of 2^-40
@@ -34,35 +34,55 @@ def uniform_context(n_points: int, n_classes: int) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _context_kernel(xyz, nbr_idx, nbr_ptr, query, r2_squared, values, hard, n_classes, out):
+def _neighbor_sums_kernel(xyz, nbr_idx, nbr_ptr, query, r2_squared, labels, weights, n_classes,
+                          out):
+    """Class sums, as :meth:`RadiusIndex.sphere_sums` gives them, over listed neighbours."""
+    hard = labels.shape[0] > 0
     for row in range(query.shape[0]):
         q = query[row]
-        n_outer = 0
-        n_inner = 0
         for pos in range(nbr_ptr[row], nbr_ptr[row + 1]):
             j = nbr_idx[pos]
-            d0 = xyz[j, 0] - xyz[q, 0]
-            d1 = xyz[j, 1] - xyz[q, 1]
-            d2 = xyz[j, 2] - xyz[q, 2]
-            inner = d0 * d0 + d1 * d1 + d2 * d2 <= r2_squared
-            n_outer += 1
-            if inner:
-                n_inner += 1
+            inner = squared_distance(xyz, j, xyz[q, 0], xyz[q, 1], xyz[q, 2]) <= r2_squared
             if hard:
-                c = int(values[j, 0])
-                out[row, c] += 1.0
+                c = labels[j]
+                out[row, c] += 1
                 if inner:
-                    out[row, n_classes + c] += 1.0
+                    out[row, n_classes + c] += 1
             else:
                 for c in range(n_classes):
-                    out[row, c] += values[j, c]
+                    out[row, c] += weights[j, c]
                     if inner:
-                        out[row, n_classes + c] += values[j, c]
-        for c in range(n_classes):
-            out[row, c] = out[row, c] / n_outer if n_outer > 0 else 1.0 / n_classes
-            out[row, n_classes + c] = (
-                out[row, n_classes + c] / n_inner if n_inner > 0 else 1.0 / n_classes
-            )
+                        out[row, n_classes + c] += weights[j, c]
+
+
+def _class_rows(labels, proba, n_points: int, n_classes: int) -> tuple[np.ndarray, np.ndarray]:
+    """(labels, weights) for the class sums: int64 labels (hard) or fixed-point probabilities
+    (soft, multiples of 2^-40: integer sums are exact in any order); the other one empty."""
+    if (labels is None) == (proba is None):
+        raise ValueError("give exactly one of labels (hard context) or proba (soft context)")
+    if labels is not None:
+        labels = np.asarray(labels)
+        if labels.shape != (n_points,):
+            raise ValueError(f"labels must have shape ({n_points},), got {labels.shape}")
+        if labels.size and (labels.min() < 0 or labels.max() >= n_classes):
+            raise ValueError(f"labels must be class indices in [0, {n_classes}), got "
+                             f"values in [{labels.min()}, {labels.max()}]")
+        return labels.astype(np.int64), np.zeros((0, n_classes), dtype=np.int64)
+    proba = np.asarray(proba, dtype=np.float64)
+    if proba.shape != (n_points, n_classes):
+        raise ValueError(f"proba must have shape ({n_points}, {n_classes}), got {proba.shape}")
+    return np.zeros(0, dtype=np.int64), np.rint(proba * SOFT_SCALE).astype(np.int64)
+
+
+def _frequencies(sums: np.ndarray, n_classes: int) -> np.ndarray:
+    """float32 (Q, 2C) relative frequencies of int64 class sums, per sphere; 1/C for a sphere
+    without any point."""
+    out = np.empty(sums.shape, dtype=np.float32)
+    for half in (slice(0, n_classes), slice(n_classes, 2 * n_classes)):
+        part = sums[:, half].astype(np.float64)
+        total = part.sum(axis=1, keepdims=True)
+        out[:, half] = np.where(total > 0, part / np.maximum(total, 1.0), 1.0 / n_classes)
+    return out
 
 
 def context_from_neighbors(
@@ -99,35 +119,16 @@ def context_from_neighbors(
     float32 (Q, 2C)
         Frequencies in S1 (columns 0..C-1) then in S2 (columns C..2C-1); each half sums to 1.
     """
-    if (labels is None) == (proba is None):
-        raise ValueError("give exactly one of labels (hard context) or proba (soft context)")
-    if labels is not None:
-        labels = np.asarray(labels)
-        if labels.shape != (xyz.shape[0],):
-            raise ValueError(f"labels must have shape ({xyz.shape[0]},), got {labels.shape}")
-        if labels.size and (labels.min() < 0 or labels.max() >= n_classes):
-            raise ValueError(f"labels must be class indices in [0, {n_classes}), got "
-                             f"values in [{labels.min()}, {labels.max()}]")
-        values = labels.astype(np.float64).reshape(-1, 1)
-    else:
-        values = np.asarray(proba, dtype=np.float64)
-        if values.shape != (xyz.shape[0], n_classes):
-            raise ValueError(
-                f"proba must have shape ({xyz.shape[0]}, {n_classes}), got {values.shape}"
-            )
-    out = np.zeros((len(query), 2 * n_classes), dtype=np.float64)
-    _context_kernel(
+    int_labels, weights = _class_rows(labels, proba, xyz.shape[0], n_classes)
+    sums = np.zeros((len(query), 2 * n_classes), dtype=np.int64)
+    _neighbor_sums_kernel(
         np.ascontiguousarray(xyz, dtype=np.float64),
         np.ascontiguousarray(nbr_idx, dtype=np.int64),
         np.ascontiguousarray(nbr_ptr, dtype=np.int64),
         np.ascontiguousarray(query, dtype=np.int64),
-        float(r2) ** 2,
-        np.ascontiguousarray(values),
-        labels is not None,
-        n_classes,
-        out,
-    )
-    return out.astype(np.float32)
+        float(r2) ** 2, int_labels, weights, n_classes, sums,
+    )  # fmt: skip
+    return _frequencies(sums, n_classes)
 
 
 def context_features(
@@ -167,30 +168,19 @@ def context_features(
     query = np.arange(len(xyz), dtype=np.int64) if query is None else np.asarray(query)
     if labels is None and proba is None:
         return uniform_context(len(query), n_classes)
+    int_labels, weights = _class_rows(labels, proba, len(xyz), n_classes)
     index = RadiusIndex(xyz, r1, ids)  # built once, searched block by block
     if max_neighbors is None:
-        return _sphere_frequencies(index, query, r2, labels, proba, n_classes)
-    out = np.empty((len(query), 2 * n_classes), dtype=np.float32)
+        if labels is not None:
+            sums = index.sphere_sums(query, r2, labels=int_labels, n_classes=n_classes)
+        else:
+            sums = index.sphere_sums(query, r2, weights=weights)
+        return _frequencies(sums, n_classes)
+    sums = np.zeros((len(query), 2 * n_classes), dtype=np.int64)
     # Queries in blocks: the CSR lists of a whole chunk would need gigabytes at 256 per point.
     for start in range(0, len(query), QUERY_BLOCK):
         block = query[start : start + QUERY_BLOCK]
         nbr_idx, nbr_ptr = index.query(block, max_neighbors)
-        out[start : start + len(block)] = context_from_neighbors(
-            xyz, nbr_idx, nbr_ptr, block, r2, labels=labels, proba=proba, n_classes=n_classes
-        )
-    return out
-
-
-def _sphere_frequencies(index, query, r2, labels, proba, n_classes) -> np.ndarray:
-    """Frequencies over every point of S1 and S2, from exact integer class sums."""
-    if labels is not None:
-        sums = index.sphere_sums(query, r2, labels=labels, n_classes=n_classes)
-    else:
-        weights = np.rint(np.asarray(proba, dtype=np.float64) * SOFT_SCALE).astype(np.int64)
-        sums = index.sphere_sums(query, r2, weights=weights)
-    out = np.empty(sums.shape, dtype=np.float32)
-    for half in (slice(0, n_classes), slice(n_classes, 2 * n_classes)):
-        part = sums[:, half].astype(np.float64)
-        total = part.sum(axis=1, keepdims=True)  # > 0: the query point itself is in S2
-        out[:, half] = part / np.maximum(total, 1.0)
-    return out
+        _neighbor_sums_kernel(index.xyz, nbr_idx, nbr_ptr, block, float(r2) ** 2, int_labels,
+                              weights, n_classes, sums[start : start + len(block)])
+    return _frequencies(sums, n_classes)
