@@ -48,6 +48,9 @@ SCAN_ANGLE_STEP = 0.006
 #: Offsets are rounded down to a multiple of this many coordinate units.
 OFFSET_STEP = 1000.0
 _GEOTIFF_VLRS = (GeoKeyDirectoryVlr, GeoDoubleParamsVlr, GeoAsciiParamsVlr)
+#: VLR user id of the COPC records (octree info, hierarchy): they describe the input's point
+#: order and byte offsets, are wrong for any other file, and laspy cannot write them.
+COPC_USER_ID = "copc"
 _INT32 = np.iinfo(np.int32)
 
 
@@ -441,6 +444,7 @@ def _export_header(src_header: laspy.LasHeader, extra_dims: list[ExtraDim], src)
     with the same dtype is reused and its values replaced.
     """
     header = copy.deepcopy(src_header)
+    header.vlrs[:] = without_copc(header.vlrs)
     src_format = src_header.point_format
     target = LEGACY_TO_14.get(src_format.id, src_format.id)
     same_layout = target == src_format.id
@@ -494,6 +498,11 @@ def _crs_for_14(header: laspy.LasHeader, src) -> None:
         )
 
 
+def without_copc(records) -> list:
+    """The (E)VLRs that are not COPC records (see :data:`COPC_USER_ID`)."""
+    return [r for r in records if r.user_id.strip("\0 ").lower() != COPC_USER_ID]
+
+
 def _copy_points(chunk, out, same_layout: bool) -> None:
     """Copy every value of chunk into out (same order), converting a legacy layout."""
     if same_layout:
@@ -535,7 +544,7 @@ def export_las(
         if src_header.point_count == 0:
             raise empty_tile(src)
         header, same_layout = _export_header(src_header, dims, src)
-        evlrs = list(src_header.evlrs or [])
+        evlrs = without_copc(src_header.evlrs or [])
     with atomic_writer(dst, header) as writer, open_las(src) as reader:
         start = 0
         for chunk in _chunks(reader, src, batch_size):
