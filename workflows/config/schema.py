@@ -1,0 +1,394 @@
+"""The configuration's sections and :class:`SilvaConfig`, the whole validated configuration.
+
+Every key has a default and a description; validators resolve derived values (``features.r2``,
+``tiling.halo``) and raise one-line errors naming the dotted key.
+"""
+
+from typing import Any, Literal, Union
+
+from pydantic import Field, field_validator, model_validator
+
+from workflows.config.fields import (
+    ChunkSize,
+    Integer,
+    MaxFeatures,
+    Memory,
+    MemoryLimit,
+    Number,
+    PathList,
+    Section,
+    Walltime,
+)
+from workflows.config.messages import fail, field_error, show
+
+
+FEATURE_SETS = ("paper",)
+
+
+# -- data ------------------------------------------------------------------------------------
+class SplitConfig(Section):
+    """One labelled cloud cut by a plane: coordinate < ``at`` trains, >= ``at`` tests."""
+
+    axis: Literal["x", "y", "z"] = Field(description="The coordinate that splits the cloud.")
+    at: Number = Field(description="Points with coordinate < at train, >= at test (metres).")
+
+
+class DataConfig(Section):
+    """Inputs, labels and classes.
+
+    ``classes`` maps a class name to its source label codes; the order of the mapping is
+    the class index and the first code of a class is its output code.
+    """
+
+    train: PathList = Field(
+        default_factory=list,
+        description="Paths or globs (LAS, LAZ, Oakland text) of the labelled training tiles; "
+        "the files of one list are tiles of one scene.",
+    )
+    test: PathList = Field(
+        default_factory=list, description="Labelled tiles that are classified and evaluated."
+    )
+    predict: PathList = Field(
+        default_factory=list, description="Unlabelled tiles that are only classified."
+    )
+    label_field: str = Field(
+        "classification", min_length=1,
+        description="The point dimension that holds the source labels.",
+    )
+    classes: dict[str, list[Integer]] = Field(
+        default_factory=dict,
+        description="Class name -> source label codes; order = class index; the output code "
+        "of a class is its first code. Required whenever train or test is given.",
+    )
+    ignore: list[Union[str, int]] = Field(
+        default_factory=list,
+        description="Class names or raw codes dropped from training and evaluation.",
+    )
+    background: list[str] = Field(
+        default_factory=list,
+        description="Class names trained on but left out of the metric averages.",
+    )
+    split: SplitConfig | None = Field(
+        None, description="Cut the labelled training cloud into a training and a test part.",
+    )
+    drop_unlisted: bool = Field(
+        False,
+        description="Remove labelled points whose code is in no class and not in ignore "
+        "before anything is computed (the Oakland benchmark protocol); they are exported "
+        "with PredictedClassification 0. By default they stay as unlabelled neighbours.",
+    )
+
+    @field_validator("classes", mode="before")
+    @classmethod
+    def _classes_shape(cls, value: Any) -> Any:
+        if not isinstance(value, dict):
+            return value
+        result = {}
+        for name, codes in value.items():
+            if not isinstance(name, str) or not name:
+                raise fail(f"data.classes: class names must be non-empty text, got "
+                           f"{show(name)}; quote it ('{name}')")
+            # "tree: 5" is a class with one code
+            result[name] = [codes] if isinstance(codes, int) and not isinstance(codes, bool) \
+                else codes
+        return result
+
+    @field_validator("ignore", mode="before")
+    @classmethod
+    def _ignore_items(cls, value: Any) -> Any:
+        if isinstance(value, (list, tuple)):
+            for i, item in enumerate(value):
+                if isinstance(item, bool) or not isinstance(item, (str, int)):
+                    raise fail(f"data.ignore[{i}] must be a class name or an integer label "
+                               f"code, got {show(item)}")
+        return value
+
+    @model_validator(mode="after")
+    def _check_classes(self) -> "DataConfig":
+        owner: dict[int, str] = {}
+        for name, codes in self.classes.items():
+            if not codes:
+                raise fail(f"data.classes.{name} has no label codes; give at least one, "
+                           f"e.g. {name}: [2]")
+            for code in codes:
+                if code in owner:
+                    where = ("twice under" if owner[code] == name
+                             else f"under both '{owner[code]}' and")
+                    raise fail(f"data.classes: label code {code} is listed {where} "
+                               f"'{name}'; each source code belongs to one class")
+                owner[code] = name
+        labelled = [scene for scene in ("train", "test") if getattr(self, scene)]
+        if labelled and not self.classes:
+            raise fail(f"data.classes is empty but data.{labelled[0]} is given; list the "
+                       "classes, e.g. classes: {ground: [2], vegetation: [3, 4, 5]}")
+        known = ", ".join(self.classes) or "none"
+        for i, item in enumerate(self.ignore):
+            if isinstance(item, str) and item not in self.classes:
+                raise fail(f"data.ignore[{i}] '{item}' is not a class in data.classes "
+                           f"(classes: {known}); use a class name or an integer code")
+        for i, name in enumerate(self.background):
+            if name not in self.classes:
+                raise fail(f"data.background[{i}] '{name}' is not a class in data.classes "
+                           f"(classes: {known})")
+            if name in self.ignore:
+                raise fail(f"data.background '{name}' is also in data.ignore; a class is "
+                           "either trained on (background) or dropped (ignore), not both")
+        ignored_codes = {c for c in self.ignore if isinstance(c, int)}
+        for name, codes in self.classes.items():
+            if name not in self.ignore and codes and set(codes) <= ignored_codes:
+                raise fail(f"data.ignore drops every code of class '{name}' "
+                           f"({show(codes)}); ignore the class by name instead")
+        if self.classes and not self.class_names:
+            raise fail("data.ignore drops every class in data.classes; keep at least one")
+        if self.split is not None and not self.train:
+            raise fail("data.split cuts the data.train cloud, but data.train is empty; "
+                       "give data.train or remove data.split")
+        return self
+
+    # -- class helpers ----------------------------------------------------------------------
+    @property
+    def class_names(self) -> list[str]:
+        """Names of the classes the model learns and predicts (ignored ones removed), in order."""
+        return [name for name in self.classes if name not in self.ignore]
+
+    @property
+    def class_codes(self) -> list[int]:
+        """The output code of each class of :attr:`class_names`: its first source code."""
+        return [self.classes[name][0] for name in self.class_names]
+
+    @property
+    def code_to_class(self) -> dict[int, int]:
+        """Source label code -> index in :attr:`class_names`; ignored codes are absent."""
+        ignored_codes = {c for c in self.ignore if isinstance(c, int)}
+        return {
+            code: index
+            for index, name in enumerate(self.class_names)
+            for code in self.classes[name]
+            if code not in ignored_codes
+        }
+
+    @property
+    def listed_codes(self) -> list[int]:
+        """Every source code named by a class or by ignore (kept by drop_unlisted)."""
+        codes = {code for codes in self.classes.values() for code in codes}
+        return sorted(codes | {c for c in self.ignore if isinstance(c, int)})
+
+    @property
+    def background_indices(self) -> list[int]:
+        """Indices in :attr:`class_names` of the background classes."""
+        names = self.class_names
+        return [names.index(name) for name in self.background]
+
+
+# -- tiling and features ---------------------------------------------------------------------
+class FeaturesConfig(Section):
+    """The per-point features: moment invariants in S1 and context in S1 and S2."""
+
+    set: str = Field(
+        "paper",
+        description="The feature set; 'paper' = the 11 moment invariants and the context "
+        "features as published.",
+    )
+    r1: Number = Field(0.5, gt=0, description="Radius of the sphere S1 in metres.")
+    r2: Number | None = Field(
+        None, description="Radius of the inner context sphere S2 in metres; default r1 / 2."
+    )
+    max_neighbors: Integer = Field(
+        64, ge=3, description="At most this many nearest points of S1 form the local surface."
+    )
+    context_max_neighbors: Integer | None = Field(
+        None, ge=1, description="Unset: every point within r1 counts in the context (the "
+        "paper; exact and fast at any density). A number: only that many nearest points, "
+        "which on dense scans shrinks the context sphere well below r1.",
+    )
+
+    @field_validator("set")
+    @classmethod
+    def _known_set(cls, value: str) -> str:
+        if value not in FEATURE_SETS:
+            raise field_error("must be one of the feature sets "
+                              + ", ".join(f"'{s}'" for s in FEATURE_SETS))
+        return value
+
+    @model_validator(mode="after")
+    def _resolve_r2(self) -> "FeaturesConfig":
+        if self.r2 is None:
+            object.__setattr__(self, "r2", self.r1 / 2)  # the paper's r2 = r1 / 2
+        elif not 0 < self.r2 <= self.r1:
+            raise fail(f"features.r2 must be > 0 and <= features.r1 ({show(self.r1)}), "
+                       f"got {show(self.r2)}")
+        return self
+
+    @property
+    def radius2(self) -> float:
+        """The inner context radius, resolved (r1 / 2 unless set)."""
+        return float(self.r2) if self.r2 is not None else self.r1 / 2
+
+    @property
+    def largest_radius(self) -> float:
+        """The largest radius any step looks at: the halo must be at least this."""
+        return max(self.r1, self.radius2)
+
+
+class TilingConfig(Section):
+    """The chunk grid the tiles are cut into, and how they are streamed."""
+
+    chunk_size: ChunkSize = Field(
+        "auto",
+        description="Side of a square chunk in metres, or 'auto': sized per scene from the "
+        "tiles' headers so that a chunk with its halo holds about tiling.target_points "
+        "points at the scene's mean density.",
+    )
+    target_points: Integer = Field(
+        1_000_000, ge=1,
+        description="With chunk_size 'auto': points wanted in a chunk with its halo; a "
+        "worker holds one chunk at a time, so this bounds its memory. Ignored when "
+        "chunk_size is a number.",
+    )
+    halo: Number | None = Field(
+        None, gt=0,
+        description="Width in metres of the copies of neighbouring points around a chunk; "
+        "default (and minimum) = the largest radius used, features.r1.",
+    )
+    read_batch: Integer = Field(
+        1_000_000, ge=1, description="Points per read batch when streaming tiles."
+    )
+
+    def halo_resolved(self, features: FeaturesConfig) -> float:
+        """The halo in metres: as set, or the largest radius of ``features``."""
+        return float(self.halo) if self.halo is not None else features.largest_radius
+
+
+# -- cascade ---------------------------------------------------------------------------------
+class CascadeConfig(Section):
+    """The cascade of random forests (auto-context)."""
+
+    stages: Integer = Field(3, ge=1, description="Number of cascade stages (forests).")
+    n_estimators: Integer = Field(20, ge=1, description="Trees per forest.")
+    min_samples_leaf: Integer = Field(15, ge=1, description="Minimum samples in a leaf.")
+    max_features: MaxFeatures = Field(
+        "sqrt",
+        description="Features tried per split, as scikit-learn takes it: 'sqrt', 'log2', "
+        "an integer or a fraction in (0, 1].",
+    )
+    context: Literal["hard", "soft"] = Field(
+        "hard",
+        description="Context from predicted classes (hard) or averaged probabilities (soft).",
+    )
+    out_of_fold: bool = Field(
+        False,
+        description="Compute the training points' context from out-of-fold predictions.",
+    )
+    folds: Integer = Field(5, ge=2, description="Folds used with out_of_fold.")
+    max_train_points: Integer = Field(
+        200_000, ge=1, description="At most this many training points per stage."
+    )
+    balanced: bool = Field(
+        False, description="Sample the training points with equal quotas per class."
+    )
+    seed: Integer = Field(0, ge=0, le=2**32 - 1, description="Seed of sampling and forests.")
+
+
+# -- cluster ---------------------------------------------------------------------------------
+class SlurmConfig(Section):
+    """One SLURM job runs ``processes`` workers sharing ``cores`` cores and ``memory``."""
+
+    queue: str | None = Field(None, description="SLURM partition (-p).")
+    account: str | None = Field(None, description="SLURM account (-A).")
+    cores: Integer = Field(4, ge=1, description="Cores per job.")
+    processes: Integer = Field(1, ge=1, description="Worker processes per job.")
+    memory: Memory = Field(
+        "16GiB", description="Memory per job, dask syntax."
+    )
+    walltime: Walltime = Field(
+        "08:00:00", description="Time limit of a job (-t)."
+    )
+    jobs: Integer = Field(2, ge=1, description="Jobs to submit.")
+    job_extra_directives: list[str] = Field(
+        default_factory=list, description="Extra #SBATCH lines, e.g. ['--exclusive']."
+    )
+    local_directory: str | None = Field(
+        None, description="Scratch directory of the workers on the compute nodes."
+    )
+
+    @model_validator(mode="after")
+    def _processes_fit(self) -> "SlurmConfig":
+        if self.processes > self.cores:
+            raise fail(f"cluster.slurm.processes ({self.processes}) is more than "
+                       f"cluster.slurm.cores ({self.cores}); every worker needs a core")
+        return self
+
+
+class ClusterConfig(Section):
+    """Where the Dask tasks run: a local cluster, a running scheduler or SLURM jobs."""
+
+    kind: Literal["local", "address", "slurm"] = Field(
+        "local", description="local | address | slurm."
+    )
+    address: str | None = Field(
+        None, description="Scheduler address for kind 'address', e.g. tcp://host:8786."
+    )
+    n_workers: Integer | None = Field(
+        None, ge=1,
+        description="Workers; default: the number of cores (local), workers of "
+        "cluster.slurm.jobs jobs (slurm).",
+    )
+    threads_per_worker: Integer = Field(1, ge=1, description="Threads per local worker.")
+    memory_limit: MemoryLimit = Field(
+        "auto", description="Memory limit per local worker, dask syntax ('4GiB', 'auto')."
+    )
+    dashboard: bool = Field(True, description="Serve the Dask dashboard (local clusters).")
+    slurm: SlurmConfig = Field(default_factory=SlurmConfig)
+
+    @model_validator(mode="after")
+    def _address_given(self) -> "ClusterConfig":
+        if self.kind == "address" and not self.address:
+            raise fail("cluster.address is required when cluster.kind is 'address'; give "
+                       "the scheduler address, e.g. tcp://host:8786")
+        return self
+
+
+# -- output ----------------------------------------------------------------------------------
+class OutputConfig(Section):
+    """The classified tiles written back."""
+
+    format: Literal["laz", "las"] = Field("laz", description="laz | las.")
+    write_classification: bool = Field(
+        False,
+        description="Also overwrite the classification field with the prediction (the "
+        "original is otherwise kept untouched).",
+    )
+    probabilities: bool = Field(True, description="One extra dimension per class.")
+
+
+# -- the whole configuration -----------------------------------------------------------------
+class SilvaConfig(Section):
+    """A complete, validated Silva configuration."""
+
+    data: DataConfig = Field(default_factory=DataConfig)
+    tiling: TilingConfig = Field(default_factory=TilingConfig)
+    features: FeaturesConfig = Field(default_factory=FeaturesConfig)
+    cascade: CascadeConfig = Field(default_factory=CascadeConfig)
+    cluster: ClusterConfig = Field(default_factory=ClusterConfig)
+    output: OutputConfig = Field(default_factory=OutputConfig)
+
+    @model_validator(mode="after")
+    def _resolve_halo(self) -> "SilvaConfig":
+        largest = self.features.largest_radius
+        halo = self.tiling.halo
+        if halo is None:
+            object.__setattr__(self, "tiling", self.tiling.model_copy(update={"halo": largest}))
+        elif halo < largest:
+            raise fail(f"tiling.halo {show(halo)} is smaller than the largest radius "
+                       f"{show(largest)}; use a halo >= {show(largest)} or leave it unset")
+        return self
+
+    @property
+    def halo(self) -> float:
+        """The halo in metres (resolved: the largest radius unless set larger)."""
+        return self.tiling.halo_resolved(self.features)
+
+    @property
+    def class_names(self) -> list[str]:
+        """See :attr:`DataConfig.class_names`."""
+        return self.data.class_names

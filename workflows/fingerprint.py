@@ -1,0 +1,78 @@
+"""The recompute fingerprint: a hash of the configuration keys that affect one workflow step.
+
+:data:`STEPS` is the list of fingerprinted steps; a rerun redoes a step whose fingerprint
+changed and keeps the others.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import TYPE_CHECKING, Any
+
+from pipeline.errors import ConfigError
+from workflows.inputs import SCENES
+
+if TYPE_CHECKING:
+    from workflows.config.schema import SilvaConfig
+
+STEPS = ("ingest", "features", "stage", "export", "evaluate")
+_FINGERPRINT_VERSION = "silva-config-1"  # bump when the meaning of a fingerprinted key changes
+
+
+def fingerprint(cfg: SilvaConfig, step: str) -> str:
+    """A short stable hash of exactly the configuration parts that affect ``step``.
+
+    ==========  ========================================================================
+    step        hashed keys (each step includes the rows above it, except evaluate and
+                export, which both build on stage)
+    ==========  ========================================================================
+    ingest      data.train/test/predict (patterns, order ignored), data.label_field,
+                data.classes, data.ignore, data.split, data.drop_unlisted;
+                tiling.chunk_size, tiling.halo, tiling.target_points (only with chunk_size
+                auto)
+    features    + features.set, features.r1, features.max_neighbors
+    stage       + features.r2, features.context_max_neighbors, every cascade key except
+                cascade.stages (adding stages keeps the finished ones)
+    export      stage + output.*
+    evaluate    stage + data.background
+    ==========  ========================================================================
+
+    Never hashed: cluster.*, tiling.read_batch (they change how, not what, is computed).
+    The halo is hashed resolved, so with ``tiling.halo`` unset, changing ``features.r1``
+    also changes the halo and thus ``ingest``. With ``chunk_size: auto`` the size ingest
+    resolves also depends on the tiles' headers, which the run's inputs digest covers. Globs
+    are hashed as written, not the files they match. Returns 16 hexadecimal digits of the
+    SHA-256 of the canonical JSON.
+    """
+    if step not in STEPS:
+        raise ConfigError(f"config error: unknown step '{step}' for a fingerprint; "
+                          f"use one of {', '.join(STEPS)}")
+    d = cfg.model_dump(mode="json")
+    data = d["data"]
+    parts: dict[str, Any] = {
+        "version": _FINGERPRINT_VERSION,
+        "ingest": {
+            **{scene: sorted(set(data[scene])) for scene in SCENES},
+            **{k: data[k] for k in ("label_field", "ignore", "split", "drop_unlisted")},
+            # a list of pairs: the class order is the class index (sort_keys would lose it)
+            "classes": [[name, codes] for name, codes in data["classes"].items()],
+            "chunk_size": cfg.tiling.chunk_size,
+            "halo": cfg.halo,
+        },
+    }
+    if cfg.tiling.chunk_size == "auto":
+        # only then does it matter; an explicit size keeps the fingerprint it always had
+        parts["ingest"]["target_points"] = cfg.tiling.target_points
+    if step != "ingest":
+        parts["features"] = {k: d["features"][k] for k in ("set", "r1", "max_neighbors")}
+    if step in ("stage", "export", "evaluate"):
+        parts["context"] = {"r2": cfg.features.radius2,
+                            "context_max_neighbors": cfg.features.context_max_neighbors}
+        parts["cascade"] = {k: v for k, v in d["cascade"].items() if k != "stages"}
+    if step == "export":
+        parts["output"] = d["output"]
+    if step == "evaluate":
+        parts["background"] = data["background"]
+    text = json.dumps(parts, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
