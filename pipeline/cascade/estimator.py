@@ -1,0 +1,168 @@
+"""``CascadedForest``: the cascade as a scikit-learn estimator on clouds in memory."""
+
+import numpy as np
+from sklearn.base import BaseEstimator, ClassifierMixin
+from sklearn.utils.validation import check_is_fitted
+
+from pipeline.cascade.driver import CloudData, run_cascade
+from pipeline.cascade.params import CascadeParams, ForestParams, resolve_seed
+from pipeline.cascade.stage import labels_from_proba
+from pipeline.features.sets import FeatureParams, feature_set
+
+_FEATURES, _CASCADE, _FOREST = FeatureParams(), CascadeParams(), ForestParams()
+
+
+class CascadedForest(ClassifierMixin, BaseEstimator):
+    """Auto-context cascade of random forests on local point features.
+
+    ``fit(X, y)`` with X the (N, 3) coordinates of one cloud; ``predict``, ``predict_proba``,
+    ``staged_predict`` and ``staged_predict_proba`` take the coordinates of a cloud to
+    classify. The defaults are the paper's (3 stages of 20-tree forests with at least 15
+    samples per leaf, r1 = 0.5 m, r2 = r1 / 2) and the same as the workflow's: both run
+    :func:`pipeline.cascade.driver.run_cascade`, and the same parameters and seed give the
+    same probabilities bit for bit.
+
+    Parameters
+    ----------
+    feature_set : str
+        A name of :data:`pipeline.features.sets.FEATURE_SETS`.
+    stages : int
+        Number of forests in the cascade (the paper: 2 good in general, 3 best).
+    n_estimators, min_samples_leaf, max_features : forest configuration shared by all stages.
+    r1, r2 : float
+        Radii of the feature/context sphere S1 and the inner context sphere S2 (r1 / 2).
+    max_neighbors : int
+        Nearest points within r1 used for the triangulation.
+    context_max_neighbors : int or None
+        None (the paper): every point within r1 counts for the context; a number: only that
+        many nearest points (see :mod:`pipeline.features.context`).
+    context : {"hard", "soft"}
+        Frequencies of predicted labels (the paper) or mean probabilities.
+    out_of_fold : bool
+        Build the training context from out-of-fold predictions instead of in-sample ones.
+    folds : int
+        Number of folds with ``out_of_fold``.
+    max_train_points : int or None
+        Cap on training rows, sampled by a hash of (point id, seed).
+    balanced : bool
+        Equal quotas per class above the cap, and class weights in every forest.
+    random_state : int, RandomState, Generator or None
+        An int is the seed of the training sample and of every forest (the workflow's
+        ``cascade.seed``); otherwise a seed is drawn from it.
+    n_jobs : int
+        Threads per forest.
+    """
+
+    def __init__(
+        self,
+        feature_set=_FEATURES.set,
+        stages=_CASCADE.stages,
+        n_estimators=_FOREST.n_estimators,
+        min_samples_leaf=_FOREST.min_samples_leaf,
+        max_features=_FOREST.max_features,
+        r1=_FEATURES.r1,
+        r2=None,
+        max_neighbors=_FEATURES.max_neighbors,
+        context_max_neighbors=_FEATURES.context_max_neighbors,
+        context=_CASCADE.context,
+        out_of_fold=_CASCADE.out_of_fold,
+        folds=_CASCADE.folds,
+        max_train_points=_CASCADE.max_train_points,
+        balanced=_CASCADE.balanced,
+        random_state=None,
+        n_jobs=_FOREST.n_jobs,
+    ):
+        self.feature_set = feature_set
+        self.stages = stages
+        self.n_estimators = n_estimators
+        self.min_samples_leaf = min_samples_leaf
+        self.max_features = max_features
+        self.r1 = r1
+        self.r2 = r2
+        self.max_neighbors = max_neighbors
+        self.context_max_neighbors = context_max_neighbors
+        self.context = context
+        self.out_of_fold = out_of_fold
+        self.folds = folds
+        self.max_train_points = max_train_points
+        self.balanced = balanced
+        self.random_state = random_state
+        self.n_jobs = n_jobs
+
+    # -- parameters -------------------------------------------------------------------------
+    def _feature_params(self) -> FeatureParams:
+        return FeatureParams(self.feature_set, self.r1, self.r2, self.max_neighbors,
+                             self.context_max_neighbors)
+
+    def _cascade_params(self, seed: int) -> CascadeParams:
+        forest = ForestParams(self.n_estimators, self.min_samples_leaf, self.max_features,
+                              self.n_jobs)
+        return CascadeParams(self.stages, self.context, self.out_of_fold, self.folds,
+                             self.max_train_points, self.balanced, seed, forest)
+
+    def _cloud(self, X, ids, labels, fitted_stages=None) -> CloudData:
+        """The cloud with its point features, computed once for every stage."""
+        xyz = np.asarray(X, dtype=np.float64)
+        if xyz.ndim != 2 or xyz.shape[1] != 3:
+            raise ValueError(f"X must hold coordinates of shape (N, 3), got {xyz.shape}")
+        ids = np.arange(len(xyz), dtype=np.int64) if ids is None else np.asarray(ids, np.int64)
+        if ids.shape != (len(xyz),):
+            raise ValueError(f"ids must have shape ({len(xyz)},), got {ids.shape}")
+        params = self.feature_params_
+        features = feature_set(params)(xyz, ids=ids)
+        if labels is None:
+            labels = np.full(len(xyz), -1, dtype=np.int64)
+        return CloudData(xyz, ids, features, labels, len(self.classes_), r1=params.r1,
+                         r2=params.r2, context_mode=self.context,
+                         context_max_neighbors=params.context_max_neighbors,
+                         fitted_stages=fitted_stages)
+
+    # -- estimator API ----------------------------------------------------------------------
+    def fit(self, X, y, ids=None):
+        """Fit every stage on one labelled cloud.
+
+        ``y`` holds any class labels; entries equal to -1 are unlabelled points that take
+        part in the neighbourhoods and the context but not in training. ``ids`` (int64,
+        optional) are global point ids used for sampling and tie-breaking (default: row
+        numbers).
+        """
+        self.feature_params_ = self._feature_params()
+        seed = resolve_seed(self.random_state)
+        params = self._cascade_params(seed)
+        y = np.asarray(y)
+        if len(y) != len(X):
+            raise ValueError(f"y has {len(y)} labels for {len(X)} points")
+        self.classes_ = np.unique(y[y != -1]) if y.dtype.kind in "iu" else np.unique(y)
+        if len(self.classes_) < 2:
+            raise ValueError(f"y must hold at least 2 classes, got {list(self.classes_)}")
+        labels = np.full(len(y), -1, dtype=np.int64)
+        known = np.isin(y, self.classes_)
+        labels[known] = np.searchsorted(self.classes_, y[known])
+        cloud = self._cloud(X, ids, labels)
+        counts = np.bincount(labels[known], minlength=len(self.classes_))
+        self.stages_ = run_cascade(cloud, params, counts, predict_last=False)
+        self.seed_ = seed
+        self.feature_names_ = feature_set(self.feature_params_).columns
+        self.n_features_in_ = 3
+        return self
+
+    def staged_predict_proba(self, X, ids=None):
+        """Yield float32 (N, C) probabilities after each stage, in order."""
+        check_is_fitted(self, "stages_")
+        cloud = self._cloud(X, ids, None, fitted_stages=self.stages_)
+        run_cascade(cloud, self._cascade_params(self.seed_), n_stages=len(self.stages_))
+        yield from cloud.proba
+
+    def staged_predict(self, X, ids=None):
+        """Yield the predicted labels after each stage, in order."""
+        for proba in self.staged_predict_proba(X, ids):
+            yield self.classes_[labels_from_proba(proba)]
+
+    def predict_proba(self, X, ids=None) -> np.ndarray:
+        """float32 (N, C) probabilities of the last stage, columns in ``classes_`` order."""
+        return list(self.staged_predict_proba(X, ids))[-1]
+
+    def predict(self, X, ids=None) -> np.ndarray:
+        """Labels of the last stage (values from ``classes_``)."""
+        proba = self.predict_proba(X, ids)
+        return self.classes_[labels_from_proba(proba)]
