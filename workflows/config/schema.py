@@ -8,6 +8,8 @@ from typing import Any, Literal, Union
 
 from pydantic import Field, field_validator, model_validator
 
+from pipeline.cascade import CascadeParams, ForestParams
+from pipeline.features.sets import FEATURE_SETS, FeatureParams
 from workflows.config.fields import (
     ChunkSize,
     Integer,
@@ -21,8 +23,7 @@ from workflows.config.fields import (
 )
 from workflows.config.messages import fail, field_error, show
 
-
-FEATURE_SETS = ("paper",)
+_FEATURES, _CASCADE, _FOREST = FeatureParams(), CascadeParams(), ForestParams()
 
 
 # -- data ------------------------------------------------------------------------------------
@@ -185,19 +186,21 @@ class FeaturesConfig(Section):
     """The per-point features: moment invariants in S1 and context in S1 and S2."""
 
     set: str = Field(
-        "paper",
+        _FEATURES.set,
         description="The feature set; 'paper' = the 11 moment invariants and the context "
         "features as published.",
     )
-    r1: Number = Field(0.5, gt=0, description="Radius of the sphere S1 in metres.")
+    r1: Number = Field(_FEATURES.r1, gt=0, description="Radius of the sphere S1 in metres.")
     r2: Number | None = Field(
         None, description="Radius of the inner context sphere S2 in metres; default r1 / 2."
     )
     max_neighbors: Integer = Field(
-        64, ge=3, description="At most this many nearest points of S1 form the local surface."
+        _FEATURES.max_neighbors, ge=3,
+        description="At most this many nearest points of S1 form the local surface.",
     )
     context_max_neighbors: Integer | None = Field(
-        None, ge=1, description="Unset: every point within r1 counts in the context (the "
+        _FEATURES.context_max_neighbors, ge=1,
+        description="Unset: every point within r1 counts in the context (the "
         "paper; exact and fast at any density). A number: only that many nearest points, "
         "which on dense scans shrinks the context sphere well below r1.",
     )
@@ -220,14 +223,20 @@ class FeaturesConfig(Section):
         return self
 
     @property
+    def params(self) -> FeatureParams:
+        """The resolved parameters the feature and context steps receive."""
+        return FeatureParams(self.set, float(self.r1), float(self.r2), int(self.max_neighbors),
+                             self.context_max_neighbors)
+
+    @property
     def radius2(self) -> float:
         """The inner context radius, resolved (r1 / 2 unless set)."""
-        return float(self.r2) if self.r2 is not None else self.r1 / 2
+        return self.params.r2
 
     @property
     def largest_radius(self) -> float:
-        """The largest radius any step looks at: the halo must be at least this."""
-        return max(self.r1, self.radius2)
+        """The largest distance any step looks at: the halo must be at least this."""
+        return self.params.halo
 
 
 class TilingConfig(Section):
@@ -263,30 +272,44 @@ class TilingConfig(Section):
 class CascadeConfig(Section):
     """The cascade of random forests (auto-context)."""
 
-    stages: Integer = Field(3, ge=1, description="Number of cascade stages (forests).")
-    n_estimators: Integer = Field(20, ge=1, description="Trees per forest.")
-    min_samples_leaf: Integer = Field(15, ge=1, description="Minimum samples in a leaf.")
+    stages: Integer = Field(_CASCADE.stages, ge=1,
+                            description="Number of cascade stages (forests).")
+    n_estimators: Integer = Field(_FOREST.n_estimators, ge=1, description="Trees per forest.")
+    min_samples_leaf: Integer = Field(_FOREST.min_samples_leaf, ge=1,
+                                      description="Minimum samples in a leaf.")
     max_features: MaxFeatures = Field(
-        "sqrt",
+        _FOREST.max_features,
         description="Features tried per split, as scikit-learn takes it: 'sqrt', 'log2', "
         "an integer or a fraction in (0, 1].",
     )
     context: Literal["hard", "soft"] = Field(
-        "hard",
+        _CASCADE.context,
         description="Context from predicted classes (hard) or averaged probabilities (soft).",
     )
     out_of_fold: bool = Field(
-        False,
+        _CASCADE.out_of_fold,
         description="Compute the training points' context from out-of-fold predictions.",
     )
-    folds: Integer = Field(5, ge=2, description="Folds used with out_of_fold.")
+    folds: Integer = Field(_CASCADE.folds, ge=2, description="Folds used with out_of_fold.")
     max_train_points: Integer = Field(
-        200_000, ge=1, description="At most this many training points per stage."
+        _CASCADE.max_train_points, ge=1,
+        description="At most this many training points per stage.",
     )
     balanced: bool = Field(
-        False, description="Sample the training points with equal quotas per class."
+        _CASCADE.balanced,
+        description="Balance the classes: equal quotas per class when the training points "
+        "exceed max_train_points, and class weights in every forest.",
     )
-    seed: Integer = Field(0, ge=0, le=2**32 - 1, description="Seed of sampling and forests.")
+    seed: Integer = Field(_CASCADE.seed, ge=0, le=2**32 - 1,
+                          description="Seed of sampling and forests.")
+
+    def params(self, n_jobs: int = 1) -> CascadeParams:
+        """The resolved parameters of the cascade; ``n_jobs`` threads per forest fit."""
+        forest = ForestParams(int(self.n_estimators), int(self.min_samples_leaf),
+                              self.max_features, n_jobs)
+        return CascadeParams(int(self.stages), self.context, bool(self.out_of_fold),
+                             int(self.folds), int(self.max_train_points), bool(self.balanced),
+                             int(self.seed), forest)
 
 
 # -- cluster ---------------------------------------------------------------------------------
