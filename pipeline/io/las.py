@@ -3,7 +3,8 @@
 Reads stream with ``LasReader.chunk_iterator`` so memory is bounded by the batch size. Writes
 go to a hidden temporary file in the destination directory that replaces the destination
 only once it is complete, so an interrupted write never leaves a file that looks finished.
-Everything is written as LAS 1.4; the CRS is stored as an OGC WKT VLR, which needs no pyproj.
+Everything is written as LAS 1.4 point formats 6-10, whose CRS is an OGC WKT record (with
+the header's WKT bit set): GeoTIFF CRS keys of older files are converted with pyproj.
 """
 
 import copy
@@ -19,12 +20,6 @@ import numpy as np
 from laspy.header import Version
 from laspy.point.dims import DimensionKind
 from laspy.vlrs.vlrlist import VLRList
-from laspy.vlrs.known import (
-    GeoAsciiParamsVlr,
-    GeoDoubleParamsVlr,
-    GeoKeyDirectoryVlr,
-    WktCoordinateSystemVlr,
-)
 
 from pipeline.errors import InputError
 from pipeline.io.base import (
@@ -37,6 +32,7 @@ from pipeline.io.base import (
     normalise_fields,
     resolve_fields,
 )
+from pipeline.io.crs import add_wkt, crs_wkt, las14_crs
 
 logger = logging.getLogger(__name__)
 
@@ -47,7 +43,6 @@ LEGACY_TO_14 = {0: 6, 1: 6, 2: 7, 3: 7, 4: 9, 5: 10}
 SCAN_ANGLE_STEP = 0.006
 #: Offsets are rounded down to a multiple of this many coordinate units.
 OFFSET_STEP = 1000.0
-_GEOTIFF_VLRS = (GeoKeyDirectoryVlr, GeoDoubleParamsVlr, GeoAsciiParamsVlr)
 #: VLR user id of the COPC records (octree info, hierarchy): they describe the input's point
 #: order and byte offsets, are wrong for any other file, and laspy cannot write them.
 COPC_USER_ID = "copc"
@@ -95,30 +90,6 @@ def _check_size(path: Path, header: laspy.LasHeader) -> None:
         )
 
 
-def crs_wkt(header: laspy.LasHeader) -> str | None:
-    """The CRS of a LAS header as WKT, or None.
-
-    The OGC WKT VLR (LAS 1.4) is returned as stored. Failing that, GeoTIFF keys are turned
-    into WKT only when pyproj is installed; without pyproj they give None (the keys are still
-    kept by :func:`export_las`).
-    """
-    records = list(header.vlrs) + list(header.evlrs or [])
-    for record in records:
-        if isinstance(record, WktCoordinateSystemVlr) and record.string.strip("\0 \n"):
-            return record.string.rstrip("\0")
-    if any(isinstance(record, GeoKeyDirectoryVlr) for record in records):
-        try:
-            crs = header.parse_crs()
-        except ImportError:
-            logger.debug("GeoTIFF CRS keys left unparsed: pyproj is not installed")
-            return None
-        except Exception as exc:  # an unknown or malformed key set: no CRS rather than a crash
-            logger.warning("cannot parse the GeoTIFF CRS keys: %s", exc)
-            return None
-        return crs.to_wkt() if crs is not None else None
-    return None
-
-
 def read_las_info(path) -> TileInfo:
     """Header-only description of a LAS/LAZ tile (no point is read)."""
     with open_las(path) as reader:
@@ -131,7 +102,7 @@ def read_las_info(path) -> TileInfo:
             maxs=tuple(float(v) for v in header.maxs),
             scale=tuple(float(v) for v in header.scales),
             offset=tuple(float(v) for v in header.offsets),
-            crs_wkt=crs_wkt(header),
+            crs_wkt=crs_wkt(header, path),
             point_format=int(header.point_format.id),
             version=str(header.version),
             dimensions=tuple(header.point_format.dimension_names),
@@ -225,15 +196,6 @@ def quantize(xyz: np.ndarray, scale: np.ndarray, offset: np.ndarray, path) -> np
             "nearer the data"
         )
     return q.astype(np.int32)
-
-
-def add_wkt(header: laspy.LasHeader, wkt: str) -> None:
-    """Store wkt as the header's only CRS record (OGC WKT VLR, global-encoding WKT bit)."""
-    header.vlrs[:] = [
-        v for v in header.vlrs if not isinstance(v, (WktCoordinateSystemVlr, *_GEOTIFF_VLRS))
-    ]
-    header.vlrs.append(WktCoordinateSystemVlr(wkt))
-    header.global_encoding.wkt = True
 
 
 def build_header(
@@ -452,8 +414,7 @@ def _export_header(src_header: laspy.LasHeader, extra_dims: list[ExtraDim], src)
         point_format = laspy.PointFormat(target)
         point_format.dimensions.extend(src_format.extra_dimensions)
         header.set_version_and_point_format(Version(1, 4), point_format)
-    if not same_layout:
-        _crs_for_14(header, src)
+    las14_crs(header, src)
     existing = {d.name: d for d in src_format.extra_dimensions}
     standard = set(header.point_format.standard_dimension_names)
     new_dims = []
@@ -479,23 +440,6 @@ def _export_header(src_header: laspy.LasHeader, extra_dims: list[ExtraDim], src)
             [laspy.ExtraBytesParams(d.name, d.numpy_dtype, d.description) for d in new_dims]
         )
     return header, same_layout
-
-
-def _crs_for_14(header: laspy.LasHeader, src) -> None:
-    """Keep the CRS when moving a legacy file to point formats 6-10 (which expect WKT)."""
-    if any(isinstance(v, WktCoordinateSystemVlr) for v in header.vlrs):
-        header.global_encoding.wkt = True
-        return
-    if not any(isinstance(v, GeoKeyDirectoryVlr) for v in header.vlrs):
-        return
-    wkt = crs_wkt(header)
-    if wkt:
-        add_wkt(header, wkt)
-    else:
-        logger.warning(
-            "%s has its CRS as GeoTIFF keys; they are kept as they are (install pyproj to "
-            "convert them to the WKT that LAS 1.4 point formats 6-10 expect)", src,
-        )
 
 
 def without_copc(records) -> list:

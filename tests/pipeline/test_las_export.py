@@ -1,14 +1,18 @@
 """LAS export of files other tools wrote: COPC tiles and GeoTIFF CRS keys."""
 
+import importlib.metadata
 import struct
 
 import laspy
 import numpy as np
+import pyproj
 import pytest
-from laspy.vlrs.known import WktCoordinateSystemVlr
+from laspy.vlrs.known import GeoKeyDirectoryVlr, GeoKeyEntryStruct, WktCoordinateSystemVlr
 from laspy.vlrs.vlrlist import VLRList
 
-from pipeline.io import ExtraDim, export_with_extra_dims, read_info, write_las
+from pipeline.errors import InputError
+from pipeline.io import ExtraDim, export_with_extra_dims, read_info
+from pipeline.io.crs import check_same_crs
 
 DIMS = [ExtraDim("Confidence", "float32", "probability of the class")]
 
@@ -45,3 +49,101 @@ def test_copc_tile_exports_without_its_copc_records(tmp_path):
     assert np.array_equal(out.classification, original.classification)
     assert np.array_equal(out.X, original.X)
     assert np.allclose(out["Confidence"], 0.5)
+
+
+# -- CRS: point formats 6-10 carry one WKT record, never GeoTIFF keys ----------------------
+
+
+def _geokeys(*keys):
+    """A GeoKeyDirectoryVlr holding (key id, value) pairs."""
+    vlr = GeoKeyDirectoryVlr()
+    vlr.geo_keys_header.key_directory_version = 1
+    vlr.geo_keys_header.key_revision = 1
+    vlr.geo_keys_header.number_of_keys = len(keys)
+    vlr.geo_keys = [GeoKeyEntryStruct(key, 0, 1, value) for key, value in keys]
+    return vlr
+
+
+def _keyed_tile(path, *keys, version="1.4", point_format=6, n=200):
+    header = laspy.LasHeader(version=version, point_format=point_format)
+    header.scales, header.offsets = [0.01] * 3, [500_000.0, 4_000_000.0, 0.0]
+    header.vlrs.append(_geokeys(*keys))
+    las = laspy.LasData(header)
+    rng = np.random.default_rng(1)
+    las.x = rng.uniform(500_000, 500_100, n)
+    las.y = rng.uniform(4_000_000, 4_000_100, n)
+    las.z = rng.uniform(0, 30, n)
+    las.write(path)
+    return path
+
+
+def _crs_records(path):
+    with laspy.open(path) as reader:
+        header = reader.header
+        records = [*header.vlrs, *(header.evlrs or [])]
+        return header, records
+
+
+@pytest.mark.parametrize("version, point_format", [("1.4", 6), ("1.2", 1), ("1.2", 3)])
+def test_geotiff_keys_become_one_wkt_record(tmp_path, version, point_format):
+    src = _keyed_tile(tmp_path / "keys.las", (3072, 32610), version=version,
+                      point_format=point_format)
+    dst = export_with_extra_dims(src, tmp_path / "out.laz", DIMS, _confidence)
+    header, records = _crs_records(dst)
+    assert header.point_format.id >= 6 and header.global_encoding.wkt
+    assert not [v for v in records if isinstance(v, GeoKeyDirectoryVlr)]
+    wkts = [v for v in records if isinstance(v, WktCoordinateSystemVlr)]
+    assert len(wkts) == 1
+    assert pyproj.CRS.from_wkt(wkts[0].string.rstrip("\0")).to_epsg() == 32610
+    assert read_info(dst).crs_wkt == read_info(src).crs_wkt
+
+
+def test_vertical_geotiff_key_gives_a_compound_crs(tmp_path):
+    src = _keyed_tile(tmp_path / "keys.las", (3072, 32610), (4096, 5703), version="1.2",
+                      point_format=1)
+    crs = pyproj.CRS.from_wkt(read_info(src).crs_wkt)
+    assert crs.is_compound
+    assert [c.to_epsg() for c in crs.sub_crs_list] == [32610, 5703]
+
+
+def test_user_defined_geotiff_keys_are_one_clear_error(tmp_path):
+    src = _keyed_tile(tmp_path / "custom.las", (3072, 32767), version="1.2", point_format=1)
+    with pytest.raises(InputError, match=r"GeoTIFF CRS keys of .*custom\.las.*EPSG"):
+        read_info(src)
+
+
+def test_pyproj_is_a_dependency():
+    """Converting GeoTIFF keys must not depend on an optional install."""
+    requirements = [r.split(";")[0] for r in importlib.metadata.requires("silva")]
+    assert any(r.replace(" ", "").startswith("pyproj") for r in requirements)
+
+
+def test_tiles_of_different_crss_are_refused_naming_both():
+    utm10, utm11 = (pyproj.CRS.from_epsg(c).to_wkt() for c in (32610, 32611))
+    tiles = [("a.laz", utm10), ("b.laz", None), ("c.laz", utm11)]
+    with pytest.raises(InputError) as err:
+        check_same_crs(tiles, "data.train")
+    message = str(err.value)
+    assert "a.laz (EPSG:32610) and c.laz (EPSG:32611) of data.train" in message
+    assert "\n" not in message
+
+
+def test_the_same_crs_in_two_wkt_versions_is_one_crs():
+    crs = pyproj.CRS.from_epsg(32610)
+    tiles = [("a.laz", crs.to_wkt("WKT1_GDAL")), ("b.laz", crs.to_wkt("WKT2_2019")),
+             ("c.laz", None)]
+    assert check_same_crs(tiles, "data.test") == tiles[0][1]
+    assert check_same_crs([("a.laz", None)], "data.test") is None
+
+
+@pytest.mark.data
+def test_topography_tile_gets_a_wkt_crs(shared_data, tmp_path):
+    src = shared_data / "als" / "Topography.laz"
+    if not src.is_file():
+        pytest.skip(f"{src} not found")
+    dst = export_with_extra_dims(src, tmp_path / "topo.laz", DIMS, _confidence)
+    header, records = _crs_records(dst)
+    assert str(header.version) == "1.4" and header.global_encoding.wkt
+    assert not [v for v in records if isinstance(v, GeoKeyDirectoryVlr)]
+    assert header.parse_crs().to_epsg() == 2949  # NAD83(CSRS) / MTM zone 7, as its keys say
+    assert header.point_count == read_info(src).n_points
