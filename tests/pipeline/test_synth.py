@@ -11,11 +11,11 @@ from pipeline.synth import (
     DEFAULT_SIZE,
     SYNTH_CLASSES,
     Stem,
-    _occluded,
     synthetic_plot,
     synthetic_scene,
     write_synthetic_plot,
 )
+from pipeline.synth.scanner import occluded
 
 TERRAIN, TREE = SYNTH_CLASSES["terrain"], SYNTH_CLASSES["tree"]
 DEAD_WOOD, MISC = SYNTH_CLASSES["dead_wood"], SYNTH_CLASSES["misc"]
@@ -134,7 +134,7 @@ def test_stem_hides_what_is_behind_it():
         [3.0, 0.0, 0.0],  # between scanner and stem
         [-10.0, 0.0, 0.0],  # the other way
     ])
-    assert _occluded(scanner, points, stem).tolist() == [
+    assert occluded(scanner, points, stem).tolist() == [
         True, False, False, True, False, False, False]
 
 

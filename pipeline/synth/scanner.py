@@ -1,0 +1,125 @@
+"""The simulated terrestrial scanner: distance thinning, occlusion by stems, range noise."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipeline.synth.layout import Layout, Stem
+from pipeline.synth.params import (
+    BATCH,
+    FULL_DENSITY_RANGE,
+    NEAREST_SCANNERS,
+    OCCLUSION_TOLERANCE,
+    RANGE_NOISE,
+)
+
+
+def capture(rng, points: np.ndarray, scanners: np.ndarray, tree: cKDTree):
+    """Which samples the scanners record, and by which scanner.
+
+    Each of the nearest scanners records a sample with probability min(1, (R0/r)^2); the
+    probabilities add up (merged scans) and are capped at 1. Returns keep (n,) bool and the
+    recording scanner (n,) int64 (meaningful where keep).
+    """
+    k = min(NEAREST_SCANNERS, len(scanners))
+    r, idx = tree.query(points, k=k)
+    r, idx = r.reshape(len(points), k), idx.reshape(len(points), k)
+    p = np.minimum(1.0, (FULL_DENSITY_RANGE / np.maximum(r, 1e-6)) ** 2)
+    cum = np.cumsum(p, axis=1)
+    total = cum[:, -1]
+    v = rng.random(len(points)) * np.maximum(1.0, total)
+    keep = v < total
+    which = np.argmax(v[:, None] < cum, axis=1)
+    return keep, idx[np.arange(len(points)), which]
+
+
+def occluded(scanner: np.ndarray, points: np.ndarray, stem: Stem) -> np.ndarray:
+    """Whether ``stem`` hides each of ``points`` (n, 3) from ``scanner`` (3,): (n,) bool.
+
+    The ray scanner -> point is tested against the stem as a vertical cylinder in plan view,
+    at the axis position and radius of the height where the ray meets it (three passes).
+    A stem hides its own far side; samples within OCCLUSION_TOLERANCE of where the ray enters
+    the stem are its near side and stay visible.
+    """
+    d = points[:, :2] - scanner[:2]
+    dz = points[:, 2] - scanner[2]
+    a = np.maximum(np.sum(d * d, axis=1), 1e-12)
+    z = np.full(len(points), np.clip(scanner[2] - stem.base[2], 0.0, stem.height))
+    hit = np.zeros(len(points), dtype=bool)
+    t_in = np.zeros(len(points))
+    for _ in range(3):
+        centre = stem.axis(z)[:, :2]
+        radius = stem.radius(z)
+        f = scanner[:2] - centre
+        b = np.sum(f * d, axis=1)
+        c = np.sum(f * f, axis=1) - radius**2
+        disc = b * b - a * c
+        hit = (disc > 0) & (radius > 0)
+        t_in = np.where(hit, (-b - np.sqrt(np.maximum(disc, 0.0))) / a, 0.0)
+        z_ray = scanner[2] + t_in * dz - stem.base[2]
+        z = np.where(hit, np.clip(z_ray, 0.0, stem.height), z)
+    z_ray = scanner[2] + t_in * dz - stem.base[2]
+    in_height = (z_ray >= 0.0) & (z_ray <= stem.height)
+    return hit & in_height & (t_in > 0) & (t_in < 1.0 - OCCLUSION_TOLERANCE / np.sqrt(a))
+
+
+def _wrapped(lo: float, hi: float) -> list[tuple[float, float]]:
+    """The azimuth interval [lo, hi] as one or two intervals within [-pi, pi]."""
+    if lo < -np.pi:
+        return [(lo + 2 * np.pi, np.pi), (-np.pi, hi)]
+    if hi > np.pi:
+        return [(lo, np.pi), (-np.pi, hi - 2 * np.pi)]
+    return [(lo, hi)]
+
+
+def scan(rng, parts, layout: Layout):
+    """Scan every part: (xyz (N, 3) local, labels (N,) uint8, recording scanner (N,) int)."""
+    scanners = layout.scanners
+    kd = cKDTree(scanners)
+    kept, labels, owner = [], [], []
+    for points, code in parts:
+        for start in range(0, len(points), BATCH):
+            batch = points[start : start + BATCH]
+            keep, which = capture(rng, batch, scanners, kd)
+            kept.append(batch[keep])
+            owner.append(which[keep])
+            labels.append(np.full(int(keep.sum()), code, dtype=np.uint8))
+    xyz = np.concatenate(kept)
+    labels = np.concatenate(labels)
+    owner = np.concatenate(owner)
+
+    # Occlusion: each scanner against the stems, testing only the samples in the sector of
+    # azimuths a stem covers as seen from the scanner (found by bisection on sorted azimuths).
+    visible = np.ones(len(xyz), dtype=bool)
+    for k, scanner in enumerate(scanners):
+        sel = np.flatnonzero(owner == k)
+        rel = xyz[sel, :2] - scanner[:2]
+        azimuth = np.arctan2(rel[:, 1], rel[:, 0])
+        order = np.argsort(azimuth)
+        sel, azimuth = sel[order], azimuth[order]
+        for stem in layout.occluders:
+            offset = stem.base[:2] - scanner[:2]
+            dist = float(np.hypot(*offset))
+            bound = float(stem.knots_r.max() + np.hypot(*stem.lean) * stem.height) + 0.05
+            if dist <= bound:
+                continue  # cannot happen with the placement rules; never hide everything
+            half = math.asin(bound / dist)
+            centre = math.atan2(offset[1], offset[0])
+            for lo, hi in _wrapped(centre - half, centre + half):
+                i0, i1 = np.searchsorted(azimuth, [lo, hi])
+                if i1 > i0:
+                    idx = sel[i0:i1]
+                    visible[idx] &= ~occluded(scanner, xyz[idx], stem)
+    xyz, labels, owner = xyz[visible], labels[visible], owner[visible]
+
+    # Range noise along the beam, growing with the range.
+    beam = xyz - scanners[owner]
+    rng_m = np.linalg.norm(beam, axis=1)
+    sigma = RANGE_NOISE[0] + RANGE_NOISE[1] * rng_m
+    xyz = xyz + beam / np.maximum(rng_m, 1e-9)[:, None] * (rng.normal(size=len(xyz)) * sigma)[
+        :, None]
+    inside = np.all((xyz[:, :2] >= 0.0) & (xyz[:, :2] < layout.size), axis=1)
+    return xyz[inside], labels[inside], owner[inside]

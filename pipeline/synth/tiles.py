@@ -1,0 +1,70 @@
+"""A synthetic plot written as LAZ tiles of a regular grid."""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import ConfigError
+from pipeline.synth.params import CRS_WKT, DEFAULT_ORIGIN, DEFAULT_SIZE, DEFAULT_TILE_SIZE
+from pipeline.synth.scene import check_plot_args, check_positive, synthetic_plot
+
+log = logging.getLogger(__name__)
+
+
+def write_synthetic_plot(
+    out_dir, seed: int = 0, size: float = DEFAULT_SIZE, tile_size: float = DEFAULT_TILE_SIZE
+) -> list[Path]:
+    """Write :func:`synthetic_plot` as LAZ tiles of a regular ``tile_size`` grid in ``out_dir``.
+
+    Tiles are LAS 1.4, point format 6, scale 1 mm, with the ETRS89 / UTM 32N WKT (:data:`CRS_WKT`)
+    and the class code in ``classification``. Tile (ix, iy) holds the points of the half-open
+    cell [ox + ix t, ox + (ix+1) t) x [oy + iy t, oy + (iy+1) t), so every point is in exactly
+    one tile; empty tiles are not written. Returns the paths ``plot_s{seed}_{ix}_{iy}.laz``
+    sorted by (ix, iy).
+    """
+    from pipeline.io import write_las
+
+    seed, size, _ = check_plot_args(seed, size, DEFAULT_ORIGIN)
+    tile_size = check_positive("tile_size", tile_size)
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"output directory {out_dir} is a file; choose a directory path")
+    xyz, labels = synthetic_plot(seed, size)
+    origin = np.asarray(DEFAULT_ORIGIN)
+    n_tiles = max(1, math.ceil(size / tile_size))
+    cell = np.floor((xyz[:, :2] - origin[:2]) / tile_size).astype(np.int64)
+    cell = np.clip(cell, 0, n_tiles - 1)
+    key = cell[:, 0] * n_tiles + cell[:, 1]
+    order = np.argsort(key, kind="stable")  # keeps each tile's points in plot order
+    keys, starts = np.unique(key[order], return_index=True)
+    bounds = np.append(starts, len(order))
+    names = [f"plot_s{seed}_{k // n_tiles}_{k % n_tiles}.laz" for k in keys]
+
+    stale = sorted(
+        p.name for p in out_dir.glob(f"plot_s{seed}_*.laz") if p.name not in set(names)
+    )
+    if stale:
+        raise ConfigError(
+            f"{out_dir} already holds tiles of seed {seed} from another tiling ({stale[0]}, ...); "
+            "delete them or choose an empty directory"
+        )
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i, (k, name) in enumerate(zip(keys, names)):
+        sel = order[bounds[i] : bounds[i + 1]]
+        paths.append(
+            write_las(
+                out_dir / name,
+                xyz[sel],
+                fields={"classification": labels[sel]},
+                crs_wkt=CRS_WKT,
+                scale=(0.001, 0.001, 0.001),
+                point_format=6,
+            )
+        )
+    log.info("wrote %d synthetic tiles (%d points) to %s", len(paths), len(xyz), out_dir)
+    return [Path(p) for p in paths]
