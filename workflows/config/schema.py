@@ -10,6 +10,7 @@ from pydantic import Field, field_validator, model_validator
 
 from pipeline.cascade import CascadeParams, ForestParams
 from pipeline.features.sets import FEATURE_SETS, FeatureParams
+from pipeline.io.base import LAS_NAME_BYTES
 from workflows.config.fields import (
     ChunkSize,
     Integer,
@@ -24,6 +25,9 @@ from workflows.config.fields import (
 from workflows.config.messages import fail, field_error, show
 
 _FEATURES, _CASCADE, _FOREST = FeatureParams(), CascadeParams(), ForestParams()
+#: Export writes one extra dimension ``Probability_<class>`` per class; LAS names hold 32 bytes.
+PROBABILITY_PREFIX = "Probability_"
+MAX_CLASS_NAME_BYTES = LAS_NAME_BYTES - len(PROBABILITY_PREFIX)
 
 
 # -- data ------------------------------------------------------------------------------------
@@ -89,6 +93,11 @@ class DataConfig(Section):
             if not isinstance(name, str) or not name:
                 raise fail(f"data.classes: class names must be non-empty text, got "
                            f"{show(name)}; quote it ('{name}')")
+            if len(name.encode()) > MAX_CLASS_NAME_BYTES:
+                raise fail(f"data.classes: class name '{name}' is {len(name.encode())} bytes; "
+                           f"its output dimension {PROBABILITY_PREFIX}{name} must fit the "
+                           f"{LAS_NAME_BYTES}-byte LAS extra-dimension name, so use at most "
+                           f"{MAX_CLASS_NAME_BYTES} bytes")
             # "tree: 5" is a class with one code
             result[name] = [codes] if isinstance(codes, int) and not isinstance(codes, bool) \
                 else codes

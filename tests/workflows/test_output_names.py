@@ -1,0 +1,51 @@
+"""Output dimension names are checked when the config is read, not at export after training."""
+
+import pytest
+from click.testing import CliRunner
+
+from pipeline.errors import ConfigError
+from pipeline.io import ExtraDim
+from tests.workflows.conftest import write_config
+from workflows.cli import main
+from workflows.config import validate_config
+from workflows.config.schema import MAX_CLASS_NAME_BYTES, PROBABILITY_PREFIX
+from workflows.steps.export import probability_dim
+
+LONGEST = "x" * MAX_CLASS_NAME_BYTES
+
+
+def _classes(*names):
+    return {"data": {"classes": {name: [i + 1] for i, name in enumerate(names)}}}
+
+
+def test_the_limit_is_what_las_allows():
+    assert probability_dim("tree") == PROBABILITY_PREFIX + "tree"
+    ExtraDim(probability_dim(LONGEST), "float32")  # the longest accepted name fits LAS
+    with pytest.raises(ValueError):
+        ExtraDim(probability_dim(LONGEST + "x"), "float32")
+
+
+def test_longest_class_name_is_accepted():
+    cfg = validate_config(_classes(LONGEST, "tree"))
+    assert cfg.data.class_names == [LONGEST, "tree"]
+
+
+@pytest.mark.parametrize("name", ["standing_dead_wood_on_slope", "é" * 11])
+def test_too_long_class_name_is_a_config_error(name):
+    with pytest.raises(ConfigError) as err:
+        validate_config(_classes("tree", name))
+    message = str(err.value)
+    assert "\n" not in message
+    assert f"data.classes: class name '{name}'" in message
+    assert "32-byte" in message and f"at most {MAX_CLASS_NAME_BYTES} bytes" in message
+
+
+def test_run_refuses_a_long_class_name_before_any_work(tmp_path, survey):
+    classes = {"terrain": [2], "tree": [5], "coarse_woody_debris_pieces": [64], "misc": [1]}
+    config = write_config(tmp_path / "c.yaml", survey, data={"classes": classes})
+    out = tmp_path / "out"
+    result = CliRunner().invoke(main, ["run", str(config), "--out", str(out), "--quiet"])
+    assert result.exit_code == 1
+    lines = [line for line in result.output.splitlines() if line.startswith("silva: error:")]
+    assert len(lines) == 1 and "coarse_woody_debris_pieces" in lines[0], result.output
+    assert not (out / "store.zarr").exists()
