@@ -84,7 +84,7 @@ def test_report_and_png_files_are_written(full_report):
         pixels = matplotlib.image.imread(png)
         assert pixels.ndim == 3 and pixels.shape[0] > 300 and pixels.shape[1] > 300
         assert pixels[..., :3].std() > 0.05  # a picture, not a blank canvas
-    assert not list(out.glob(".*partial"))
+    assert not list(out.rglob(".*"))  # no temporary file is left beside the outputs
 
 
 def test_html_embeds_every_plot_as_its_png(full_report):

@@ -1,0 +1,110 @@
+"""Writing a run's report: ``report.html`` and the same plots as PNG files in ``plots/``."""
+
+from pathlib import Path
+
+from pipeline.atomic import atomic_path, atomic_write_bytes
+from pipeline.errors import InputError
+from workflows.report.figures import (
+    confusion_figure,
+    f1_per_stage_figure,
+    png_bytes,
+    precision_recall_figure,
+    topdown_figure,
+)
+from workflows.report.html import render_page
+
+REQUIRED_KEYS = ("classes", "per_class", "macro", "overall_accuracy", "confusion",
+                 "n_test_points")
+
+
+def write_report(
+    out_dir,
+    metrics: dict,
+    *,
+    pr_data: dict | None = None,
+    topdown: dict | None = None,
+    title: str = "Silva report",
+    run_info: dict | None = None,
+    config_text: str | None = None,
+) -> Path:
+    """Write ``out_dir/report.html`` and its plots as ``out_dir/plots/*.png``.
+
+    Parameters
+    ----------
+    out_dir : path
+        Created if needed.
+    metrics : dict
+        A metrics.json dict (see :func:`pipeline.metrics.scores_from_confusion`) for the
+        final stage, plus ``"stages"``: one such dict per cascade stage, in order. Without
+        ``"stages"`` the metrics are shown as a single stage.
+    pr_data : dict, optional
+        ``{"y_true": int (n,), "proba": float (n, C), "class_names": [C], "exclude": [...]}``,
+        final-stage probabilities of (a sample of) the test points, for the precision-recall
+        curves. Without it the report says the plot is missing.
+    topdown : dict, optional
+        ``{"x": float (m,), "y": float (m,), "label": int (m,) class indices,
+        "class_names": [C]}``, predicted classes of (a sample of) the points in map
+        coordinates, for the top-down map.
+    title : str
+    run_info : dict, optional
+        Shown as a two-column table (command, date, software version, durations, ...).
+    config_text : str, optional
+        The resolved configuration, shown verbatim.
+
+    Returns
+    -------
+    Path of report.html. It is written atomically: a partial report never exists under that
+    name. PNGs of plots that could not be drawn are removed from ``plots/``, so the folder
+    always matches the report.
+    """
+    metrics = _check_metrics(metrics)
+    stages = metrics.get("stages") or [metrics]
+    out_dir = Path(out_dir)
+    plot_dir = out_dir / "plots"
+    plot_dir.mkdir(parents=True, exist_ok=True)
+
+    figures = {
+        "confusion": (confusion_figure(metrics), None),
+        "precision_recall": _optional_figure(
+            pr_data, lambda: precision_recall_figure(pr_data, metrics),
+            "No precision-recall data was passed to the report, so this plot is omitted.",
+        ),
+        "f1_per_stage": (f1_per_stage_figure(stages), None),
+        "topdown": _optional_figure(
+            topdown, lambda: topdown_figure(topdown),
+            "No point positions were passed to the report, so the map is omitted.",
+        ),
+    }
+    images = {}
+    for name, (figure, note) in figures.items():
+        path = plot_dir / f"{name}.png"
+        if figure is None:
+            path.unlink(missing_ok=True)
+            images[name] = (None, note)
+            continue
+        png = png_bytes(figure)
+        atomic_write_bytes(path, png)
+        images[name] = (png, None)
+
+    page = render_page(metrics, stages, images, title, run_info, config_text)
+    target = out_dir / "report.html"
+    with atomic_path(target) as tmp:
+        tmp.write_text(page, encoding="utf-8")
+    return target
+
+
+def _check_metrics(metrics: dict) -> dict:
+    if not isinstance(metrics, dict):
+        raise InputError(f"metrics must be a metrics.json dict, got {type(metrics).__name__}")
+    for where, m in [("metrics", metrics)] + [
+        (f"metrics['stages'][{i}]", s) for i, s in enumerate(metrics.get("stages") or [])
+    ]:
+        missing = [k for k in REQUIRED_KEYS if k not in m]
+        if missing:
+            raise InputError(f"{where} lacks {missing}: pass the dict of "
+                             "pipeline.metrics.scores_from_confusion")
+    return metrics
+
+
+def _optional_figure(data, draw, note):
+    return (None, note) if data is None else (draw(), None)
