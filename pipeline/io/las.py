@@ -33,6 +33,7 @@ from pipeline.io.base import (
     resolve_fields,
 )
 from pipeline.io.crs import add_wkt, crs_wkt, las14_crs
+from pipeline.io.formats import TileFormat, register_format
 
 logger = logging.getLogger(__name__)
 
@@ -506,3 +507,7 @@ def export_las(
         if evlrs:
             writer.write_evlrs(VLRList(evlrs))
     return dst
+
+
+register_format(TileFormat("las", (".las",), read_las_info, iter_las_points, export_las))
+register_format(TileFormat("laz", (".laz",), read_las_info, iter_las_points, export_las))

@@ -2,17 +2,20 @@
 
 A file is ``#`` comment lines, then one point per line: ``x y z label confidence``, where
 ``label`` is a raw code of the 44-label hierarchy (1001 undet ... 1501 vehicle). The benchmark
-keeps 5 classes (:data:`OAKLAND_CLASSES`) and drops every other code.
+keeps 5 classes (:data:`OAKLAND_CLASSES`) and drops every other code. :func:`export_oakland`
+writes a file as LAS 1.4 with the label and confidence kept as dimensions.
 """
 
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+import laspy
 import numpy as np
 
 from pipeline.errors import ConfigError, InputError
 from pipeline.io.base import (
+    ExtraDim,
     PointBatch,
     TileInfo,
     check_batch_size,
@@ -24,6 +27,16 @@ from pipeline.io.base import (
     nonfinite_error,
     normalise_fields,
     resolve_fields,
+)
+from pipeline.io.formats import TileFormat, register_format
+from pipeline.io.las import (
+    atomic_writer,
+    build_header,
+    check_computed,
+    check_extra_dims,
+    check_las_destination,
+    default_offset,
+    make_record,
 )
 
 #: The benchmark's 5 classes as raw codes, in class-index order (Munoz et al., CVPR 2009).
@@ -233,3 +246,57 @@ def map_labels(raw_codes, classes: Mapping[str, list[int]]) -> np.ndarray:
     hit = codes[pos] == flat
     out[hit] = index[pos[hit]]
     return out
+
+
+def export_oakland(
+    src,
+    dst,
+    extra_dims: list[ExtraDim],
+    compute: Callable[[PointBatch], dict],
+    *,
+    batch_size: int = 1_000_000,
+    set_classification: bool = False,
+) -> Path:
+    """Write an Oakland file to dst as LAS 1.4 (point format 6) with extra dims added.
+
+    See :func:`pipeline.io.tiles.export_with_extra_dims`; the batch given to compute holds
+    ``label`` and ``confidence``.
+    """
+    dst = check_las_destination(dst)
+    batch_size = check_batch_size(batch_size)
+    summary = scan_oakland(src, batch_size)
+    if summary.n_points == 0:
+        raise empty_tile(src)
+    dims = check_extra_dims(extra_dims, laspy.PointFormat(6), src)
+    taken = [d.name for d in dims if d.name in ("label", "confidence")]
+    if taken:
+        raise InputError(
+            f"extra dimensions {taken} clash with the columns of Oakland file {src}; rename them"
+        )
+    label_fits = 0 <= summary.label_min and summary.label_max <= 255
+    own = []
+    if not label_fits:
+        wide = summary.label_min < 0 or summary.label_max > np.iinfo(np.uint16).max
+        own.append(ExtraDim("label", "int32" if wide else "uint16", "Oakland raw label code"))
+    own.append(ExtraDim("confidence", "float32", "Oakland label confidence"))
+    header = build_header(
+        point_format=6, scale=(0.001, 0.001, 0.001),
+        offset=default_offset(np.array([summary.mins])), extra_dims=own + dims,
+    )
+    with atomic_writer(dst, header) as writer:
+        for batch in iter_oakland(src, batch_size=batch_size, fields=("label", "confidence")):
+            label = batch.fields["label"]
+            values = {
+                "classification": label if label_fits else np.zeros(len(batch), np.uint8),
+                "confidence": batch.fields["confidence"],
+            }
+            if not label_fits:
+                values["label"] = label
+            values.update(check_computed(compute(batch), dims, set_classification, src))
+            writer.write_points(make_record(header, batch.xyz, values, dst))
+    return dst
+
+
+register_format(TileFormat(
+    "oakland", OAKLAND_SUFFIXES, read_oakland_info, iter_oakland, export_oakland,
+))

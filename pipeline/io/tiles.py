@@ -1,69 +1,45 @@
 """One reader interface for every tile format, chosen by the file suffix.
 
+Each format module registers a :class:`~pipeline.io.formats.TileFormat`; the functions here
+dispatch through that registry:
+
 - ``.las``, ``.laz``: laspy + lazrs (:mod:`pipeline.io.las`);
 - ``.xyz_label_conf``, ``.txt``: Oakland text (:mod:`pipeline.io.oakland`);
-- anything else: PDAL, only when its Python bindings (``import pdal``) are installed. Silva
-  never requires PDAL; without it such a file is refused with a message saying so.
+- anything else: PDAL, only when its Python bindings (``import pdal``) are installed
+  (:mod:`pipeline.io.pdal`). Silva never requires PDAL; without it such a file is refused
+  with a message saying so.
 """
 
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-import laspy
 import numpy as np
 
 from pipeline.errors import InputError
-from pipeline.io.base import (
-    ExtraDim,
-    PointBatch,
-    TileInfo,
-    check_batch_size,
-    check_file,
-    check_finite_stream,
-    concat_batches,
-    empty_tile,
-    normalise_fields,
-    resolve_fields,
-)
-from pipeline.io.las import (
-    atomic_writer,
-    build_header,
-    check_computed,
-    check_extra_dims,
-    check_las_destination,
-    default_offset,
-    export_las,
-    iter_las_points,
-    make_record,
-    read_las_info,
-)
-from pipeline.io.oakland import OAKLAND_SUFFIXES, iter_oakland, read_oakland_info, scan_oakland
+from pipeline.io import las, oakland, pdal  # noqa: F401  (importing them registers the formats)
+from pipeline.io.base import ExtraDim, PointBatch, TileInfo, check_file, concat_batches
+from pipeline.io.formats import TileFormat, find_format, suffix_formats
+from pipeline.io.oakland import OAKLAND_SUFFIXES
 
-SUFFIX_FORMATS = {".las": "las", ".laz": "laz", **{s: "oakland" for s in OAKLAND_SUFFIXES}}
+SUFFIX_FORMATS = suffix_formats()
 _WHOLE_FILE = 1 << 62
 
 
-def _pdal():
-    """The pdal module, or None when PDAL's Python bindings are not installed."""
-    try:
-        import pdal
-    except ImportError:
-        return None
-    return pdal
+def _format_of(path) -> TileFormat:
+    fmt = find_format(path)
+    if fmt is None:
+        suffix = Path(path).suffix.lower()
+        raise InputError(
+            f"cannot read {path}: '{suffix or 'no suffix'}' is not a supported format; Silva "
+            f"reads {', '.join(SUFFIX_FORMATS)} (Oakland text: {', '.join(OAKLAND_SUFFIXES)}); "
+            "installing PDAL's Python bindings (package 'pdal') adds every format PDAL reads"
+        )
+    return fmt
 
 
 def tile_format(path) -> str:
     """'las', 'laz', 'oakland' or 'pdal' from the suffix; InputError if nothing can read it."""
-    suffix = Path(path).suffix.lower()
-    if suffix in SUFFIX_FORMATS:
-        return SUFFIX_FORMATS[suffix]
-    if _pdal() is not None:
-        return "pdal"
-    raise InputError(
-        f"cannot read {path}: '{suffix or 'no suffix'}' is not a supported format; Silva reads "
-        f"{', '.join(SUFFIX_FORMATS)} (Oakland text: {', '.join(OAKLAND_SUFFIXES)}); "
-        "installing PDAL's Python bindings (package 'pdal') adds every format PDAL reads"
-    )
+    return _format_of(path).name
 
 
 def read_info(path) -> TileInfo:
@@ -73,12 +49,7 @@ def read_info(path) -> TileInfo:
     once. An empty tile gives ``n_points == 0`` (reading its points raises InputError).
     """
     path = check_file(path)
-    fmt = tile_format(path)
-    if fmt in ("las", "laz"):
-        return read_las_info(path)
-    if fmt == "oakland":
-        return read_oakland_info(path)
-    return _read_pdal_info(path, _pdal())
+    return _format_of(path).read_info(path)
 
 
 def iter_points(path, batch_size=1_000_000, fields=("classification",)) -> Iterator[PointBatch]:
@@ -91,12 +62,7 @@ def iter_points(path, batch_size=1_000_000, fields=("classification",)) -> Itera
     NaN or infinite coordinates, or a field the tile does not have.
     """
     path = check_file(path)
-    fmt = tile_format(path)
-    if fmt in ("las", "laz"):
-        return iter_las_points(path, batch_size=batch_size, fields=fields)
-    if fmt == "oakland":
-        return iter_oakland(path, batch_size=batch_size, fields=fields)
-    return _iter_pdal_points(path, batch_size, fields, _pdal())
+    return _format_of(path).iter_points(path, batch_size=batch_size, fields=fields)
 
 
 def read_points(path, fields=("classification",)) -> PointBatch:
@@ -136,124 +102,14 @@ def export_with_extra_dims(
     src = check_file(src)
     if not callable(compute):
         raise InputError(f"compute must be a function batch -> dict, got {type(compute).__name__}")
-    fmt = tile_format(src)
-    if fmt in ("las", "laz"):
-        return export_las(
+    fmt = _format_of(src)
+    if fmt.export is not None:
+        return fmt.export(
             src, dst, list(extra_dims), compute, batch_size=batch_size,
             set_classification=set_classification,
         )
-    if fmt == "oakland":
-        return _export_oakland(src, dst, list(extra_dims), compute, batch_size, set_classification)
     raise InputError(
         f"cannot export {src}: keeping every original dimension is supported for LAS/LAZ and "
         f"Oakland text sources; convert it to LAS first (e.g. pdal translate {src} "
         f"{Path(src).with_suffix('.las').name})"
     )
-
-
-def _export_oakland(src, dst, extra_dims, compute, batch_size, set_classification) -> Path:
-    dst = check_las_destination(dst)
-    batch_size = check_batch_size(batch_size)
-    summary = scan_oakland(src, batch_size)
-    if summary.n_points == 0:
-        raise empty_tile(src)
-    dims = check_extra_dims(extra_dims, laspy.PointFormat(6), src)
-    taken = [d.name for d in dims if d.name in ("label", "confidence")]
-    if taken:
-        raise InputError(
-            f"extra dimensions {taken} clash with the columns of Oakland file {src}; rename them"
-        )
-    label_fits = 0 <= summary.label_min and summary.label_max <= 255
-    own = []
-    if not label_fits:
-        wide = summary.label_min < 0 or summary.label_max > np.iinfo(np.uint16).max
-        own.append(ExtraDim("label", "int32" if wide else "uint16", "Oakland raw label code"))
-    own.append(ExtraDim("confidence", "float32", "Oakland label confidence"))
-    header = build_header(
-        point_format=6, scale=(0.001, 0.001, 0.001),
-        offset=default_offset(np.array([summary.mins])), extra_dims=own + dims,
-    )
-    with atomic_writer(dst, header) as writer:
-        for batch in iter_oakland(src, batch_size=batch_size, fields=("label", "confidence")):
-            label = batch.fields["label"]
-            values = {
-                "classification": label if label_fits else np.zeros(len(batch), np.uint8),
-                "confidence": batch.fields["confidence"],
-            }
-            if not label_fits:
-                values["label"] = label
-            values.update(check_computed(compute(batch), dims, set_classification, src))
-            writer.write_points(make_record(header, batch.xyz, values, dst))
-    return dst
-
-
-# ----------------------------------------------------------------------------- PDAL (optional)
-
-
-def _pdal_failure(path, exc: BaseException) -> InputError:
-    reason = " ".join(str(exc).split()) or type(exc).__name__
-    return InputError(f"cannot read {path}: PDAL says: {reason}; check the file and its format")
-
-
-def _read_pdal_info(path: Path, pdal) -> TileInfo:
-    """TileInfo from PDAL's quick header preview (``Pipeline.quickinfo``)."""
-    try:
-        quick = pdal.Reader(str(path)).pipeline().quickinfo
-    except Exception as exc:  # PDAL raises RuntimeError for most failures
-        raise _pdal_failure(path, exc) from exc
-    stage = next(iter(quick.values()), {}) if quick else {}
-    bounds = stage.get("bounds") or {}
-    srs = stage.get("srs") or {}
-    dims = tuple(d.strip() for d in str(stage.get("dimensions", "")).split(",") if d.strip())
-    return TileInfo(
-        path=path,
-        format="pdal",
-        n_points=int(stage.get("num_points", 0)),
-        mins=tuple(float(bounds.get(k, np.nan)) for k in ("minx", "miny", "minz")),
-        maxs=tuple(float(bounds.get(k, np.nan)) for k in ("maxx", "maxy", "maxz")),
-        scale=None,
-        offset=None,
-        crs_wkt=srs.get("wkt") or None,
-        point_format=None,
-        version=None,
-        dimensions=dims,
-    )
-
-
-def _pdal_arrays(path: Path, batch_size: int, pdal) -> Iterator[np.ndarray]:
-    """Structured arrays of at most batch_size points; streamed when the reader can stream."""
-    try:
-        pipeline = pdal.Reader(str(path)).pipeline()
-        if getattr(pipeline, "streamable", False):
-            yield from pipeline.iterator(chunk_size=batch_size)
-            return
-        pipeline.execute()
-        arrays = pipeline.arrays
-    except Exception as exc:
-        raise _pdal_failure(path, exc) from exc
-    for array in arrays:
-        for begin in range(0, len(array), batch_size):
-            yield array[begin:begin + batch_size]
-
-
-def _iter_pdal_points(path: Path, batch_size, fields, pdal) -> Iterator[PointBatch]:
-    names = normalise_fields(fields)
-    batch_size = check_batch_size(batch_size)
-    info = _read_pdal_info(path, pdal)
-    if info.dimensions:
-        resolve_fields(names, info.dimensions, path)
-
-    def batches() -> Iterator[PointBatch]:
-        start = 0
-        for array in _pdal_arrays(path, batch_size, pdal):
-            if len(array) == 0:
-                continue
-            resolved = resolve_fields(names, array.dtype.names, path)
-            xyz = np.stack([array["X"], array["Y"], array["Z"]], axis=1).astype(np.float64)
-            values = {name: np.array(array[dim]) for name, dim in resolved.items()}
-            yield PointBatch(start=start, xyz=xyz, fields=values)
-            start += len(array)
-        if start == 0:
-            raise empty_tile(path)
-
-    return check_finite_stream(path, batches())
