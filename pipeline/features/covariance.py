@@ -1,13 +1,13 @@
 """Eigenvalue (covariance) features of neighbourhoods, at one or several radii.
 
-The covariance of a neighbourhood is taken about the neighbours' mean, with the neighbours
-relative to the query point (so UTM magnitudes cost no precision) and two passes (mean, then
-centred products), divided by n. Its eigenvalues l1 >= l2 >= l3 >= 0 come from cyclic Jacobi
-rotations (deterministic, accurate to rounding of l1). With e_i = l_i / (l1 + l2 + l3), the
-columns (:data:`COVARIANCE_NAMES`) are, as in Weinmann et al. (2015), jakteristics and 3DMASC:
+The covariance (divided by n) is taken about the neighbours' mean in two passes, with the
+neighbours relative to the query point: UTM magnitudes cost no precision. Its eigenvalues
+l1 >= l2 >= l3 >= 0 come from cyclic Jacobi rotations (deterministic, accurate to the rounding
+of l1). With e_i = l_i / (l1 + l2 + l3), the columns (:data:`COVARIANCE_NAMES`) are, as in
+Weinmann et al. (2015), jakteristics and 3DMASC:
 
-- linearity (l1 - l2) / l1, planarity (l2 - l3) / l1, scattering l3 / l1,
-  anisotropy (l1 - l3) / l1;
+- linearity (l1 - l2) / l1, planarity (l2 - l3) / l1, scattering l3 / l1, anisotropy
+  (l1 - l3) / l1;
 - omnivariance (e1 e2 e3)^(1/3) and eigenentropy -sum e_i ln e_i (0 ln 0 = 0), both of the
   normalised eigenvalues so they do not depend on scale (jakteristics uses the raw ones);
 - change_of_curvature (surface variation) e3;
@@ -16,9 +16,8 @@ columns (:data:`COVARIANCE_NAMES`) are, as in Weinmann et al. (2015), jakteristi
 - sum_of_eigenvalues l1 + l2 + l3, the mean squared distance to the mean, in m^2 (not
   normalised: at a fixed radius it tells a thin patch from a thick one).
 
-A neighbourhood of fewer than 3 points, or whose points all coincide, gives a row of NaN. On a
-line the normal (and verticality, normal_z) is any unit vector across it: deterministic, but
-not informative.
+Fewer than 3 points, or coincident points, give a row of NaN. On a line the normal (and so
+verticality, normal_z) is some unit vector across it: deterministic, not informative.
 
 :func:`multiscale_covariance` repeats this at several radii on a voxel-subsampled cloud
 (:mod:`pipeline.features.voxel`): the neighbourhood at radius r is every representative within
@@ -34,32 +33,16 @@ import numba
 import numpy as np
 
 from pipeline.errors import InputError
-from pipeline.features.neighbors import (
-    _check_cloud,
-    _check_ids,
-    _check_query,
-    _column_run,
-    _Grid,
-    _query_cell,
-    _select,
-    squared_distance,
-)
+from pipeline.features.neighbors import (_Grid, _cell_keys, _check_cloud, _check_ids,
+                                        _check_query, _column_run, _query_cell, _select,
+                                        squared_distance)  # fmt: skip
 from pipeline.features.voxel import halo, voxel_representatives
 
 #: Column order of :func:`covariance_features` (see the module docstring).
 COVARIANCE_NAMES: tuple[str, ...] = (
-    "linearity",
-    "planarity",
-    "scattering",
-    "omnivariance",
-    "anisotropy",
-    "eigenentropy",
-    "change_of_curvature",
-    "verticality",
-    "normal_z",
-    "principal_z",
-    "sum_of_eigenvalues",
-)
+    "linearity", "planarity", "scattering", "omnivariance", "anisotropy", "eigenentropy",
+    "change_of_curvature", "verticality", "normal_z", "principal_z", "sum_of_eigenvalues",
+)  # fmt: skip
 N_COVARIANCE = len(COVARIANCE_NAMES)
 #: Voxel side = radius / DEFAULT_VOXEL_RATIO in :func:`multiscale_covariance`: about 50
 #: representatives on a surface, 270 in a volume (foliage).
@@ -85,12 +68,10 @@ def _jacobi(a, v):
             apq = a[p, q]
             if apq == 0.0:
                 continue
-            app = a[p, p]
-            aqq = a[q, q]
+            app, aqq = a[p, p], a[q, q]
             g = 100.0 * abs(apq)
             if abs(app) + g == abs(app) and abs(aqq) + g == abs(aqq):
-                a[p, q] = 0.0  # below the rounding of both diagonal entries
-                a[q, p] = 0.0
+                a[p, q] = a[q, p] = 0.0  # below the rounding of both diagonal entries
                 continue
             theta = (aqq - app) / (2.0 * apq)
             t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
@@ -102,55 +83,37 @@ def _jacobi(a, v):
             h = t * apq
             a[p, p] = app - h
             a[q, q] = aqq + h
-            a[p, q] = 0.0
-            a[q, p] = 0.0
+            a[p, q] = a[q, p] = 0.0
             r = 3 - p - q
-            g_rp = a[r, p]
-            h_rq = a[r, q]
+            g_rp, h_rq = a[r, p], a[r, q]
             a[r, p] = a[p, r] = g_rp - s * (h_rq + g_rp * tau)
             a[r, q] = a[q, r] = h_rq + s * (g_rp - h_rq * tau)
             for k in range(3):
-                g_kp = v[k, p]
-                h_kq = v[k, q]
+                g_kp, h_kq = v[k, p], v[k, q]
                 v[k, p] = g_kp - s * (h_kq + g_kp * tau)
                 v[k, q] = h_kq + s * (g_kp - h_kq * tau)
 
 
 @_inline
-def _features(rel, n, a, v, out, col):
-    """The features of rel[:n] (coordinates relative to the query, in canonical order) into
-    out[col:col + N_COVARIANCE]."""
+def _features(src, rows, origin, mean, a, v, out):
+    """The features of the points src[rows] (in this canonical order), relative to
+    ``origin``, into out (N_COVARIANCE,); mean (3,), a and v (3, 3) are float64 work arrays."""
+    n = rows.shape[0]
     if n < 3:
-        for k in range(N_COVARIANCE):
-            out[col + k] = np.nan
+        out[:] = np.nan
         return
-    mx = 0.0
-    my = 0.0
-    mz = 0.0
-    for k in range(n):
-        mx += rel[k, 0]
-        my += rel[k, 1]
-        mz += rel[k, 2]
-    mx /= n
-    my /= n
-    mz /= n
-    sxx = sxy = sxz = syy = syz = szz = 0.0
-    for k in range(n):
-        dx = rel[k, 0] - mx
-        dy = rel[k, 1] - my
-        dz = rel[k, 2] - mz
-        sxx += dx * dx
-        sxy += dx * dy
-        sxz += dx * dz
-        syy += dy * dy
-        syz += dy * dz
-        szz += dz * dz
-    a[0, 0] = sxx / n
-    a[1, 1] = syy / n
-    a[2, 2] = szz / n
-    a[0, 1] = a[1, 0] = sxy / n
-    a[0, 2] = a[2, 0] = sxz / n
-    a[1, 2] = a[2, 1] = syz / n
+    for c in range(3):  # the mean, then the centred products: two passes
+        total = 0.0
+        for k in range(n):
+            total += src[rows[k], c] - origin[c]
+        mean[c] = total / n
+    for i in range(3):
+        for j in range(i, 3):
+            total = 0.0
+            for k in range(n):
+                p = src[rows[k]]
+                total += (p[i] - origin[i] - mean[i]) * (p[j] - origin[j] - mean[j])
+            a[i, j] = a[j, i] = total / n
     _jacobi(a, v)
     i0, i1, i2 = 0, 1, 2  # by decreasing eigenvalue; ties keep the lower index
     if a[i1, i1] > a[i0, i0]:
@@ -159,86 +122,72 @@ def _features(rel, n, a, v, out, col):
         i1, i2 = i2, i1
         if a[i1, i1] > a[i0, i0]:
             i0, i1 = i1, i0
-    l1 = max(a[i0, i0], 0.0)
-    l2 = max(a[i1, i1], 0.0)
-    l3 = max(a[i2, i2], 0.0)
+    l1, l2, l3 = max(a[i0, i0], 0.0), max(a[i1, i1], 0.0), max(a[i2, i2], 0.0)
     total = l1 + l2 + l3
-    if not total > 0.0:
-        for k in range(N_COVARIANCE):
-            out[col + k] = np.nan
+    if not total > 0.0:  # coincident points
+        out[:] = np.nan
         return
-    e1 = l1 / total
-    e2 = l2 / total
-    e3 = l3 / total
+    e1, e2, e3 = l1 / total, l2 / total, l3 / total
     entropy = 0.0
     for e in (e1, e2, e3):
         if e > 0.0:
             entropy -= e * math.log(e)
     nz = abs(v[2, i2])
-    out[col + 0] = (l1 - l2) / l1
-    out[col + 1] = (l2 - l3) / l1
-    out[col + 2] = l3 / l1
-    out[col + 3] = (e1 * e2 * e3) ** (1.0 / 3.0)
-    out[col + 4] = (l1 - l3) / l1
-    out[col + 5] = entropy
-    out[col + 6] = e3
-    out[col + 7] = 1.0 - nz
-    out[col + 8] = nz
-    out[col + 9] = abs(v[2, i0])
-    out[col + 10] = total
+    out[0] = (l1 - l2) / l1
+    out[1] = (l2 - l3) / l1
+    out[2] = l3 / l1
+    out[3] = (e1 * e2 * e3) ** (1.0 / 3.0)
+    out[4] = (l1 - l3) / l1
+    out[5] = entropy
+    out[6] = e3
+    out[7] = 1.0 - nz
+    out[8] = nz
+    out[9] = abs(v[2, i0])
+    out[10] = total
 
 
 @_jit
 def _csr_kernel(xyz, nbr_idx, nbr_ptr, query, out):
-    max_n = 3
-    for row in range(query.shape[0]):
-        max_n = max(max_n, nbr_ptr[row + 1] - nbr_ptr[row])
-    rel = np.empty((max_n, 3))
+    mean = np.empty(3)
     a = np.empty((3, 3))
     v = np.empty((3, 3))
     for row in range(query.shape[0]):
-        q = query[row]
-        start = nbr_ptr[row]
-        n = nbr_ptr[row + 1] - start
-        for k in range(n):
-            j = nbr_idx[start + k]
-            for c in range(3):
-                rel[k, c] = xyz[j, c] - xyz[q, c]
-        _features(rel, n, a, v, out[row], 0)
+        rows = nbr_idx[nbr_ptr[row] : nbr_ptr[row + 1]]
+        _features(xyz, rows, xyz[query[row]], mean, a, v, out[row])
 
 
 @_jit
 def _ball_kernel(xyz, query, sxyz, sids, ukeys, ustart, origin, cell, dims, r2, out):
     """Features of every point of sxyz within sqrt(r2) of each xyz[query[b]], ordered by
-    (d2, id), into out[b]. sxyz is sorted by cells of side
-    ``cell`` >= the radius (the 27 cells around the query's hold every neighbour)."""
+    (d2, id), into out[b]. sxyz is sorted by cells of side ``cell`` >= the radius: the 27
+    cells around the query's hold every neighbour."""
     capacity = 256
     cd2 = np.empty(capacity)
     cid = np.empty(capacity, dtype=np.int64)
     crow = np.empty(capacity, dtype=np.int64)
     perm = np.empty(capacity, dtype=np.int64)
     bucket_end = np.empty(capacity + 1, dtype=np.int64)
-    rel = np.empty((capacity, 3))
+    ordered = np.empty(capacity, dtype=np.int64)
+    mean = np.empty(3)
     a = np.empty((3, 3))
     v = np.empty((3, 3))
-    nx, ny, nz = dims[0], dims[1], dims[2]
+    ny, nz = dims[1], dims[2]
     for b in range(query.shape[0]):
         xq, yq, zq, cx, cy, cz = _query_cell(xyz, query[b], origin, cell, dims)
         n = 0
-        for gx in range(max(cx - 1, 0), min(cx + 2, nx)):
+        for gx in range(max(cx - 1, 0), min(cx + 2, dims[0])):
             for gy in range(max(cy - 1, 0), min(cy + 2, ny)):
                 base = (gx * ny + gy) * nz
                 start, stop = _column_run(ukeys, ustart, base + max(cz - 1, 0),
                                           base + min(cz + 1, nz - 1))  # fmt: skip
                 if n + stop - start > capacity:
-                    while n + stop - start > capacity:
-                        capacity *= 2
+                    capacity = 2 * (n + stop - start)
                     cd2 = np.concatenate((cd2[:n], np.empty(capacity - n)))
                     cid = np.concatenate((cid[:n], np.empty(capacity - n, dtype=np.int64)))
                     crow = np.concatenate((crow[:n], np.empty(capacity - n, dtype=np.int64)))
                     perm = np.empty(capacity, dtype=np.int64)
                     bucket_end = np.empty(capacity + 1, dtype=np.int64)
-                    rel = np.empty((capacity, 3))
+                    ordered = np.empty(capacity, dtype=np.int64)
                 for s in range(start, stop):
                     d2 = squared_distance(sxyz, s, xq, yq, zq)
                     if d2 <= r2:
@@ -248,11 +197,8 @@ def _ball_kernel(xyz, query, sxyz, sids, ukeys, ustart, origin, cell, dims, r2, 
                         n += 1
         _select(cd2, cid, crow, n, n, r2, perm, bucket_end)
         for k in range(n):
-            s = crow[perm[k]]
-            rel[k, 0] = sxyz[s, 0] - xq
-            rel[k, 1] = sxyz[s, 1] - yq
-            rel[k, 2] = sxyz[s, 2] - zq
-        _features(rel, n, a, v, out[b], 0)
+            ordered[k] = crow[perm[k]]
+        _features(sxyz, ordered[:n], xyz[query[b]], mean, a, v, out[b])
 
 
 def covariance_features(xyz, nbr_idx, nbr_ptr, query) -> np.ndarray:
@@ -273,12 +219,8 @@ def covariance_features(xyz, nbr_idx, nbr_ptr, query) -> np.ndarray:
     -------
     float32 (Q, len(COVARIANCE_NAMES))
         Columns in :data:`COVARIANCE_NAMES` order; NaN rows for fewer than 3 neighbours or
-        coincident neighbours.
-
-    Raises
-    ------
-    InputError
-        Wrong shapes, indices out of range, NaN/inf coordinates.
+        coincident neighbours. InputError (a ValueError) on wrong shapes, indices out of
+        range or NaN/inf coordinates.
     """
     xyz = _check_cloud(xyz)
     nbr_idx = np.ascontiguousarray(nbr_idx, dtype=np.int64)
@@ -302,10 +244,9 @@ def _check_radii(radii, voxel_ratio) -> tuple[tuple[float, ...], float]:
         raise ValueError(f"radii must be one or more finite numbers > 0, got {radii!r}")
     if len(set(values)) != len(values):
         raise ValueError(f"radii must be distinct, got {radii!r}")
-    ratio = float(voxel_ratio)
-    if not (ratio > 0.0 and math.isfinite(ratio)):
+    if not (float(voxel_ratio) > 0.0 and math.isfinite(voxel_ratio)):
         raise ValueError(f"voxel_ratio must be a finite number > 0, got {voxel_ratio!r}")
-    return values, ratio
+    return values, float(voxel_ratio)
 
 
 def multiscale_names(radii) -> tuple[str, ...]:
@@ -325,27 +266,17 @@ def multiscale_halo(radii, voxel_ratio=DEFAULT_VOXEL_RATIO) -> float:
 def multiscale_covariance(xyz, ids, query, radii, voxel_ratio=DEFAULT_VOXEL_RATIO):
     """Covariance features at several radii on voxel-subsampled neighbourhoods.
 
-    Parameters
-    ----------
-    xyz : float64 (N, 3)
-        Coordinates, finite, any magnitude.
-    ids : int64 (N,) or None
-        Unique global point ids: voxel representatives and neighbour order (None: rows).
-    query : int64 (Q,) or None
-        Row indices of the points to describe (None: every row).
-    radii : sequence of float
-        Distinct radii r > 0 (metres).
-    voxel_ratio : float
-        At radius r the cloud is subsampled to one point per voxel of side r / voxel_ratio.
+    ``xyz`` float64 (N, 3), finite, any magnitude; ``ids`` int64 (N,) unique global ids (None:
+    rows), which pick the voxel representatives and order the neighbours; ``query`` int64
+    (Q,) rows to describe (None: all); ``radii`` distinct radii r > 0 (metres); at radius r
+    the cloud is subsampled to one point per voxel of side r / ``voxel_ratio``.
 
-    Returns
-    -------
-    float32 (Q, len(radii) * len(COVARIANCE_NAMES))
-        Columns named by :func:`multiscale_names`. At each radius the neighbourhood is every
-        voxel representative within r of the query point (the point itself counts only if it
-        is a representative); covariance about the neighbourhood's mean. NaN where fewer than
-        3 representatives lie within r. Chunk-invariant with a halo of
-        :func:`multiscale_halo`.
+    Returns float32 (Q, len(radii) * len(COVARIANCE_NAMES)), columns named by
+    :func:`multiscale_names`. At each radius the neighbourhood is every voxel representative
+    within r of the query point (the point itself counts only if it is a representative),
+    the covariance about their mean; NaN where fewer than 3 representatives lie within r.
+    Chunk-invariant with a halo of :func:`multiscale_halo`. Raises InputError on malformed
+    arrays, ValueError on bad radii or ratio.
     """
     xyz = _check_cloud(xyz)
     ids = _check_ids(ids, len(xyz))
@@ -359,10 +290,8 @@ def multiscale_covariance(xyz, ids, query, radii, voxel_ratio=DEFAULT_VOXEL_RATI
         sub = xyz[reps]
         origin = sub.min(axis=0)
         grid = _Grid(sub, ids[reps], origin, sub.max(axis=0) - origin, r * (1.0 + 1e-6))
-        cells = np.floor((xyz[query] - origin) / grid.cell)
-        cells = np.clip(cells, 0, grid.dims - 1).astype(np.int64)
-        order = np.argsort((cells[:, 0] * grid.dims[1] + cells[:, 1]) * grid.dims[2]
-                           + cells[:, 2], kind="stable")  # fmt: skip
+        # queries in cell order: random order makes the search several times slower
+        order = np.argsort(_cell_keys(xyz[query], origin, grid.cell, grid.dims), kind="stable")
         block = np.empty((len(query), N_COVARIANCE), dtype=np.float32)
         _ball_kernel(xyz, query[order], grid.xyz, grid.ids, grid.ukeys, grid.ustart, origin,
                      grid.cell, grid.dims, r * r, block)  # fmt: skip
