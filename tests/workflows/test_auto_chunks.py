@@ -1,11 +1,13 @@
 """Automatic chunk sizes: each scene's grid follows its tiles' header density."""
 
+import math
+
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from pipeline.io import read_info
-from pipeline.tiling import auto_chunk_size
+from pipeline.io import read_info, read_points
+from pipeline.tiling import SIZE_SERIES
 from tests.workflows.conftest import SMALL_PLOT, write_config
 from workflows.cli import main
 from workflows.config import load_config
@@ -14,15 +16,38 @@ from workflows.status import run_status
 from workflows.steps.ingest import plan_scenes, plan_tiles
 
 
-def header_chunk_size(directory, halo, target_points) -> float:
-    """auto_chunk_size of the scene made of every tile in ``directory``, from their headers."""
+HALO = 0.5  # write_config's features.r1, and so the resolved halo
+
+
+def scene_headers(directory) -> tuple[int, np.ndarray, np.ndarray]:
+    """Points and XY box (mins, maxs) of the scene made of every tile in ``directory``."""
     infos = [read_info(p) for p in sorted(directory.glob("*.laz"))]
-    n_points = sum(i.n_points for i in infos)
-    mins = np.min([i.mins for i in infos], axis=0)
-    maxs = np.max([i.maxs for i in infos], axis=0)
-    width, height = maxs[:2] - mins[:2]
-    return auto_chunk_size(n_points, width * height, halo, target_points,
-                           extent=max(width, height))
+    mins = np.min([i.mins for i in infos], axis=0)[:2]
+    maxs = np.max([i.maxs for i in infos], axis=0)[:2]
+    return sum(i.n_points for i in infos), mins, maxs
+
+
+def is_series_value(size: float) -> bool:
+    mantissa = size / 10 ** math.floor(math.log10(size))
+    return any(math.isclose(mantissa, m) for m in SIZE_SERIES)
+
+
+def next_series_value(size: float) -> float:
+    k = math.floor(math.log10(size))
+    values = sorted(m * 10.0**e for e in (k, k + 1) for m in SIZE_SERIES)
+    return next(v for v in values if v > size * (1 + 1e-9))
+
+
+def window_counts(directory, grid: dict, halo: float) -> np.ndarray:
+    """Points in each chunk's core and halo (the square window a worker holds)."""
+    xy = np.concatenate([read_points(p).xyz[:, :2] for p in sorted(directory.glob("*.laz"))])
+    size, counts = grid["size"], []
+    for iy in range(grid["ny"]):
+        for ix in range(grid["nx"]):
+            lo = np.array([grid["x0"] + ix * size - halo, grid["y0"] + iy * size - halo])
+            hi = lo + size + 2 * halo
+            counts.append(int(np.all((xy >= lo) & (xy < hi), axis=1).sum()))
+    return np.array(counts)
 
 
 def planned_grids(tmp_path, survey, **tiling) -> dict[str, dict]:
@@ -32,14 +57,25 @@ def planned_grids(tmp_path, survey, **tiling) -> dict[str, dict]:
 
 
 @pytest.mark.parametrize("target_points", [10_000, 20_000])
-def test_auto_grid_follows_the_header_density(tmp_path, survey, target_points):
+def test_auto_grid_holds_about_target_points_per_chunk(tmp_path, survey, target_points):
     grids = planned_grids(tmp_path, survey, chunk_size="auto", target_points=target_points)
     assert set(grids) == {"train", "test"}
     for scene, grid in grids.items():
-        expected = header_chunk_size(survey[scene], 0.5, target_points)
-        assert grid["size"] == expected
+        size = grid["size"]
+        assert is_series_value(size)
         # these targets are well below a plot's ~60,000 points: several chunks per scene
-        assert 2.0 <= grid["size"] < SMALL_PLOT and grid["nx"] * grid["ny"] > 1
+        assert 2.0 <= size < SMALL_PLOT and grid["nx"] * grid["ny"] > 1
+        # At the headers' mean density a window holds at most the target, and the next
+        # larger series value would hold more: the size is rounded down to the series.
+        n_points, mins, maxs = scene_headers(survey[scene])
+        density = n_points / np.prod(maxs - mins)
+        assert 0.56 * target_points <= density * (size + 2 * HALO) ** 2 <= target_points
+        assert density * (next_series_value(size) + 2 * HALO) ** 2 > target_points
+        # The real points, which are denser near the scanners: the fullest window is near
+        # the target, and the cores share the points out at most target_points each.
+        counts = window_counts(survey[scene], grid, HALO)
+        assert 0.5 * target_points <= counts.max() < 2 * target_points
+        assert n_points / len(counts) <= target_points
 
 
 def test_fewer_target_points_make_smaller_chunks(tmp_path, survey):
@@ -54,6 +90,16 @@ def test_explicit_chunk_size_is_used_as_given(tmp_path, survey):
     assert {grid["size"] for grid in grids.values()} == {3.5}
 
 
+def test_auto_size_is_clamped_to_four_halos_and_to_the_scene(tmp_path, survey):
+    # A target below any chunk's halo share: no smaller than 4 halos (2 m), mostly core.
+    tiny = planned_grids(tmp_path, survey, chunk_size="auto", target_points=100)
+    assert {grid["size"] for grid in tiny.values()} == {2.0}
+    # A target above the scene's points: one chunk side spans the 14 m plot, the smallest
+    # series value >= 14 m.
+    whole = planned_grids(tmp_path, survey, chunk_size="auto", target_points=10_000_000)
+    assert {grid["size"] for grid in whole.values()} == {15.0}
+
+
 def test_ingest_records_and_shows_the_resolved_size(tmp_path, survey):
     out = tmp_path / "out"
     runner = CliRunner()
@@ -64,7 +110,8 @@ def test_ingest_records_and_shows_the_resolved_size(tmp_path, survey):
         result = runner.invoke(main, ["ingest", str(config), "--out", str(out), "--in-process"],
                                catch_exceptions=False)
         assert result.exit_code == 0, result.output
-        size = header_chunk_size(survey["train"], 0.5, target_points)
+        size = planned_grids(tmp_path, survey, chunk_size="auto",
+                             target_points=target_points)["train"]["size"]
         assert f"ingest: scene train in chunks of {size:g} m" in result.output
         status = run_status(out)
         line = next(line for line in status if line.startswith("scene train:"))

@@ -9,6 +9,7 @@ import pytest
 import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pydantic import ValidationError
 
 from pipeline.errors import ConfigError, InputError, MissingFileError
 from workflows.config import (
@@ -122,8 +123,10 @@ def test_chunk_size_is_auto_or_a_number():
 
 def test_config_is_frozen():
     cfg = SilvaConfig()
-    with pytest.raises(Exception):
+    with pytest.raises(ValidationError, match="chunk_size\n  Instance is frozen"):
         cfg.tiling.chunk_size = 3.0
+    with pytest.raises(ValidationError, match="tiling\n  Instance is frozen"):
+        cfg.tiling = cfg.tiling.model_copy(update={"chunk_size": 3.0})
     assert cfg.tiling.chunk_size == "auto"
 
 

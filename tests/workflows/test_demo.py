@@ -5,6 +5,8 @@ import json
 import pytest
 from click.testing import CliRunner
 
+from pipeline.io import read_info
+from pipeline.synth import synthetic_plot
 from workflows.cli import main
 
 pytestmark = pytest.mark.slow
@@ -22,9 +24,15 @@ def test_demo_runs_end_to_end(tmp_path):
     assert "chunk size (m)" in report and "train 15" in report  # configs/demo.yaml
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["macro"]["f1"] > 0.5
-    assert sorted(p.name for p in (out / "data" / "train").glob("*.laz"))
-    assert len(list((out / "predictions").glob("*.laz"))) == len(
-        list((out / "data").glob("*/*.laz")))
+    # --plot-size 12: each plot is 2 x 2 tiles of 6 m, the training plot seed 1, the test plot 2
+    tiles = {role: [f"plot_s{seed}_{ix}_{iy}.laz" for ix in (0, 1) for iy in (0, 1)]
+             for role, seed in (("train", 1), ("test", 2))}
+    for role, names in tiles.items():
+        assert sorted(p.name for p in (out / "data" / role).glob("*.laz")) == names
+    assert sum(read_info(out / "data" / "train" / name).n_points for name in tiles["train"]) \
+        == len(synthetic_plot(1, 12.0)[0])
+    assert sorted(p.name for p in (out / "predictions").glob("*.laz")) == sorted(
+        tiles["train"] + tiles["test"])
     # a second demo resumes: nothing to redo, the same metrics
     again = CliRunner().invoke(
         main, ["demo", "--out", str(out), "--plot-size", "12", "--quiet",

@@ -118,20 +118,33 @@ def test_html_shows_the_numbers(full_report):
     assert f"tree</td>{cells}<td>{tree['support']:,}</td>" in page
 
 
-def test_stage_table_gives_each_stage_and_its_change(full_report):
-    _, path, metrics = full_report
-    page = path.read_text(encoding="utf-8")
+def stage_rows(page: str) -> list[tuple[str, str, str, str]]:
+    """(stage number, macro F1, class of the change cell, change) of each stage table row."""
     table = page[page.index('<table class="stages">'):]
     table = table[: table.index("</table>")]
-    rows = re.findall(r"<tr[^>]*><td>(\d+)</td><td><b>([0-9.]+)</b></td><td[^>]*>([^<]+)</td>",
-                      table)
+    return re.findall(r'<tr[^>]*><td>(\d+)</td><td><b>([0-9.]+)</b></td>'
+                      r'<td(?: class="(\w*)")?>([^<]+)</td>', table)
+
+
+def test_stage_table_gives_each_stage_and_its_change(full_report):
+    _, path, metrics = full_report
+    rows = stage_rows(path.read_text(encoding="utf-8"))
     f1 = [s["macro"]["f1"] for s in metrics["stages"]]
     assert [r[0] for r in rows] == ["1", "2", "3"]
     assert [r[1] for r in rows] == [format_score(v) for v in f1]
-    assert rows[0][2] == "–"
-    assert rows[1][2] == f"{f1[1] - f1[0]:+.3f}" and rows[2][2] == f"{f1[2] - f1[1]:+.3f}"
-    assert f1[2] > f1[0]  # the fake cascade improves, so the change is positive
-    assert 'class="up"' in table
+    assert rows[0][3] == "–"
+    assert rows[1][3] == f"{f1[1] - f1[0]:+.3f}" and rows[2][3] == f"{f1[2] - f1[1]:+.3f}"
+
+
+def test_stage_changes_are_marked_up_or_down(tmp_path):
+    metrics, _, _ = fake_run(n=1000)
+    first, second, third = metrics["stages"]
+    # macro F1 rises from the first stage to the third, then falls back to the second's
+    stages = [first, third, second]
+    f1 = [s["macro"]["f1"] for s in stages]
+    page = write_report(tmp_path, {**second, "stages": stages}).read_text(encoding="utf-8")
+    assert [(r[2], r[3]) for r in stage_rows(page)] == [
+        ("", "–"), ("up", f"{f1[1] - f1[0]:+.3f}"), ("down", f"{f1[2] - f1[1]:+.3f}")]
 
 
 def test_report_without_plot_data_notes_the_missing_plots(tmp_path):
