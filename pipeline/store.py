@@ -9,7 +9,7 @@ Layout::
       scenes/<scene>/chunks/<chunk>/         one chunk, assembled from its parts
           xyz, gid, label, role              core points sorted by global id
           halo_xyz, halo_gid                 halo copies sorted by global id
-          invariants (n, 11) f8
+          features (n, d) f4                the feature set's columns
           stage<t>_context (n, 2C) f4, stage<t>_proba (n, C) f4   (t = 1, 2, ...)
         attrs: done = {step: fingerprint}, counts
 
@@ -79,6 +79,17 @@ def read_array(group: zarr.Group, name: str) -> np.ndarray:
             f"array '{name}' missing in store group '{group.path}'; the step that writes it did "
             "not finish: rerun 'silva run'"
         ) from err
+
+
+def rows_of(sorted_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of ``ids`` in a chunk's ``sorted_ids`` (its gid array) and whether each is there.
+
+    Returns int64 positions (valid only where found) and a bool mask ``found``.
+    """
+    if len(sorted_ids) == 0:
+        return np.zeros(len(ids), np.int64), np.zeros(len(ids), bool)
+    pos = np.minimum(np.searchsorted(sorted_ids, ids), len(sorted_ids) - 1)
+    return pos, sorted_ids[pos] == ids
 
 
 def is_done(group: zarr.Group, step: str, fingerprint: str) -> bool:

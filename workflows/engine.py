@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 from pipeline.errors import ChunkError, SilvaError
+from pipeline.store import chunk_path, is_done, mark_done, open_store, read_array, write_arrays
 from workflows.progress import StepProgress
 
 log = logging.getLogger(__name__)
@@ -132,3 +133,69 @@ class Engine:
             progress.advance()
             future.release()
         return results, failures
+
+
+# -- tasks over the chunks of the store -----------------------------------------------------
+class ChunkView:
+    """One chunk of the run's store as a worker task sees it: its arrays and done-marks."""
+
+    def __init__(self, store_path: str, scene: str, chunk: str, *, create: bool = False):
+        self.store_path, self.scene, self.chunk = store_path, scene, chunk
+        self.root = open_store(store_path)
+        path = chunk_path(scene, chunk)
+        self.group = self.root.require_group(path) if create else self.root[path]
+
+    def read(self, *names: str):
+        """The named arrays of the chunk (one array for one name)."""
+        arrays = tuple(read_array(self.group, name) for name in names)
+        return arrays[0] if len(arrays) == 1 else arrays
+
+    def write(self, **arrays) -> None:
+        write_arrays(self.group, arrays)
+
+    def neighbour(self, chunk: str) -> "ChunkView":
+        """Another chunk of the same scene (the owner of some halo points)."""
+        return ChunkView(self.store_path, self.scene, chunk)
+
+
+def _chunk_step(fn, store_path, scene, chunk, step, fingerprint, params):
+    """Runs on the worker: skip a chunk the step finished, else run ``fn`` and mark it done.
+
+    ``fn(view, params)`` returns a small JSON-able summary; it is kept with the done-mark,
+    so a skipped chunk returns the summary of the run that did the work. ``step`` None: a
+    step that leaves nothing in the store (its result is only returned).
+    """
+    view = ChunkView(store_path, scene, chunk, create=step == "features")
+    if step is not None and is_done(view.group, step, fingerprint):
+        return view.group.attrs.get("results", {}).get(step)
+    result = fn(view, params)
+    if step is not None:
+        results = {**view.group.attrs.get("results", {}), step: result}
+        mark_done(view.group, step, fingerprint, results=results)
+    return result
+
+
+def chunk_tasks(run, layout: dict, step: str, fn, params, fingerprint: str, verb: str, *,
+                only: str | None = None, marks: bool = True) -> list[Task]:
+    """One task ``fn(view, params)`` per chunk of every scene (or only ``scene/chunk``).
+
+    ``params`` is a frozen parameter object, or a function of the scene's layout entry
+    returning one; ``verb`` is the command that reruns one chunk; ``marks`` False for a step
+    that leaves nothing in the store.
+    """
+    tasks = []
+    for scene, info in layout["scenes"].items():
+        names = [t["name"] for t in layout["tiles"] if t["scene"] == scene]
+        for chunk in info["chunks"]:
+            if only is not None and only != f"{scene}/{chunk}":
+                continue
+            tasks.append(Task(
+                key=f"{step}-{scene}-{chunk}-{fingerprint[:8]}",
+                fn=_chunk_step,
+                kwargs=dict(fn=fn, store_path=str(run.store_path), scene=scene, chunk=chunk,
+                            step=step if marks else None, fingerprint=fingerprint,
+                            params=params(info) if callable(params) else params),
+                where=f"chunk {chunk} of scene '{scene}' (tiles {', '.join(names)})",
+                reproduce=f"silva {verb} CONFIG --out {run.out} --chunk {scene}/{chunk}",
+            ))
+    return tasks

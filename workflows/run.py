@@ -13,12 +13,14 @@ The output directory of a run::
 """
 
 import hashlib
-import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from pipeline.atomic import atomic_write_text
+from pipeline.cascade import CascadeParams
 from pipeline.errors import ConfigError
+from pipeline.features.sets import FeatureParams, feature_set
 from pipeline.store import open_store
 from workflows.config import SilvaConfig, dump_config, fingerprint
 
@@ -75,12 +77,21 @@ class Run:
 
     # -- derived configuration ------------------------------------------------------------
     @property
+    def features(self) -> FeatureParams:
+        """The resolved feature and context parameters."""
+        return self.cfg.features.params
+
+    def cascade_params(self, n_jobs: int = 1) -> CascadeParams:
+        """The resolved cascade parameters; ``n_jobs`` threads per forest fit."""
+        return self.cfg.cascade.params(n_jobs)
+
+    @property
     def r1(self) -> float:
-        return float(self.cfg.features.r1)
+        return self.features.r1
 
     @property
     def r2(self) -> float:
-        return float(self.cfg.features.radius2)
+        return self.features.r2
 
     @property
     def halo(self) -> float:
@@ -117,12 +128,14 @@ class Run:
     def feature_description(self) -> dict:
         """What a model must agree with to be applied to this run's features."""
         # keyed by config path, so a mismatch names the key to set
+        params = self.features
         return {
-            "features.set": self.cfg.features.set,
-            "features.r1": self.r1,
-            "features.r2": self.r2,
-            "features.max_neighbors": int(self.cfg.features.max_neighbors),
-            "features.context_max_neighbors": self.cfg.features.context_max_neighbors,
+            "features.set": params.set,
+            "features.columns": list(feature_set(params).columns),
+            "features.r1": params.r1,
+            "features.r2": params.r2,
+            "features.max_neighbors": params.max_neighbors,
+            "features.context_max_neighbors": params.context_max_neighbors,
             "cascade.context": self.cfg.cascade.context,
         }
 
@@ -130,10 +143,7 @@ class Run:
     def save_config(self) -> str:
         """Write OUT/config.yaml (the resolved configuration) and return its text."""
         text = dump_config(self.cfg)
-        self.out.mkdir(parents=True, exist_ok=True)
-        tmp = self.out / ".config.yaml.partial"
-        tmp.write_text(text)
-        os.replace(tmp, self.out / "config.yaml")
+        atomic_write_text(self.out / "config.yaml", text)
         return text
 
     def forget_results(self) -> None:

@@ -13,7 +13,7 @@ from datetime import datetime, timezone
 from pipeline import __version__
 from workflows.progress import say
 from workflows.run import Run, has_test_points
-from workflows.steps.cascade import cascade
+from workflows.steps.cascade import cascade, check_model
 from workflows.steps.evaluate import evaluate, write_metrics
 from workflows.steps.export import export
 from workflows.steps.features import features
@@ -30,6 +30,8 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     timings = {}
     summary = {"out": str(run.out), "timings": timings}  # timings fill in as steps finish
     run.forget_results()
+    if run.model_dir is not None:
+        check_model(run)  # before any work: a wrong model must not cost a night
 
     def timed(step, fn, *args, **kwargs):
         started = time.monotonic()
@@ -48,12 +50,10 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     if last < 2:
         return summary
     fit = run.model_dir is None
-    timed("train" if fit else "apply", cascade, run, engine, layout, counts, fit=fit, only=only)
+    stages = timed("train" if fit else "apply", cascade, run, engine, layout, counts, fit=fit,
+                   only=only)
     if only is not None or last < 3:
         return summary
-    from pipeline.model import read_description
-
-    stages = read_description(run.model_path)["stages"]
     n_stages = len(stages)
     summary["predictions"] = timed(
         "export", export, run, engine, layout, n_stages - 1, stages[-1]["fingerprint"]

@@ -95,7 +95,7 @@ def test_chunk_invariance_many_chunks_two_workers(reference, survey, tmp_path):
 def _invariant_mtimes(out: Path) -> dict[str, float]:
     return {
         str(p.parent): p.stat().st_mtime_ns
-        for p in (out / "store.zarr").glob("scenes/*/chunks/*/invariants/zarr.json")
+        for p in (out / "store.zarr").glob("scenes/*/chunks/*/features/zarr.json")
     }
 
 

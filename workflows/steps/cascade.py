@@ -1,21 +1,31 @@
-"""The cascade across chunks: per stage, context (per chunk), fit (coordinator), predict (per chunk).
+"""The cascade across the chunks of the store: :class:`StoreCascade`, the workflow's side of
+:func:`pipeline.cascade.run_cascade`.
 
-A stage is a barrier: the context of stage t needs the stage t-1 probabilities of every point
-within r1, including halo points owned by neighbouring chunks, which are read back from those
-chunks by global id. Training rows are chosen by a hash of (global id, seed) and sorted by id
-before fitting, so the forests do not depend on the chunking or the number of workers.
+Per stage: context (per chunk), training rows (per chunk, gathered by the coordinator, which
+fits the forests), predict (per chunk). A stage is a barrier: the context of stage t needs
+the stage t-1 probabilities of every point within r1, including halo points owned by
+neighbouring chunks, which are read back from those chunks by global id. Training rows are
+chosen by a hash of (global id, seed) and sorted by id before fitting, so the forests do not
+depend on the chunking or the number of workers.
 """
 
 import logging
 import os
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
-from pipeline import cascade as method
-from pipeline.errors import ConfigError, StoreError
-from pipeline.features.context import uniform_context
+from pipeline.cascade import (
+    FittedStage,
+    chunk_proba,
+    run_cascade,
+    stage_context,
+    training_rows,
+)
+from pipeline.errors import ConfigError, ModelError, StoreError
+from pipeline.features.sets import FeatureParams
 from pipeline.model import (
     check_compatible,
     load_forest,
@@ -24,81 +34,78 @@ from pipeline.model import (
     stage_file,
     write_description,
 )
-from pipeline.store import (
-    ROLE_TRAIN,
-    chunk_path,
-    context_array,
-    is_done,
-    mark_done,
-    open_store,
-    proba_array,
-    read_array,
-    write_arrays,
-)
+from pipeline.store import ROLE_TRAIN, context_array, proba_array, rows_of
 from pipeline.tiling import Grid
+from workflows.engine import chunk_tasks
 from workflows.run import Run
-from workflows.steps.features import chunk_tasks
 
 log = logging.getLogger(__name__)
 
 
 # -- worker side ----------------------------------------------------------------------------
-def _stage_context(group, stage, n_classes, n_points):
-    if stage == 0:
-        return uniform_context(n_points, n_classes)
-    return read_array(group, context_array(stage))
+@dataclass(frozen=True)
+class ContextTask:
+    features: FeatureParams
+    mode: str  # "hard" or "soft"
+    stage: int  # the stage the context feeds (>= 1)
+    n_classes: int
+    grid: dict
 
 
-def _halo_proba(root, scene, grid, halo_xyz, halo_gid, stage, n_classes):
+@dataclass(frozen=True)
+class StageTask:
+    stage: int
+    n_classes: int
+    fractions: tuple[float, ...]
+    seed: int
+    forest_path: str = ""
+    fold_paths: tuple[str, ...] = ()
+
+
+def _chunk_inputs(view, task):
+    """(features, context or None for the first stage, training labels, ids) of a chunk."""
+    label, role, gid = view.read("label", "role", "gid")
+    context = view.read(context_array(task.stage)) if task.stage > 0 else None
+    labels = np.where(role == ROLE_TRAIN, label, -1).astype(np.int64)
+    return view.read("features"), context, labels, gid
+
+
+def _halo_proba(view, grid, halo_xyz, halo_gid, stage, n_classes):
     """Stage probabilities of halo points, read from the chunks that own them."""
     proba = np.empty((len(halo_gid), n_classes), dtype=np.float32)
     owners = grid.chunk_of(halo_xyz)
     for owner in np.unique(owners):
         rows = np.flatnonzero(owners == owner)
-        group = root[chunk_path(scene, grid.chunk_name(int(owner)))]
-        gid = read_array(group, "gid")
-        pos = np.searchsorted(gid, halo_gid[rows])
-        pos = np.minimum(pos, len(gid) - 1)
-        if not np.array_equal(gid[pos], halo_gid[rows]):
-            raise StoreError(f"halo points of scene '{scene}' missing from their owner chunk "
-                             f"{grid.chunk_name(int(owner))}; rerun with --overwrite")
-        proba[rows] = read_array(group, proba_array(stage))[pos]
+        neighbour = view.neighbour(grid.chunk_name(int(owner)))
+        pos, found = rows_of(neighbour.read("gid"), halo_gid[rows])
+        if not found.all():
+            raise StoreError(f"halo points of scene '{view.scene}' missing from their owner "
+                             f"chunk {neighbour.chunk}; rerun with --overwrite")
+        proba[rows] = neighbour.read(proba_array(stage))[pos]
     return proba
 
 
-def chunk_context(store_path, scene, chunk, grid, stage, r1, r2, max_neighbors, n_classes,
-                  mode, fingerprint):
-    """Worker task: the context features of stage ``stage`` (>= 1) for one chunk's core."""
-    root = open_store(store_path)
-    group = root[chunk_path(scene, chunk)]
-    if is_done(group, f"context{stage + 1}", fingerprint):
-        return None
-    grid = Grid(**grid)
-    xyz, gid = read_array(group, "xyz"), read_array(group, "gid")
-    halo_xyz, halo_gid = read_array(group, "halo_xyz"), read_array(group, "halo_gid")
+def chunk_context(view, task: ContextTask):
+    """Worker task: the context that feeds stage ``task.stage`` for one chunk's core."""
+    xyz, gid, halo_xyz, halo_gid = view.read("xyz", "gid", "halo_xyz", "halo_gid")
     proba = np.concatenate([
-        read_array(group, proba_array(stage - 1)),
-        _halo_proba(root, scene, grid, halo_xyz, halo_gid, stage - 1, n_classes),
+        view.read(proba_array(task.stage - 1)),
+        _halo_proba(view, Grid(**task.grid), halo_xyz, halo_gid, task.stage - 1,
+                    task.n_classes),
     ])
-    context = method.stage_context(
-        np.concatenate([xyz, halo_xyz]), proba, mode, r1=r1, r2=r2, max_neighbors=max_neighbors,
+    context = stage_context(
+        np.concatenate([xyz, halo_xyz]), proba, task.mode, r1=task.features.r1,
+        r2=task.features.r2, max_neighbors=task.features.context_max_neighbors,
         query=np.arange(len(gid), dtype=np.int64), ids=np.concatenate([gid, halo_gid]),
     )
-    write_arrays(group, {context_array(stage): context})
-    mark_done(group, f"context{stage + 1}", fingerprint)
-    return None
+    view.write(**{context_array(task.stage): context})
 
 
-def chunk_training_rows(store_path, scene, chunk, stage, n_classes, fractions, seed):
-    """Worker task: the sampled training rows (features, labels, ids) of one chunk."""
-    group = open_store(store_path)[chunk_path(scene, chunk)]
-    label, role, gid = (read_array(group, k) for k in ("label", "role", "gid"))
-    mask = method.training_mask(gid, np.where(role == ROLE_TRAIN, label, -1), fractions, seed)
-    if not mask.any():
-        return None
-    invariants = read_array(group, "invariants")[mask]
-    context = _stage_context(group, stage, n_classes, len(gid))[mask]
-    return method.feature_matrix(invariants, context), label[mask].astype(np.int64), gid[mask]
+def chunk_training_rows(view, task: StageTask):
+    """Worker task: the sampled training rows (X, y, ids) of one chunk, or None."""
+    features, context, labels, gid = _chunk_inputs(view, task)
+    return training_rows(features, context, labels, gid, np.asarray(task.fractions),
+                         task.seed, task.n_classes)
 
 
 @lru_cache(maxsize=8)
@@ -106,33 +113,17 @@ def _cached_forest(path: str, mtime: float):
     return load_forest(Path(path))
 
 
-def _forest(path: Path):
-    return _cached_forest(str(path), os.path.getmtime(path))
+def _forest(path: str):
+    return _cached_forest(path, os.path.getmtime(path))
 
 
-def chunk_predict(store_path, scene, chunk, stage, forest_path, fold_paths, n_classes,
-                  fractions, seed, fingerprint):
+def chunk_predict(view, task: StageTask):
     """Worker task: stage probabilities of one chunk's core points."""
-    group = open_store(store_path)[chunk_path(scene, chunk)]
-    if is_done(group, f"predict{stage + 1}", fingerprint):
-        return None
-    label, role, gid = (read_array(group, k) for k in ("label", "role", "gid"))
-    features = method.feature_matrix(
-        read_array(group, "invariants"), _stage_context(group, stage, n_classes, len(gid))
-    )
-    training = method.training_mask(gid, np.where(role == ROLE_TRAIN, label, -1), fractions, seed)
-    proba = method.predict_stage(
-        _forest(Path(forest_path)),
-        [_forest(Path(p)) for p in fold_paths],
-        features,
-        gid,
-        training,
-        n_classes=n_classes,
-        seed=seed,
-    )
-    write_arrays(group, {proba_array(stage): proba})
-    mark_done(group, f"predict{stage + 1}", fingerprint)
-    return None
+    features, context, labels, gid = _chunk_inputs(view, task)
+    proba = chunk_proba(_forest(task.forest_path), [_forest(p) for p in task.fold_paths],
+                        features, context, labels, gid, np.asarray(task.fractions),
+                        task.seed, task.n_classes)
+    view.write(**{proba_array(task.stage): proba})
 
 
 # -- coordinator side -----------------------------------------------------------------------
@@ -148,111 +139,137 @@ def check_training_classes(run: Run, counts: np.ndarray) -> None:
         )
 
 
-def _fit(run: Run, engine, layout, stage, fractions, seed, fingerprint):
-    """Gather the sampled rows of every chunk, fit the stage's forests, save them."""
-    tasks = chunk_tasks(
-        run, layout, f"sample-{stage + 1}", chunk_training_rows,
-        lambda scene, chunk, info: dict(
-            store_path=str(run.store_path), scene=scene, chunk=chunk, stage=stage,
-            n_classes=run.n_classes, fractions=fractions, seed=seed,
-        ),
-        fingerprint,
-        "train",
-    )
-    rows = [r for r in engine.map(f"sample-{stage + 1}", tasks).values() if r is not None]
-    if not rows:
-        raise ConfigError("no labelled training points: check data.train, data.classes and "
-                          "data.label_field")
-    features, labels, ids = (np.concatenate(parts) for parts in zip(*rows))
-    cascade = run.cfg.cascade
-    params = method.ForestParams(
-        int(cascade.n_estimators), int(cascade.min_samples_leaf), cascade.max_features,
-        n_jobs=os.cpu_count() or 1,
-    )
-    log.info("stage %d: fitting on %d rows", stage + 1, len(ids))
-    forest, fold_forests = method.fit_stage(
-        features, labels, ids, params=params, seed=seed, stage=stage,
-        out_of_fold=bool(cascade.out_of_fold), folds=int(cascade.folds),
-    )
-    for fitted in (forest, *fold_forests):  # workers predict single-threaded, in parallel
-        fitted.set_params(n_jobs=1)
-    save_forest(stage_file(run.model_path, stage), forest)
-    for k, fold_forest in enumerate(fold_forests):
-        save_forest(stage_file(run.work_path / "folds", stage, k), fold_forest)
-    return len(ids)
+def check_model(run: Run) -> list[dict]:
+    """The stages of the saved model ``run`` applies; ModelError/ConfigError on a mismatch.
+
+    Called before any work, so that a wrong model never costs an ingest and features.
+    """
+    description = read_description(run.model_path)
+    check_compatible(description, run.feature_description(), run.model_path)
+    for key in ("classes", "stages"):
+        if not description.get(key):
+            raise ModelError(f"model {run.model_path} records no {key}; retrain it")
+    names = [c["name"] for c in description["classes"]]
+    codes = [c["code"] for c in description["classes"]]
+    if names != run.classes or codes != run.class_codes:
+        raise ConfigError(
+            f"model {run.model_path} predicts classes "
+            f"{dict(zip(names, codes))} but data.classes gives "
+            f"{dict(zip(run.classes, run.class_codes))}; use the model's classes and codes"
+        )
+    return description["stages"]
 
 
-def _model_description(run: Run, fractions, seed, stages) -> dict:
-    return {
-        **run.feature_description(),
-        "classes": [{"name": n, "code": c} for n, c in zip(run.classes, run.class_codes)],
-        "seed": seed,
-        "training_fractions": [float(f) for f in fractions],
-        "stages": stages,
-    }
+class StoreCascade:
+    """:class:`pipeline.cascade.CascadeData` of a run: the chunks of its store, mapped over
+    the engine's workers. Its forests live in files that the workers load."""
+
+    def __init__(self, run: Run, engine, layout: dict, *, fit: bool, only: str | None):
+        self.run, self.engine, self.layout, self.fit, self.only = run, engine, layout, fit, only
+        self.n_classes = run.n_classes
+        self.params = run.cascade_params(n_jobs=os.cpu_count() or 1)
+        self.fractions = ()
+        if fit:
+            try:
+                previous = read_description(run.model_path)
+            except ModelError:  # no model yet: every stage is fitted
+                previous = {}
+            self.stages = previous.get("stages", [])
+            self.fractions = tuple(previous.get("training_fractions", ()))
+        else:
+            self.stages = check_model(run)
+
+    def stage_fingerprint(self, stage: int) -> str:
+        if self.fit:
+            return self.run.stage_fingerprint(stage)
+        return self.stages[stage]["fingerprint"]
+
+    def _chunk_fingerprint(self, stage: int) -> str:
+        # chunk results depend on this run's features and on the stage's forest
+        return f"{self.run.fingerprint('features')}-{self.stage_fingerprint(stage)}"
+
+    def _map(self, step: str, fn, params, stage: int, *, marks: bool = True):
+        tasks = chunk_tasks(self.run, self.layout, step, fn, params,
+                            self._chunk_fingerprint(stage),
+                            "train" if self.fit else "predict", only=self.only, marks=marks)
+        return self.engine.map(step, tasks)
+
+    def _stage_task(self, stage, fractions, seed) -> StageTask:
+        folds = ()
+        if self.fit and self.params.out_of_fold:
+            folds = tuple(str(stage_file(self.run.work_path / "folds", stage, k))
+                          for k in range(self.params.folds))
+        return StageTask(stage, self.n_classes, tuple(float(f) for f in fractions), seed,
+                         str(stage_file(self.run.model_path, stage)), folds)
+
+    # -- the CascadeData interface ------------------------------------------------------
+    def update_context(self, stage):
+        run = self.run
+        self._map(f"context-{stage + 1}", chunk_context, lambda info: ContextTask(
+            run.features, self.params.context, stage, self.n_classes, info["grid"]), stage)
+
+    def training_rows(self, stage, fractions, seed):
+        self.fractions = fractions
+        results = self._map(f"sample-{stage + 1}", chunk_training_rows,
+                            StageTask(stage, self.n_classes, tuple(map(float, fractions)), seed),
+                            stage, marks=False)
+        rows = [r for r in results.values() if r is not None]
+        if not rows:
+            raise ConfigError("no labelled training points: check data.train, data.classes "
+                              "and data.label_field")
+        x, y, ids = (np.concatenate(parts) for parts in zip(*rows))
+        log.info("stage %d: fitting on %d rows", stage + 1, len(ids))
+        return x, y, ids
+
+    def fitted(self, stage):
+        path = stage_file(self.run.model_path, stage)
+        if stage < len(self.stages) and path.is_file() and (
+                not self.fit or self.stages[stage]["fingerprint"] == self.stage_fingerprint(stage)):
+            return FittedStage(path, [], self.stages[stage].get("training_rows", 0))
+        if not self.fit:
+            raise ModelError(f"model file {path} is missing; retrain with 'silva train'")
+        return None
+
+    def save(self, stage, fitted):
+        for forest in (fitted.forest, *fitted.fold_forests):
+            forest.set_params(n_jobs=1)  # workers predict single-threaded, in parallel
+        save_forest(stage_file(self.run.model_path, stage), fitted.forest)
+        for k, fold_forest in enumerate(fitted.fold_forests):
+            save_forest(stage_file(self.run.work_path / "folds", stage, k), fold_forest)
+        self.stages = self.stages[:stage] + [{
+            "index": stage + 1, "fingerprint": self.stage_fingerprint(stage),
+            "file": stage_file(self.run.model_path, stage).name,
+            "training_rows": fitted.training_rows,
+        }]
+        self._describe(self.stages)
+
+    def predict(self, stage, fitted, fractions, seed):
+        self._map(f"predict-{stage + 1}", chunk_predict,
+                  self._stage_task(stage, fractions, seed), stage)
+
+    def _describe(self, stages):
+        run = self.run
+        write_description(run.model_path, {
+            **run.feature_description(),
+            "classes": [{"name": n, "code": c} for n, c in zip(run.classes, run.class_codes)],
+            "seed": self.params.seed,
+            "training_fractions": [float(f) for f in self.fractions],
+            "stages": stages,
+        })
 
 
 def cascade(run: Run, engine, layout: dict, train_counts: np.ndarray | None, *, fit: bool,
-            only: str | None = None) -> None:
-    """Run every stage: context, fit (when training), predict, over every chunk."""
-    n_stages = int(run.cfg.cascade.stages)
-    seed = int(run.cfg.cascade.seed)
+            only: str | None = None) -> list[dict]:
+    """Run every stage over every chunk (fitting the stages a model lacks when ``fit``);
+    return the model's stage records."""
+    data = StoreCascade(run, engine, layout, fit=fit, only=only)
     if fit:
         check_training_classes(run, train_counts)
-        fractions = method.sampling_fractions(
-            train_counts, run.cfg.cascade.max_train_points, bool(run.cfg.cascade.balanced)
-        )
-        try:
-            stages = read_description(run.model_path).get("stages", [])
-        except Exception:  # noqa: BLE001 - no model yet: everything is fitted below
-            stages = []
+        n_stages = data.params.stages
     else:
-        description = read_description(run.model_path)
-        check_compatible(description, run.feature_description(), run.model_path)
-        names = [c["name"] for c in description["classes"]]
-        if names != run.classes:
-            raise ConfigError(f"model {run.model_path} predicts classes {names} but "
-                              f"data.classes lists {run.classes}; use the model's classes")
-        fractions = np.zeros(run.n_classes)  # no training points: no out-of-fold answers
-        stages = description["stages"]
-        n_stages = len(stages)
-
-    def per_chunk(step, fn, extra):
-        tasks = chunk_tasks(run, layout, step, fn, lambda scene, chunk, info: dict(
-            store_path=str(run.store_path), scene=scene, chunk=chunk, **extra(info)),
-            extra_fp, "train" if fit else "predict", only)
-        engine.map(step, tasks)
-
-    for stage in range(n_stages):
-        if fit:
-            fingerprint = run.stage_fingerprint(stage)
-            fitted = (
-                stage < len(stages)
-                and stages[stage]["fingerprint"] == fingerprint
-                and stage_file(run.model_path, stage).is_file()
-            )
-        else:
-            fingerprint = stages[stage]["fingerprint"]
-            fitted = True
-        # Chunk results depend on this run's features and on the stage's forest.
-        extra_fp = f"{run.fingerprint('features')}-{fingerprint}"
-        if stage > 0:
-            per_chunk(f"context-{stage + 1}", chunk_context, lambda info: dict(
-                grid=info["grid"], stage=stage, r1=run.r1, r2=run.r2,
-                max_neighbors=run.cfg.features.context_max_neighbors,
-                n_classes=run.n_classes, mode=run.cfg.cascade.context, fingerprint=extra_fp))
-        if not fitted:
-            n_rows = _fit(run, engine, layout, stage, fractions, seed, extra_fp)
-            stages = stages[:stage] + [{"index": stage + 1, "fingerprint": fingerprint,
-                                        "file": stage_file(run.model_path, stage).name,
-                                        "training_rows": n_rows}]
-            write_description(run.model_path, _model_description(run, fractions, seed, stages))
-        folds = []
-        if fit and run.cfg.cascade.out_of_fold:
-            folds = [str(stage_file(run.work_path / "folds", stage, k))
-                     for k in range(int(run.cfg.cascade.folds))]
-        per_chunk(f"predict-{stage + 1}", chunk_predict, lambda info: dict(
-            stage=stage, forest_path=str(stage_file(run.model_path, stage)), fold_paths=folds,
-            n_classes=run.n_classes, fractions=fractions, seed=seed, fingerprint=extra_fp))
-    if fit and len(stages) > n_stages:  # fewer stages than a previous run: keep the model honest
-        write_description(run.model_path, _model_description(run, fractions, seed, stages[:n_stages]))
+        n_stages = len(data.stages)
+    run_cascade(data, data.params, train_counts if fit else None, n_stages=n_stages)
+    if fit and len(data.stages) > n_stages:  # fewer stages than before: keep the model honest
+        data.stages = data.stages[:n_stages]
+        data._describe(data.stages)
+    return data.stages

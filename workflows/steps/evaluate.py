@@ -6,30 +6,37 @@ precision-recall curves and the top-down picture are sampled by a hash of their 
 """
 
 import json
-import os
+from dataclasses import dataclass
 
 import numpy as np
 
 from pipeline.cascade import id_hash, labels_from_proba
 from pipeline.metrics import confusion_matrix, scores_from_confusion
-from pipeline.store import ROLE_TEST, chunk_path, open_store, proba_array, read_array
+from pipeline.atomic import atomic_write_text
+from pipeline.store import ROLE_TEST, proba_array
+from workflows.engine import chunk_tasks
 from workflows.run import Run
-from workflows.steps.features import chunk_tasks
 
 PLOT_POINTS = 200_000  # points drawn in the report's plots
 
 
-def chunk_evaluation(store_path, scene, chunk, n_stages, n_classes, sample_fraction):
+@dataclass(frozen=True)
+class EvaluationTask:
+    n_stages: int
+    n_classes: int
+    sample_fraction: float  # of the points drawn in the report's plots
+
+
+def chunk_evaluation(view, task: EvaluationTask):
     """Worker task: per-stage confusion of the chunk's test points, and plot samples."""
-    group = open_store(store_path)[chunk_path(scene, chunk)]
-    label, role, gid = (read_array(group, k) for k in ("label", "role", "gid"))
+    label, role, gid, xyz = view.read("label", "role", "gid", "xyz")
     test = (role == ROLE_TEST) & (label >= 0)
     confusions, final = [], None
-    for stage in range(n_stages):
-        final = read_array(group, proba_array(stage))
-        confusions.append(confusion_matrix(label[test], labels_from_proba(final[test]), n_classes))
-    picked = id_hash(gid, 7) < sample_fraction
-    xyz = read_array(group, "xyz")
+    for stage in range(task.n_stages):
+        final = view.read(proba_array(stage))
+        confusions.append(confusion_matrix(label[test], labels_from_proba(final[test]),
+                                           task.n_classes))
+    picked = id_hash(gid, 7) < task.sample_fraction
     test_pick = picked & test
     return {
         "confusions": confusions,
@@ -46,13 +53,9 @@ def evaluate(run: Run, engine, layout: dict, n_stages: int) -> dict:
     """Return the metrics dict (metrics.json) and the report's plot data."""
     total = sum(t["n_points"] for t in layout["tiles"])
     fraction = min(1.0, PLOT_POINTS / max(total, 1))
-    tasks = chunk_tasks(
-        run, layout, "evaluate", chunk_evaluation,
-        lambda scene, chunk, info: dict(
-            store_path=str(run.store_path), scene=scene, chunk=chunk, n_stages=n_stages,
-            n_classes=run.n_classes, sample_fraction=fraction),
-        run.fingerprint("evaluate"), "evaluate",
-    )
+    tasks = chunk_tasks(run, layout, "evaluate", chunk_evaluation,
+                        EvaluationTask(n_stages, run.n_classes, fraction),
+                        run.fingerprint("evaluate"), "evaluate", marks=False)
     results = list(engine.map("evaluate", tasks).values())
     background = list(run.cfg.data.background)
     stages = []
@@ -79,6 +82,4 @@ def evaluate(run: Run, engine, layout: dict, n_stages: int) -> dict:
 
 def write_metrics(run: Run, metrics: dict) -> None:
     """metrics.json, written atomically: it exists only for a complete evaluation."""
-    tmp = run.metrics_path.with_name(".metrics.json.partial")
-    tmp.write_text(json.dumps(metrics, indent=2))
-    os.replace(tmp, run.metrics_path)
+    atomic_write_text(run.metrics_path, json.dumps(metrics, indent=2))

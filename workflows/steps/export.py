@@ -11,7 +11,9 @@ import numpy as np
 
 from pipeline.errors import StoreError
 from pipeline.io import ExtraDim, export_with_extra_dims
-from pipeline.store import chunk_path, is_done, mark_done, open_store, proba_array, read_array
+from pipeline.store import (
+    chunk_path, is_done, mark_done, open_store, proba_array, read_array, rows_of,
+)
 from pipeline.tiling import Grid, global_ids
 from workflows.engine import Task
 from workflows.run import Run
@@ -70,8 +72,7 @@ class _ChunkPredictions:
                     self.cache.clear()
                 self.cache[chunk] = self._load(int(chunk), n_classes)
             ids, chunk_proba = self.cache[chunk]
-            pos = np.minimum(np.searchsorted(ids, gid[rows]), max(len(ids) - 1, 0))
-            hit = ids[pos] == gid[rows] if len(ids) else np.zeros(len(rows), bool)
+            pos, hit = rows_of(ids, gid[rows])
             if not hit.all() and not self.allow_missing:
                 raise StoreError(f"points of scene '{self.scene}' missing from chunk "
                                  f"{self.grid.chunk_name(int(chunk))}; rerun with --overwrite")
