@@ -22,6 +22,8 @@ from click.testing import CliRunner
 
 from pipeline.io import write_las
 from tests.workflows.conftest import read_predictions, write_config
+from pipeline.cascade import CascadedForest
+from pipeline.store import open_store, proba_array
 from workflows.cli import main
 
 pytestmark = pytest.mark.slow
@@ -79,17 +81,58 @@ def test_outputs_of_a_complete_run(reference, survey):
             atol=1e-5)
 
 
-def test_chunk_invariance_many_chunks_two_workers(reference, survey, tmp_path):
+@pytest.fixture(scope="module")
+def many_chunks(survey, tmp_path_factory):
+    """3 m chunks on 2 workers: dozens of chunks whose halos the results must not see."""
+    root = tmp_path_factory.mktemp("many")
     config = write_config(
-        tmp_path / "many.yaml", survey, tiling={"chunk_size": 3.0},
+        root / "many.yaml", survey, tiling={"chunk_size": 3.0},
         cluster={"kind": "local", "n_workers": 2, "threads_per_worker": 1, "dashboard": False},
     )
-    result = silva("run", config, "--out", tmp_path / "out", "--quiet")
+    result = silva("run", config, "--out", root / "out", "--quiet")
     assert result.exit_code == 0, result.output
-    layout_chunks = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    return root / "out"
+
+
+def test_chunk_invariance_many_chunks_two_workers(reference, many_chunks):
+    layout_chunks = json.loads((many_chunks / "metrics.json").read_text())
     assert layout_chunks["n_test_points"] == json.loads(
         (reference / "metrics.json").read_text())["n_test_points"]
-    _assert_same_predictions(reference, tmp_path / "out")
+    _assert_same_predictions(reference, many_chunks)
+
+
+def _scene_points(out: Path, scene: str):
+    """(xyz, label, gid, per-stage probabilities) of every core point of a scene, by gid."""
+    root = open_store(out / "store.zarr", mode="r")
+    chunks = root[f"scenes/{scene}/chunks"]
+    parts = {"xyz": [], "label": [], "gid": [], "proba": []}
+    for name in sorted(chunks.group_keys()):
+        group = chunks[name]
+        for key in ("xyz", "label", "gid"):
+            parts[key].append(group[key][...])
+        parts["proba"].append(np.stack([group[proba_array(t)][...] for t in range(2)]))
+    arrays = {k: np.concatenate(v, axis=1 if k == "proba" else 0) for k, v in parts.items()}
+    order = np.argsort(arrays["gid"])
+    return {k: v[:, order] if k == "proba" else v[order] for k, v in arrays.items()}
+
+
+def test_estimator_equals_the_workflow(survey, tmp_path, many_chunks):
+    """CascadedForest and `silva run` are one method: same seed and parameters, the same
+    probabilities bit for bit, in one chunk in this process and in many chunks on 2 workers."""
+    config = write_config(tmp_path / "one.yaml", survey)
+    result = silva("run", config, "--out", tmp_path / "out", "--quiet", "--in-process")
+    assert result.exit_code == 0, result.output
+    train, test = _scene_points(tmp_path / "out", "train"), _scene_points(tmp_path / "out", "test")
+    model = CascadedForest(stages=2, n_estimators=6, min_samples_leaf=15, r1=0.5,
+                           max_train_points=8000, random_state=3)
+    model.fit(train["xyz"], train["label"], ids=train["gid"])
+    assert list(model.classes_) == [0, 1, 2, 3]
+    staged = list(model.staged_predict_proba(test["xyz"], ids=test["gid"]))
+    for stage in range(2):
+        assert np.array_equal(staged[stage], test["proba"][stage]), f"stage {stage + 1}"
+    distributed = _scene_points(many_chunks, "test")
+    assert np.array_equal(distributed["gid"], test["gid"])
+    assert np.array_equal(distributed["proba"], test["proba"])
 
 
 def _invariant_mtimes(out: Path) -> dict[str, float]:
