@@ -116,8 +116,28 @@ def test_out_of_fold_context_runs_and_predicts_every_class():
     assert (pred == y).mean() > 0.8
 
 
+def test_a_scikit_learn_estimator():
+    """clone, get_params/set_params, score and GridSearchCV work as for any classifier."""
+    from sklearn.base import clone
+    from sklearn.model_selection import GridSearchCV
+
+    rng = np.random.default_rng(5)
+    ground = np.c_[rng.uniform(0, 4, (1500, 2)), rng.normal(0, 0.01, 1500)]
+    wall = np.c_[rng.uniform(0, 4, 800), np.full(800, 2.0), rng.uniform(0, 2, 800)]
+    xyz, y = np.vstack([ground, wall]), np.r_[np.zeros(1500, int), np.ones(800, int)]
+    model = CascadedForest(stages=2, n_estimators=4, min_samples_leaf=5, random_state=0)
+    copy = clone(model).set_params(n_estimators=3)
+    assert copy.get_params()["n_estimators"] == 3 and model.n_estimators == 4
+    assert model.fit(xyz, y).score(xyz, y) > 0.9
+    assert model.feature_names_[0] == "I2_22" and len(model.stages_) == 2
+    search = GridSearchCV(copy, {"min_samples_leaf": [5, 50]}, cv=2).fit(xyz, y)
+    assert search.best_params_["min_samples_leaf"] in (5, 50)
+
+
 def test_unfitted_and_bad_parameters():
-    with pytest.raises(ValueError, match="not fitted"):
+    from sklearn.exceptions import NotFittedError
+
+    with pytest.raises(NotFittedError, match="not fitted"):
         CascadedForest().predict(np.zeros((3, 3)))
     with pytest.raises(ValueError, match="context"):
         CascadedForest(context="fuzzy").fit(np.zeros((3, 3)), [0, 1, 0])

@@ -52,8 +52,9 @@ def test_each_sphere_sums_to_one(scene):
 def test_first_stage_is_uniform(scene):
     xyz, _, _ = scene
     got = context_features(xyz, 0.5, n_classes=5)
-    assert np.array_equal(got, uniform_context(len(xyz), 5))
-    assert np.allclose(got, 0.2)
+    assert got.shape == (len(xyz), 10) and got.dtype == np.float32
+    assert (got == np.float32(0.2)).all()
+    assert np.array_equal(uniform_context(3, 4), np.full((3, 8), 0.25, np.float32))
 
 
 def test_query_subset_equals_full(scene):
