@@ -2,4 +2,4 @@
 
 from workflows.cli import main
 
-main()
+main(prog_name="silva")

@@ -1,16 +1,16 @@
-"""The ``silva`` command line.
+"""The ``silva`` command line: the group, its error handling, and the commands it holds.
 
 Every command turns a :class:`pipeline.errors.SilvaError`, and a usage error, into one line
 on stderr and exit code 1, so batch logs show what went wrong and how to fix it instead of a
-traceback or a usage screen.
+traceback or a usage screen. The commands themselves are in :mod:`workflows.commands`.
 """
 
 import sys
-from pathlib import Path
 
 import click
 
 from pipeline.errors import SilvaError
+from workflows.commands import COMMANDS
 
 
 def _usage_error(err: click.UsageError):
@@ -48,20 +48,5 @@ def main():
     """Classify every point of large LiDAR scans with 3D moment invariants and auto-context."""
 
 
-@main.command()
-@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--seed", default=0, show_default=True, help="Random seed: same seed, same points.")
-@click.option("--size", default=None, type=float, help="Side of the square plot in metres.")
-@click.option("--tile-size", default=None, type=float, help="Side of the square LAZ tiles.")
-def synth(out_dir, seed, size, tile_size):
-    """Write a labelled synthetic forest plot as LAZ tiles into OUT_DIR."""
-    from pipeline.synth import write_synthetic_plot
-
-    kwargs = {k: v for k, v in {"size": size, "tile_size": tile_size}.items() if v is not None}
-    paths = write_synthetic_plot(out_dir, seed=seed, **kwargs)
-    for path in paths:
-        click.echo(str(path))
-
-
-# The run commands live in their own module; importing it registers them on ``main``.
-from workflows import commands  # noqa: E402,F401
+for _command in COMMANDS:
+    main.add_command(_command)

@@ -1,23 +1,23 @@
-"""The run commands: ``run``, one command per step, ``predict``, ``status`` and ``demo``.
+"""The commands of ``silva``: ``run``, one per step, ``predict``, ``status``, ``demo`` and
+``synth``.
 
 Each step command is a target: it runs the steps up to and including its own, skipping what a
 previous run finished with the same configuration (see :mod:`workflows.workflow`).
+:mod:`workflows.cli` gathers :data:`COMMANDS` into the ``silva`` group; this module does not
+import it. The modules that run steps (Dask, numba, zarr) are imported only when a run starts,
+so ``silva --help`` answers at once.
 """
 
 import contextlib
 import logging
+import shlex
 import sys
 from pathlib import Path
 
 import click
 
 from pipeline.errors import ConfigError
-from workflows.cli import main
-from workflows.config import load_config
-from workflows.engine import Engine
 from workflows.progress import counted, say
-from workflows.run import Run, prepare_output
-from workflows.workflow import execute
 
 DEMO_CONFIG = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
 
@@ -29,6 +29,14 @@ def _setup_logging(verbose: int) -> None:
         handler.setLevel(level)
     for noisy in ("distributed", "bokeh", "tornado"):
         logging.getLogger(noisy).setLevel(max(level, logging.ERROR))
+
+
+def _command_line() -> str:
+    """The command as the user typed it (``silva ...``), for the report and for resuming."""
+    ctx = click.get_current_context(silent=True)
+    if Path(sys.argv[0]).name in ("silva", "silva.exe", "__main__.py"):
+        return shlex.join(["silva", *sys.argv[1:]])
+    return ctx.command_path if ctx is not None else "silva"
 
 
 def run_options(fn):
@@ -54,6 +62,8 @@ def run_options(fn):
 
 @contextlib.contextmanager
 def _engine(cfg, *, quiet, in_process, debug):
+    from workflows.engine import Engine
+
     if in_process or debug:
         yield Engine(None, quiet=quiet, debug=debug)
         return
@@ -69,6 +79,10 @@ def _engine(cfg, *, quiet, in_process, debug):
 def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, target,
               *, model_dir=None, command=None, config_path=None):
     """Load the config, prepare the output directory and run the steps up to ``target``."""
+    from workflows.config import load_config
+    from workflows.run import Run, prepare_output
+    from workflows.workflow import execute
+
     _setup_logging(verbose)
     cfg = load_config(config_path or config, overrides)
     out = out or Path(f"silva-{Path(config).stem}")
@@ -77,7 +91,7 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
     text = run.save_config()
     if not quiet:
         click.echo(f"# resolved configuration (saved to {out / 'config.yaml'})\n{text}")
-    command = command or "silva " + " ".join(sys.argv[1:])
+    command = command or _command_line()
     with _engine(cfg, quiet=quiet, in_process=in_process, debug=chunk is not None) as engine:
         summary = execute(run, engine, target, only=chunk, command=command)
     if summary.get("predictions"):
@@ -91,13 +105,13 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
     return summary
 
 
-def _step_command(target: str, doc: str):
+def _step_command(name: str, target: str, doc: str) -> click.Command:
     @run_options
     def command(config, out, overrides, overwrite, quiet, in_process, chunk, verbose):
         start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, target)
 
     command.__doc__ = doc
-    return command
+    return click.command(name)(command)
 
 
 # command -> (the step it runs up to, its help)
@@ -112,11 +126,9 @@ STEP_COMMANDS = {
     "evaluate": ("evaluate", "Write metrics.json for the test points (after export)."),
     "report": ("report", "Write report.html with its plots (after evaluate)."),
 }
-for _name, (_target, _doc) in STEP_COMMANDS.items():
-    main.command(_name)(_step_command(_target, _doc))
 
 
-@main.command("predict")
+@click.command("predict")
 @run_options
 @click.option("--model", "model_dir", required=True,
               type=click.Path(file_okay=False, exists=True, path_type=Path),
@@ -127,7 +139,7 @@ def predict(config, out, overrides, overwrite, quiet, in_process, chunk, verbose
               model_dir=model_dir)
 
 
-@main.command("status")
+@click.command("status")
 @click.argument("out", type=click.Path(file_okay=False, exists=True, path_type=Path))
 def status(out):
     """Show how far the run in OUT got."""
@@ -137,7 +149,7 @@ def status(out):
         click.echo(line)
 
 
-@main.command("demo")
+@click.command("demo")
 @click.option("--out", "-o", type=click.Path(file_okay=False, path_type=Path),
               default=Path("silva-demo"), show_default=True, help="Output directory.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars: a line per step.")
@@ -151,6 +163,7 @@ def status(out):
 def demo(out, quiet, in_process, overwrite, overrides, plot_size, verbose):
     """Synthesise a training and a test forest plot, run the whole workflow, report."""
     from pipeline.synth import write_synthetic_plot
+    from workflows.run import prepare_output
 
     if not DEMO_CONFIG.is_file():
         raise ConfigError(f"{DEMO_CONFIG} not found; install Silva from its source checkout "
@@ -168,7 +181,28 @@ def demo(out, quiet, in_process, overwrite, overrides, plot_size, verbose):
         *overrides,
     )
     summary = start_run(DEMO_CONFIG, out, overrides, False, quiet, in_process, None, verbose,
-                        "report", command="silva demo")
+                        "report")
     if "report" in summary:
         click.echo(f"open {summary['report']} in a browser to see the report")
     return summary
+
+
+@click.command("synth")
+@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--seed", default=0, show_default=True, help="Random seed: same seed, same points.")
+@click.option("--size", default=None, type=float, help="Side of the square plot in metres.")
+@click.option("--tile-size", default=None, type=float, help="Side of the square LAZ tiles.")
+def synth(out_dir, seed, size, tile_size):
+    """Write a labelled synthetic forest plot as LAZ tiles into OUT_DIR."""
+    from pipeline.synth import write_synthetic_plot
+
+    kwargs = {k: v for k, v in {"size": size, "tile_size": tile_size}.items() if v is not None}
+    paths = write_synthetic_plot(out_dir, seed=seed, **kwargs)
+    for path in paths:
+        click.echo(str(path))
+
+
+COMMANDS = [
+    *(_step_command(name, target, doc) for name, (target, doc) in STEP_COMMANDS.items()),
+    predict, status, demo, synth,
+]

@@ -1,0 +1,24 @@
+"""The command modules: cli.py holds the group and gathers the commands of commands.py."""
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+from workflows.cli import main
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_commands_do_not_import_the_cli():
+    """cli.py gathers the commands; commands.py never imports cli.py (one direction)."""
+    tree = ast.parse((REPO / "workflows" / "commands.py").read_text())
+    imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
+    imported |= {a.name for node in ast.walk(tree) if isinstance(node, ast.Import)
+                 for a in node.names}
+    assert "workflows.cli" not in imported
+    code = ("import sys, workflows.commands as c; "
+            "assert 'workflows.cli' not in sys.modules; print(len(c.COMMANDS))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          cwd=REPO, check=True)
+    assert int(done.stdout) == len(main.commands)
