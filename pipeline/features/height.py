@@ -22,9 +22,9 @@ so it is exact, and every point of a cell shares its column. Over the column:
 
 Heights are differences of coordinates of the same cloud, computed in float64: a constant
 offset in z changes them only by the rounding of the shifted coordinates. Cell extremes and the
-ranks are exact comparisons, so a chunk whose halo holds every point within R + sqrt(2) c of its
-core (:func:`height_halo`: the point and a column cell are each within c / sqrt(2) of their
-cell centres) gives the same features as the whole cloud, bit for bit.
+ranks are exact comparisons. Every point of a column lies within R + sqrt(2) c of the query
+point in XY (both are within c / sqrt(2) of their cells' centres), so a chunk with a halo of
+that width (:func:`height_halo`) gives the same features as the whole cloud, bit for bit.
 """
 
 import math
