@@ -1,11 +1,11 @@
-"""The commands of ``silva``: ``run``, one per step, ``predict``, ``status``, ``demo`` and
-``synth``.
+"""The commands of ``silva``: ``run``, one per step, ``predict``, ``status``, ``demo``, ``synth``
+and ``init``.
 
 Each step command is a target: it runs the steps up to and including its own, skipping what a
 previous run finished with the same configuration (see :mod:`workflows.workflow`).
 :mod:`workflows.cli` gathers :data:`COMMANDS` into the ``silva`` group; this module does not
 import it. The modules that run steps (Dask, numba, zarr) are imported only when a run starts,
-so ``silva --help`` answers at once.
+so ``silva --help`` and ``silva init`` answer at once.
 """
 
 import contextlib
@@ -16,10 +16,8 @@ from pathlib import Path
 
 import click
 
-from pipeline.errors import ConfigError
 from workflows.progress import counted, say
-
-DEMO_CONFIG = Path(__file__).resolve().parent.parent / "configs" / "demo.yaml"
+from workflows.templates import TEMPLATES, template_path, write_template
 
 
 def _setup_logging(verbose: int) -> None:
@@ -156,7 +154,7 @@ def status(out):
 @click.option("--in-process", is_flag=True, help="Run without a Dask cluster.")
 @click.option("--overwrite", is_flag=True, help="Start from an empty output directory.")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
-              help="Override a value of configs/demo.yaml.")
+              help="Override a value of the demo config (silva init --template demo shows it).")
 @click.option("--plot-size", type=float, default=None,
               help="Side of the synthetic plots in metres [default: the generator's].")
 @click.option("-v", "--verbose", count=True, help="More log output.")
@@ -165,9 +163,6 @@ def demo(out, quiet, in_process, overwrite, overrides, plot_size, verbose):
     from pipeline.synth import write_synthetic_plot
     from workflows.run import prepare_output
 
-    if not DEMO_CONFIG.is_file():
-        raise ConfigError(f"{DEMO_CONFIG} not found; install Silva from its source checkout "
-                          "with pip install -e .")
     prepare_output(out, overwrite=overwrite)
     data = out / "data"
     for role, seed in (("train", 1), ("test", 2)):
@@ -180,8 +175,9 @@ def demo(out, quiet, in_process, overwrite, overrides, plot_size, verbose):
         f"data.test=[{(data / 'test').resolve()}/*.laz]",
         *overrides,
     )
-    summary = start_run(DEMO_CONFIG, out, overrides, False, quiet, in_process, None, verbose,
-                        "report")
+    with template_path("demo") as config:
+        summary = start_run(config, out, overrides, False, quiet, in_process, None, verbose,
+                            "report")
     if "report" in summary:
         click.echo(f"open {summary['report']} in a browser to see the report")
     return summary
@@ -202,7 +198,22 @@ def synth(out_dir, seed, size, tile_size):
         click.echo(str(path))
 
 
+@click.command("init")
+@click.argument("path", type=click.Path(path_type=Path))
+@click.option("--template", "-t", type=click.Choice(list(TEMPLATES)), default="forest",
+              show_default=True,
+              help="forest: survey tiles; demo: the synthetic plots; oakland: the urban "
+                   "benchmark.")
+@click.option("--force", is_flag=True, help="Overwrite PATH when it exists.")
+def init(path, template, force):
+    """Write a template config to PATH to edit, e.g. 'silva init my-survey.yaml'."""
+    write_template(template, path, force=force)
+    click.echo(f"wrote {path} from the {template} template ({TEMPLATES[template]}); edit "
+               f"data.train, data.test and data.classes, then: silva run "
+               f"{shlex.quote(str(path))} --out results/")
+
+
 COMMANDS = [
     *(_step_command(name, target, doc) for name, (target, doc) in STEP_COMMANDS.items()),
-    predict, status, demo, synth,
+    predict, status, demo, synth, init,
 ]

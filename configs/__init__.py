@@ -1,0 +1,1 @@
+"""The ready configurations, installed as the package ``workflows.configs`` (see setup.py)."""

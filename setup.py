@@ -1,0 +1,11 @@
+"""Packaging that pyproject.toml cannot express: the top-level configs/ folder ships in the
+wheel as the package ``workflows.configs``, so ``silva demo`` and ``silva init`` work from a
+plain ``pip install`` (configs/ stays the one copy in the repository)."""
+
+from setuptools import find_packages, setup
+
+setup(
+    packages=[*find_packages(include=["pipeline*", "workflows*"]), "workflows.configs"],
+    package_dir={"workflows.configs": "configs"},
+    package_data={"workflows.configs": ["*.yaml"]},
+)
