@@ -8,16 +8,19 @@
       ...
 
 Loading refuses a model whose feature description differs from what the caller computes, so
-features and forests can never be mixed up silently.
+features and forests can never be mixed up silently. model.json records the SHA-256 of each
+stage file; a forest file that does not match it (replaced, swapped with another stage,
+damaged) is refused.
 """
 
+import hashlib
 import json
-import os
 from pathlib import Path
 
 import skops.io as sio
 
 from pipeline import __version__
+from pipeline.atomic import atomic_path, atomic_write_text
 from pipeline.errors import ModelError
 
 MODEL_FILE = "model.json"
@@ -25,29 +28,90 @@ MODEL_FILE = "model.json"
 TRUSTED_TYPES = ["sklearn.tree._tree.Tree"]
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.partial")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+def file_digest(path: str | Path) -> str:
+    """SHA-256 (hexadecimal) of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def read_description(model_dir: str | Path) -> dict:
-    """The model's JSON description; ModelError when the directory holds no model."""
+    """The model's JSON description; ModelError when the directory holds no complete model.
+
+    A complete description lists its classes (name and code) and at least one stage (file,
+    fingerprint and the SHA-256 of the file).
+    """
     path = Path(model_dir) / MODEL_FILE
     if not path.is_file():
         raise ModelError(f"no model at {model_dir} ({MODEL_FILE} missing); train one with 'silva train'")
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as err:
+        description = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise ModelError(f"model description {path} is not valid JSON: {err}") from err
+    except OSError as err:
+        raise ModelError(f"cannot read model description {path}: {err.strerror}") from None
+    _check_description(description, path)
+    return description
+
+
+_ENTRIES = {"classes": {"name": str, "code": int},
+            "stages": {"file": str, "fingerprint": str, "sha256": str}}
+
+
+def _check_description(description, path: Path) -> None:
+    if not isinstance(description, dict):
+        raise ModelError(f"model description {path} is not a JSON object; retrain the model "
+                         "with 'silva train'")
+    for key, fields in _ENTRIES.items():
+        entries = description.get(key)
+        if not isinstance(entries, list) or not entries:
+            raise ModelError(f"model description {path} lists no {key}: it is incomplete or "
+                             "was not written by this version of Silva; retrain the model "
+                             "with 'silva train'")
+        for i, entry in enumerate(entries):
+            for field, kind in fields.items():
+                if not isinstance(entry, dict) or not isinstance(entry.get(field), kind) \
+                        or isinstance(entry.get(field), bool):
+                    raise ModelError(f"model description {path}: {key}[{i}] has no valid "
+                                     f"'{field}'; retrain the model with 'silva train'")
 
 
 def write_description(model_dir: str | Path, description: dict) -> None:
-    """Write model.json (atomically), adding the software version."""
+    """Write model.json (atomically), adding the software version and the SHA-256 of every
+    stage file (``stages[i]["file"]``, which must exist)."""
     model_dir = Path(model_dir)
     model_dir.mkdir(parents=True, exist_ok=True)
-    description = {**description, "software": f"silva {__version__}"}
-    _atomic_write_text(model_dir / MODEL_FILE, json.dumps(description, indent=2))
+    stages = [{**stage, "sha256": file_digest(model_dir / stage["file"])}
+              for stage in description.get("stages", [])]
+    description = {**description, "stages": stages, "software": f"silva {__version__}"}
+    atomic_write_text(model_dir / MODEL_FILE, json.dumps(description, indent=2))
+
+
+def verify_stage_files(model_dir: str | Path, description: dict) -> None:
+    """ModelError unless every stage file exists and matches the digest model.json records."""
+    for stage in description["stages"]:
+        _verify(Path(model_dir) / stage["file"], stage["sha256"])
+
+
+def _verify(path: Path, expected: str) -> None:
+    if not path.is_file():
+        raise ModelError(f"model file {path} is missing; retrain with 'silva train'")
+    if file_digest(path) != expected:
+        raise ModelError(f"model file {path} does not match the digest {MODEL_FILE} records "
+                         "for it (it was replaced, swapped with another stage's file or "
+                         "damaged); restore the model's own files or retrain with 'silva train'")
+
+
+def _recorded_digest(path: Path) -> str | None:
+    """The digest the model.json beside ``path`` records for it (None: not a stage file)."""
+    if not (path.parent / MODEL_FILE).is_file():
+        return None
+    for stage in read_description(path.parent)["stages"]:
+        if stage["file"] == path.name:
+            return stage["sha256"]
+    return None
 
 
 def stage_file(model_dir: str | Path, stage: int, fold: int | None = None) -> Path:
@@ -58,16 +122,19 @@ def stage_file(model_dir: str | Path, stage: int, fold: int | None = None) -> Pa
 
 def save_forest(path: Path, forest) -> None:
     """Write one forest atomically."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.partial")
-    sio.dump(forest, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        sio.dump(forest, tmp)
 
 
 def load_forest(path: Path):
-    """Load one forest, refusing files with types a Silva forest never contains."""
+    """Load one forest, refusing files with types a Silva forest never contains and a stage
+    file that does not match the digest its model.json records."""
+    path = Path(path)
     if not path.is_file():
         raise ModelError(f"model file {path} is missing; retrain with 'silva train'")
+    expected = _recorded_digest(path)
+    if expected is not None:
+        _verify(path, expected)
     try:
         untrusted = sio.get_untrusted_types(file=path)
     except Exception as err:  # skops raises several types for corrupt archives

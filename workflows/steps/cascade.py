@@ -32,6 +32,7 @@ from pipeline.model import (
     read_description,
     save_forest,
     stage_file,
+    verify_stage_files,
     write_description,
 )
 from pipeline.store import ROLE_TRAIN, context_array, proba_array, rows_of
@@ -157,6 +158,7 @@ def check_model(run: Run) -> list[dict]:
             f"{dict(zip(names, codes))} but data.classes gives "
             f"{dict(zip(run.classes, run.class_codes))}; use the model's classes and codes"
         )
+    verify_stage_files(run.model_path, description)
     return description["stages"]
 
 

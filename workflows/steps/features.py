@@ -11,7 +11,7 @@ import numpy as np
 
 from pipeline.errors import InputError
 from pipeline.features.sets import FeatureParams, feature_set
-from pipeline.store import ROLE_TRAIN, part_path
+from pipeline.store import ROLE_TRAIN, part_path, read_array
 from workflows.engine import chunk_tasks
 from workflows.run import Run
 
@@ -37,7 +37,7 @@ def _gather(root, scene, tiles, chunk, prefix, names):
         path = part_path(scene, tile, chunk)
         if path in root and f"{prefix}_gid" in root[path]:
             for name in names:
-                arrays[name].append(root[path][f"{prefix}_{name}"][...])
+                arrays[name].append(read_array(root[path], f"{prefix}_{name}"))
     arrays = {k: np.concatenate(v) if v else _EMPTY[k] for k, v in arrays.items()}
     order = np.argsort(arrays["gid"], kind="stable")
     return {k: v[order] for k, v in arrays.items()}

@@ -13,12 +13,14 @@ import numpy as np
 
 from pipeline.io import map_labels, read_info
 from pipeline.io import iter_points
-from pipeline.errors import InputError
+from pipeline.errors import ConfigError, InputError, StoreError
 from pipeline.store import (
     ROLE_PREDICT,
     ROLE_TEST,
     ROLE_TRAIN,
-    append_arrays,
+    Appender,
+    chunk_path,
+    forget_done,
     is_done,
     mark_done,
     open_store,
@@ -119,8 +121,12 @@ def ingest_tile(
     marker = root.require_group(f"scenes/{scene}/parts/{tile['index']}")
     if is_done(marker, "ingest", fingerprint):
         return marker.attrs["core_counts"]
-    for name in list(marker.group_keys()):  # a half-written earlier attempt
+    for name in list(marker.group_keys()):  # a half-written or damaged earlier attempt
+        if chunk_path(scene, name) in root:  # chunks built from it are built again
+            forget_done(root[chunk_path(scene, name)])
         del marker[name]
+    appender = Appender()
+    n_read = 0
     grid = Grid(**grid)
     labelled = scene != "predict"
     codes = np.array(sorted(code_to_class), dtype=np.int64)
@@ -129,6 +135,7 @@ def ingest_tile(
     fields = (label_field,) if labelled else ()
     for batch in iter_points(tile["path"], batch_size=read_batch, fields=fields):
         xyz = batch.xyz
+        n_read += len(xyz)
         gid = global_ids(tile["index"], batch.start, len(xyz))
         label = np.full(len(xyz), -1, dtype=np.int16)
         if labelled:
@@ -148,7 +155,7 @@ def ingest_tile(
         for rows in np.split(order, bounds):
             name = grid.chunk_name(int(chunk[rows[0]]))
             part = root.require_group(part_path(scene, tile["index"], name))
-            append_arrays(
+            appender.append(
                 part,
                 {
                     "core_xyz": xyz[rows],
@@ -160,9 +167,23 @@ def ingest_tile(
             counts[name] = counts.get(name, 0) + len(rows)
         for target, rows in grid.halo_members(xyz, halo):
             part = root.require_group(part_path(scene, tile["index"], grid.chunk_name(target)))
-            append_arrays(part, {"halo_xyz": xyz[rows], "halo_gid": gid[rows]})
+            appender.append(part, {"halo_xyz": xyz[rows], "halo_gid": gid[rows]})
+    if n_read != tile["n_points"]:
+        raise InputError(f"tile {tile['path']}: its header announces {tile['n_points']} points "
+                         f"but {n_read} were read; the file is truncated or its header is "
+                         "wrong: repair or re-export it")
+    for (group, name), (appended, stored) in appender.seal().items():
+        if appended != stored:
+            raise StoreError(f"store group '{group}' holds {stored} rows of '{name}' where "
+                             f"{appended} were written: another process writes to this store; "
+                             "run one Silva command per output directory and rerun")
     mark_done(marker, "ingest", fingerprint, core_counts=counts)
     return counts
+
+
+def _ingested(root, tile: dict, fingerprint: str) -> bool:
+    path = f"scenes/{tile['scene']}/parts/{tile['index']}"
+    return path in root and is_done(root[path], "ingest", fingerprint)
 
 
 def inputs_digest(tiles: list[dict]) -> str:
@@ -180,13 +201,16 @@ def ingest(run: Run, engine) -> dict:
     root = run.store
     layout = root.attrs.get("layout")
     if layout is not None and layout.get("fingerprint") == fingerprint:
-        return layout
-    if layout is not None or "scenes" in root:
-        # Inputs or chunking changed: nothing stored is valid any more.
-        if "scenes" in root:
-            del root["scenes"]
-        root.attrs["layout"] = None
-    scenes = plan_scenes(run, tiles)
+        if all(_ingested(root, tile, fingerprint) for tile in layout["tiles"]):
+            return layout
+        scenes = layout["scenes"]  # a tile found damaged since: ingest it again
+    else:
+        if layout is not None or "scenes" in root:
+            # Inputs or chunking changed: nothing stored is valid any more.
+            if "scenes" in root:
+                del root["scenes"]
+            root.attrs["layout"] = None
+        scenes = plan_scenes(run, tiles)
     for scene, info in scenes.items():
         grid = info["grid"]
         say(f"ingest: scene {scene} in chunks of {grid['size']:g} m "

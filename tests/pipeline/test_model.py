@@ -1,0 +1,81 @@
+"""A model directory ties each forest file to its description by digest."""
+
+import json
+
+import numpy as np
+import pytest
+from sklearn.ensemble import RandomForestClassifier
+
+from pipeline.errors import ModelError
+from pipeline.model import (
+    MODEL_FILE,
+    load_forest,
+    read_description,
+    save_forest,
+    stage_file,
+    verify_stage_files,
+    write_description,
+)
+
+
+def _forest(seed):
+    rng = np.random.default_rng(seed)
+    x, y = rng.normal(size=(60, 3)), rng.integers(0, 2, 60)
+    return RandomForestClassifier(n_estimators=2, random_state=seed).fit(x, y)
+
+
+@pytest.fixture
+def model(tmp_path):
+    for stage in range(2):
+        save_forest(stage_file(tmp_path, stage), _forest(stage))
+    write_description(tmp_path, {
+        "classes": [{"name": "a", "code": 1}, {"name": "b", "code": 2}],
+        "stages": [{"index": k + 1, "fingerprint": f"f{k}", "file": stage_file(tmp_path, k).name}
+                   for k in range(2)],
+    })
+    return tmp_path
+
+
+def test_description_records_a_digest_of_every_stage_file(model):
+    description = read_description(model)
+    assert all(len(stage["sha256"]) == 64 for stage in description["stages"])
+    verify_stage_files(model, description)
+    assert load_forest(stage_file(model, 1)).n_estimators == 2
+
+
+def test_swapped_stage_files_are_refused(model):
+    one, two = stage_file(model, 0), stage_file(model, 1)
+    a, b = one.read_bytes(), two.read_bytes()
+    one.write_bytes(b)
+    two.write_bytes(a)
+    with pytest.raises(ModelError, match="stage1.skops does not match the digest"):
+        verify_stage_files(model, read_description(model))
+    with pytest.raises(ModelError, match="stage2.skops does not match the digest"):
+        load_forest(two)
+
+
+def test_missing_stage_file_is_refused(model):
+    stage_file(model, 1).unlink()
+    with pytest.raises(ModelError, match="stage2.skops is missing"):
+        verify_stage_files(model, read_description(model))
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d.pop("classes"), "lists no classes"),
+    (lambda d: d.update(stages=[]), "lists no stages"),
+    (lambda d: d["stages"][0].pop("sha256"), r"stages\[0\] has no valid 'sha256'"),
+    (lambda d: d["classes"][1].update(code="2"), r"classes\[1\] has no valid 'code'"),
+])
+def test_incomplete_description_is_a_clear_error(model, change, message):
+    path = model / MODEL_FILE
+    description = json.loads(path.read_text())
+    change(description)
+    path.write_text(json.dumps(description))
+    with pytest.raises(ModelError, match=message):
+        read_description(model)
+
+
+def test_description_that_is_not_an_object(model):
+    (model / MODEL_FILE).write_text("[1, 2]")
+    with pytest.raises(ModelError, match="not a JSON object"):
+        read_description(model)
