@@ -16,6 +16,9 @@ from workflows.inputs import SCENES
 if TYPE_CHECKING:
     from workflows.config.schema import SilvaConfig
 
+#: The keys of the features section that change the features (r2 and the context cap change
+#: only the cascade's context).
+FEATURE_KEYS = ("set", "r1", "max_neighbors", "plane", "scales", "column", "voxel")
 STEPS = ("ingest", "features", "stage", "export", "evaluate")
 _FINGERPRINT_VERSION = "silva-config-1"  # bump when the meaning of a fingerprinted key changes
 
@@ -31,7 +34,7 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
                 data.classes, data.ignore, data.split, data.drop_unlisted;
                 tiling.chunk_size, tiling.halo, tiling.target_points (only with chunk_size
                 auto)
-    features    + features.set, features.r1, features.max_neighbors
+    features    + features.set, r1, max_neighbors, plane, scales, column, voxel
     stage       + features.r2, features.context_max_neighbors, every cascade key except
                 cascade.stages (adding stages keeps the finished ones)
     export      stage + output.*
@@ -65,7 +68,7 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
         # only then does it matter; an explicit size keeps the fingerprint it always had
         parts["ingest"]["target_points"] = cfg.tiling.target_points
     if step != "ingest":
-        parts["features"] = {k: d["features"][k] for k in ("set", "r1", "max_neighbors")}
+        parts["features"] = {k: d["features"][k] for k in FEATURE_KEYS}
     if step in ("stage", "export", "evaluate"):
         parts["context"] = {"r2": cfg.features.radius2,
                             "context_max_neighbors": cfg.features.context_max_neighbors}

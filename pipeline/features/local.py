@@ -24,6 +24,7 @@ the same, bit for bit, whatever the chunking of the cloud (see the neighbours mo
 """
 
 import logging
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -175,8 +176,11 @@ def _radial_order(xy, n, order, bucket):
 
 
 @_jit
-def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, out):
-    """Moments of each query's triangulated neighbourhood into out[row] (zeros if none)."""
+def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, horizontal, out):
+    """Moments of each query's triangulated neighbourhood into out[row] (zeros if none).
+
+    ``horizontal``: triangulate in the XY plane instead of the principal plane.
+    """
     n_query = query.shape[0]
     max_n = 3
     for row in range(n_query):
@@ -205,6 +209,10 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, out):
             rel[k, 2] = xyz[j, 2] - xyz[q, 2]
         if not _plane_basis(rel, n, basis, cov, axes):
             continue
+        if horizontal:
+            for k in range(3):
+                basis[0, k] = 1.0 if k == 0 else 0.0
+                basis[1, k] = 1.0 if k == 1 else 0.0
         for k in range(n):
             xy[k, 0] = rel[k, 0] * basis[0, 0] + rel[k, 1] * basis[0, 1] + rel[k, 2] * basis[0, 2]
             xy[k, 1] = rel[k, 0] * basis[1, 0] + rel[k, 1] * basis[1, 1] + rel[k, 2] * basis[1, 2]
@@ -250,8 +258,61 @@ def local_moments(xyz, nbr_idx, nbr_ptr, query) -> np.ndarray:
         if idx.size and (idx.min() < 0 or idx.max() >= len(xyz)):
             raise InputError(f"{name} holds indices outside [0, {len(xyz)})")
     out = np.empty((len(query), N_MOMENTS))
-    _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, out)
+    _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, False, out)
     return out
+
+
+#: The planes a neighbourhood can be triangulated in: that of its two principal axes (the
+#: design's reading of the paper) or the horizontal XY plane (the paper does not say which).
+PLANES = ("pca", "xy")
+
+
+class Surface(NamedTuple):
+    """What :func:`local_surface` gives per query point."""
+
+    invariants: np.ndarray  # float64 (Q, 11), NaN without a surface
+    area: np.ndarray  # float64 (Q,): M000, the triangulated area (0 without a surface)
+    n_neighbors: np.ndarray  # int64 (Q,): points of S1 that formed the surface
+    n_degenerate: int  # query points without a surface
+
+
+def local_surface(xyz, r1, max_neighbors=64, *, query=None, ids=None, normalise="area",
+                  plane="pca") -> Surface:
+    """Invariants, area and neighbour count of each query point's local surface.
+
+    See :func:`local_invariants` for the parameters; ``plane`` is one of :data:`PLANES`.
+    """
+    xyz = _check_cloud(xyz)
+    r1 = _check_radius(r1, "r1")
+    max_neighbors = _check_max_neighbors(max_neighbors)
+    moment_invariants(np.zeros((0, N_MOMENTS)), normalise)  # rejects a bad normalise now
+    if plane not in PLANES:
+        raise ValueError(f"plane must be one of {PLANES}, got {plane!r}")
+    query = _check_query(query, len(xyz))
+    index = RadiusIndex(xyz, r1, ids)
+    out = np.empty((len(query), len(INVARIANT_NAMES)))
+    area = np.empty(len(query))
+    counts = np.empty(len(query), dtype=np.int64)
+    spatial = index.spatial_order(query)
+    for start in range(0, len(query), QUERY_BLOCK):
+        rows = spatial[start : start + QUERY_BLOCK]
+        block = query[rows]
+        nbr_idx, nbr_ptr = index.query(block, max_neighbors)
+        moments = np.empty((len(block), N_MOMENTS))
+        _local_moments_kernel(xyz, nbr_idx, nbr_ptr, block, plane == "xy", moments)
+        out[rows] = moment_invariants(moments, normalise)
+        area[rows] = moments[:, 0]
+        counts[rows] = np.diff(nbr_ptr)
+    n_degenerate = int(np.count_nonzero(area == 0.0))
+    if n_degenerate:
+        logger.info(
+            "%d of %d query points have no local surface (fewer than 3 neighbours within "
+            "r1 = %g or collinear): their invariants are NaN",
+            n_degenerate, len(query), r1,
+        )  # fmt: skip
+    else:
+        logger.debug("every one of %d query points has a local surface", len(query))
+    return Surface(out, area, counts, n_degenerate)
 
 
 def local_invariants(
@@ -263,6 +324,7 @@ def local_invariants(
     ids=None,
     normalise="area",
     return_degenerate: bool = False,
+    plane: str = "pca",
 ):
     """The 11 local moment invariants of each query point.
 
@@ -286,6 +348,9 @@ def local_invariants(
         Scale normalisation of the invariants (see :func:`moment_invariants`).
     return_degenerate : bool
         Also return the number of query points without a surface.
+    plane : "pca" or "xy"
+        Triangulate in the plane of the two largest principal axes (default) or in the
+        horizontal plane (see :data:`PLANES`).
 
     Returns
     -------
@@ -304,31 +369,8 @@ def local_invariants(
     ConfigError
         ``normalise`` is not ``"area"`` or ``None``.
     """
-    xyz = _check_cloud(xyz)
-    r1 = _check_radius(r1, "r1")
-    max_neighbors = _check_max_neighbors(max_neighbors)
-    moment_invariants(np.zeros((0, N_MOMENTS)), normalise)  # rejects a bad normalise now
-    query = _check_query(query, len(xyz))
-    index = RadiusIndex(xyz, r1, ids)
-    out = np.empty((len(query), len(INVARIANT_NAMES)))
-    n_degenerate = 0
-    spatial = index.spatial_order(query)
-    for start in range(0, len(query), QUERY_BLOCK):
-        rows = spatial[start : start + QUERY_BLOCK]
-        block = query[rows]
-        nbr_idx, nbr_ptr = index.query(block, max_neighbors)
-        moments = np.empty((len(block), N_MOMENTS))
-        _local_moments_kernel(xyz, nbr_idx, nbr_ptr, block, moments)
-        n_degenerate += int(np.count_nonzero(moments[:, 0] == 0.0))
-        out[rows] = moment_invariants(moments, normalise)
-    if n_degenerate:
-        logger.info(
-            "%d of %d query points have no local surface (fewer than 3 neighbours within "
-            "r1 = %g or collinear): their invariants are NaN",
-            n_degenerate, len(query), r1,
-        )  # fmt: skip
-    else:
-        logger.debug("every one of %d query points has a local surface", len(query))
+    surface = local_surface(xyz, r1, max_neighbors, query=query, ids=ids,
+                            normalise=normalise, plane=plane)
     if return_degenerate:
-        return out, n_degenerate
-    return out
+        return surface.invariants, surface.n_degenerate
+    return surface.invariants

@@ -6,16 +6,36 @@ feature matrix. The estimator and the workflow both take their set from :func:`f
 and a saved model records the set's name and columns.
 
 - ``paper``: the 11 local moment invariants of the published method, in S1 (r1, at most
-  ``max_neighbors`` nearest points).
+  ``max_neighbors`` nearest points), presented to the forests on a well-conditioned,
+  order-preserving scale (:mod:`pipeline.features.conditioning`).
+- ``covariance``: eigenvalue features at the radii ``scales`` x r1 (voxel-subsampled
+  neighbourhoods, :mod:`pipeline.features.covariance`) and the height features of a column
+  of radius ``column`` x r1 (:mod:`pipeline.features.height`): the usual features of the
+  field, the peer baseline inside Silva.
+- ``default``: ``covariance`` plus the moment invariants, the size of S1 (log point count)
+  and the log area of its triangulated surface — size cues the paper leaves out.
+
+With ``voxel`` set, the surface features (invariants, count, area) are computed on one
+representative per voxel of that side (smallest global id; :mod:`pipeline.features.voxel`)
+and every point takes its representative's values: on dense terrestrial scans the 64
+nearest points then span S1 instead of a 10 cm patch.
 """
 
+import math
 from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 
+from pipeline.features.conditioning import condition_invariants
+from pipeline.features.covariance import multiscale_covariance, multiscale_halo, multiscale_names
+from pipeline.features.height import HEIGHT_NAMES, height_features, height_halo
 from pipeline.features.invariants import INVARIANT_NAMES
-from pipeline.features.local import local_invariants
+from pipeline.features.local import PLANES, local_surface
+from pipeline.features.voxel import halo as voxel_halo
+from pipeline.features.voxel import representative_of
+
+SURFACE_SIZE_NAMES = ("log_neighbors", "log_area")
 
 
 @dataclass(frozen=True)
@@ -24,6 +44,10 @@ class FeatureParams:
 
     ``r2`` (the inner context sphere) defaults to r1 / 2, the paper's choice;
     ``context_max_neighbors`` None counts every point within r1 in the context (the paper).
+    ``plane`` is where S1 is triangulated (:data:`pipeline.features.local.PLANES`);
+    ``scales`` the covariance radii as multiples of r1; ``column`` the radius of the height
+    column as a multiple of r1 (its cells have side r1); ``voxel`` the side in metres of the
+    voxels of the surface features, or None for every point.
     """
 
     set: str = "paper"
@@ -31,6 +55,10 @@ class FeatureParams:
     r2: float | None = None
     max_neighbors: int = 64
     context_max_neighbors: int | None = None
+    plane: str = "pca"
+    scales: tuple[float, ...] = (0.5, 1.0, 2.0, 4.0)
+    column: float = 6.0
+    voxel: float | None = None
 
     def __post_init__(self):
         if self.set not in FEATURE_SETS:
@@ -39,11 +67,20 @@ class FeatureParams:
         if not self.r1 > 0:
             raise ValueError(f"r1 must be > 0, got {self.r1}")
         if self.r2 is None:
-            object.__setattr__(self, "r2", self.r1 / 2)
+            object.__setattr__(self, "r2", self.r1 / 2)  # the paper's r2 = r1 / 2
         if not 0 < self.r2 <= self.r1:
             raise ValueError(f"r2 must satisfy 0 < r2 <= r1 = {self.r1}, got {self.r2}")
-        object.__setattr__(self, "r1", float(self.r1))
-        object.__setattr__(self, "r2", float(self.r2))
+        if self.plane not in PLANES:
+            raise ValueError(f"plane must be one of {PLANES}, got {self.plane!r}")
+        if not self.scales or min(self.scales) <= 0 or len(set(self.scales)) < len(self.scales):
+            raise ValueError(f"scales must be distinct multiples of r1 > 0, got {self.scales}")
+        if not self.column > 0:
+            raise ValueError(f"column must be > 0, got {self.column}")
+        if self.voxel is not None and not self.voxel > 0:
+            raise ValueError(f"voxel must be > 0 or None, got {self.voxel}")
+        for name in ("r1", "r2", "column"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+        object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))
 
     @property
     def halo(self) -> float:
@@ -62,21 +99,75 @@ class FeatureSet:
 
     def __call__(self, xyz, query=None, ids=None) -> np.ndarray:
         """Features of the ``query`` rows of ``xyz`` (default all); NaN where undefined."""
+        xyz = np.asarray(xyz, dtype=np.float64)
+        query = np.arange(len(xyz), dtype=np.int64) if query is None else np.asarray(query)
+        ids = np.arange(len(xyz), dtype=np.int64) if ids is None else np.asarray(ids)
         out = np.asarray(self.compute(xyz, query, ids), dtype=np.float32)
-        if out.ndim != 2 or out.shape[1] != len(self.columns):
+        if out.shape != (len(query), len(self.columns)):
             raise AssertionError(f"feature set {self.name} gave shape {out.shape}")
         return out
 
 
-def _paper(params: FeatureParams) -> FeatureSet:
-    def compute(xyz, query, ids):
-        return local_invariants(xyz, params.r1, params.max_neighbors, query=query, ids=ids)
+# -- the parts a set is made of -------------------------------------------------------------
+def _surface(params: FeatureParams, with_size: bool):
+    """Columns, reach and function of the surface features (invariants [+ size cues])."""
+    columns = tuple(INVARIANT_NAMES) + (SURFACE_SIZE_NAMES if with_size else ())
 
-    return FeatureSet("paper", tuple(INVARIANT_NAMES), params.r1, compute)
+    def describe(xyz, query, ids):
+        surface = local_surface(xyz, params.r1, params.max_neighbors, query=query, ids=ids,
+                                plane=params.plane)
+        parts = [condition_invariants(surface.invariants)]
+        if with_size:
+            with np.errstate(divide="ignore"):
+                parts.append(np.log(surface.n_neighbors)[:, None])
+                parts.append(np.where(surface.area > 0, np.log(surface.area), np.nan)[:, None])
+        return np.hstack(parts).astype(np.float32)
+
+    if params.voxel is None:
+        return columns, params.r1, describe
+
+    def per_voxel(xyz, query, ids):
+        # the representatives of the query points, described on the representatives alone
+        rep_of = representative_of(xyz, ids, params.voxel)
+        reps = np.unique(rep_of)
+        wanted = np.unique(rep_of[query])
+        values = describe(xyz[reps], np.searchsorted(reps, wanted), ids[reps])
+        return values[np.searchsorted(wanted, rep_of[query])]
+
+    # a representative lies within one voxel diagonal of its points, and so do the
+    # representatives of the voxels its neighbourhood reaches
+    return columns, voxel_halo(params.r1, params.voxel) + params.voxel * math.sqrt(3), per_voxel
+
+
+def _covariance(params: FeatureParams):
+    radii = tuple(s * params.r1 for s in params.scales)
+    column, cell = params.column * params.r1, params.r1
+    columns = multiscale_names(radii) + tuple(HEIGHT_NAMES)
+    reach = max(multiscale_halo(radii), height_halo(column, cell))
+
+    def describe(xyz, query, ids):
+        return np.hstack([multiscale_covariance(xyz, ids, query, radii),
+                          height_features(xyz, ids, query, column, cell)])
+
+    return columns, reach, describe
+
+
+def _combine(name: str, *parts) -> FeatureSet:
+    columns = tuple(c for cols, _, _ in parts for c in cols)
+    reach = max(r for _, r, _ in parts)
+
+    def compute(xyz, query, ids):
+        return np.hstack([describe(xyz, query, ids) for _, _, describe in parts])
+
+    return FeatureSet(name, columns, reach, compute)
 
 
 #: name -> builder of the set from its parameters
-FEATURE_SETS: dict[str, Callable[[FeatureParams], FeatureSet]] = {"paper": _paper}
+FEATURE_SETS: dict[str, Callable[[FeatureParams], FeatureSet]] = {
+    "paper": lambda p: _combine("paper", _surface(p, with_size=False)),
+    "covariance": lambda p: _combine("covariance", _covariance(p)),
+    "default": lambda p: _combine("default", _covariance(p), _surface(p, with_size=True)),
+}
 
 
 def feature_set(params: FeatureParams) -> FeatureSet:

@@ -214,6 +214,28 @@ class FeaturesConfig(Section):
         "which on dense scans shrinks the context sphere well below r1.",
     )
 
+    plane: Literal["pca", "xy"] = Field(
+        _FEATURES.plane,
+        description="Where S1 is triangulated: 'pca', the plane of its two principal axes, "
+        "or 'xy', the horizontal plane (the paper does not say which).",
+    )
+    scales: list[Number] = Field(
+        list(_FEATURES.scales), min_length=1,
+        description="Sets 'covariance' and 'default': the radii of the covariance features, "
+        "as multiples of r1.",
+    )
+    column: Number = Field(
+        _FEATURES.column, gt=0,
+        description="Sets 'covariance' and 'default': radius of the column of the height "
+        "features, as a multiple of r1.",
+    )
+    voxel: Number | None = Field(
+        _FEATURES.voxel, gt=0,
+        description="Unset: the surface features of every point. A side in metres: they are "
+        "computed on one point per voxel (the smallest id) and shared by its points; "
+        "dense scans then see all of S1, not a patch of its 64 nearest points.",
+    )
+
     @field_validator("set")
     @classmethod
     def _known_set(cls, value: str) -> str:
@@ -229,13 +251,17 @@ class FeaturesConfig(Section):
         elif not 0 < self.r2 <= self.r1:
             raise fail(f"features.r2 must be > 0 and <= features.r1 ({show(self.r1)}), "
                        f"got {show(self.r2)}")
+        if len(set(self.scales)) < len(self.scales) or min(self.scales) <= 0:
+            raise fail(f"features.scales must be distinct numbers > 0, got {show(self.scales)}")
         return self
 
     @property
     def params(self) -> FeatureParams:
         """The resolved parameters the feature and context steps receive."""
-        return FeatureParams(self.set, float(self.r1), float(self.r2), int(self.max_neighbors),
-                             self.context_max_neighbors)
+        return FeatureParams(
+            self.set, float(self.r1), float(self.r2), int(self.max_neighbors),
+            self.context_max_neighbors, self.plane, tuple(float(v) for v in self.scales),
+            float(self.column), None if self.voxel is None else float(self.voxel))
 
     @property
     def radius2(self) -> float:

@@ -1,0 +1,66 @@
+"""Feature sets: columns, chunk invariance within their reach, and the registry."""
+
+import numpy as np
+import pytest
+
+from pipeline.features.sets import FEATURE_SETS, FeatureParams, feature_set
+from pipeline.synth import synthetic_plot
+
+PARAMS = [FeatureParams(set=name) for name in FEATURE_SETS] + [
+    FeatureParams(set="default", voxel=0.15, plane="xy", scales=(0.5, 1.5), column=4.0),
+]
+
+
+@pytest.fixture(scope="module")
+def plot():
+    xyz, labels = synthetic_plot(seed=3, size=12.0)
+    rng = np.random.default_rng(0)
+    keep = rng.random(len(xyz)) < 0.3  # a third of the plot keeps the test quick
+    ids = (np.flatnonzero(keep) + (5 << 40)).astype(np.int64)
+    return xyz[keep] + [512_000.0, 5_400_000.0, 300.0], ids
+
+
+@pytest.mark.parametrize("params", PARAMS, ids=lambda p: f"{p.set}-{p.voxel}-{p.plane}")
+def test_a_chunk_with_its_reach_equals_the_whole_cloud(plot, params):
+    xyz, ids = plot
+    fs = feature_set(params)
+    assert params.halo >= fs.reach >= params.r1
+    x0, y0 = xyz[:, 0].min() + 3.0, xyz[:, 1].min() + 3.0
+    core = (xyz[:, 0] >= x0) & (xyz[:, 0] < x0 + 4) & (xyz[:, 1] >= y0) & (xyz[:, 1] < y0 + 4)
+    near = ((xyz[:, 0] >= x0 - fs.reach) & (xyz[:, 0] < x0 + 4 + fs.reach)
+            & (xyz[:, 1] >= y0 - fs.reach) & (xyz[:, 1] < y0 + 4 + fs.reach))
+    rows = np.flatnonzero(near)
+    rows = rows[np.random.default_rng(1).permutation(len(rows))]  # order must not matter
+    query = np.flatnonzero(core[rows])
+    chunk = fs(xyz[rows], query, ids[rows])
+    whole = fs(xyz, np.flatnonzero(core), ids)
+    order = np.argsort(ids[rows][query])
+    assert chunk.shape == (core.sum(), len(fs.columns)) and chunk.dtype == np.float32
+    np.testing.assert_array_equal(chunk[order], whole[np.argsort(ids[core])])
+
+
+def test_columns_are_named_and_the_rich_sets_extend_the_paper():
+    paper, cov, default = (feature_set(FeatureParams(set=s)) for s in FEATURE_SETS)
+    assert len(paper.columns) == 11 and paper.columns[0] == "I2_22"
+    assert set(paper.columns) < set(default.columns) and set(cov.columns) < set(default.columns)
+    assert len(set(default.columns)) == len(default.columns)
+    assert "height_above_lowest" in cov.columns and "log_area" in default.columns
+
+
+def test_every_column_has_a_spread_a_forest_can_split(plot):
+    """No column may look constant to scikit-learn's splitter (differences below 1e-7)."""
+    xyz, ids = plot
+    fs = feature_set(FeatureParams(set="default"))
+    values = fs(xyz, np.arange(0, len(xyz), 7), ids[: len(xyz)])
+    low, high = np.nanpercentile(values, [10, 90], axis=0)
+    flat = [c for c, lo, hi in zip(fs.columns, low, high) if not hi - lo > 1e-4]
+    assert not flat, flat
+
+
+def test_bad_parameters_are_refused():
+    with pytest.raises(ValueError, match="unknown feature set"):
+        FeatureParams(set="fancy")
+    with pytest.raises(ValueError, match="plane"):
+        FeatureParams(plane="yz")
+    with pytest.raises(ValueError, match="scales"):
+        FeatureParams(scales=(1.0, 1.0))
