@@ -2,7 +2,8 @@
 
 Every command turns a :class:`pipeline.errors.SilvaError`, and a usage error, into one line
 on stderr and exit code 1, so batch logs show what went wrong and how to fix it instead of a
-traceback or a usage screen. The commands themselves are in :mod:`workflows.commands`.
+traceback or a usage screen. Ctrl-C ends a run with one line that says how to resume it. The
+commands themselves are in :mod:`workflows.commands`.
 """
 
 import sys
@@ -17,6 +18,16 @@ def _usage_error(err: click.UsageError):
     where = err.ctx.command_path if err.ctx else "silva"
     click.echo(f"silva: error: {err.format_message()} (see '{where} --help')", err=True)
     sys.exit(1)
+
+
+def _interrupted(err: KeyboardInterrupt):
+    command = getattr(err, "command", None)
+    if command:
+        click.echo(f"silva: interrupted; run the same command again to resume: {command}",
+                   err=True)
+    else:
+        click.echo("silva: interrupted", err=True)
+    sys.exit(130)
 
 
 class SilvaGroup(click.Group):
@@ -36,9 +47,8 @@ class SilvaGroup(click.Group):
             sys.exit(1)
         except click.UsageError as err:  # a subcommand's missing argument or unknown option
             _usage_error(err)
-        except KeyboardInterrupt:
-            click.echo("silva: interrupted; run the same command again to resume", err=True)
-            sys.exit(130)
+        except KeyboardInterrupt as err:
+            _interrupted(err)
 
 
 @click.group(name="silva", cls=SilvaGroup,

@@ -14,6 +14,8 @@
 import importlib.util
 import logging
 import os
+import signal
+import threading
 import weakref
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
@@ -46,7 +48,8 @@ def open_client(
     cluster_cfg
         A :class:`workflows.config.ClusterConfig`.
     quiet
-        Keep the cluster's own log messages to errors.
+        Accepted for symmetry with the engine; the cluster's own log messages are always
+        kept to errors on the terminal (the scheduler's warnings go to the run's log).
     local_directory
         Scratch directory of local workers (spilled data); for SLURM workers
         ``cluster.slurm.local_directory`` takes precedence.
@@ -111,20 +114,37 @@ def _local_cluster(cfg, quiet, local_directory):
     extra = {"local_directory": os.fspath(local_directory)} if local_directory else {}
     log.info("starting a local Dask cluster: %d workers x %d threads", n_workers,
              cfg.threads_per_worker)
-    with LocalCluster(
-        n_workers=n_workers,
-        threads_per_worker=cfg.threads_per_worker,
-        memory_limit=cfg.memory_limit,
-        processes=True,
-        host=LOOPBACK,
-        # The scheduler's HTTP server (health checks, and the dashboard when enabled) also
-        # stays on loopback, on a free port.
-        dashboard_address=f"{LOOPBACK}:0",
-        scheduler_kwargs={"dashboard": _dashboard_possible(cfg.dashboard)},
-        silence_logs=logging.ERROR if quiet else logging.WARNING,
-        **extra,
-    ) as cluster:
+    with _workers_ignore_ctrl_c():
+        cluster = LocalCluster(
+            n_workers=n_workers,
+            threads_per_worker=cfg.threads_per_worker,
+            memory_limit=cfg.memory_limit,
+            processes=True,
+            host=LOOPBACK,
+            # The scheduler's HTTP server (health checks, and the dashboard when enabled) also
+            # stays on loopback, on a free port.
+            dashboard_address=f"{LOOPBACK}:0",
+            scheduler_kwargs={"dashboard": _dashboard_possible(cfg.dashboard)},
+            silence_logs=logging.ERROR,  # no worker or shutdown warnings on the terminal
+            **extra,
+        )
+    with cluster:
         yield cluster
+
+
+@contextmanager
+def _workers_ignore_ctrl_c():
+    """Worker processes started in the block ignore Ctrl-C (SIGINT, sent to the terminal's
+    whole process group): this process alone handles it and closes the cluster, so an
+    interrupted run ends with one line instead of a traceback from every worker."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # inherited by spawned workers
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _connect(address: str, timeout: float):
@@ -149,7 +169,7 @@ def _slurm_cluster(cfg, quiet, local_directory):
     SLURMCluster = _jobqueue().SLURMCluster
     slurm = cfg.slurm
     cluster = SLURMCluster(
-        silence_logs="error" if quiet else "warning",
+        silence_logs="error",
         scheduler_options={"dashboard": _dashboard_possible(cfg.dashboard)},
         **_slurm_kwargs(cfg, local_directory),
     )

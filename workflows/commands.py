@@ -16,17 +16,20 @@ from pathlib import Path
 
 import click
 
-from workflows.progress import counted, say
+from workflows.progress import counted, run_logging, run_progress, say
 from workflows.templates import TEMPLATES, template_path, write_template
 
+log = logging.getLogger(__name__)
 
-def _setup_logging(verbose: int) -> None:
-    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    for handler in logging.root.handlers:  # Dask sets its loggers to INFO on its own
-        handler.setLevel(level)
-    for noisy in ("distributed", "bokeh", "tornado"):
-        logging.getLogger(noisy).setLevel(max(level, logging.ERROR))
+LOG_NAME = "silva.log"
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C during a run; ``command`` is what resumes it."""
+
+    def __init__(self, command: str):
+        super().__init__(command)
+        self.command = command
 
 
 def _command_line() -> str:
@@ -51,7 +54,8 @@ def run_options(fn):
                      help="Run every task in this process, without a Dask cluster."),
         click.option("--chunk", metavar="SCENE/CHUNK",
                      help="Rerun one chunk in this process, showing the full error."),
-        click.option("-v", "--verbose", count=True, help="More log output (-vv for debug)."),
+        click.option("-v", "--verbose", count=True,
+                     help="Show the resolved configuration and info logs (-vv: debug)."),
     ]
     for option in reversed(options):
         fn = option(fn)
@@ -74,24 +78,53 @@ def _engine(cfg, *, quiet, in_process, debug):
         yield Engine(client, quiet=quiet)
 
 
+def announce_compilation(quiet: bool) -> bool:
+    """Say so when numba has no compiled kernels for this version yet; True when it said it."""
+    import numba
+
+    import pipeline.features  # noqa: F401 - points numba at the source-keyed cache
+
+    folder = Path(numba.config.CACHE_DIR)
+    if folder.is_dir() and any(folder.rglob("*.nbi")):
+        return False
+    say(f"compiling the feature kernels (numba) for this version of Silva: the first chunks "
+        f"take a minute or two longer; later runs reuse them from {folder}", quiet=quiet)
+    return True
+
+
 def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, target,
               *, model_dir=None, command=None, config_path=None):
     """Load the config, prepare the output directory and run the steps up to ``target``."""
     from workflows.config import load_config
     from workflows.run import Run, prepare_output
-    from workflows.workflow import execute
+    from workflows.workflow import STEPS, execute
 
-    _setup_logging(verbose)
     cfg = load_config(config_path or config, overrides)
     out = out or Path(f"silva-{Path(config).stem}")
     prepare_output(out, overwrite=overwrite)
-    run = Run(cfg, out, quiet=quiet, model_dir=model_dir)
-    text = run.save_config()
-    if not quiet:
-        click.echo(f"# resolved configuration (saved to {out / 'config.yaml'})\n{text}")
     command = command or _command_line()
-    with _engine(cfg, quiet=quiet, in_process=in_process, debug=chunk is not None) as engine:
-        summary = execute(run, engine, target, only=chunk, command=command)
+    steps = [("apply" if s == "train" and model_dir else s) for s in STEPS]
+    steps = steps[: STEPS.index(target) + 1]
+    with run_logging(verbose, out / LOG_NAME):
+        log.info("start: %s (steps %s)", command, ", ".join(steps))
+        run = Run(cfg, out, quiet=quiet, model_dir=model_dir)
+        text = run.save_config()
+        if verbose:
+            click.echo(f"# resolved configuration (saved to {out / 'config.yaml'})\n{text}",
+                       err=True)
+        if "features" in steps:
+            announce_compilation(quiet)
+        try:
+            with run_progress(steps, quiet=quiet, stages=int(cfg.cascade.stages)) as progress:
+                with _engine(cfg, quiet=quiet, in_process=in_process,
+                             debug=chunk is not None) as engine:
+                    summary = execute(run, engine, target, only=chunk, command=command)
+                done = [*summary["timings"], *(["report"] if "report" in summary else [])]
+                progress.finish(summary["timings"], done)
+        except KeyboardInterrupt:
+            log.info("interrupted; the same command resumes: %s", command)
+            raise Interrupted(command) from None
+        log.info("done: %s", command)
     if summary.get("predictions"):
         click.echo(f"predictions: {run.predictions_path} "
                    f"({counted(len(summary['predictions']), 'tile')})")
@@ -157,7 +190,8 @@ def status(out):
               help="Override a value of the demo config (silva init --template demo shows it).")
 @click.option("--plot-size", type=float, default=None,
               help="Side of the synthetic plots in metres [default: the generator's].")
-@click.option("-v", "--verbose", count=True, help="More log output.")
+@click.option("-v", "--verbose", count=True,
+              help="Show the resolved configuration and info logs (-vv: debug).")
 def demo(out, quiet, in_process, overwrite, overrides, plot_size, verbose):
     """Synthesise a training and a test forest plot, run the whole workflow, report."""
     from pipeline.synth import write_synthetic_plot

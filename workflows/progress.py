@@ -1,11 +1,19 @@
-"""Progress display: a bar per step (items done / total, elapsed, ETA), or plain log lines.
+"""What a run shows: a bar per step, the whole run's progress and ETA, and its log.
 
-Interactive terminals get rich progress bars on stderr; ``quiet`` (or a non-terminal stderr,
-as in batch logs) prints one line when a step starts and one when it ends.
+Interactive terminals get rich progress bars on stderr, each showing the step's items and the
+whole run's step n of m, elapsed time and ETA. Batch logs (stderr not a terminal) get a line
+when a step's tasks start and one when they end; ``quiet`` prints one line per step of the
+run, when the step is over. :func:`run_progress` makes the steps' bars count towards the
+whole run; :func:`run_logging` writes the run's log records to ``OUT/silva.log``.
 """
 
+import contextlib
+import logging
+import re
 import sys
 import time
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
 
 import click
 from rich.console import Console
@@ -18,9 +26,19 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
+log = logging.getLogger(__name__)
+
+#: Typical share of each step in a run's time (the demo and the benchmarks): the ETA of the
+#: whole run weighs each step's progress by it.
+STEP_WEIGHTS = {"ingest": 0.1, "features": 0.6, "train": 0.2, "apply": 0.2, "export": 0.04,
+                "evaluate": 0.02, "report": 0.04}
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+_NOISY = ("distributed", "bokeh", "tornado")  # their own handlers write to stderr
+
 
 def say(message: str, *, quiet: bool = False) -> None:
-    """A status line for the user on stderr (stdout stays free for results)."""
+    """A status line for the user on stderr (stdout stays free for results); also logged."""
+    log.info("%s", message)
     if not quiet:
         click.echo(message, err=True)
 
@@ -30,6 +48,140 @@ def counted(n: int, noun: str) -> str:
     return f"{n:,} {noun}{'' if n == 1 else 's'}"
 
 
+def clock(seconds: float) -> str:
+    """'0:07', '12:30', '1:02:03' (hours only when needed)."""
+    minutes, secs = divmod(int(round(seconds)), 60)
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours}:{minutes:02d}:{secs:02d}" if hours else f"{minutes}:{secs:02d}"
+
+
+# -- the whole run -----------------------------------------------------------------------------
+class RunProgress:
+    """Step n of m, elapsed and ETA of a whole run, from the progress of its steps' tasks.
+
+    ``steps`` are the run's steps in order (``workflows.workflow.STEPS`` up to the target).
+    Each :class:`StepProgress` reports here under its task name: ``ingest``, ``features``,
+    ``export`` and ``evaluate`` are steps; every other name (``sample-2``, ``predict-3``, ...)
+    belongs to the cascade step, and its trailing number is the stage out of ``stages``.
+    """
+
+    def __init__(self, steps: Sequence[str], *, quiet: bool = False, stages: int = 1,
+                 weights: Mapping[str, float] = STEP_WEIGHTS):
+        self.steps = list(steps)
+        self.quiet = quiet
+        self.stages = max(int(stages), 1)
+        self.weights = [float(weights.get(step, 0.1)) for step in self.steps]
+        self.started = time.monotonic()
+        self._index = -1  # the current step
+        self._fraction = 0.0  # of the current step
+        self._tasks = 0  # of the current step
+        self._step_started = self.started
+        self._step_ended = self.started
+        self.lines: list[str] = []  # what quiet mode printed
+
+    def step_of(self, name: str) -> int:
+        if name in self.steps:
+            return self.steps.index(name)
+        fixed = {"ingest", "features", "export", "evaluate", "report"}
+        cascade = [i for i, step in enumerate(self.steps) if step not in fixed]
+        return cascade[0] if cascade else len(self.steps) - 1
+
+    def begin(self, name: str, total: int) -> None:
+        index = self.step_of(name)
+        if index != self._index:
+            self._close_until(index)
+            self._index, self._fraction, self._tasks = index, 0.0, 0
+            self._step_started = time.monotonic()
+        self._tasks += total
+        self._name, self._total = name, max(total, 1)
+        self.update(0)
+
+    def update(self, done: int) -> None:
+        """``done`` of the current task group's items are finished."""
+        part = done / self._total
+        stage = re.search(r"-(\d+)$", self._name)
+        if stage and self.steps[self._index] not in ("ingest", "features", "export", "evaluate"):
+            part = (min(int(stage.group(1)), self.stages) - 1 + part) / self.stages
+        self._fraction = max(self._fraction, min(part, 1.0))
+
+    def end(self) -> None:
+        self._step_ended = time.monotonic()
+
+    @property
+    def step_label(self) -> str:
+        return f"{self._index + 1}/{len(self.steps)}"
+
+    def fraction(self) -> float:
+        """Share of the run's work done, by the step weights."""
+        total = sum(self.weights)
+        done = sum(self.weights[: max(self._index, 0)])
+        if self._index >= 0:
+            done += self.weights[self._index] * self._fraction
+        return done / total if total else 0.0
+
+    def status(self, short: bool = False) -> str:
+        """'step 2/6, 0:31 elapsed, ETA 1:10', or 'run 0:31, ETA 1:10' when ``short``.
+
+        The ETA of the whole run shows once 5% of the work is done (before, it is noise).
+        """
+        elapsed = time.monotonic() - self.started
+        text = (f"run {clock(elapsed)}" if short
+                else f"step {self.step_label}, {clock(elapsed)} elapsed")
+        fraction = self.fraction()
+        if 0.05 <= fraction < 1:
+            text += f", ETA {clock(elapsed * (1 - fraction) / fraction)}"
+        return text
+
+    def finish(self, timings: Mapping[str, float], done: Sequence[str]) -> None:
+        """Report the steps not reported yet, once the run is over.
+
+        ``timings`` are the steps' durations in seconds; ``done`` the steps that ran (a run
+        without labelled test points skips evaluate and report).
+        """
+        self._close_until(len(self.steps), timings, set(done))
+
+    def _close_until(self, index: int, timings: Mapping[str, float] | None = None,
+                     done: set[str] | None = None) -> None:
+        """Report the current step and the ones before ``index`` (quiet mode prints them).
+
+        While the run goes on, a step that ran no tasks was done by an earlier run.
+        """
+        timings = timings or {}
+        for i in range(max(self._index, 0), min(index, len(self.steps))):
+            step = self.steps[i]
+            seconds = timings.get(step)
+            if i == self._index and self._tasks:
+                if seconds is None:
+                    seconds = self._step_ended - self._step_started
+                what = f"{counted(self._tasks, 'task')} in {seconds:.1f} s"
+            elif done is None:
+                what = "already done"
+            elif step not in done:
+                what = "skipped"
+            else:
+                what = "done" if seconds is None else f"done in {seconds:.1f} s"
+            self._index, self._fraction = i, 1.0
+            line = f"[{i + 1}/{len(self.steps)}] {step}: {what} ({self.status()})"
+            self.lines.append(line)
+            say(line, quiet=not self.quiet)
+        self._tasks = 0
+
+
+_RUN: RunProgress | None = None
+
+
+@contextlib.contextmanager
+def run_progress(steps: Sequence[str], *, quiet: bool, stages: int = 1) -> Iterator[RunProgress]:
+    """Count every step's progress towards the run of ``steps`` while the block runs."""
+    global _RUN
+    previous, _RUN = _RUN, RunProgress(steps, quiet=quiet, stages=stages)
+    try:
+        yield _RUN
+    finally:
+        _RUN = previous
+
+
+# -- one step ----------------------------------------------------------------------------------
 class StepProgress:
     """Context manager tracking one step's items."""
 
@@ -37,35 +189,133 @@ class StepProgress:
         self.step, self.total, self.quiet = step, total, quiet
         self.done = 0
         self._bar = None
+        self._run = _RUN
 
     def __enter__(self):
         self._started = time.monotonic()
-        if not self.quiet and sys.stderr.isatty():
+        if self._run is not None:
+            self._run.begin(self.step, self.total)
+        if self.quiet:
+            return self
+        name = self.step if self._run is None else f"[{self._run.step_label}] {self.step}"
+        if sys.stderr.isatty():
             self._bar = Progress(
-                TextColumn("[bold]{task.description:<12}"),
-                BarColumn(),
+                TextColumn("[bold]{task.description:<15}"),
+                BarColumn(bar_width=16),
                 MofNCompleteColumn(),
                 TimeElapsedColumn(),
                 TextColumn("ETA"),
                 TimeRemainingColumn(),
+                TextColumn("{task.fields[run]}"),
                 console=Console(stderr=True),
                 transient=False,
             )
             self._bar.start()
-            self._task = self._bar.add_task(self.step, total=self.total)
+            self._task = self._bar.add_task(name, total=self.total, run=self._run_status())
         else:
-            say(f"{self.step}: {counted(self.total, 'item')}", quiet=self.quiet)
+            say(f"{name}: {counted(self.total, 'item')}")
         return self
+
+    def _run_status(self) -> str:
+        return "" if self._run is None else f"| {self._run.status(short=True)}"
 
     def advance(self) -> None:
         self.done += 1
+        if self._run is not None:
+            self._run.update(self.done)
         if self._bar is not None:
-            self._bar.advance(self._task)
+            self._bar.update(self._task, advance=1, run=self._run_status())
 
     def __exit__(self, *exc):
+        if self._run is not None:
+            self._run.end()
         if self._bar is not None:
             self._bar.stop()
-        else:
+        elif not self.quiet:
             elapsed = time.monotonic() - self._started
-            say(f"{self.step}: {self.done}/{self.total} done in {elapsed:.1f} s", quiet=self.quiet)
+            run = "" if self._run is None else f" ({self._run.status()})"
+            name = self.step if self._run is None else f"[{self._run.step_label}] {self.step}"
+            say(f"{name}: {self.done}/{self.total} done in {elapsed:.1f} s{run}")
         return False
+
+
+# -- logging -----------------------------------------------------------------------------------
+class _LevelFilter(logging.Filter):
+    """Keeps Dask's chatter below ``noisy`` out, and the status lines unless ``status``."""
+
+    def __init__(self, noisy: int, status: bool):
+        super().__init__()
+        self.noisy, self.status = noisy, status
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.name == __name__:
+            return self.status  # the terminal shows them already
+        if record.name.split(".")[0] in _NOISY:
+            return record.levelno >= self.noisy
+        return True
+
+
+@contextlib.contextmanager
+def run_logging(verbose: int, log_file: Path | None = None) -> Iterator[None]:
+    """Log to stderr (warnings; -v info, -vv debug) and to ``log_file`` while the block runs.
+
+    The file gets every record at info level or above (debug with -vv), Dask's included,
+    appended so that a resumed run adds to the log of the run it resumes. Dask's own
+    terminal handlers are kept to errors: a run's end shows no shutdown warnings.
+    """
+    console_level = (logging.WARNING, logging.INFO)[verbose] if verbose < 2 else logging.DEBUG
+    file_level = logging.DEBUG if verbose >= 2 else logging.INFO
+    root = logging.getLogger()
+    console = logging.StreamHandler(sys.stderr)
+    console.setLevel(console_level)
+    console.addFilter(_LevelFilter(logging.ERROR, status=False))
+    console.setFormatter(logging.Formatter(LOG_FORMAT))
+    handlers = [console]
+    if log_file is not None:
+        log_file.parent.mkdir(parents=True, exist_ok=True)
+        logfile = logging.FileHandler(log_file, encoding="utf-8")  # appended, not atomic
+        logfile.setLevel(file_level)
+        logfile.addFilter(_LevelFilter(min(file_level + 10, logging.WARNING), status=True))
+        logfile.setFormatter(logging.Formatter(LOG_FORMAT))
+        handlers.append(logfile)
+    saved_level = root.level
+    root.setLevel(min(console_level, file_level))
+    for handler in handlers:
+        root.addHandler(handler)
+    # Dask's loggers write to stderr themselves and do not propagate: keep their terminal
+    # output to errors, and send their records to the file too.
+    own = [logging.getLogger(name) for name in _NOISY]
+    own += [logger for name, logger in logging.root.manager.loggerDict.items()
+            if isinstance(logger, logging.Logger) and name.split(".")[0] in _NOISY
+            and logger not in own and not logger.propagate]
+    own = [logger for logger in own if not logger.propagate]
+    own_levels = [(h, h.level) for logger in own for h in logger.handlers]
+    forward = _Forward(handlers[1:])
+    for logger in own:
+        for handler in logger.handlers:
+            handler.setLevel(max(handler.level, logging.ERROR))
+        logger.addHandler(forward)
+    try:
+        yield
+    finally:
+        for logger in own:
+            logger.removeHandler(forward)
+        for handler, level in own_levels:
+            handler.setLevel(level)
+        for handler in handlers:
+            root.removeHandler(handler)
+            handler.close()
+        root.setLevel(saved_level)
+
+
+class _Forward(logging.Handler):
+    """Passes records to other handlers (not a StreamHandler: Dask's silencing skips it)."""
+
+    def __init__(self, targets):
+        super().__init__()
+        self.targets = list(targets)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        for target in self.targets:
+            if record.levelno >= target.level:
+                target.handle(record)
