@@ -61,15 +61,15 @@ def test_quiet_run_prints_one_line_per_step_and_logs_the_run(tmp_path, survey):
 
 # -- the whole run's progress ----------------------------------------------------------------------
 def test_run_progress_counts_every_step_towards_the_whole_run():
-    progress = RunProgress(STEPS, stages=2)
     fractions = []
-    for name, total in [("ingest", 4), ("features", 9), ("sample-1", 9), ("predict-1", 9),
-                        ("context-2", 9), ("sample-2", 9), ("predict-2", 9), ("export", 4),
-                        ("evaluate", 9)]:
-        with StepProgressFor(progress, name, total) as step:
-            for _ in range(total):
-                step.advance()
-                fractions.append(progress.fraction())
+    with run_progress(STEPS, quiet=False, stages=2) as progress:  # as the engine's steps do
+        for name, total in [("ingest", 4), ("features", 9), ("sample-1", 9), ("predict-1", 9),
+                            ("context-2", 9), ("sample-2", 9), ("predict-2", 9), ("export", 4),
+                            ("evaluate", 9)]:
+            with StepProgress(name, total, quiet=True) as step:
+                for _ in range(total):
+                    step.advance()
+                    fractions.append(progress.fraction())
     assert fractions == sorted(fractions)  # never goes back, even across cascade stages
     assert 0 < fractions[0] < fractions[-1] < 1  # report still to come
     assert progress.step_label == "5/6"
@@ -82,10 +82,10 @@ def test_run_progress_counts_every_step_towards_the_whole_run():
 
 
 def test_run_progress_says_which_steps_were_done_before_or_skipped():
-    progress = RunProgress(STEPS)
-    with StepProgressFor(progress, "export", 2) as step:
-        step.advance()
-        step.advance()
+    with run_progress(STEPS, quiet=False) as progress:
+        with StepProgress("export", 2, quiet=True) as step:
+            step.advance()
+            step.advance()
     progress.finish({}, done=STEPS[:4])
     assert [line.split(": ", 1)[1].split(" (")[0] for line in progress.lines] == [
         "already done", "already done", "already done", "2 tasks in 0.0 s", "skipped",
@@ -101,20 +101,6 @@ def test_eta_of_the_whole_run_shows_once_some_work_is_done():
     progress.update(5)  # ingest done, half the features: 40% of the run's weight
     assert progress.status() == "step 2/6, 0:10 elapsed, ETA 0:15"
     assert progress.status(short=True) == "run 0:10, ETA 0:15"
-
-
-class StepProgressFor:
-    """A StepProgress reporting to ``progress`` (as the engine's do inside run_progress)."""
-
-    def __init__(self, progress, name, total):
-        self.step = StepProgress(name, total, quiet=True)
-        self.step._run = progress
-
-    def __enter__(self):
-        return self.step.__enter__()
-
-    def __exit__(self, *exc):
-        return self.step.__exit__(*exc)
 
 
 def test_step_progress_outside_a_run_is_unchanged(capsys):
