@@ -20,6 +20,14 @@ def _usage_error(err: click.UsageError):
     sys.exit(1)
 
 
+def os_error_line(err: OSError) -> str:
+    """One line for an operating-system error: what failed where, and what to do."""
+    reason = err.strerror or str(err) or type(err).__name__
+    where = f" {err.filename}" if err.filename else ""
+    return (f"cannot write or read{where}: {reason}; fix it (free space, permissions) and run "
+            "the same command again: finished work is kept")
+
+
 def _interrupted(err: KeyboardInterrupt):
     command = getattr(err, "command", None)
     if command:
@@ -44,6 +52,9 @@ class SilvaGroup(click.Group):
             return super().invoke(ctx)
         except SilvaError as err:
             click.echo(f"silva: error: {err}", err=True)
+            sys.exit(1)
+        except OSError as err:  # a full disk, a read-only or vanished output directory
+            click.echo(f"silva: error: {os_error_line(err)}", err=True)
             sys.exit(1)
         except click.UsageError as err:  # a subcommand's missing argument or unknown option
             _usage_error(err)

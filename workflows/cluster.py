@@ -150,9 +150,12 @@ def _workers_ignore_ctrl_c():
 def _connect(address: str, timeout: float):
     from distributed import Client
 
+    from workflows.probe import check_scheduler
+
+    check_scheduler(address, timeout)  # a web server or a proxy would make Client hang
     try:
         client = Client(address, timeout=timeout)
-    except (OSError, TimeoutError, ValueError) as exc:
+    except (OSError, TimeoutError, ValueError, MemoryError) as exc:
         reason = " ".join(str(exc).split()) or type(exc).__name__
         raise ConfigError(
             f"cannot connect to the Dask scheduler at {address} (cluster.address) within "

@@ -96,16 +96,18 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
               *, model_dir=None, command=None, config_path=None):
     """Load the config, prepare the output directory and run the steps up to ``target``."""
     from workflows.config import load_config
-    from workflows.run import Run, prepare_output
+    from workflows.run import Run, prepare_output, read_paths
     from workflows.workflow import STEPS, execute
 
     cfg = load_config(config_path or config, overrides)
     out = out or Path(f"silva-{Path(config).stem}")
-    prepare_output(out, overwrite=overwrite)
     command = command or _command_line()
+    # --overwrite never deletes what this command reads (its config, model or inputs)
+    keep = read_paths(cfg, config_path or config, model_dir) if overwrite else ()
+    lock = prepare_output(out, overwrite=overwrite, keep=keep, command=command)
     steps = [("apply" if s == "train" and model_dir else s) for s in STEPS]
     steps = steps[: STEPS.index(target) + 1]
-    with run_logging(verbose, out / LOG_NAME):
+    with run_logging(verbose, out / LOG_NAME), lock:
         log.info("start: %s (steps %s)", command, ", ".join(steps))
         run = Run(cfg, out, quiet=quiet, model_dir=model_dir)
         text = run.save_config()

@@ -13,16 +13,23 @@ The output directory of a run::
 """
 
 import hashlib
+import logging
+import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipeline.atomic import atomic_write_text
 from pipeline.cascade import CascadeParams
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, SilvaError
 from pipeline.features.sets import FeatureParams, feature_set
 from pipeline.store import open_store
+from workflows.autoparams import resolve_auto
 from workflows.config import SilvaConfig, dump_config, fingerprint
+from workflows.inputs import expand_inputs
+from workflows.lock import LOCK_NAME, acquire, check_free
+
+log = logging.getLogger(__name__)
 
 SCENES = ("train", "test", "predict")
 
@@ -42,6 +49,9 @@ class Run:
     model_dir: Path | None = None  # a saved model to apply instead of training
     inputs_digest: str = ""  # the input files as ingest found them (paths, sizes, times)
     _store: object = field(default=None, repr=False)
+
+    def __post_init__(self):
+        self.cfg = resolve_auto(self.cfg, self.model_dir)  # 'auto' radii, once
 
     # -- layout ---------------------------------------------------------------------------
     @property
@@ -136,6 +146,10 @@ class Run:
             "features.r2": params.r2,
             "features.max_neighbors": params.max_neighbors,
             "features.context_max_neighbors": params.context_max_neighbors,
+            "features.plane": params.plane,
+            "features.scales": list(params.scales),
+            "features.column": params.column,
+            "features.voxel": params.voxel,
             "cascade.context": self.cfg.cascade.context,
         }
 
@@ -152,13 +166,82 @@ class Run:
             path.unlink(missing_ok=True)
 
 
-def prepare_output(out: Path, *, overwrite: bool) -> None:
-    """Create the output directory; with ``overwrite`` start from an empty one."""
-    if overwrite and out.exists():
-        if not (out / "store.zarr").exists() and any(out.iterdir()):
-            raise ConfigError(
-                f"--overwrite refuses to empty {out}: it does not look like a Silva output "
-                "directory (no store.zarr); choose another --out"
-            )
-        shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
+class OutputError(SilvaError, OSError):
+    """The output directory cannot be created or written."""
+
+
+def prepare_output(out: Path, *, overwrite: bool, keep=(), command: str = "silva"):
+    """Create the output directory and take its lock (returned, a context manager that
+    releases it); with ``overwrite`` empty it first, keeping the lock and every path of
+    ``keep`` inside it (what the command is about to read: its config, model, inputs).
+
+    Raises :class:`LockedError` when another run holds the directory, and
+    :class:`OutputError` (one line) when the system refuses to create or write it.
+    """
+    out = Path(out)
+    try:
+        if out.exists() and not out.is_dir():
+            raise OutputError(f"--out {out} is a file, not a directory; choose another --out")
+        for parent in out.parents:
+            if parent.exists():
+                if not parent.is_dir():
+                    raise OutputError(f"--out {out} lies below {parent}, which is a file, "
+                                      "not a directory; choose another --out")
+                break
+        if overwrite and out.exists():
+            if not (out / "store.zarr").exists() and any(
+                    p.name != LOCK_NAME for p in out.iterdir()):
+                raise ConfigError(
+                    f"--overwrite refuses to empty {out}: it does not look like a Silva output "
+                    "directory (no store.zarr); choose another --out"
+                )
+        check_free(out)
+        out.mkdir(parents=True, exist_ok=True)
+        lock = acquire(out, command)
+        try:
+            if overwrite:
+                _empty(out, [out / LOCK_NAME, *keep])
+        except BaseException:
+            lock.release()
+            raise
+        return lock
+    except OSError as err:
+        if isinstance(err, SilvaError):
+            raise
+        raise OutputError(f"cannot prepare the output directory {out}: "
+                          f"{os_reason(err)}; choose another --out") from None
+
+
+def os_reason(err: OSError) -> str:
+    """An OS error as a short phrase: what failed on which file."""
+    reason = err.strerror or type(err).__name__
+    return f"{reason} ({err.filename})" if err.filename else reason
+
+
+def _empty(directory: Path, keep) -> None:
+    """Remove everything in ``directory`` except the paths of ``keep`` (and the
+    directories on the way to them). Symbolic links are removed, never followed."""
+    kept = {Path(f(p)) for p in keep for f in (os.path.abspath, os.path.realpath)}
+    for entry in directory.iterdir():
+        path = Path(os.path.realpath(entry.parent)) / entry.name  # the entry, not its target
+        if path in kept:
+            log.info("--overwrite keeps %s: this command reads it", entry)
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            if any(path in k.parents for k in kept):
+                _empty(entry, keep)
+            else:
+                shutil.rmtree(entry)
+        else:
+            entry.unlink()
+
+
+def read_paths(cfg: SilvaConfig, config_path, model_dir) -> list[Path]:
+    """Every file or directory a command with ``cfg`` reads: its config file, the model it
+    applies and the input tiles. Raises the errors of :func:`expand_inputs`."""
+    paths = [Path(config_path)] + ([Path(model_dir)] if model_dir is not None else [])
+    for scene in SCENES:
+        patterns = list(getattr(cfg.data, scene))
+        if patterns:
+            paths += expand_inputs(patterns, key=f"data.{scene}")
+    return paths

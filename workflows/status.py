@@ -4,14 +4,22 @@ from pathlib import Path
 
 import yaml
 
+from pipeline.errors import ModelError
 from pipeline.model import MODEL_FILE, read_description
 from pipeline.store import chunk_path, open_store
+from workflows.lock import describe, held_by_other, read_lock
 from workflows.progress import counted
 from workflows.run import has_test_points
 
 
 def run_status(out: Path) -> list[str]:
     """Lines describing each step of the run in ``out``."""
+    holder = read_lock(out)
+    running = ([f"running now: {describe(holder)}"] if held_by_other(holder) else [])
+    return running + _steps(out)
+
+
+def _steps(out: Path) -> list[str]:
     store_path = out / "store.zarr"
     if not store_path.exists():
         return [f"{out}: nothing ingested yet (no store.zarr)"]
@@ -35,10 +43,13 @@ def run_status(out: Path) -> list[str]:
                      f"{done_text}")
     model = out / "model"
     if (model / MODEL_FILE).is_file():
-        stages = read_description(model)["stages"]
-        lines.append(f"model: {len(stages)} stage(s) trained in {model}")
-    predictions = list((out / "predictions").glob("*.la[sz]"))
-    lines.append(f"predictions: {len(predictions)} of {len(layout['tiles'])} tiles exported")
+        try:
+            stages = read_description(model)["stages"]
+            lines.append(f"model: {len(stages)} stage(s) trained in {model}")
+        except ModelError as err:
+            lines.append(f"model: unusable ({err})")
+    exported = _exported(root, out, layout)
+    lines.append(f"predictions: {exported} of {len(layout['tiles'])} tiles exported")
     metrics = out / "metrics.json"
     if metrics.is_file():
         lines.append(f"metrics: {metrics}")
@@ -49,10 +60,28 @@ def run_status(out: Path) -> list[str]:
     return lines
 
 
-def _saved_split(out: Path):
-    """data.split of the configuration saved in ``out`` (None when absent or unreadable)."""
+def _exported(root, out: Path, layout: dict) -> int:
+    """Tiles of the run whose prediction file, in the configured format, was written by a
+    finished export (files of other formats or of tiles dropped since are not counted)."""
+    suffix = "." + str(_saved(out, "output").get("format", "laz"))
+    count = 0
+    for tile in layout["tiles"]:
+        marker = f"exports/{tile['index']}"
+        done = marker in root and "export" in root[marker].attrs.get("done", {})
+        count += done and (out / "predictions" / f"{tile['name']}{suffix}").is_file()
+    return count
+
+
+def _saved(out: Path, section: str) -> dict:
+    """A section of the configuration saved in ``out`` ({} when absent or unreadable)."""
     try:
         saved = yaml.safe_load((out / "config.yaml").read_text()) or {}
     except (OSError, yaml.YAMLError):
-        return None
-    return (saved.get("data") or {}).get("split")
+        return {}
+    value = saved.get(section) if isinstance(saved, dict) else None
+    return value if isinstance(value, dict) else {}
+
+
+def _saved_split(out: Path):
+    """data.split of the configuration saved in ``out`` (None when absent or unreadable)."""
+    return _saved(out, "data").get("split")

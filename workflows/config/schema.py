@@ -82,6 +82,11 @@ class DataConfig(Section):
         "before anything is computed (the Oakland benchmark protocol); they are exported "
         "with PredictedClassification 0. By default they stay as unlabelled neighbours.",
     )
+    allow_overlap: bool = Field(
+        False,
+        description="Accept a tile that is both in data.train and in data.test (the same "
+        "file); its test scores are then scores on training points. Refused by default.",
+    )
 
     @field_validator("classes", mode="before")
     @classmethod

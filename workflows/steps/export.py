@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.atomic import remove_parts
 from pipeline.errors import StoreError
 from pipeline.io import ExtraDim, export_with_extra_dims
 from pipeline.store import (
@@ -116,10 +117,13 @@ def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilitie
 
 
 def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> list[str]:
-    """Write predictions/<tile>.laz (or .las) for every input tile."""
+    """Write predictions/<tile>.laz (or .las) for every input tile; remove every other
+    file of predictions/ (tiles no longer in the run, the other format, parts of files a
+    killed export left)."""
     fingerprint = f"{run.fingerprint('export')}-{stage_fp}"
     out_dir = run.predictions_path
     out_dir.mkdir(parents=True, exist_ok=True)
+    remove_parts(out_dir)
     suffix = "." + run.cfg.output.format
     tasks = []
     for tile in layout["tiles"]:
@@ -139,4 +143,17 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
             where=f"export of tile {tile['path']}",
             reproduce=f"silva export CONFIG --out {run.out} --in-process",
         ))
-    return list(engine.map("export", tasks).values())
+    written = list(engine.map("export", tasks).values())
+    remove_stale(out_dir, written)
+    return written
+
+
+def remove_stale(out_dir: Path, keep: list[str]) -> list[Path]:
+    """Remove the point-cloud files of ``out_dir`` that are not in ``keep``; return them."""
+    kept = {Path(p).name for p in keep}
+    stale = [p for p in out_dir.iterdir()
+             if p.suffix.lower() in (".las", ".laz") and p.name not in kept
+             and (p.is_file() or p.is_symlink())]
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return stale

@@ -8,6 +8,7 @@ they fall in. Memory is bounded by the read batch, not by the tile or survey siz
 import hashlib
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 
@@ -35,19 +36,52 @@ from workflows.run import SCENES, Run
 AXES = {"x": 0, "y": 1, "z": 2}
 
 
+def tile_name(path) -> str:
+    """The name of a tile's outputs: its file name without the last suffix and without
+    leading dots (``plot.v1.laz`` -> ``plot.v1``, ``.hidden.laz`` -> ``hidden``)."""
+    name = Path(path).name
+    stem = name[: -len(Path(name).suffix)] if Path(name).suffix else name
+    stem = stem.lstrip(".")
+    if not stem:
+        raise InputError(f"tile {path} has no name before its suffix; rename it")
+    return stem
+
+
+def check_overlap(scenes: dict[str, list[Path]], allowed: bool) -> None:
+    """Refuse a file that is both a training and a test tile, unless ``allowed``."""
+    if allowed or not scenes.get("train") or not scenes.get("test"):
+        return
+    train = {_identity(p): p for p in scenes["train"]}
+    for path in scenes["test"]:
+        if _identity(path) in train:
+            raise ConfigError(
+                f"tile {path} is both in data.test and in data.train (as "
+                f"{train[_identity(path)]}): its test scores would be scores on training "
+                "points; remove it from one of them, or set data.allow_overlap: true"
+            )
+
+
+def _identity(path: Path):
+    """The same file under any name (symbolic links, hard links, relative paths)."""
+    stat = os.stat(path)
+    return stat.st_dev, stat.st_ino
+
+
 def plan_tiles(run: Run) -> list[dict]:
     """Every input tile with its scene and global index, from the headers."""
     tiles, seen = [], {}
-    for scene in SCENES:
-        patterns = list(getattr(run.cfg.data, scene))
-        if not patterns:
-            continue
-        for path in expand_inputs(patterns, key=f"data.{scene}"):
+    files = {scene: expand_inputs(list(getattr(run.cfg.data, scene)), key=f"data.{scene}")
+             for scene in SCENES if getattr(run.cfg.data, scene)}
+    check_overlap(files, bool(run.cfg.data.allow_overlap))
+    for scene, paths in files.items():
+        for path in paths:
             info = read_info(path)
             if info.n_points == 0:
                 raise InputError(f"tile {path} holds no points; remove it from data.{scene}")
-            name = path.name.split(".")[0]
-            if name in seen and seen[name] != path:
+            name = tile_name(path)
+            if name in seen and _identity(seen[name]) == _identity(path):
+                name = f"{name}-{scene}"  # the same file in two scenes (data.allow_overlap)
+            if name in seen:
                 raise InputError(
                     f"tiles {seen[name]} and {path} have the same name '{name}', so their "
                     "predictions would overwrite each other; rename one"
@@ -207,8 +241,9 @@ def ingest(run: Run, engine) -> dict:
     else:
         if layout is not None or "scenes" in root:
             # Inputs or chunking changed: nothing stored is valid any more.
-            if "scenes" in root:
-                del root["scenes"]
+            for key in ("scenes", "exports"):
+                if key in root:
+                    del root[key]
             root.attrs["layout"] = None
         scenes = plan_scenes(run, tiles)
     for scene, info in scenes.items():

@@ -1,0 +1,257 @@
+"""What a careful user can do wrong, or the system can do to a run, gives one clear line and
+exit code 1 (or a correct result), never silently wrong data, a hang or a traceback."""
+
+import errno
+import http.server
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from pipeline.errors import ConfigError, InputError
+from tests.workflows.conftest import write_config
+from workflows.cli import main
+from workflows.config import load_config
+from workflows.lock import LOCK_NAME, LockedError, acquire, read_lock
+from workflows.probe import check_scheduler
+from workflows.run import OutputError, Run, prepare_output, read_paths
+from workflows.status import run_status
+from workflows.steps.export import remove_stale
+from workflows.steps.ingest import plan_tiles, tile_name
+
+
+def silva(*args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+def error_line(result) -> str:
+    lines = [line for line in result.output.splitlines() if line.startswith("silva: error:")]
+    assert len(lines) == 1, result.output
+    assert "Traceback" not in result.output
+    assert result.exit_code == 1
+    return lines[0]
+
+
+@pytest.fixture
+def sleeper():
+    """A live process of this host that is not this one."""
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    yield proc
+    proc.kill()
+    proc.wait()
+
+
+def _fake_lock(out: Path, pid: int, host: str | None = None):
+    out.mkdir(parents=True, exist_ok=True)
+    (out / LOCK_NAME).write_text(json.dumps({
+        "pid": pid, "host": host or socket.gethostname(), "started": time.time(),
+        "command": "silva run first.yaml", "token": "x"}))
+
+
+# -- 2: the same tile in train and test --------------------------------------------------
+def test_same_tile_in_train_and_test_is_refused(tmp_path, survey):
+    one = sorted(survey["train"].glob("*.laz"))[0]
+    config = write_config(tmp_path / "c.yaml", survey)
+    result = silva("run", config, "--out", tmp_path / "out", "--in-process", "-q",
+                   "--set", f"data.test=[{survey['test']}/*.laz, {one}]")
+    line = error_line(result)
+    assert one.name in line and "data.train" in line and "data.allow_overlap" in line
+    assert not (tmp_path / "out" / "store.zarr").exists()
+
+
+def test_overlap_through_another_name_is_refused(tmp_path, survey):
+    link = tmp_path / "elsewhere"
+    link.symlink_to(survey["train"])
+    cfg = load_config(write_config(tmp_path / "c.yaml", survey),
+                      [f"data.test=[{link}/*.laz]"])
+    with pytest.raises(ConfigError, match="both in data.test and in data.train"):
+        plan_tiles(Run(cfg, tmp_path / "out"))
+
+
+def test_allowed_overlap_keeps_one_output_per_scene(tmp_path, survey):
+    cfg = load_config(write_config(tmp_path / "c.yaml", survey),
+                      [f"data.test=[{survey['train']}/*.laz]", "data.allow_overlap=true"])
+    tiles = plan_tiles(Run(cfg, tmp_path / "out"))
+    names = [t["name"] for t in tiles]
+    assert len(set(names)) == len(names) == 2 * len(list(survey["train"].glob("*.laz")))
+    assert all(n.endswith("-test") for t, n in zip(tiles, names) if t["scene"] == "test")
+
+
+# -- 11: tile names ----------------------------------------------------------------------
+@pytest.mark.parametrize("file, name", [("plot.v1.laz", "plot.v1"), ("plot.v2.laz", "plot.v2"),
+                                        (".hidden.laz", "hidden"), ("a.copc.laz", "a.copc")])
+def test_tile_names_keep_everything_but_the_suffix(file, name):
+    assert tile_name(Path("/d") / file) == name
+
+
+def test_tile_without_a_name_is_refused():
+    with pytest.raises(InputError, match="no name"):
+        tile_name(Path("/d/..laz"))
+
+
+# -- 3: --overwrite never deletes what the command reads ---------------------------------
+def test_overwrite_keeps_the_model_config_and_inputs_inside_out(tmp_path):
+    out = tmp_path / "out"
+    for name in ("store.zarr/x", "model/model.json", "model/stage1.skops", "work/f",
+                 "predictions/a.laz", "data/train/t.laz", "data/train/u.laz", "run.yaml"):
+        (out / name).parent.mkdir(parents=True, exist_ok=True)
+        (out / name).write_text("x")
+    keep = [out / "model", out / "run.yaml", out / "data" / "train" / "t.laz"]
+    with prepare_output(out, overwrite=True, keep=keep):
+        left = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file())
+    assert left == ["data/train/t.laz", "model/model.json", "model/stage1.skops", "run.yaml",
+                    LOCK_NAME]
+    assert not (out / LOCK_NAME).exists()  # released
+
+
+def test_read_paths_are_the_config_the_model_and_every_input(tmp_path, survey):
+    config = write_config(tmp_path / "c.yaml", survey)
+    cfg = load_config(config, [])
+    paths = read_paths(cfg, config, tmp_path / "model")
+    assert paths[:2] == [config, tmp_path / "model"]
+    assert set(paths[2:]) == set(survey["train"].glob("*.laz")) | set(survey["test"].glob("*.laz"))
+
+
+# -- 5: one command per output directory -------------------------------------------------
+def test_second_run_refuses_at_once_naming_the_first(tmp_path, survey, sleeper):
+    out = tmp_path / "out"
+    _fake_lock(out, sleeper.pid)
+    config = write_config(tmp_path / "c.yaml", survey)
+    started = time.monotonic()
+    result = silva("run", config, "--out", out, "--in-process", "-q", "--overwrite")
+    line = error_line(result)
+    assert time.monotonic() - started < 10
+    assert f"pid {sleeper.pid}" in line and "silva run first.yaml" in line
+    assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME]  # nothing touched
+    assert run_status(out)[0].startswith("running now: 'silva run first.yaml'")
+
+
+def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    _fake_lock(tmp_path, proc.pid)
+    with acquire(tmp_path, "silva run again.yaml"):
+        assert read_lock(tmp_path)["pid"] == os.getpid()
+    assert not (tmp_path / LOCK_NAME).exists()
+
+
+def test_lock_of_another_host_is_refused_with_how_to_remove_it(tmp_path):
+    _fake_lock(tmp_path, 1, host="some-other-node")
+    with pytest.raises(LockedError, match=rf"some-other-node.*delete {tmp_path / LOCK_NAME}"):
+        acquire(tmp_path, "silva run")
+
+
+def test_ingest_checks_the_points_read_against_the_header(tmp_path, survey):
+    from workflows.steps.ingest import ingest_tile
+
+    cfg = load_config(write_config(tmp_path / "c.yaml", survey), [])
+    run = Run(cfg, tmp_path / "out")
+    tile = dict(plan_tiles(run)[0])
+    tile["n_points"] += 5
+    from workflows.steps.ingest import plan_scenes
+
+    grid = plan_scenes(run, [tile])[tile["scene"]]["grid"]
+    run.store  # creates it
+    with pytest.raises(InputError, match=rf"announces {tile['n_points']} points but "
+                                         rf"{tile['n_points'] - 5} were read"):
+        ingest_tile(str(run.store_path), tile["scene"], tile, grid, run.halo, "classification",
+                    run.code_to_class, None, 100_000, "fp")
+
+
+# -- 4: an address that is not a Dask scheduler ------------------------------------------
+@pytest.fixture
+def web_server():
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0),
+                                             http.server.SimpleHTTPRequestHandler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield f"tcp://127.0.0.1:{server.server_address[1]}"
+    server.shutdown()
+    server.server_close()
+
+
+def test_web_server_is_not_a_scheduler(web_server):
+    started = time.monotonic()
+    with pytest.raises(ConfigError, match="is not a Dask scheduler: it sent no Dask handshake"):
+        check_scheduler(web_server, timeout=1.0)
+    assert time.monotonic() - started < 3
+
+
+def test_a_server_that_talks_first_but_not_dask(tmp_path):
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+
+    def banner():
+        conn, _ = listener.accept()
+        conn.sendall(b"SSH-2.0-OpenSSH_9.6\r\n")
+        time.sleep(1)
+        conn.close()
+
+    threading.Thread(target=banner, daemon=True).start()
+    with pytest.raises(ConfigError, match="not a Dask handshake"):
+        check_scheduler(f"tcp://127.0.0.1:{port}", timeout=5.0)
+    listener.close()
+
+
+def test_nothing_listening_is_a_clear_error():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with pytest.raises(ConfigError, match="cannot connect.*Connection refused"):
+        check_scheduler(f"tcp://127.0.0.1:{port}", timeout=2.0)
+
+
+@pytest.mark.slow
+def test_run_against_a_web_server_stops_within_its_deadline(tmp_path, survey, web_server):
+    config = write_config(tmp_path / "c.yaml", survey,
+                          cluster={"kind": "address", "address": web_server})
+    started = time.monotonic()
+    result = silva("run", config, "--out", tmp_path / "out", "-q")
+    assert "cluster.address" in error_line(result)
+    assert time.monotonic() - started < 30
+
+
+# -- 7: a run owns its outputs -----------------------------------------------------------
+def test_stale_predictions_are_removed(tmp_path):
+    for name in ("a.laz", "b.laz", "a.las", "notes.txt"):
+        (tmp_path / name).write_text("x")
+    removed = remove_stale(tmp_path, [str(tmp_path / "a.laz")])
+    assert sorted(p.name for p in removed) == ["a.las", "b.laz"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.laz", "notes.txt"]
+
+
+# -- 8: operating-system errors ----------------------------------------------------------
+def test_out_below_a_regular_file(tmp_path, survey):
+    (tmp_path / "file").write_text("x")
+    config = write_config(tmp_path / "c.yaml", survey)
+    result = silva("run", config, "--out", tmp_path / "file" / "out", "--in-process", "-q")
+    assert "which is a file, not a directory" in error_line(result)
+
+
+def test_out_that_cannot_be_created(tmp_path, monkeypatch):
+    def refuse(self, *args, **kwargs):
+        raise PermissionError(errno.EACCES, "Permission denied", str(self))
+
+    monkeypatch.setattr(Path, "mkdir", refuse)
+    with pytest.raises(OutputError, match="Permission denied.*choose another --out"):
+        prepare_output(tmp_path / "new", overwrite=False)
+
+
+def test_os_error_in_a_step_is_one_line(tmp_path, monkeypatch):
+    import workflows.commands
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "report.html"))
+
+    monkeypatch.setattr(workflows.commands, "start_run", full)
+    result = silva("run", tmp_path / "c.yaml")
+    line = error_line(result)
+    assert "No space left on device" in line and "report.html" in line
+    assert "run the same command again" in line
