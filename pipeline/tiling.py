@@ -107,10 +107,10 @@ def auto_chunk_size(
         raise ValueError(f"extent {extent!r} is smaller than the side of a square of area "
                          f"{area!r}; give the larger side of the bounding box")
     n_points, target_points = int(n_points), int(target_points)
-    lower = _series_ceil(4 * halo)
+    lower = series_ceil(4 * halo)
     if extent == 0:  # every point at one XY location
         return lower
-    upper = _series_ceil(extent)
+    upper = series_ceil(extent)
     if n_points <= target_points:
         return max(lower, upper)
     width, height = extent, area / extent
@@ -137,7 +137,7 @@ def _series_floor(x: float) -> float:
     return max(v for v in _series_values(x) if v <= x * (1 + 1e-9))
 
 
-def _series_ceil(x: float) -> float:
+def series_ceil(x: float) -> float:
     """The smallest series value >= ``x`` (> 0), allowing for rounding in ``x``."""
     return min(v for v in _series_values(x) if v >= x * (1 - 1e-9))
 

@@ -34,8 +34,27 @@ from pipeline.features.invariants import INVARIANT_NAMES
 from pipeline.features.local import PLANES, local_surface
 from pipeline.features.voxel import halo as voxel_halo
 from pipeline.features.voxel import representative_of
+from pipeline.tiling import series_ceil
 
 SURFACE_SIZE_NAMES = ("log_neighbors", "log_area")
+#: ``r1: auto``: the paper's radius, unless S1 of a surface would hold fewer points than this
+AUTO_NEIGHBORS = 40
+PAPER_RADIUS = 0.5
+
+
+def auto_radius(density: float) -> float:
+    """r1 for ``density`` points per m² (XY): the paper's 0.5 m, or the radius at which a
+    horizontal disc holds :data:`AUTO_NEIGHBORS` points (rounded up to 1-1.2-1.5-2-2.5-3-4-
+    5-6-8 x 10^k), whichever is larger. At 1 point per m² this is 4 m."""
+    if not density > 0:
+        raise ValueError(f"density must be > 0 points per m², got {density}")
+    return max(PAPER_RADIUS, series_ceil(math.sqrt(AUTO_NEIGHBORS / (math.pi * density))))
+
+
+def auto_voxel(r1: float, max_neighbors: int) -> float:
+    """The voxel side at which a surface disc of radius r1 holds ``max_neighbors`` voxels:
+    the 64 nearest representatives then span S1 at any density."""
+    return r1 * math.sqrt(math.pi / max_neighbors)
 
 
 @dataclass(frozen=True)

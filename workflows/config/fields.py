@@ -79,6 +79,8 @@ def _chunk_size(value: Any) -> Any:
 
 
 ChunkSize = Annotated[Union[Literal["auto"], float], BeforeValidator(_chunk_size)]
+#: a length in metres that may also be derived from the data ('auto')
+AutoLength = ChunkSize
 
 
 def _max_features(value: Any) -> Any:

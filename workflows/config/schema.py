@@ -9,9 +9,10 @@ from typing import Any, Literal, Union
 from pydantic import Field, field_validator, model_validator
 
 from pipeline.cascade import CascadeParams, ForestParams
-from pipeline.features.sets import FEATURE_SETS, FeatureParams
+from pipeline.features.sets import AUTO_NEIGHBORS, FEATURE_SETS, FeatureParams
 from pipeline.io.base import LAS_NAME_BYTES
 from workflows.config.fields import (
+    AutoLength,
     ChunkSize,
     Integer,
     MaxFeatures,
@@ -204,7 +205,12 @@ class FeaturesConfig(Section):
         description="The feature set; 'paper' = the 11 moment invariants and the context "
         "features as published.",
     )
-    r1: Number = Field(_FEATURES.r1, gt=0, description="Radius of the sphere S1 in metres.")
+    r1: AutoLength = Field(
+        _FEATURES.r1,
+        description="Radius of the sphere S1 in metres, or 'auto': from the training tiles' "
+        "point density, the paper's 0.5 m unless S1 would then hold fewer than about "
+        f"{AUTO_NEIGHBORS} points (sparse airborne tiles get a larger radius).",
+    )
     r2: Number | None = Field(
         None, description="Radius of the inner context sphere S2 in metres; default r1 / 2."
     )
@@ -234,11 +240,12 @@ class FeaturesConfig(Section):
         description="Sets 'covariance' and 'default': radius of the column of the height "
         "features, as a multiple of r1.",
     )
-    voxel: Number | None = Field(
-        _FEATURES.voxel, gt=0,
+    voxel: AutoLength | None = Field(
+        _FEATURES.voxel,
         description="Unset: the surface features of every point. A side in metres: they are "
         "computed on one point per voxel (the smallest id) and shared by its points; "
-        "dense scans then see all of S1, not a patch of its 64 nearest points.",
+        "dense scans then see all of S1, not a patch of its 64 nearest points. 'auto': the "
+        "side at which S1 holds about max_neighbors voxels of a surface.",
     )
 
     @field_validator("set")
@@ -249,8 +256,15 @@ class FeaturesConfig(Section):
                               + ", ".join(f"'{s}'" for s in FEATURE_SETS))
         return value
 
+    @property
+    def resolved(self) -> bool:
+        """False while r1 or voxel is 'auto' (resolved from the data when a run starts)."""
+        return "auto" not in (self.r1, self.voxel)
+
     @model_validator(mode="after")
     def _resolve_r2(self) -> "FeaturesConfig":
+        if not self.resolved:
+            return self  # checked again once the run has resolved r1 and voxel
         if self.r2 is None:
             object.__setattr__(self, "r2", self.r1 / 2)  # the paper's r2 = r1 / 2
         elif not 0 < self.r2 <= self.r1:
@@ -437,6 +451,8 @@ class SilvaConfig(Section):
 
     @model_validator(mode="after")
     def _resolve_halo(self) -> "SilvaConfig":
+        if not self.features.resolved:
+            return self  # the run resolves r1 or voxel from the data, then validates again
         largest = self.features.largest_radius
         halo = self.tiling.halo
         if halo is None:

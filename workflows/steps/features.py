@@ -9,12 +9,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.cascade import id_hash
 from pipeline.errors import InputError
+from pipeline.features.neighbors import RadiusIndex
 from pipeline.features.sets import FeatureParams, feature_set
 from pipeline.store import ROLE_TRAIN, part_path, read_array
 from workflows.engine import chunk_tasks
+from workflows.progress import say
 from workflows.run import Run
 
+SPARSE_NEIGHBORS = 8  # fewer points in S1 than this make a poor surface
+SPARSE_SAMPLE = 0.02  # fraction of the points whose neighbourhood size is checked
 CORE = ("xyz", "gid", "label", "role")
 HALO = ("xyz", "gid")
 _EMPTY = {"xyz": np.empty((0, 3)), "gid": np.empty(0, np.int64),
@@ -56,7 +61,19 @@ def chunk_features(view, task: FeatureTask):
     features = feature_set(task.features)(xyz, query, ids)
     view.write(**core, halo_xyz=halo["xyz"], halo_gid=halo["gid"], features=features)
     trained = (core["role"] == ROLE_TRAIN) & (core["label"] >= 0)
-    return np.bincount(core["label"][trained], minlength=task.n_classes).tolist()
+    return {"train_counts": np.bincount(core["label"][trained],
+                                        minlength=task.n_classes).tolist(),
+            "sparse": _sparse_points(xyz, ids, query, task.features.r1)}
+
+
+def _sparse_points(xyz, ids, query, r1) -> list[int]:
+    """[sampled, sparse]: core points sampled by id, and those of them with fewer than
+    :data:`SPARSE_NEIGHBORS` points within r1, too few for a local surface."""
+    sample = query[id_hash(ids[query], 11) < SPARSE_SAMPLE]
+    if len(sample) == 0:
+        return [0, 0]
+    _, ptr = RadiusIndex(xyz, r1, ids).query(sample, SPARSE_NEIGHBORS)
+    return [len(sample), int(np.count_nonzero(np.diff(ptr) < SPARSE_NEIGHBORS))]
 
 
 def features(run: Run, engine, layout: dict, only: str | None = None) -> np.ndarray:
@@ -67,6 +84,12 @@ def features(run: Run, engine, layout: dict, only: str | None = None) -> np.ndar
         run.fingerprint("features"), "features", only=only,
     )
     counts = np.zeros(run.n_classes, dtype=np.int64)
+    sampled = sparse = 0
     for value in engine.map("features", tasks).values():
-        counts += np.asarray(value, dtype=np.int64)
+        counts += np.asarray(value["train_counts"], dtype=np.int64)
+        sampled, sparse = sampled + value["sparse"][0], sparse + value["sparse"][1]
+    if sampled and sparse > sampled / 2:
+        say(f"warning: {100 * sparse / sampled:.0f}% of the points have fewer than "
+             f"{SPARSE_NEIGHBORS} neighbours within r1 = {run.r1:g} m, too few for a local "
+             "surface: set features.r1 larger, or to auto (from the point density)")
     return counts
