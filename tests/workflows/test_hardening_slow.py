@@ -1,0 +1,191 @@
+"""Fault injection on a finished run: a damaged store, a swapped model file, a full disk,
+stale outputs, two commands on one directory. Each ends in one clear line and exit code 1,
+and the same command then completes with exactly the undamaged result."""
+
+import errno
+import json
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from pipeline.model import stage_file
+from tests.workflows.conftest import read_predictions, write_config
+from workflows.cli import main
+from workflows.lock import LOCK_NAME, read_lock
+from workflows.status import run_status
+
+pytestmark = pytest.mark.slow
+
+
+def silva(*args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+def error_line(result) -> str:
+    lines = [line for line in result.output.splitlines() if line.startswith("silva: error:")]
+    assert len(lines) == 1, result.output
+    assert "Traceback" not in result.output
+    assert result.exit_code == 1
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def finished(survey, tmp_path_factory):
+    """A complete run (in this process) and its config."""
+    root = tmp_path_factory.mktemp("finished")
+    config = write_config(root / "c.yaml", survey)
+    result = silva("run", config, "--out", root / "out", "--in-process", "-q")
+    assert result.exit_code == 0, result.output
+    return config, root / "out"
+
+
+@pytest.fixture
+def run_copy(finished, tmp_path):
+    config, out = finished
+    shutil.copytree(out, tmp_path / "out")
+    return config, tmp_path / "out"
+
+
+def _chunk_file(out: Path, scene: str, array: str) -> Path:
+    files = sorted((out / "store.zarr" / "scenes" / scene / "chunks").glob(f"*/{array}/c/**/*"))
+    return [f for f in files if f.is_file()][0]
+
+
+def _metrics(out: Path) -> dict:
+    return json.loads((out / "metrics.json").read_text())
+
+
+def _same_predictions(a: Path, b: Path):
+    pa, pb = read_predictions(a), read_predictions(b)
+    assert pa.keys() == pb.keys() and pa
+    for tile in pa:
+        for dim in ("PredictedClassification", "Confidence", "Probability_tree"):
+            assert np.array_equal(pa[tile][dim], pb[tile][dim]), (tile, dim)
+
+
+# -- 1: a damaged store ------------------------------------------------------------------
+def test_missing_chunk_file_stops_export_then_the_rerun_recomputes_it(finished, run_copy):
+    config, out = run_copy
+    _chunk_file(out, "test", "stage2_proba").unlink()
+    shutil.rmtree(out / "predictions")
+    line = error_line(silva("export", config, "--out", out, "--in-process", "-q"))
+    assert "stage2_proba' is damaged" in line and "run the same command again" in line
+    # the test scene's tiles, whose chunk is damaged, are not written
+    assert not list((out / "predictions").glob("plot_s2_*.laz"))
+    result = silva("run", config, "--out", out, "--in-process", "-q")
+    assert result.exit_code == 0, result.output
+    _same_predictions(out, finished[1])
+    assert _metrics(out) == _metrics(finished[1])
+
+
+def test_missing_chunk_file_stops_evaluate_without_metrics(finished, run_copy):
+    config, out = run_copy
+    _chunk_file(out, "test", "stage1_proba").unlink()
+    assert "is damaged" in error_line(silva("evaluate", config, "--out", out, "--in-process",
+                                            "-q"))
+    assert not (out / "metrics.json").exists()
+    assert silva("evaluate", config, "--out", out, "--in-process", "-q").exit_code == 0
+    assert _metrics(out) == _metrics(finished[1])
+
+
+def test_corrupt_features_stop_a_retrain(run_copy):
+    config, out = run_copy
+    chunk = _chunk_file(out, "train", "features")
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0x55
+    chunk.write_bytes(bytes(data))
+    retrain = ("train", config, "--out", out, "--in-process", "-q", "--set", "cascade.seed=4")
+    assert "features' is damaged" in error_line(silva(*retrain))
+    assert silva(*retrain).exit_code == 0
+
+
+# -- 3 and 10: a model from elsewhere ----------------------------------------------------
+def test_predict_into_the_directory_of_its_model_keeps_the_model(finished, run_copy):
+    config, out = run_copy
+    model = out / "model"
+    before = {p.name: p.read_bytes() for p in model.iterdir()}
+    result = silva("predict", config, "--model", model, "--out", out, "--overwrite",
+                   "--in-process", "-q")
+    assert result.exit_code == 0, result.output
+    assert {p.name: p.read_bytes() for p in model.iterdir()} == before
+    _same_predictions(out, finished[1])
+
+
+def test_swapped_stage_files_are_refused_before_any_work(run_copy, tmp_path):
+    config, out = run_copy
+    one, two = stage_file(out / "model", 0), stage_file(out / "model", 1)
+    a, b = one.read_bytes(), two.read_bytes()
+    one.write_bytes(b)
+    two.write_bytes(a)
+    other = tmp_path / "other"
+    line = error_line(silva("predict", config, "--model", out / "model", "--out", other,
+                            "--in-process", "-q"))
+    assert "stage1.skops does not match the digest" in line
+    assert not (other / "store.zarr").exists()
+
+
+# -- 8: a full disk while writing the report ---------------------------------------------
+def test_full_disk_while_writing_the_report(finished, run_copy, monkeypatch):
+    import workflows.report
+
+    config, out = run_copy
+
+    def full(out_dir, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(Path(out_dir) / "report.html"))
+
+    with monkeypatch.context() as patch:
+        patch.setattr(workflows.report, "write_report", full)
+        line = error_line(silva("report", config, "--out", out, "--in-process", "-q"))
+    assert "No space left on device" in line and "report.html" in line
+    assert not (out / "metrics.json").exists() and not (out / LOCK_NAME).exists()
+    assert silva("report", config, "--out", out, "--in-process", "-q").exit_code == 0
+    assert _metrics(out) == _metrics(finished[1])
+
+
+# -- 7: a run owns its outputs -----------------------------------------------------------
+def test_stale_predictions_are_not_counted_and_go_at_the_next_export(run_copy):
+    config, out = run_copy
+    predictions = out / "predictions"
+    tiles = sorted(p.name for p in predictions.glob("*.laz"))
+    shutil.copy(predictions / tiles[0], predictions / "dropped_tile.laz")
+    shutil.copy(predictions / tiles[0], predictions / (Path(tiles[0]).stem + ".las"))
+    (predictions / f".{tiles[0]}.0123456789ab.part").write_bytes(b"half")
+    n = len(tiles)
+    assert f"predictions: {n} of {n} tiles exported" in run_status(out)
+    result = silva("export", config, "--out", out, "--in-process", "-q",
+                   "--set", "output.format=las")
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in predictions.iterdir()) == sorted(
+        Path(t).stem + ".las" for t in tiles)
+    assert f"predictions: {n} of {n} tiles exported" in run_status(out)
+
+
+# -- 5: two commands on one output directory ---------------------------------------------
+def test_second_command_refuses_while_the_first_runs_and_a_killed_one_is_taken_over(
+        survey, tmp_path):
+    config = write_config(tmp_path / "c.yaml", survey)
+    out = tmp_path / "out"
+    first = subprocess.Popen([sys.executable, "-m", "workflows", "run", str(config), "--out",
+                              str(out), "--in-process", "-q"],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while (read_lock(out) or {}).get("pid") != first.pid:
+            assert time.monotonic() < deadline and first.poll() is None
+            time.sleep(0.1)
+        line = error_line(silva("run", config, "--out", out, "--in-process", "-q"))
+        assert f"pid {first.pid}" in line and "in use by" in line
+    finally:
+        first.send_signal(signal.SIGKILL)
+        first.wait()
+    assert read_lock(out)["pid"] == first.pid  # left behind by the killed run
+    result = silva("run", config, "--out", out, "--in-process", "-q")
+    assert result.exit_code == 0, result.output
+    assert (out / "metrics.json").is_file() and not (out / LOCK_NAME).exists()
