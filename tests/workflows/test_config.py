@@ -78,7 +78,7 @@ def test_defaults():
     d = cfg.model_dump()
     assert d["data"] == {"train": [], "test": [], "predict": [], "label_field": "classification",
                          "classes": {}, "ignore": [], "background": [], "split": None,
-                         "drop_unlisted": False}
+                         "drop_unlisted": False, "allow_overlap": False}
     assert d["tiling"] == {"chunk_size": "auto", "target_points": 1_000_000, "halo": 0.5,
                            "read_batch": 1_000_000}
     assert d["features"] == {"set": "paper", "r1": 0.5, "r2": 0.25, "max_neighbors": 64,
