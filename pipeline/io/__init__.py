@@ -7,7 +7,7 @@ or :func:`read_points` (whole file); write with :func:`write_las` and
 
 from pipeline.io.base import EXTRA_DIM_DTYPES, ExtraDim, PointBatch, TileInfo
 from pipeline.io.las import write_las
-from pipeline.io.oakland import OAKLAND_CLASSES, map_labels, read_oakland
+from pipeline.io.oakland import OAKLAND_CLASSES, labels_from_codes, map_labels, read_oakland
 from pipeline.io.tiles import (
     SUFFIX_FORMATS,
     export_with_extra_dims,
@@ -26,6 +26,7 @@ __all__ = [
     "TileInfo",
     "export_with_extra_dims",
     "iter_points",
+    "labels_from_codes",
     "map_labels",
     "read_info",
     "read_oakland",

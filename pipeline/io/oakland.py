@@ -236,14 +236,19 @@ def map_labels(raw_codes, classes: Mapping[str, list[int]]) -> np.ndarray:
                     "give each code to one class"
                 )
             owner[code] = index
+    return labels_from_codes(raw, owner)
+
+
+def labels_from_codes(raw_codes, code_to_class: Mapping[int, int]) -> np.ndarray:
+    """int16 class index of each integer raw code by the table ``code_to_class``, -1 if none."""
+    raw = np.asarray(raw_codes).astype(np.int64, copy=False)
     out = np.full(raw.shape, -1, dtype=np.int16)
-    if not owner or raw.size == 0:
+    if not code_to_class or raw.size == 0:
         return out
-    codes = np.array(sorted(owner), dtype=np.int64)
-    index = np.array([owner[c] for c in codes], dtype=np.int16)
-    flat = raw.astype(np.int64, copy=False)
-    pos = np.clip(np.searchsorted(codes, flat), 0, len(codes) - 1)
-    hit = codes[pos] == flat
+    codes = np.array(sorted(code_to_class), dtype=np.int64)
+    index = np.array([code_to_class[c] for c in codes], dtype=np.int16)
+    pos = np.clip(np.searchsorted(codes, raw), 0, len(codes) - 1)
+    hit = codes[pos] == raw
     out[hit] = index[pos[hit]]
     return out
 

@@ -12,8 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.io import map_labels, read_info
-from pipeline.io import iter_points
+from pipeline.io import iter_points, labels_from_codes, read_info
 from pipeline.errors import ConfigError, InputError, StoreError
 from pipeline.store import (
     ROLE_PREDICT,
@@ -163,8 +162,6 @@ def ingest_tile(
     n_read = 0
     grid = Grid(**grid)
     labelled = scene != "predict"
-    codes = np.array(sorted(code_to_class), dtype=np.int64)
-    classes = np.array([code_to_class[c] for c in codes], dtype=np.int16)
     counts: dict[str, int] = {}
     fields = (label_field,) if labelled else ()
     for batch in iter_points(tile["path"], batch_size=read_batch, fields=fields):
@@ -174,9 +171,7 @@ def ingest_tile(
         label = np.full(len(xyz), -1, dtype=np.int16)
         if labelled:
             raw = np.asarray(batch.fields[label_field]).astype(np.int64)
-            pos = np.clip(np.searchsorted(codes, raw), 0, max(len(codes) - 1, 0))
-            known = codes[pos] == raw if len(codes) else np.zeros(len(xyz), bool)
-            label[known] = classes[pos[known]]
+            label = labels_from_codes(raw, code_to_class)
             if keep_codes is not None:
                 kept = np.isin(raw, keep_codes)
                 xyz, gid, label = xyz[kept], gid[kept], label[kept]
