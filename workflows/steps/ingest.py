@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.io import iter_points, labels_from_codes, read_info
+from pipeline.io.crs import check_same_crs
 from pipeline.errors import ConfigError, InputError, StoreError
 from pipeline.store import (
     ROLE_PREDICT,
@@ -101,6 +102,9 @@ def plan_tiles(run: Run) -> list[dict]:
             )
     if not tiles:
         raise InputError("no input tiles: set data.train, data.test or data.predict")
+    for scene in SCENES:  # one scene, one CRS: neighbourhoods cross the tiles' borders
+        check_same_crs([(t["path"], t["crs_wkt"]) for t in tiles if t["scene"] == scene],
+                       f"data.{scene}")
     return tiles
 
 
