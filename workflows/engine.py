@@ -96,7 +96,7 @@ class Engine:
                         raise ChunkError(f"{task.where}: {type(err).__name__}: {err}") from err
                     progress.advance()
             else:
-                results, failures = self._map_dask(tasks, progress)
+                results, failures = self._map_dask(tasks, progress, step)
         log.info("%s: %d tasks in %.1f s", step, len(tasks), time.monotonic() - started)
         if failures:
             lines = "; ".join(failures[:5])
@@ -104,8 +104,8 @@ class Engine:
             raise StepFailed(f"{step}: {len(failures)} of {len(tasks)} failed: {lines}{more}")
         return results
 
-    def _map_dask(self, tasks, progress):
-        from distributed import as_completed
+    def _map_dask(self, tasks, progress, step):
+        from workflows.watch import completed
 
         futures = {}
         for task in tasks:
@@ -121,7 +121,7 @@ class Engine:
             )
             futures[future] = task
         results, failures = {}, []
-        for future in as_completed(futures):
+        for future in completed(self.client, futures, step):  # stops when no worker can run
             task = futures[future]
             try:
                 results[task.key] = future.result()
