@@ -189,3 +189,28 @@ def test_second_command_refuses_while_the_first_runs_and_a_killed_one_is_taken_o
     result = silva("run", config, "--out", out, "--in-process", "-q")
     assert result.exit_code == 0, result.output
     assert (out / "metrics.json").is_file() and not (out / LOCK_NAME).exists()
+
+
+# -- 9: points without features ----------------------------------------------------------
+def test_points_without_features_are_counted_and_marked(survey, tmp_path):
+    import laspy
+
+    src = sorted(survey["test"].glob("*.laz"))[0]
+    las = laspy.read(src)
+    n = len(las.points)
+    lonely = las.points.array[:3].copy()
+    lonely["Z"] += np.round(np.array([40.0, 60.0, 80.0]) / las.header.scales[2]).astype(
+        lonely["Z"].dtype)  # far above everything
+    las.points = laspy.ScaleAwarePointRecord(
+        np.concatenate([las.points.array, lonely]), las.header.point_format,
+        las.header.scales, las.header.offsets)
+    (tmp_path / "test").mkdir()
+    las.write(tmp_path / "test" / "lonely.laz")
+    config = write_config(tmp_path / "c.yaml", {"train": survey["train"],
+                                                "test": tmp_path / "test"})
+    result = silva("export", config, "--out", tmp_path / "out", "--in-process")
+    assert result.exit_code == 0, result.output
+    predictions = read_predictions(tmp_path / "out")
+    assert predictions["lonely"]["NoFeatures"][n:].tolist() == [1, 1, 1]
+    count = sum(int(p["NoFeatures"].sum()) for p in predictions.values())
+    assert f"export: {count} points" in result.output and "NoFeatures=1" in result.output

@@ -2,7 +2,9 @@
 
 Each task streams its input tile, finds each point's chunk from its coordinates (the same grid
 as ingest) and its row there by global id, and writes the original dimensions plus the
-predicted class, one probability per class and a confidence. Files are written atomically.
+predicted class, one probability per class, a confidence and ``NoFeatures`` (1 where the
+point's features could not be computed: too few neighbours, or collinear ones; its prediction
+then rests on what the forests make of missing values). Files are written atomically.
 """
 
 from pathlib import Path
@@ -17,10 +19,12 @@ from pipeline.store import (
 )
 from pipeline.tiling import Grid, global_ids
 from workflows.engine import Task
+from workflows.progress import counted, say
 from workflows.run import Run
 
 PREDICTED = "PredictedClassification"
 CONFIDENCE = "Confidence"
+NO_FEATURES = "NoFeatures"
 
 
 def probability_dim(name: str) -> str:
@@ -33,6 +37,7 @@ def extra_dims(classes: list[str], codes: list[int], probabilities: bool) -> lis
     dims = [
         ExtraDim(PREDICTED, dtype, "Predicted class code"),
         ExtraDim(CONFIDENCE, "float32", "Probability of predicted class"),
+        ExtraDim(NO_FEATURES, "uint8", "1: features undefined"),
     ]
     if probabilities:
         dims += [ExtraDim(probability_dim(n), "float32", f"Probability of {n}"[:32])
@@ -58,48 +63,58 @@ class _ChunkPredictions:
             if not self.allow_missing:
                 raise StoreError(f"chunk {name} of scene '{self.scene}' is missing from the "
                                  "store; rerun with --overwrite") from None
-            return np.empty(0, np.int64), np.empty((0, n_classes), np.float32)
-        return read_array(group, "gid"), read_array(group, proba_array(self.stage))
+            return (np.empty(0, np.int64), np.empty((0, n_classes), np.float32),
+                    np.empty(0, bool))
+        undefined = np.isnan(read_array(group, "features")).any(axis=1)
+        return read_array(group, "gid"), read_array(group, proba_array(self.stage)), undefined
 
     def lookup(self, xyz, gid, n_classes):
-        """float32 (n, C) probabilities and a bool mask of the points the store holds."""
+        """float32 (n, C) probabilities, a bool mask of the points the store holds and one
+        of the points whose features are undefined."""
         chunks = self.grid.chunk_of(xyz)
         proba = np.zeros((len(gid), n_classes), dtype=np.float32)
         found = np.ones(len(gid), dtype=bool)
+        undefined = np.zeros(len(gid), dtype=bool)
         for chunk in np.unique(chunks):
             rows = np.flatnonzero(chunks == chunk)
             if chunk not in self.cache:
                 if len(self.cache) >= 8:  # bounded memory on tiles spanning many chunks
                     self.cache.clear()
                 self.cache[chunk] = self._load(int(chunk), n_classes)
-            ids, chunk_proba = self.cache[chunk]
+            ids, chunk_proba, chunk_undefined = self.cache[chunk]
             pos, hit = rows_of(ids, gid[rows])
             if not hit.all() and not self.allow_missing:
                 raise StoreError(f"points of scene '{self.scene}' missing from chunk "
                                  f"{self.grid.chunk_name(int(chunk))}; rerun with --overwrite")
             proba[rows[hit]] = chunk_proba[pos[hit]]
+            undefined[rows[hit]] = chunk_undefined[pos[hit]]
             found[rows[~hit]] = False
-        return proba, found
+        return proba, found, undefined
 
 
 def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilities,
                 write_classification, read_batch, fingerprint, allow_missing=False):
-    """Worker task: write the classified copy of one input tile."""
+    """Worker task: write the classified copy of one input tile; return its path and the
+    number of its points without features."""
     root = open_store(store_path)
     marker = root.require_group(f"exports/{tile['index']}")
     if is_done(marker, "export", fingerprint) and Path(dst).is_file():
-        return dst
+        return {"path": dst, "no_features": marker.attrs.get("no_features", 0)}
     predictions = _ChunkPredictions(root, tile["scene"], Grid(**grid), stage, allow_missing)
     codes_array = np.asarray(codes)
+    n_undefined = 0
 
     def compute(batch):
+        nonlocal n_undefined
         gid = global_ids(tile["index"], batch.start, len(batch.xyz))
-        proba, found = predictions.lookup(batch.xyz, gid, len(classes))
+        proba, found, undefined = predictions.lookup(batch.xyz, gid, len(classes))
+        n_undefined += int(np.count_nonzero(undefined))
         best = np.argmax(proba, axis=1)
         predicted = np.where(found, codes_array[best], 0)  # 0: never classified (LAS)
         values = {
             PREDICTED: predicted,
             CONFIDENCE: proba[np.arange(len(best)), best],
+            NO_FEATURES: undefined.astype(np.uint8),
         }
         if probabilities:
             for index, name in enumerate(classes):
@@ -112,8 +127,8 @@ def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilitie
         tile["path"], dst, extra_dims(classes, codes, probabilities), compute,
         batch_size=read_batch, set_classification=write_classification,
     )
-    mark_done(marker, "export", fingerprint)
-    return dst
+    mark_done(marker, "export", fingerprint, no_features=n_undefined)
+    return {"path": dst, "no_features": n_undefined}
 
 
 def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> list[str]:
@@ -143,8 +158,15 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
             where=f"export of tile {tile['path']}",
             reproduce=f"silva export CONFIG --out {run.out} --in-process",
         ))
-    written = list(engine.map("export", tasks).values())
+    results = list(engine.map("export", tasks).values())
+    written = [r["path"] for r in results]
     remove_stale(out_dir, written)
+    undefined = sum(r["no_features"] for r in results)
+    if undefined:
+        total = sum(t["n_points"] for t in layout["tiles"])
+        say(f"export: {counted(undefined, 'point')} ({undefined / max(total, 1):.2%}) have no "
+            "features (too few neighbours within features.r1 to form a surface, or collinear "
+            f"ones); their predictions are unreliable and marked {NO_FEATURES}=1")
     return written
 
 
