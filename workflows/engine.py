@@ -198,4 +198,8 @@ def chunk_tasks(run, layout: dict, step: str, fn, params, fingerprint: str, verb
                 where=f"chunk {chunk} of scene '{scene}' (tiles {', '.join(names)})",
                 reproduce=f"silva {verb} CONFIG --out {run.out} --chunk {scene}/{chunk}",
             ))
+    if only is not None and not tasks:
+        known = [f"{s}/{c}" for s, info in layout["scenes"].items() for c in info["chunks"]]
+        raise ChunkError(f"--chunk {only}: no such chunk in this run; give SCENE/CHUNK, one of "
+                         f"{', '.join(known[:6])}{' ...' if len(known) > 6 else ''}")
     return tasks

@@ -14,18 +14,27 @@ def expand_inputs(patterns: Sequence[str | Path], *, key: str | None = None) -> 
     """The files matched by paths and globs, sorted and without duplicates.
 
     ``**`` matches any number of directories. ``key`` (e.g. ``"data.train"``) is named in
-    errors. Raises :class:`MissingFileError` naming a pattern that matches no file, and
-    :class:`InputError` for a directory given where files are expected.
+    errors. Raises :class:`MissingFileError` naming a pattern that matches no file or a
+    broken symbolic link, and :class:`InputError` for a directory given where files are
+    expected.
     """
     where = f" in {key}" if key else ""
     found: dict[Path, Path] = {}
     for pattern in patterns:
         text = os.path.expanduser(os.fspath(pattern))
         if glob.has_magic(text):
-            matches = [Path(p) for p in glob.glob(text, recursive=True) if os.path.isfile(p)]
+            matched = glob.glob(text, recursive=True)
+            for p in matched:
+                if os.path.islink(p) and not os.path.exists(p):
+                    raise MissingFileError(f"'{p}' (matched by '{text}'{where}) is a broken "
+                                           "symbolic link; fix it or remove it")
+            matches = [Path(p) for p in matched if os.path.isfile(p)]
         elif os.path.isdir(text):
             raise InputError(f"input '{text}'{where} is a directory; give its files, e.g. "
                              f"'{os.path.join(text, '*.laz')}'")
+        elif os.path.islink(text) and not os.path.exists(text):
+            raise MissingFileError(f"input '{text}'{where} is a broken symbolic link; fix it "
+                                   "or remove it")
         else:
             matches = [Path(text)] if os.path.isfile(text) else []
         if not matches:

@@ -19,7 +19,7 @@ import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from pipeline.atomic import atomic_write_text
+from pipeline.atomic import atomic_write_text, remove_parts
 from pipeline.cascade import CascadeParams
 from pipeline.errors import ConfigError, SilvaError
 from pipeline.features.sets import FeatureParams, feature_set
@@ -201,6 +201,8 @@ def prepare_output(out: Path, *, overwrite: bool, keep=(), command: str = "silva
         try:
             if overwrite:
                 _empty(out, [out / LOCK_NAME, *keep])
+            for directory in (out, out / "model", out / "predictions", out / "plots"):
+                remove_parts(directory)  # what a killed writer left
         except BaseException:
             lock.release()
             raise

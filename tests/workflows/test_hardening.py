@@ -296,3 +296,36 @@ def test_memory_limit_too_small_for_a_worker_stops_the_run(tmp_path, survey):
     assert "cluster.memory_limit (120.00 MiB per worker) is too small" in error_line(result)
     assert time.monotonic() - started < 120
     assert not (tmp_path / "out" / "metrics.json").exists()
+
+
+# -- 11: smaller things ------------------------------------------------------------------
+def test_broken_symlink_in_a_glob_is_named(tmp_path, survey):
+    from pipeline.errors import MissingFileError
+    from workflows.inputs import expand_inputs
+
+    shutil_dir = tmp_path / "tiles"
+    shutil_dir.mkdir()
+    (shutil_dir / "good.laz").symlink_to(sorted(survey["test"].glob("*.laz"))[0])
+    (shutil_dir / "gone.laz").symlink_to(tmp_path / "nowhere.laz")
+    with pytest.raises(MissingFileError, match=r"gone.laz' \(matched by .*data.test\) is a "
+                                               r"broken symbolic link"):
+        expand_inputs([f"{shutil_dir}/*.laz"], key="data.test")
+    with pytest.raises(MissingFileError, match="broken symbolic link"):
+        expand_inputs([shutil_dir / "gone.laz"])
+
+
+def test_chunk_that_does_not_exist_is_an_error(tmp_path, survey):
+    config = write_config(tmp_path / "c.yaml", survey)
+    result = silva("features", config, "--out", tmp_path / "out", "-q", "--chunk", "test/9_9")
+    line = error_line(result)
+    assert "--chunk test/9_9: no such chunk" in line and "test/0_0" in line
+
+
+def test_parts_a_killed_writer_left_are_cleared(tmp_path):
+    out = tmp_path / "out"
+    (out / "model").mkdir(parents=True)
+    (out / "store.zarr").mkdir()
+    part = out / "model" / ".stage1.skops.0123456789ab.part"
+    part.write_bytes(b"half")
+    with prepare_output(out, overwrite=False):
+        assert not part.exists()
