@@ -185,6 +185,24 @@ def mark_done(group: zarr.Group, step: str, fingerprint: str, **attrs) -> None:
     group.attrs.update({"done": done, **attrs})
 
 
+def tile_part(root: zarr.Group, scene: str, tile: int, chunk: str, prefix: str):
+    """The part group of ``tile`` in ``chunk`` holding its ``prefix`` ("core" or "halo")
+    points, or None when the tile has no such points there.
+
+    Ingest records in the tile's marker which parts it wrote (``parts``); a part it wrote
+    that is gone is a :class:`StoreError`, and the tile is marked to be ingested again.
+    """
+    marker = root[f"scenes/{scene}/parts/{tile}"]
+    if prefix not in marker.attrs.get("parts", {}).get(chunk, []):
+        return None
+    path = part_path(scene, tile, chunk)
+    if path not in root:
+        _forget(root[path.rsplit("/", 1)[0]])
+        raise StoreError(f"store group '{path}' is missing; its tile is marked to be ingested "
+                         "again: run the same command again (or start afresh with --overwrite)")
+    return root[path]
+
+
 def proba_array(stage: int) -> str:
     """Name of the probabilities array of cascade stage ``stage`` (0-based; named from 1)."""
     return f"stage{stage + 1}_proba"

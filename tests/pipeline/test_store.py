@@ -128,3 +128,22 @@ def test_store_of_an_older_schema_is_refused(tmp_path):
     root.attrs["schema_version"] = 1
     with pytest.raises(StoreError, match="schema version 1.*--overwrite"):
         open_store(tmp_path / "s.zarr")
+
+
+def test_a_part_ingest_wrote_that_is_gone_is_an_error(tmp_path):
+    import shutil
+
+    from pipeline.store import tile_part
+
+    root = open_store(tmp_path / "s.zarr")
+    marker = root.require_group("scenes/train/parts/3")
+    part = root.require_group("scenes/train/parts/3/0_1")
+    mark_done(marker, "ingest", "fp", parts={"0_1": ["core"]})
+    assert tile_part(root, "train", 3, "0_1", "core").path == part.path
+    assert tile_part(root, "train", 3, "0_1", "halo") is None  # never written
+    assert tile_part(root, "train", 3, "1_1", "core") is None
+    shutil.rmtree(tmp_path / "s.zarr" / part.path)
+    root = open_store(tmp_path / "s.zarr")
+    with pytest.raises(StoreError, match="parts/3/0_1' is missing"):
+        tile_part(root, "train", 3, "0_1", "core")
+    assert not is_done(open_store(tmp_path / "s.zarr")["scenes/train/parts/3"], "ingest", "fp")

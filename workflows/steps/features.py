@@ -13,7 +13,7 @@ from pipeline.cascade import id_hash
 from pipeline.errors import InputError
 from pipeline.features.neighbors import RadiusIndex
 from pipeline.features.sets import FeatureParams, feature_set
-from pipeline.store import ROLE_TRAIN, part_path, read_array
+from pipeline.store import ROLE_TRAIN, read_array, tile_part
 from workflows.engine import chunk_tasks
 from workflows.progress import say
 from workflows.run import Run
@@ -39,10 +39,10 @@ def _gather(root, scene, tiles, chunk, prefix, names):
     """The ``prefix`` (core or halo) points of a chunk from every tile's part, by global id."""
     arrays = {name: [] for name in names}
     for tile in tiles:
-        path = part_path(scene, tile, chunk)
-        if path in root and f"{prefix}_gid" in root[path]:
+        part = tile_part(root, scene, tile, chunk, prefix)  # None: no such points there
+        if part is not None:
             for name in names:
-                arrays[name].append(read_array(root[path], f"{prefix}_{name}"))
+                arrays[name].append(read_array(part, f"{prefix}_{name}"))
     arrays = {k: np.concatenate(v) if v else _EMPTY[k] for k, v in arrays.items()}
     order = np.argsort(arrays["gid"], kind="stable")
     return {k: v[order] for k, v in arrays.items()}

@@ -205,12 +205,15 @@ def ingest_tile(
         raise InputError(f"tile {tile['path']}: its header announces {tile['n_points']} points "
                          f"but {n_read} were read; the file is truncated or its header is "
                          "wrong: repair or re-export it")
+    parts: dict[str, set] = {}  # chunk -> the kinds of points ("core", "halo") written
     for (group, name), (appended, stored) in appender.seal().items():
         if appended != stored:
             raise StoreError(f"store group '{group}' holds {stored} rows of '{name}' where "
                              f"{appended} were written: another process writes to this store; "
                              "run one Silva command per output directory and rerun")
-    mark_done(marker, "ingest", fingerprint, core_counts=counts)
+        parts.setdefault(group.rsplit("/", 1)[1], set()).add(name.split("_")[0])
+    mark_done(marker, "ingest", fingerprint, core_counts=counts,
+              parts={chunk: sorted(kinds) for chunk, kinds in parts.items()})
     return counts
 
 
