@@ -329,3 +329,18 @@ def test_parts_a_killed_writer_left_are_cleared(tmp_path):
     part.write_bytes(b"half")
     with prepare_output(out, overwrite=False):
         assert not part.exists()
+
+
+def test_a_real_scheduler_passes_the_check_and_connects():
+    from distributed import LocalCluster
+
+    from workflows.cluster import open_client
+    from workflows.config import validate_config
+
+    with LocalCluster(n_workers=1, processes=False, protocol="tcp", host="127.0.0.1",
+                      dashboard_address=None) as cluster:
+        check_scheduler(cluster.scheduler_address, timeout=5.0)
+        cfg = validate_config({"cluster": {"kind": "address",
+                                           "address": cluster.scheduler_address}}).cluster
+        with open_client(cfg) as client:
+            assert client.submit(sum, [1, 2]).result() == 3
