@@ -44,10 +44,11 @@ def config_error(raw=None, overrides=(), tmp_path=None) -> str:
 
 
 # -- ready configs and defaults --------------------------------------------------------------
-@pytest.mark.parametrize("name", ["demo.yaml", "forest.yaml", "oakland.yaml"])
-def test_ready_configs_validate(name):
+@pytest.mark.parametrize("name, feature_set", [
+    ("demo.yaml", "paper"), ("forest.yaml", "default"), ("oakland.yaml", "paper")])
+def test_ready_configs_validate(name, feature_set):
     cfg = load_config(CONFIGS / name)
-    assert cfg.features.set == "paper" and cfg.cascade.stages == 3
+    assert cfg.features.set == feature_set and cfg.cascade.stages == 3
     assert load_config(CONFIGS / name) == cfg
 
 
@@ -166,9 +167,9 @@ def test_a_single_code_or_path_is_a_list():
     ({"tiling": {"target_points": 2.5}}, "tiling.target_points must be an integer, got 2.5"),
     ({"tiling": {"target_points": "big"}}, "tiling.target_points must be an integer, got 'big'"),
     ({"tiling": {"target_points": "auto"}}, "tiling.target_points must be an integer"),
-    ({"features": {"r1": -1}}, "features.r1 must be > 0, got -1"),
-    ({"features": {"r1": float("inf")}}, "features.r1 must be a finite number, got inf"),
-    ({"features": {"r1": float("nan")}}, "features.r1 must be > 0, got nan"),
+    ({"features": {"r1": -1}}, "features.r1 must be 'auto' or a number of metres > 0, got -1"),
+    ({"features": {"r1": float("inf")}}, "features.r1 must be 'auto' or a number of metres > 0, got inf"),
+    ({"features": {"r1": float("nan")}}, "features.r1 must be 'auto' or a number of metres > 0, got nan"),
     ({"tiling": {"halo": 0.2}},
      "tiling.halo 0.2 is smaller than the largest radius 0.5; use a halo >= 0.5 or leave it "
      "unset"),
@@ -237,7 +238,7 @@ def test_errors_name_the_key(raw, expected):
 def test_several_errors_are_counted():
     message = config_error({"features": {"r1": -1}, "cascade": {"stages": 0, "folds": 1}})
     assert message.endswith("(and 2 more)")
-    assert "features.r1 must be > 0, got -1" in message
+    assert "features.r1 must be 'auto' or a number of metres > 0, got -1" in message
 
 
 @pytest.mark.parametrize("loc, valid", [
@@ -348,7 +349,7 @@ def test_paths_from_the_file_and_from_overrides(tmp_path, monkeypatch):
     ("data.classes.tree.x=1", "'data.classes.tree' holds [5], not a mapping"),
     ("data.test=[*.laz]", "the value of --set 'data.test=[*.laz]' is not valid YAML"),
     ("tiling.chunksize=3", "unknown key 'tiling.chunksize' (did you mean 'chunk_size'?)"),
-    ("features.r1=-1", "features.r1 must be > 0, got -1"),
+    ("features.r1=-1", "features.r1 must be 'auto' or a number of metres > 0, got -1"),
     ("colour=green", "unknown key 'colour'"),
 ])
 def test_malformed_or_invalid_overrides(tmp_path, override, expected):

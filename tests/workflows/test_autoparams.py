@@ -1,0 +1,53 @@
+"""features.r1 and features.voxel 'auto': resolved once from the tiles' headers or the model."""
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.features.sets import AUTO_NEIGHBORS, auto_radius, auto_voxel
+from pipeline.io import write_las
+from workflows.autoparams import header_density, resolve_auto
+from workflows.config import validate_config
+
+
+def _tile(path, density, side=40.0):
+    rng = np.random.default_rng(0)
+    n = int(density * side * side)
+    xyz = np.c_[rng.uniform(0, side, (n, 2)) + [500_000, 4_000_000], rng.uniform(0, 2, n)]
+    xyz[:2, :2] = [[500_000, 4_000_000], [500_000 + side, 4_000_000 + side]]  # exact box
+    return write_las(path, xyz, fields={"classification": np.full(n, 2, np.uint8)})
+
+
+def _config(tile, **features):
+    return validate_config({"data": {"train": [str(tile)], "classes": {"a": [1], "b": [2]}},
+                            "features": {"r1": "auto", **features}})
+
+
+@pytest.mark.parametrize("density, r1", [(0.9, 4.0), (5.0, 2.0), (400.0, 0.5)])
+def test_r1_auto_follows_the_header_density(tmp_path, density, r1):
+    cfg = _config(_tile(tmp_path / "t.laz", density))
+    assert header_density(cfg) == pytest.approx(density, rel=0.01)
+    resolved = resolve_auto(cfg)
+    assert resolved.features.r1 == r1 == auto_radius(density)
+    assert resolved.halo == resolved.features.params.halo >= r1  # derived once the radius is
+    # a disc of radius r1 holds at least AUTO_NEIGHBORS points at that density
+    assert density * np.pi * r1**2 >= AUTO_NEIGHBORS or r1 == 0.5
+
+
+def test_voxel_auto_and_a_model_decide_for_an_applied_run(tmp_path):
+    tile = _tile(tmp_path / "t.laz", 2.0)
+    resolved = resolve_auto(_config(tile, voxel="auto"))
+    assert resolved.features.voxel == pytest.approx(auto_voxel(resolved.features.r1, 64))
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / "model.json").write_text(json.dumps({
+        "features.r1": 1.5, "features.voxel": 0.2, "classes": [{"name": "a", "code": 1}],
+        "stages": [{"index": 1}]}))
+    applied = resolve_auto(_config(tile, voxel="auto"), model)
+    assert (applied.features.r1, applied.features.voxel) == (1.5, 0.2)
+
+
+def test_a_resolved_config_is_left_alone(tmp_path):
+    cfg = validate_config({"features": {"r1": 0.7}})
+    assert resolve_auto(cfg) is cfg
