@@ -43,7 +43,7 @@ def test_voxel_auto_and_a_model_decide_for_an_applied_run(tmp_path):
     model.mkdir()
     (model / "model.json").write_text(json.dumps({
         "features.r1": 1.5, "features.voxel": 0.2, "classes": [{"name": "a", "code": 1}],
-        "stages": [{"index": 1}]}))
+        "stages": [{"index": 1, "file": "stage1.skops", "fingerprint": "f", "sha256": "0"}]}))
     applied = resolve_auto(_config(tile, voxel="auto"), model)
     assert (applied.features.r1, applied.features.voxel) == (1.5, 0.2)
 
