@@ -17,6 +17,7 @@ from pathlib import Path
 import click
 
 from workflows.progress import counted, run_logging, run_progress, say
+from workflows.sweep import sweep
 from workflows.templates import TEMPLATES, template_path, write_template
 
 log = logging.getLogger(__name__)
@@ -251,5 +252,5 @@ def init(path, template, force):
 
 COMMANDS = [
     *(_step_command(name, target, doc) for name, (target, doc) in STEP_COMMANDS.items()),
-    predict, status, demo, synth, init,
+    predict, status, demo, synth, init, sweep,
 ]
