@@ -166,7 +166,8 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
         total = sum(t["n_points"] for t in layout["tiles"])
         say(f"export: {counted(undefined, 'point')} ({undefined / max(total, 1):.2%}) have no "
             "features (too few neighbours within features.r1 to form a surface, or collinear "
-            f"ones); their predictions are unreliable and marked {NO_FEATURES}=1")
+            f"ones); their predictions are unreliable and marked {NO_FEATURES}=1",
+            quiet=run.quiet)  # -q keeps one line per step; the log has it
     return written
 
 
