@@ -1,5 +1,8 @@
 """Robust 2D Delaunay triangulation of small point sets, compiled with numba.
 
+One module although long: numba inlines these kernels into each other, and the exact
+predicates, the hull hash and the edge flips share one workspace layout.
+
 Built for the local surfaces of the moment invariants: a few dozen to a few hundred points per
 call, millions of calls. Incremental insertion without a super-triangle:
 

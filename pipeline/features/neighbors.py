@@ -1,5 +1,8 @@
 """Exact, chunk-invariant radius neighbourhoods as CSR arrays.
 
+One module although long: the capped search, the uncapped sphere sums and the cell index are
+one family of numba kernels sharing the grid and the distance expression that make them exact.
+
 Row i of the result lists the at most ``max_neighbors`` nearest points j of query point q with
 
     d2 = (x_j - x_q)**2 + (y_j - y_q)**2 + (z_j - z_q)**2 <= radius * radius

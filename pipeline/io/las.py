@@ -1,5 +1,8 @@
 """LAS and LAZ tiles (laspy + lazrs): header info, streamed reads, atomic writes, exports.
 
+One module although long: header, reader and writer share the point-format and VLR rules
+that keep an exported file conformant.
+
 Reads stream with ``LasReader.chunk_iterator`` so memory is bounded by the batch size. Writes
 go to a hidden temporary file in the destination directory that replaces the destination
 only once it is complete, so an interrupted write never leaves a file that looks finished.

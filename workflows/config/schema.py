@@ -1,5 +1,8 @@
 """The configuration's sections and :class:`SilvaConfig`, the whole validated configuration.
 
+One module (the cluster section apart) because the sections validate against each other:
+the halo against the features, the output names against the classes.
+
 Every key has a default and a description; validators resolve derived values (``features.r2``,
 ``tiling.halo``) and raise one-line errors naming the dotted key.
 """
