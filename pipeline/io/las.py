@@ -13,7 +13,6 @@ the header's WKT bit set): GeoTIFF CRS keys of older files are converted with py
 import copy
 import logging
 import os
-import uuid
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -24,6 +23,7 @@ from laspy.header import Version
 from laspy.point.dims import DimensionKind
 from laspy.vlrs.vlrlist import VLRList
 
+from pipeline.atomic import atomic_path
 from pipeline.errors import InputError
 from pipeline.io.base import (
     ExtraDim,
@@ -275,21 +275,13 @@ def atomic_writer(dst, header: laspy.LasHeader) -> Iterator[laspy.LasWriter]:
     is removed and dst is left as it was.
     """
     dst = Path(dst)
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dst.with_name(f".{dst.name}.{uuid.uuid4().hex[:12]}.part")
     compress = dst.suffix.lower() == ".laz"
-    try:
-        with open(tmp, "wb+") as stream:
-            with laspy.open(
-                stream, mode="w", header=header, do_compress=compress, closefd=False
-            ) as writer:
-                yield writer
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(tmp, dst)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with atomic_path(dst) as tmp, open(tmp, "wb+") as stream:
+        with laspy.open(stream, mode="w", header=header, do_compress=compress,
+                        closefd=False) as writer:
+            yield writer
+        stream.flush()
+        os.fsync(stream.fileno())
 
 
 def check_las_destination(dst) -> Path:
