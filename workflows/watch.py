@@ -27,10 +27,16 @@ class WorkerWatch:
 
     def __init__(self, client, step: str):
         self.client, self.step = client, step
-        self.present = set(self._workers())
+        workers = self._workers()
+        self.present = set(workers)
         self.restarts = 0
-        self.limit = None
+        self.limit = self._limit(workers, None)
         self.last_check = time.monotonic()
+
+    @staticmethod
+    def _limit(workers: dict, default):
+        limits = [w.get("memory_limit") for w in workers.values() if w.get("memory_limit")]
+        return min(limits) if limits else default
 
     def _workers(self) -> dict:
         try:
@@ -51,16 +57,24 @@ class WorkerWatch:
         workers = self._workers()
         self.restarts += len(self.present - set(workers))
         self.present = set(workers)
-        limits = [w.get("memory_limit") for w in workers.values() if w.get("memory_limit")]
-        self.limit = min(limits) if limits else self.limit
+        self.limit = self._limit(workers, self.limit)
         if self.restarts >= MAX_RESTARTS:
-            limit = f" ({format_bytes(self.limit)} per worker)" if self.limit else ""
-            raise NoWorkerCanRun(
-                f"{self.step}: workers were restarted {self.restarts} times without "
-                f"finishing a task; most likely cluster.memory_limit{limit} is too small for "
-                "a worker: raise it (or lower tiling.target_points) and run the same command "
-                "again"
-            )
+            self.stop()
+
+    def killed(self) -> None:
+        """A task killed its workers too often (distributed's KilledWorker): stop."""
+        self.restarts = max(self.restarts, MAX_RESTARTS)
+        self.stop()
+
+    def stop(self) -> None:
+        """NoWorkerCanRun, naming the memory limit."""
+        limit = f" ({format_bytes(self.limit)} per worker)" if self.limit else ""
+        raise NoWorkerCanRun(
+            f"{self.step}: workers were restarted {self.restarts} times without "
+            f"finishing a task; most likely cluster.memory_limit{limit} is too small for "
+            "a worker: raise it (or lower tiling.target_points) and run the same command "
+            "again"
+        )
 
 
 def completed(client, futures, step: str):
@@ -74,6 +88,9 @@ def completed(client, futures, step: str):
     while not pending.is_empty():
         if pending.has_ready():
             for future in pending.next_batch(block=False):
+                if future.status == "error" and _killed_worker(future):
+                    client.cancel(list(futures))
+                    watch.killed()
                 watch.progress()
                 yield future
             continue
@@ -83,3 +100,8 @@ def completed(client, futures, step: str):
             client.cancel(list(futures))
             raise
         time.sleep(0.05)
+
+
+def _killed_worker(future) -> bool:
+    """Whether the task failed because the workers running it kept dying."""
+    return type(future.exception()).__name__ == "KilledWorker"

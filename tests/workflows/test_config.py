@@ -44,11 +44,11 @@ def config_error(raw=None, overrides=(), tmp_path=None) -> str:
 
 
 # -- ready configs and defaults --------------------------------------------------------------
-@pytest.mark.parametrize("name, feature_set", [
-    ("demo.yaml", "paper"), ("forest.yaml", "default"), ("oakland.yaml", "paper")])
-def test_ready_configs_validate(name, feature_set):
+@pytest.mark.parametrize("name, feature_set, stages", [
+    ("demo.yaml", "paper", 3), ("forest.yaml", "default", 2), ("oakland.yaml", "paper", 3)])
+def test_ready_configs_validate(name, feature_set, stages):
     cfg = load_config(CONFIGS / name)
-    assert cfg.features.set == feature_set and cfg.cascade.stages == 3
+    assert cfg.features.set == feature_set and cfg.cascade.stages == stages
     assert load_config(CONFIGS / name) == cfg
 
 
