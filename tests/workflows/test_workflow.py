@@ -79,6 +79,12 @@ def test_outputs_of_a_complete_run(reference, survey):
         assert np.allclose(
             sum(out[f"Probability_{c}"] for c in ("terrain", "tree", "dead_wood", "misc")), 1,
             atol=1e-5)
+        proba = np.stack([np.asarray(out[f"Probability_{c}"], np.float64)
+                          for c in ("terrain", "tree", "dead_wood", "misc")], axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            expected = -np.where(proba > 0, proba * np.log(proba), 0).sum(axis=1)
+        np.testing.assert_allclose(out["Entropy"], expected, atol=1e-5)
+        assert 0 <= np.min(out["Entropy"]) and np.max(out["Entropy"]) <= np.log(4) + 1e-5
 
 
 @pytest.fixture(scope="module")

@@ -24,11 +24,21 @@ from workflows.run import Run
 
 PREDICTED = "PredictedClassification"
 CONFIDENCE = "Confidence"
+ENTROPY = "Entropy"
 NO_FEATURES = "NoFeatures"
 
 
 def probability_dim(name: str) -> str:
     return f"Probability_{name}"
+
+
+def entropy(proba: np.ndarray) -> np.ndarray:
+    """float32 Shannon entropy (nats) of each row of probabilities (Myria3D's convention):
+    0 for a certain prediction, log C when every class is equally likely."""
+    p = np.asarray(proba, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        terms = np.where(p > 0, p * np.log(p), 0.0)
+    return (-terms.sum(axis=1)).astype(np.float32)
 
 
 def extra_dims(classes: list[str], codes: list[int], probabilities: bool) -> list[ExtraDim]:
@@ -37,6 +47,7 @@ def extra_dims(classes: list[str], codes: list[int], probabilities: bool) -> lis
     dims = [
         ExtraDim(PREDICTED, dtype, "Predicted class code"),
         ExtraDim(CONFIDENCE, "float32", "Probability of predicted class"),
+        ExtraDim(ENTROPY, "float32", "Entropy of class probabilities"),
         ExtraDim(NO_FEATURES, "uint8", "1: features undefined"),
     ]
     if probabilities:
@@ -114,6 +125,7 @@ def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilitie
         values = {
             PREDICTED: predicted,
             CONFIDENCE: proba[np.arange(len(best)), best],
+            ENTROPY: entropy(proba),
             NO_FEATURES: undefined.astype(np.uint8),
         }
         if probabilities:
