@@ -78,6 +78,29 @@ def _check_description(description, path: Path) -> None:
                                      f"'{field}'; retrain the model with 'silva train'")
 
 
+def software_versions() -> dict[str, str]:
+    """The versions of the packages a saved model depends on."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    versions = {"silva": __version__}
+    for name in ("scikit-learn", "skops", "numpy", "numba"):
+        try:
+            versions[name] = version(name)
+        except PackageNotFoundError:
+            versions[name] = "absent"
+    return versions
+
+
+def check_versions(description: dict, model_dir) -> None:
+    """ModelError when the model's forests come from another scikit-learn minor version:
+    its tree format is not guaranteed across them (a model without versions passes)."""
+    saved = description.get("versions", {}).get("scikit-learn")
+    current = software_versions()["scikit-learn"]
+    if saved and saved.split(".")[:2] != current.split(".")[:2]:
+        raise ModelError(f"model {model_dir} was saved by scikit-learn {saved}, this is "
+                         f"{current}: install scikit-learn=={saved} or retrain the model")
+
+
 def write_description(model_dir: str | Path, description: dict) -> None:
     """Write model.json (atomically), adding the software version and the SHA-256 of every
     stage file (``stages[i]["file"]``, which must exist)."""
@@ -85,7 +108,8 @@ def write_description(model_dir: str | Path, description: dict) -> None:
     model_dir.mkdir(parents=True, exist_ok=True)
     stages = [{**stage, "sha256": file_digest(model_dir / stage["file"])}
               for stage in description.get("stages", [])]
-    description = {**description, "stages": stages, "software": f"silva {__version__}"}
+    description = {**description, "stages": stages, "software": f"silva {__version__}",
+                   "versions": software_versions()}
     atomic_write_text(model_dir / MODEL_FILE, json.dumps(description, indent=2))
 
 

@@ -79,3 +79,18 @@ def test_description_that_is_not_an_object(model):
     (model / MODEL_FILE).write_text("[1, 2]")
     with pytest.raises(ModelError, match="not a JSON object"):
         read_description(model)
+
+
+def test_a_model_records_versions_and_refuses_another_scikit_learn(tmp_path):
+    import json
+
+    from pipeline.errors import ModelError
+    from pipeline.model import check_versions, software_versions, write_description
+
+    write_description(tmp_path, {"classes": [], "stages": []})
+    saved = json.loads((tmp_path / "model.json").read_text())
+    assert set(saved["versions"]) == {"silva", "scikit-learn", "skops", "numpy", "numba"}
+    check_versions(saved, tmp_path)  # the same versions pass
+    saved["versions"]["scikit-learn"] = "0.9.1"
+    with pytest.raises(ModelError, match=r"scikit-learn 0\.9\.1.*retrain"):
+        check_versions(saved, tmp_path)

@@ -60,7 +60,11 @@ def test_outputs_of_a_complete_run(reference, survey):
     assert metrics["macro"]["f1"] > 0.5
     assert metrics["n_test_points"] > 1000
     assert (reference / "report.html").stat().st_size > 10_000
-    assert (reference / "model" / "model.json").is_file()
+    model = json.loads((reference / "model" / "model.json").read_text())
+    importances = model["stages"][0]["importances"]
+    assert list(importances)[:2] == ["I2_22", "I2_222"] and len(importances) == 11 + 2 * 4
+    assert abs(sum(importances.values()) - 1) < 1e-3
+    assert model["versions"]["scikit-learn"] and model["features.columns"][0] == "I2_22"
     assert (reference / "config.yaml").is_file()
     # every input point comes back, in order, with its original dimensions
     import laspy

@@ -28,6 +28,7 @@ from pipeline.errors import ConfigError, ModelError, StoreError
 from pipeline.features.sets import FeatureParams
 from pipeline.model import (
     check_compatible,
+    check_versions,
     load_forest,
     read_description,
     save_forest,
@@ -146,6 +147,7 @@ def check_model(run: Run) -> list[dict]:
     Called before any work, so that a wrong model never costs an ingest and features.
     """
     description = read_description(run.model_path)
+    check_versions(description, run.model_path)
     check_compatible(description, run.feature_description(), run.model_path)
     for key in ("classes", "stages"):
         if not description.get(key):
@@ -242,8 +244,16 @@ class StoreCascade:
             "index": stage + 1, "fingerprint": self.stage_fingerprint(stage),
             "file": stage_file(self.run.model_path, stage).name,
             "training_rows": fitted.training_rows,
+            "importances": self._importances(fitted.forest),
         }]
         self._describe(self.stages)
+
+    def _importances(self, forest) -> dict[str, float]:
+        """The forest's impurity importance of each feature column and context column."""
+        classes = self.run.classes
+        names = (self.run.feature_description()["features.columns"]
+                 + [f"context_r1_{c}" for c in classes] + [f"context_r2_{c}" for c in classes])
+        return {name: round(float(v), 6) for name, v in zip(names, forest.feature_importances_)}
 
     def predict(self, stage, fitted, fractions, seed):
         self._map(f"predict-{stage + 1}", chunk_predict,
