@@ -173,6 +173,28 @@ def predict(config, out, overrides, overwrite, quiet, in_process, chunk, verbose
               model_dir=model_dir)
 
 
+@click.command("plan")
+@click.argument("config", type=click.Path(dir_okay=False, exists=True, path_type=Path))
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+              help="Override a config key, e.g. --set tiling.chunk_size=20 (repeatable).")
+@click.option("--picture", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also write a PNG of each scene's chunk grid over its tiles.")
+def plan(config, overrides, picture):
+    """Show what a run of CONFIG will do, from the tiles' headers: tiles, points, chunk grid,
+    memory per worker, store size and duration (rough estimates). Nothing is written.
+
+    Example: silva plan survey.yaml --set tiling.target_points=500000 --picture grid.png
+    """
+    from workflows.config import load_config
+    from workflows.plan import plan as plan_run
+    from workflows.plan import plan_workers
+    from workflows.run import Run
+
+    run = Run(load_config(config, overrides), Path("."), quiet=True)
+    for line in plan_run(run, plan_workers(run), picture):
+        click.echo(line)
+
+
 @click.command("status")
 @click.argument("out", type=click.Path(file_okay=False, exists=True, path_type=Path))
 def status(out):
@@ -252,5 +274,5 @@ def init(path, template, force):
 
 COMMANDS = [
     *(_step_command(name, target, doc) for name, (target, doc) in STEP_COMMANDS.items()),
-    predict, status, demo, synth, init, sweep,
+    predict, plan, status, demo, synth, init, sweep,
 ]

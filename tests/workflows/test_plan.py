@@ -1,0 +1,29 @@
+"""``silva plan``: the run's tiles, grid and estimates from the headers, before any work."""
+
+from click.testing import CliRunner
+
+from tests.workflows.conftest import write_config
+from workflows.cli import main
+
+
+def test_plan_prints_scenes_grid_and_estimates_and_writes_nothing(tmp_path, survey):
+    config = write_config(tmp_path / "c.yaml", survey, tiling={"chunk_size": 5.0})
+    picture = tmp_path / "grid.png"
+    result = CliRunner().invoke(main, ["plan", str(config), "--picture", str(picture)])
+    assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    assert lines[0].startswith("features: set paper (11 columns), r1 0.5 m, halo 0.5 m")
+    scenes = [line for line in lines if line.startswith("scene ")]
+    assert [s.split(":")[0] for s in scenes] == ["scene train", "scene test"]
+    assert all("4 tiles" in s and "chunks of 5 m, a 3 x 3 grid" in s for s in scenes)
+    assert any(line.startswith("memory: about ") for line in lines)
+    assert any(line.startswith("time: about ") for line in lines)
+    assert picture.stat().st_size > 5_000 and sorted(p.name for p in tmp_path.iterdir()) == [
+        "c.yaml", "grid.png"]  # no output directory, no store
+
+
+def test_plan_names_a_bad_key_in_one_line(tmp_path, survey):
+    config = write_config(tmp_path / "c.yaml", survey)
+    result = CliRunner().invoke(main, ["plan", str(config), "--set", "features.r1=-2"])
+    assert result.exit_code == 1
+    assert "features.r1" in result.output and "Traceback" not in result.output

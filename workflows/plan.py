@@ -1,0 +1,107 @@
+"""``silva plan``: what a run of a configuration will do, before a night is spent on it.
+
+From the tiles' headers alone (no point is read): the tiles and points of each scene, the
+resolved radius and halo, the chunk grid, and rough estimates of a worker's memory, the
+store's size on disk and the run's duration. The estimates come from rates measured on the
+2-core reference machine (docs/PERFORMANCE.md); they say the order of magnitude, not the
+minute.
+"""
+
+import os
+from pathlib import Path
+
+from pipeline.atomic import atomic_path
+from pipeline.features.sets import feature_set
+from pipeline.tiling import Grid
+from workflows.progress import clock, counted
+from workflows.run import Run
+from workflows.steps.ingest import plan_scenes, plan_tiles
+
+#: Resident bytes per point of a chunk (core and halo) while a worker computes it: the
+#: measured peak of a 1,000,000-point chunk is about 0.7 GiB.
+WORKER_BYTES_PER_POINT = 700
+#: Store bytes per point besides the feature columns (coordinates, ids, labels, halo copies,
+#: per-stage context and probabilities, compressed): about 114 bytes measured with 11 columns.
+STORE_BYTES_PER_POINT = 70
+#: Points per second on one core, measured: per feature set, and for the rest of the run
+#: (ingest, context and prediction of every stage, export).
+FEATURE_RATES = {"paper": 44_000, "covariance": 50_000, "default": 17_000}
+OTHER_RATE = 25_000
+
+
+def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
+    """The lines ``silva plan`` prints; with ``picture``, a PNG of the chunk grids."""
+    tiles = plan_tiles(run)
+    scenes = plan_scenes(run, tiles)
+    params = run.features
+    columns = len(feature_set(params).columns)
+    lines = [f"features: set {params.set} ({columns} columns), r1 {params.r1:g} m, "
+             f"halo {run.halo:g} m" + (f", voxels of {params.voxel:.3g} m" if params.voxel
+                                       else "")]
+    total, largest = 0, 0.0
+    for scene, info in scenes.items():
+        grid = Grid(**info["grid"])
+        members = [t for t in tiles if t["scene"] == scene]
+        points = sum(t["n_points"] for t in members)
+        area = sum(max((t["maxs"][0] - t["mins"][0]) * (t["maxs"][1] - t["mins"][1]), 1.0)
+                   for t in members)
+        window = (grid.size + 2 * run.halo) ** 2
+        per_chunk = min(points, points / area * window)
+        largest = max(largest, per_chunk)
+        total += points
+        lines.append(f"scene {scene}: {counted(len(members), 'tile')}, "
+                     f"{counted(points, 'point')}, {points / area:,.1f} points/m²; chunks of "
+                     f"{grid.size:g} m, a {grid.nx} x {grid.ny} grid; about "
+                     f"{counted(round(per_chunk), 'point')} in a chunk with its halo")
+    memory = largest * WORKER_BYTES_PER_POINT
+    disk = total * (STORE_BYTES_PER_POINT + 4 * columns)
+    seconds = total / workers * (1 / FEATURE_RATES[params.set] + 1 / OTHER_RATE)
+    lines += [
+        f"memory: about {memory / 2**30:.2f} GiB per worker at the mean density (dense parts "
+        "of a chunk hold more; tiling.target_points bounds it)",
+        f"disk: about {disk / 2**30:.2f} GiB for store.zarr",
+        f"time: about {clock(seconds)} on {counted(workers, 'worker')} for the features, "
+        "context and predictions, plus the forests' training",
+    ]
+    if picture is not None:
+        _draw(scenes, tiles, picture)
+        lines.append(f"picture: {picture}")
+    return lines
+
+
+def _draw(scenes: dict, tiles: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    fig, axes = plt.subplots(1, len(scenes), figsize=(5 * len(scenes), 5), squeeze=False)
+    for ax, (scene, info) in zip(axes[0], scenes.items()):
+        grid = Grid(**info["grid"])
+        for i in range(grid.nx + 1):
+            ax.axvline(grid.x0 + i * grid.size, color="0.8", lw=0.5)
+        for j in range(grid.ny + 1):
+            ax.axhline(grid.y0 + j * grid.size, color="0.8", lw=0.5)
+        for t in (t for t in tiles if t["scene"] == scene):
+            (x0, y0), (x1, y1) = t["mins"][:2], t["maxs"][:2]
+            ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, color="C0"))
+        ax.set_xlim(grid.x0, grid.x0 + grid.nx * grid.size)
+        ax.set_ylim(grid.y0, grid.y0 + grid.ny * grid.size)
+        ax.set_aspect("equal")
+        ax.set_title(f"{scene}: chunks of {grid.size:g} m")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=80)
+    plt.close(fig)
+
+
+def plan_workers(run: Run) -> int:
+    """The number of workers the configured cluster will start (local: one per core)."""
+    cluster = run.cfg.cluster
+    if cluster.kind == "local":
+        return int(cluster.n_workers or os.cpu_count() or 1)
+    if cluster.kind == "slurm":
+        return int(cluster.slurm.jobs) * int(cluster.slurm.processes)
+    return max(1, int(getattr(cluster, "n_workers", None) or 1))
+
