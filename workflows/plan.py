@@ -25,7 +25,7 @@ WORKER_BYTES_PER_POINT = 700
 STORE_BYTES_PER_POINT = 70
 #: Points per second on one core, measured: per feature set, and for the rest of the run
 #: (ingest, context and prediction of every stage, export).
-FEATURE_RATES = {"paper": 44_000, "covariance": 50_000, "default": 17_000}
+FEATURE_RATES = {"paper": 44_000, "covariance": 50_000, "default": 28_000}
 OTHER_RATE = 25_000
 
 

@@ -37,6 +37,11 @@ from pipeline.features.voxel import representative_of
 from pipeline.tiling import series_ceil
 
 SURFACE_SIZE_NAMES = ("log_neighbors", "log_area")
+#: The height features the rich sets keep. The column's extent and the height below its top
+#: tell scenes apart more than classes (on Oakland, trained on one scene and scored on the
+#: other, the extent alone cost 0.11 macro F1); the height above the lowest points and the
+#: relative height helped in both directions.
+HEIGHT_COLUMNS = ("height_above_lowest", "relative_height")
 #: ``r1: auto``: the paper's radius, unless S1 of a surface would hold fewer points than this
 AUTO_NEIGHBORS = 40
 PAPER_RADIUS = 0.5
@@ -161,12 +166,13 @@ def _surface(params: FeatureParams, with_size: bool):
 def _covariance(params: FeatureParams):
     radii = tuple(s * params.r1 for s in params.scales)
     column, cell = params.column * params.r1, params.r1
-    columns = multiscale_names(radii) + tuple(HEIGHT_NAMES)
+    heights = [HEIGHT_NAMES.index(name) for name in HEIGHT_COLUMNS]
+    columns = multiscale_names(radii) + HEIGHT_COLUMNS
     reach = max(multiscale_halo(radii), height_halo(column, cell))
 
     def describe(xyz, query, ids):
         return np.hstack([multiscale_covariance(xyz, ids, query, radii),
-                          height_features(xyz, ids, query, column, cell)])
+                          height_features(xyz, ids, query, column, cell)[:, heights]])
 
     return columns, reach, describe
 
