@@ -53,3 +53,22 @@ def read_predictions(out: Path) -> dict[str, dict[str, np.ndarray]]:
         dims["xyz"] = np.c_[las.x, las.y, las.z]
         result[path.stem] = dims
     return result
+
+
+# -- the CLI as a user meets it ------------------------------------------------------------
+def silva(*args):
+    """Run the silva command in this process; the click Result."""
+    from click.testing import CliRunner
+
+    from workflows.cli import main
+
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+def error_line(result) -> str:
+    """The one 'silva: error:' line of a failed command (exit 1, no traceback)."""
+    lines = [line for line in result.output.splitlines() if line.startswith("silva: error:")]
+    assert len(lines) == 1, result.output
+    assert "Traceback" not in result.output
+    assert result.exit_code == 1
+    return lines[0]

@@ -13,11 +13,9 @@ import time
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
 
 from pipeline.errors import ConfigError, InputError
-from tests.workflows.conftest import write_config
-from workflows.cli import main
+from tests.workflows.conftest import error_line, silva, write_config
 from workflows.config import load_config
 from workflows.lock import LOCK_NAME, LockedError, acquire, read_lock
 from workflows.probe import check_scheduler
@@ -25,18 +23,6 @@ from workflows.run import OutputError, Run, prepare_output, read_paths
 from workflows.status import run_status
 from workflows.steps.export import remove_stale
 from workflows.steps.ingest import plan_tiles, tile_name
-
-
-def silva(*args):
-    return CliRunner().invoke(main, [str(a) for a in args])
-
-
-def error_line(result) -> str:
-    lines = [line for line in result.output.splitlines() if line.startswith("silva: error:")]
-    assert len(lines) == 1, result.output
-    assert "Traceback" not in result.output
-    assert result.exit_code == 1
-    return lines[0]
 
 
 @pytest.fixture

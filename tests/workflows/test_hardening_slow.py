@@ -13,27 +13,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 from pipeline.model import stage_file
-from tests.workflows.conftest import read_predictions, write_config
-from workflows.cli import main
+from tests.workflows.conftest import error_line, read_predictions, silva, write_config
 from workflows.lock import LOCK_NAME, read_lock
 from workflows.status import run_status
 
 pytestmark = pytest.mark.slow
-
-
-def silva(*args):
-    return CliRunner().invoke(main, [str(a) for a in args])
-
-
-def error_line(result) -> str:
-    lines = [line for line in result.output.splitlines() if line.startswith("silva: error:")]
-    assert len(lines) == 1, result.output
-    assert "Traceback" not in result.output
-    assert result.exit_code == 1
-    return lines[0]
 
 
 @pytest.fixture(scope="module")

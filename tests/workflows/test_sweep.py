@@ -8,25 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from click.testing import CliRunner
 
-from tests.workflows.conftest import write_config
-from workflows.cli import main
+from tests.workflows.conftest import error_line, silva, write_config
 from workflows.sweep import parse_values, plan_sweep
 
 PNG = b"\x89PNG\r\n\x1a\n"
-
-
-def silva(*args):
-    return CliRunner().invoke(main, [str(a) for a in args])
-
-
-def error_line(result) -> str:
-    lines = [line for line in result.output.splitlines() if line.startswith("silva: error:")]
-    assert len(lines) == 1, result.output
-    assert "Traceback" not in result.output
-    assert result.exit_code == 1
-    return lines[0]
 
 
 def mtimes(root: Path, folder: str) -> list[int]:
