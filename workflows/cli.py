@@ -12,6 +12,7 @@ import click
 
 from pipeline.errors import SilvaError
 from workflows.commands import COMMANDS
+from workflows.sweep import sweep  # it runs its runs through commands: registered here
 
 
 def _usage_error(err: click.UsageError):
@@ -69,5 +70,5 @@ def main():
     """Classify every point of large LiDAR scans with 3D moment invariants and auto-context."""
 
 
-for _command in COMMANDS:
+for _command in [*COMMANDS, sweep]:
     main.add_command(_command)

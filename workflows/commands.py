@@ -1,5 +1,5 @@
-"""The commands of ``silva``: ``run``, one per step, ``predict``, ``status``, ``demo``, ``synth``
-and ``init``.
+"""The commands of ``silva``: ``run``, one per step, ``predict``, ``plan``, ``status``,
+``demo``, ``synth`` and ``init`` (``sweep``, which runs through these, is in its own module).
 
 Each step command is a target: it runs the steps up to and including its own, skipping what a
 previous run finished with the same configuration (see :mod:`workflows.workflow`).
@@ -17,7 +17,6 @@ from pathlib import Path
 import click
 
 from workflows.progress import counted, run_logging, run_progress, say
-from workflows.sweep import sweep
 from workflows.templates import TEMPLATES, template_path, write_template
 
 log = logging.getLogger(__name__)
@@ -274,5 +273,5 @@ def init(path, template, force):
 
 COMMANDS = [
     *(_step_command(name, target, doc) for name, (target, doc) in STEP_COMMANDS.items()),
-    predict, plan, status, demo, synth, init, sweep,
+    predict, plan, status, demo, synth, init,
 ]
