@@ -1,4 +1,5 @@
-"""The values a configuration leaves to the data ('auto'), resolved once as a run starts.
+"""The values a configuration leaves to the data ('auto') or to the model it applies,
+resolved once as a run starts.
 
 ``features.r1: auto`` comes from the point density of the training tiles' headers (or, when
 a saved model is applied, from the model: its forests know only the radius they were
@@ -32,12 +33,16 @@ def header_density(cfg: SilvaConfig) -> float:
 
 
 def resolve_auto(cfg: SilvaConfig, model_dir=None) -> SilvaConfig:
-    """``cfg`` with ``features.r1`` and ``features.voxel`` as numbers."""
+    """``cfg`` with ``features.r1`` and ``features.voxel`` as numbers, and, when a model is
+    applied and ``data.classes`` is empty, the model's classes (each with its output code)."""
     features = cfg.features
-    if features.resolved:
+    takes_classes = model_dir is not None and not cfg.data.classes
+    if features.resolved and not takes_classes:
         return cfg
     trained = read_description(model_dir) if model_dir is not None else {}
     raw = cfg.model_dump(mode="json")
+    if takes_classes:
+        raw["data"]["classes"] = {c["name"]: [c["code"]] for c in trained["classes"]}
     r1 = features.r1
     if r1 == "auto":
         if "features.r1" in trained:

@@ -51,3 +51,19 @@ def test_voxel_auto_and_a_model_decide_for_an_applied_run(tmp_path):
 def test_a_resolved_config_is_left_alone(tmp_path):
     cfg = validate_config({"features": {"r1": 0.7}})
     assert resolve_auto(cfg) is cfg
+
+
+def test_an_applied_model_gives_its_classes_to_a_config_without_them(tmp_path):
+    tile = _tile(tmp_path / "t.laz", 2.0)
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / "model.json").write_text(json.dumps({
+        "features.r1": 1.5, "classes": [{"name": "ground", "code": 2}, {"name": "other", "code": 1}],
+        "stages": [{"index": 1, "file": "stage1.skops", "fingerprint": "f", "sha256": "0"}]}))
+    cfg = validate_config({"data": {"predict": [str(tile)]}, "features": {"r1": 1.5}})
+    applied = resolve_auto(cfg, model)
+    assert applied.data.class_names == ["ground", "other"]
+    assert applied.data.class_codes == [2, 1]
+    listed = validate_config({"data": {"predict": [str(tile)], "classes": {"a": [5], "b": [6]}},
+                              "features": {"r1": 1.5}})
+    assert resolve_auto(listed, model) is listed  # listed classes are checked, not replaced
