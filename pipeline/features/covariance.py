@@ -33,6 +33,7 @@ import numba
 import numpy as np
 
 from pipeline.errors import InputError
+from pipeline.features.eigen import jacobi3
 from pipeline.features.neighbors import (_Grid, _cell_keys, _check_cloud, _check_ids,
                                         _check_query, _column_run, _query_cell, _select,
                                         squared_distance)  # fmt: skip
@@ -50,48 +51,6 @@ DEFAULT_VOXEL_RATIO = 4.0
 
 _jit = numba.njit(cache=True, nogil=True)
 _inline = numba.njit(cache=True, nogil=True, inline="always")
-
-
-@_inline
-def _jacobi(a, v):
-    """Diagonalise the symmetric float64 (3, 3) ``a`` in place by cyclic Jacobi rotations;
-    the eigenvectors go to the columns of ``v``."""
-    for i in range(3):
-        for j in range(3):
-            v[i, j] = 1.0 if i == j else 0.0
-    for _ in range(50):
-        if a[0, 1] == 0.0 and a[0, 2] == 0.0 and a[1, 2] == 0.0:
-            break
-        for pq in range(3):
-            p = 0 if pq < 2 else 1
-            q = 1 if pq == 0 else 2
-            apq = a[p, q]
-            if apq == 0.0:
-                continue
-            app, aqq = a[p, p], a[q, q]
-            g = 100.0 * abs(apq)
-            if abs(app) + g == abs(app) and abs(aqq) + g == abs(aqq):
-                a[p, q] = a[q, p] = 0.0  # below the rounding of both diagonal entries
-                continue
-            theta = (aqq - app) / (2.0 * apq)
-            t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-            if theta < 0.0:
-                t = -t
-            c = 1.0 / math.sqrt(t * t + 1.0)
-            s = t * c
-            tau = s / (1.0 + c)
-            h = t * apq
-            a[p, p] = app - h
-            a[q, q] = aqq + h
-            a[p, q] = a[q, p] = 0.0
-            r = 3 - p - q
-            g_rp, h_rq = a[r, p], a[r, q]
-            a[r, p] = a[p, r] = g_rp - s * (h_rq + g_rp * tau)
-            a[r, q] = a[q, r] = h_rq + s * (g_rp - h_rq * tau)
-            for k in range(3):
-                g_kp, h_kq = v[k, p], v[k, q]
-                v[k, p] = g_kp - s * (h_kq + g_kp * tau)
-                v[k, q] = h_kq + s * (g_kp - h_kq * tau)
 
 
 @_inline
@@ -114,7 +73,7 @@ def _features(src, rows, origin, mean, a, v, out):
                 p = src[rows[k]]
                 total += (p[i] - origin[i] - mean[i]) * (p[j] - origin[j] - mean[j])
             a[i, j] = a[j, i] = total / n
-    _jacobi(a, v)
+    jacobi3(a, v)
     i0, i1, i2 = 0, 1, 2  # by decreasing eigenvalue; ties keep the lower index
     if a[i1, i1] > a[i0, i0]:
         i0, i1 = i1, i0

@@ -30,6 +30,7 @@ import numba
 import numpy as np
 
 from pipeline.features.delaunay import TRIANGLES, make_workspace, triangulate_into
+from pipeline.features.eigen import jacobi3
 from pipeline.features.invariants import INVARIANT_NAMES, moment_invariants
 from pipeline.features.moments import N_MOMENTS, add_mesh_moments
 from pipeline.features.neighbors import (
@@ -78,7 +79,6 @@ def _plane_basis(rel, n, basis, a, v):
     for i in range(3):
         for j in range(3):
             a[i, j] = 0.0
-            v[i, j] = 1.0 if i == j else 0.0
     for k in range(n):
         dx = rel[k, 0] - mx
         dy = rel[k, 1] - my
@@ -92,44 +92,7 @@ def _plane_basis(rel, n, basis, a, v):
     a[1, 0] = a[0, 1]
     a[2, 0] = a[0, 2]
     a[2, 1] = a[1, 2]
-    for _ in range(50):
-        if a[0, 1] == 0.0 and a[0, 2] == 0.0 and a[1, 2] == 0.0:
-            break
-        for pq in range(3):
-            p = 0 if pq < 2 else 1
-            q = 1 if pq == 0 else 2
-            apq = a[p, q]
-            if apq == 0.0:
-                continue
-            app = a[p, p]
-            aqq = a[q, q]
-            g = 100.0 * abs(apq)
-            if abs(app) + g == abs(app) and abs(aqq) + g == abs(aqq):
-                a[p, q] = 0.0  # below rounding of both diagonal entries
-                a[q, p] = 0.0
-                continue
-            theta = (aqq - app) / (2.0 * apq)
-            t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
-            if theta < 0.0:
-                t = -t
-            c = 1.0 / np.sqrt(t * t + 1.0)
-            s = t * c
-            tau = s / (1.0 + c)
-            h = t * apq
-            a[p, p] = app - h
-            a[q, q] = aqq + h
-            a[p, q] = 0.0
-            a[q, p] = 0.0
-            r = 3 - p - q
-            g_rp = a[r, p]
-            h_rq = a[r, q]
-            a[r, p] = a[p, r] = g_rp - s * (h_rq + g_rp * tau)
-            a[r, q] = a[q, r] = h_rq + s * (g_rp - h_rq * tau)
-            for k in range(3):
-                g_kp = v[k, p]
-                h_kq = v[k, q]
-                v[k, p] = g_kp - s * (h_kq + g_kp * tau)
-                v[k, q] = h_kq + s * (g_kp - h_kq * tau)
+    jacobi3(a, v)
     # axes by decreasing eigenvalue
     i0, i1, i2 = 0, 1, 2
     if a[i1, i1] > a[i0, i0]:
