@@ -34,7 +34,7 @@ import numpy as np
 
 from pipeline.errors import InputError
 from pipeline.features.neighbors import _check_cloud, _check_ids, _check_query
-from pipeline.features.voxel import HALO_MARGIN, MAX_KEY
+from pipeline.features.voxel import HALO_MARGIN, floor_keys
 
 #: Column order of :func:`height_features` (see the module docstring).
 HEIGHT_NAMES: tuple[str, ...] = (
@@ -63,18 +63,6 @@ def _check_sizes(radius, cell) -> tuple[float, float]:
         if not (float(value) > 0.0 and math.isfinite(value)):
             raise ValueError(f"{name} must be a finite length > 0 (metres), got {value!r}")
     return float(radius), float(cell)
-
-
-@_jit
-def _cell_keys(xyz, cell, keys):
-    """keys[i] = (floor(x / cell), floor(y / cell)); False if one exceeds MAX_KEY."""
-    for i in range(xyz.shape[0]):
-        for k in range(2):
-            f = np.floor(xyz[i, k] / cell)
-            if abs(f) > MAX_KEY:
-                return False
-            keys[i, k] = int(f)
-    return True
 
 
 @_jit
@@ -176,7 +164,7 @@ def height_features(xyz, ids, query, radius=DEFAULT_RADIUS, cell=DEFAULT_CELL, *
     if len(query) == 0:
         return out
     keys = np.empty((len(xyz), 2), dtype=np.int64)
-    if not _cell_keys(xyz, cell, keys):
+    if not floor_keys(xyz, cell, keys):
         raise InputError(f"cell {cell:g} is too small for coordinates up to "
                          f"{np.abs(xyz[:, :2]).max():g}; use a larger cell")  # fmt: skip
     lowest = keys.min(axis=0)

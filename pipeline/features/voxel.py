@@ -50,7 +50,7 @@ def voxel_keys(xyz, voxel) -> np.ndarray:
     xyz = _check_cloud(xyz)
     voxel = _check_voxel(voxel)
     keys = np.empty(xyz.shape, dtype=np.int64)
-    if not _floor_keys(xyz, voxel, keys):
+    if not floor_keys(xyz, voxel, keys):
         raise InputError(
             f"voxel {voxel:g} is too small for coordinates up to {np.abs(xyz).max():g}: "
             "voxel keys would overflow; use a larger voxel or recentre the coordinates"
@@ -59,11 +59,12 @@ def voxel_keys(xyz, voxel) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _floor_keys(xyz, voxel, keys):
-    """keys = floor(xyz / voxel) in one pass; False if a key exceeds MAX_KEY in magnitude."""
+def floor_keys(xyz, size, keys):
+    """keys = floor(xyz[:, :d] / size) for the d = keys.shape[1] first axes, in one pass;
+    False if a key exceeds MAX_KEY in magnitude. Voxels use d = 3, grid cells d = 2."""
     for i in range(xyz.shape[0]):
-        for k in range(3):
-            f = np.floor(xyz[i, k] / voxel)
+        for k in range(keys.shape[1]):
+            f = np.floor(xyz[i, k] / size)
             if abs(f) > MAX_KEY:
                 return False
             keys[i, k] = int(f)
