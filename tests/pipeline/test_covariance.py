@@ -14,6 +14,7 @@ from pipeline.features.covariance import (
 )
 from pipeline.features.neighbors import radius_neighbors
 from pipeline.features.voxel import voxel_representatives
+from tests.pipeline.conftest import chunk
 
 COL = {name: k for k, name in enumerate(COVARIANCE_NAMES)}
 SHAPE = [COL[n] for n in ("linearity", "planarity", "scattering", "omnivariance", "anisotropy",
@@ -33,18 +34,6 @@ def reference(points):
         (l1 - l2) / l1, (l2 - l3) / l1, l3 / l1, np.prod(e) ** (1 / 3), (l1 - l3) / l1,
         -sum(x * np.log(x) for x in e if x > 0), e[2], 1 - nz, nz, abs(vec[2, 2]), w.sum(),
     ])  # fmt: skip
-
-
-def chunk(xyz, box, width):
-    """Rows of a chunk: the half-open XY box and every other point within ``width`` of it
-    in XY. Returns (members, is_core)."""
-    x0, x1, y0, y1 = box
-    x, y = xyz[:, 0], xyz[:, 1]
-    core = (x >= x0) & (x < x1) & (y >= y0) & (y < y1)
-    dx = np.maximum(np.maximum(x0 - x, x - x1), 0.0)
-    dy = np.maximum(np.maximum(y0 - y, y - y1), 0.0)
-    members = np.flatnonzero(core | (dx * dx + dy * dy <= width * width))
-    return members, core[members]
 
 
 @pytest.fixture(scope="module")

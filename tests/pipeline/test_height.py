@@ -7,6 +7,7 @@ import pytest
 
 from pipeline.errors import InputError
 from pipeline.features.height import HEIGHT_NAMES, height_features, height_halo
+from tests.pipeline.conftest import chunk
 
 ABOVE, BELOW, EXTENT, RELATIVE = range(4)
 
@@ -29,18 +30,6 @@ def brute_force(xyz, query, radius, cell, skip):
         hi = max(v[1] for v in column)
         out.append([z - lo, hi - z, hi - lo, (z - lo) / (hi - lo) if hi > lo else 0.0])
     return np.array(out)
-
-
-def chunk(xyz, box, width):
-    """Rows of a chunk: the half-open XY box and every other point within ``width`` of it
-    in XY. Returns (members, is_core)."""
-    x0, x1, y0, y1 = box
-    x, y = xyz[:, 0], xyz[:, 1]
-    core = (x >= x0) & (x < x1) & (y >= y0) & (y < y1)
-    dx = np.maximum(np.maximum(x0 - x, x - x1), 0.0)
-    dy = np.maximum(np.maximum(y0 - y, y - y1), 0.0)
-    members = np.flatnonzero(core | (dx * dx + dy * dy <= width * width))
-    return members, core[members]
 
 
 @pytest.fixture(scope="module")
