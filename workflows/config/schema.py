@@ -269,20 +269,21 @@ class FeaturesConfig(Section):
     def _resolve_r2(self) -> "FeaturesConfig":
         if not self.resolved:
             return self  # checked again once the run has resolved r1 and voxel
-        if self.r2 is None:
-            object.__setattr__(self, "r2", self.r1 / 2)  # the paper's r2 = r1 / 2
-        elif not 0 < self.r2 <= self.r1:
+        if self.r2 is not None and not 0 < self.r2 <= self.r1:
             raise fail(f"features.r2 must be > 0 and <= features.r1 ({show(self.r1)}), "
                        f"got {show(self.r2)}")
         if len(set(self.scales)) < len(self.scales) or min(self.scales) <= 0:
             raise fail(f"features.scales must be distinct numbers > 0, got {show(self.scales)}")
+        if self.r2 is None:
+            object.__setattr__(self, "r2", self.params.r2)  # FeatureParams' default, r1 / 2
         return self
 
     @property
     def params(self) -> FeatureParams:
         """The resolved parameters the feature and context steps receive."""
         return FeatureParams(
-            self.set, float(self.r1), float(self.r2), int(self.max_neighbors),
+            self.set, float(self.r1), None if self.r2 is None else float(self.r2),
+            int(self.max_neighbors),
             self.context_max_neighbors, self.plane, tuple(float(v) for v in self.scales),
             float(self.column), None if self.voxel is None else float(self.voxel))
 
