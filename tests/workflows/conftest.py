@@ -55,6 +55,16 @@ def read_predictions(out: Path) -> dict[str, dict[str, np.ndarray]]:
     return result
 
 
+def assert_same_predictions(a: Path, b: Path) -> None:
+    """The exported class, confidence and one probability of every tile of two runs are
+    equal bit for bit."""
+    pa, pb = read_predictions(a), read_predictions(b)
+    assert pa.keys() == pb.keys() and pa
+    for tile in pa:
+        for dim in ("PredictedClassification", "Confidence", "Probability_tree"):
+            assert np.array_equal(pa[tile][dim], pb[tile][dim]), (tile, dim)
+
+
 # -- the CLI as a user meets it ------------------------------------------------------------
 def silva(*args):
     """Run the silva command in this process; the click Result."""

@@ -15,7 +15,13 @@ import numpy as np
 import pytest
 
 from pipeline.model import stage_file
-from tests.workflows.conftest import error_line, read_predictions, silva, write_config
+from tests.workflows.conftest import (
+    assert_same_predictions,
+    error_line,
+    read_predictions,
+    silva,
+    write_config,
+)
 from workflows.lock import LOCK_NAME, read_lock
 from workflows.status import run_status
 
@@ -48,14 +54,6 @@ def _metrics(out: Path) -> dict:
     return json.loads((out / "metrics.json").read_text())
 
 
-def _same_predictions(a: Path, b: Path):
-    pa, pb = read_predictions(a), read_predictions(b)
-    assert pa.keys() == pb.keys() and pa
-    for tile in pa:
-        for dim in ("PredictedClassification", "Confidence", "Probability_tree"):
-            assert np.array_equal(pa[tile][dim], pb[tile][dim]), (tile, dim)
-
-
 # -- 1: a damaged store ------------------------------------------------------------------
 def test_missing_chunk_file_stops_export_then_the_rerun_recomputes_it(finished, run_copy):
     config, out = run_copy
@@ -67,7 +65,7 @@ def test_missing_chunk_file_stops_export_then_the_rerun_recomputes_it(finished, 
     assert not list((out / "predictions").glob("plot_s2_*.laz"))
     result = silva("run", config, "--out", out, "--in-process", "-q")
     assert result.exit_code == 0, result.output
-    _same_predictions(out, finished[1])
+    assert_same_predictions(out, finished[1])
     assert _metrics(out) == _metrics(finished[1])
 
 
@@ -101,7 +99,7 @@ def test_predict_into_the_directory_of_its_model_keeps_the_model(finished, run_c
                    "--in-process", "-q")
     assert result.exit_code == 0, result.output
     assert {p.name: p.read_bytes() for p in model.iterdir()} == before
-    _same_predictions(out, finished[1])
+    assert_same_predictions(out, finished[1])
 
 
 def test_swapped_stage_files_are_refused_before_any_work(run_copy, tmp_path):

@@ -21,7 +21,7 @@ import pytest
 from click.testing import CliRunner
 
 from pipeline.io import write_las
-from tests.workflows.conftest import read_predictions, write_config
+from tests.workflows.conftest import assert_same_predictions, read_predictions, write_config
 from pipeline.cascade import CascadedForest
 from pipeline.store import open_store, proba_array
 from workflows.cli import main
@@ -42,14 +42,6 @@ def reference(survey, tmp_path_factory):
     result = silva("run", config, "--out", root / "out", "--quiet")
     assert result.exit_code == 0, result.output
     return root / "out"
-
-
-def _assert_same_predictions(a: Path, b: Path):
-    pa, pb = read_predictions(a), read_predictions(b)
-    assert pa.keys() == pb.keys() and pa
-    for tile in pa:
-        for dim in ("PredictedClassification", "Confidence", "Probability_tree"):
-            assert np.array_equal(pa[tile][dim], pb[tile][dim]), (tile, dim)
 
 
 def test_outputs_of_a_complete_run(reference, survey):
@@ -108,7 +100,7 @@ def test_chunk_invariance_many_chunks_two_workers(reference, many_chunks):
     layout_chunks = json.loads((many_chunks / "metrics.json").read_text())
     assert layout_chunks["n_test_points"] == json.loads(
         (reference / "metrics.json").read_text())["n_test_points"]
-    _assert_same_predictions(reference, many_chunks)
+    assert_same_predictions(reference, many_chunks)
 
 
 def _scene_points(out: Path, scene: str):
@@ -171,7 +163,7 @@ def test_resume_after_sigkill(reference, survey, tmp_path):
     after = _invariant_mtimes(out)
     for chunk, mtime in done_before.items():
         assert after[chunk] == mtime, f"{chunk} was recomputed"
-    _assert_same_predictions(reference, out)
+    assert_same_predictions(reference, out)
 
 
 def test_changed_config_invalidates_only_what_it_affects(reference, survey, tmp_path):
@@ -188,7 +180,7 @@ def test_changed_config_invalidates_only_what_it_affects(reference, survey, tmp_
     result = silva("run", config, "--out", out, "--quiet", "--in-process", "--overwrite")
     assert result.exit_code == 0
     assert all(_invariant_mtimes(out)[k] != v for k, v in features_before.items())
-    _assert_same_predictions(reference, out)
+    assert_same_predictions(reference, out)
 
 
 def test_lost_worker_does_not_change_the_result(reference, survey, tmp_path):
@@ -220,7 +212,7 @@ def test_lost_worker_does_not_change_the_result(reference, survey, tmp_path):
         execute(run, Engine(client, quiet=True, retries=2), "report")
         thread.join()
     assert killed
-    _assert_same_predictions(reference, out)
+    assert_same_predictions(reference, out)
 
 
 def test_predict_with_a_saved_model(reference, survey, tmp_path):
