@@ -34,6 +34,12 @@ def split_global_ids(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return ids >> np.int64(TILE_SHIFT), ids & np.int64((1 << TILE_SHIFT) - 1)
 
 
+def tile_area(mins, maxs) -> float:
+    """The XY area (m²) of a tile's bounding box, at least 1 m² (a line or a point of a tile
+    still has a density)."""
+    return max((float(maxs[0]) - float(mins[0])) * (float(maxs[1]) - float(mins[1])), 1.0)
+
+
 def auto_chunk_size(
     n_points: int, area: float, halo: float, target_points: int, *, extent: float | None = None
 ) -> float:

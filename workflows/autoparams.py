@@ -13,6 +13,7 @@ import logging
 from pipeline.features.sets import auto_radius, auto_voxel
 from pipeline.io import read_info
 from pipeline.model import read_description
+from pipeline.tiling import tile_area
 from workflows.config import SilvaConfig, validate_config
 from workflows.inputs import expand_inputs
 
@@ -28,7 +29,7 @@ def header_density(cfg: SilvaConfig) -> float:
         for path in expand_inputs(list(getattr(cfg.data, scene)), key=f"data.{scene}"):
             info = read_info(path)
             points += int(info.n_points)
-            area += max((info.maxs[0] - info.mins[0]) * (info.maxs[1] - info.mins[1]), 1.0)
+            area += tile_area(info.mins, info.maxs)
     return points / area if area else 0.0
 
 

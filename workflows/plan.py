@@ -12,7 +12,7 @@ from pathlib import Path
 
 from pipeline.atomic import atomic_path
 from pipeline.features.sets import feature_set
-from pipeline.tiling import Grid
+from pipeline.tiling import Grid, tile_area
 from workflows.progress import clock, counted
 from workflows.run import Run
 from workflows.steps.ingest import plan_scenes, plan_tiles
@@ -43,8 +43,7 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
         grid = Grid(**info["grid"])
         members = [t for t in tiles if t["scene"] == scene]
         points = sum(t["n_points"] for t in members)
-        area = sum(max((t["maxs"][0] - t["mins"][0]) * (t["maxs"][1] - t["mins"][1]), 1.0)
-                   for t in members)
+        area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
         window = (grid.size + 2 * run.halo) ** 2
         per_chunk = min(points, points / area * window)
         largest = max(largest, per_chunk)
