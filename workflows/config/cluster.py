@@ -4,8 +4,8 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from workflows.config.fields import Integer, Memory, MemoryLimit, Number, Section, Walltime
-from workflows.config.messages import fail, show
+from workflows.config.fields import Integer, Memory, MemoryLimit, Section, Walltime
+from workflows.config.messages import fail
 
 
 class SlurmConfig(Section):

@@ -19,14 +19,11 @@ from workflows.config.fields import (
     ChunkSize,
     Integer,
     MaxFeatures,
-    Memory,
-    MemoryLimit,
     Number,
     PathList,
     Section,
-    Walltime,
 )
-from workflows.config.cluster import ClusterConfig, SlurmConfig  # noqa: F401 - re-exported
+from workflows.config.cluster import ClusterConfig
 from workflows.config.messages import fail, field_error, show
 
 _FEATURES, _CASCADE, _FOREST = FeatureParams(), CascadeParams(), ForestParams()
