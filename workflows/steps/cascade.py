@@ -227,8 +227,9 @@ class StoreCascade:
 
     def fitted(self, stage):
         path = stage_file(self.run.model_path, stage)
-        if stage < len(self.stages) and path.is_file() and (
-                not self.fit or self.stages[stage]["fingerprint"] == self.stage_fingerprint(stage)):
+        # applying a model, its own fingerprint is the stage's: only a missing file fails
+        if (stage < len(self.stages) and path.is_file()
+                and self.stages[stage]["fingerprint"] == self.stage_fingerprint(stage)):
             return FittedStage(path, [], self.stages[stage].get("training_rows", 0))
         if not self.fit:
             raise ModelError(f"model file {path} is missing; retrain with 'silva train'")
@@ -259,6 +260,12 @@ class StoreCascade:
         self._map(f"predict-{stage + 1}", chunk_predict,
                   self._stage_task(stage, fractions, seed), stage)
 
+    def keep_stages(self, n_stages: int) -> None:
+        """Drop the stages a previous run fitted beyond ``n_stages``: the model stays honest."""
+        if len(self.stages) > n_stages:
+            self.stages = self.stages[:n_stages]
+            self._describe(self.stages)
+
     def _describe(self, stages):
         run = self.run
         write_description(run.model_path, {
@@ -281,7 +288,6 @@ def cascade(run: Run, engine, layout: dict, train_counts: np.ndarray | None, *, 
     else:
         n_stages = len(data.stages)
     run_cascade(data, data.params, train_counts if fit else None, n_stages=n_stages)
-    if fit and len(data.stages) > n_stages:  # fewer stages than before: keep the model honest
-        data.stages = data.stages[:n_stages]
-        data._describe(data.stages)
+    if fit:
+        data.keep_stages(n_stages)
     return data.stages
