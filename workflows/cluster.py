@@ -7,8 +7,11 @@
 - ``address``: connect to a scheduler someone started (``dask scheduler`` and
   ``dask worker`` on other machines);
 - ``slurm``: a :class:`dask_jobqueue.SLURMCluster` that submits ``cluster.slurm.jobs`` batch
-  jobs (``pip install 'silva[slurm]'``). Site settings that are not in Silva's config
-  (network interface, log directory, ...) come from dask's own ``jobqueue.slurm`` config.
+  jobs, or scales between ``cluster.adapt.minimum_jobs`` and ``maximum_jobs`` as the work
+  needs (``pip install 'silva[slurm]'``). Only the ``cluster.slurm`` settings the user gave
+  are passed to dask-jobqueue; everything else (cores, memory, walltime, queue, network
+  interface, log directory, ...) comes from the site's ``jobqueue.slurm`` dask config
+  (``~/.config/dask/jobqueue.yaml``, ``/etc/dask``, ``DASK_CONFIG``).
 """
 
 import importlib.util
@@ -52,7 +55,8 @@ def open_client(
         kept to errors on the terminal (the scheduler's warnings go to the run's log).
     local_directory
         Scratch directory of local workers (spilled data); for SLURM workers
-        ``cluster.slurm.local_directory`` takes precedence.
+        ``cluster.slurm.local_directory`` and the site's ``jobqueue.slurm.local-directory``
+        take precedence.
     timeout
         Seconds to wait for the scheduler of ``kind: address``.
 
@@ -170,42 +174,86 @@ def _connect(address: str, timeout: float):
 @contextmanager
 def _slurm_cluster(cfg, quiet, local_directory):
     SLURMCluster = _jobqueue().SLURMCluster
-    slurm = cfg.slurm
     cluster = SLURMCluster(
         silence_logs="error",
         scheduler_options={"dashboard": _dashboard_possible(cfg.dashboard)},
         **_slurm_kwargs(cfg, local_directory),
     )
     with cluster:
-        # n_workers counts worker processes; by default every configured job is submitted.
-        if cfg.n_workers:
+        per_job = cluster._dummy_job.worker_processes
+        if cfg.adapt is not None:
+            cluster.adapt(minimum_jobs=cfg.adapt.minimum_jobs,
+                          maximum_jobs=cfg.adapt.maximum_jobs)
+            log.info("adaptive SLURM cluster: %d to %d jobs of %d workers",
+                     cfg.adapt.minimum_jobs, cfg.adapt.maximum_jobs, per_job)
+        elif cfg.n_workers:  # n_workers counts worker processes
             cluster.scale(n=cfg.n_workers)
-        else:
-            cluster.scale(jobs=slurm.jobs)
-        log.info("submitted SLURM jobs for %s workers",
-                 cfg.n_workers or slurm.jobs * slurm.processes)
+            log.info("submitted SLURM jobs for %d workers", cfg.n_workers)
+        else:  # by default every configured job is submitted
+            cluster.scale(jobs=cfg.slurm.jobs)
+            log.info("submitted %d SLURM jobs of %d workers", cfg.slurm.jobs, per_job)
         yield cluster
 
 
+def slurm_workers(cluster_cfg) -> int:
+    """Worker processes a SLURM cluster of ``cluster_cfg`` starts (at most, when adaptive):
+    jobs times processes per job, the latter from the config or else the site's config."""
+    if cluster_cfg.n_workers:
+        return int(cluster_cfg.n_workers)
+    jobs = cluster_cfg.adapt.maximum_jobs if cluster_cfg.adapt else cluster_cfg.slurm.jobs
+    processes = cluster_cfg.slurm.processes or _site("processes")
+    if processes is None:
+        cores = cluster_cfg.slurm.cores or _site("cores")
+        if cores is None:
+            return int(jobs)
+        from dask_jobqueue.core import nprocesses_nthreads  # as dask-jobqueue chooses
+
+        processes = nprocesses_nthreads(int(cores))[0]
+    return int(jobs) * int(processes)
+
+
+# The user's cluster.slurm key -> SLURMCluster/SLURMJob keyword (and jobqueue.slurm key).
+SLURM_KEYS = {
+    "queue": "queue",
+    "account": "account",
+    "cores": "cores",
+    "processes": "processes",
+    "memory": "memory",
+    "walltime": "walltime",
+    "job_extra_directives": "job_extra_directives",
+}
+REQUIRED = ("cores", "memory")  # dask-jobqueue refuses a job without them
+
+
 def _slurm_kwargs(cfg, local_directory) -> dict:
-    """Keyword arguments shared by SLURMCluster and SLURMJob."""
+    """Keyword arguments shared by SLURMCluster and SLURMJob: only the settings the user
+    gave, so that dask-jobqueue takes every other one from the site's config."""
     slurm = cfg.slurm
-    kwargs = {
-        "cores": slurm.cores,
-        "processes": slurm.processes,
-        "memory": slurm.memory,
-        "walltime": slurm.walltime,
-        "job_extra_directives": list(slurm.job_extra_directives),
-        "job_name": JOB_NAME,
-    }
-    if slurm.queue:
-        kwargs["queue"] = slurm.queue
-    if slurm.account:
-        kwargs["account"] = slurm.account
-    directory = slurm.local_directory or (os.fspath(local_directory) if local_directory else None)
+    kwargs = {"job_name": JOB_NAME}
+    for key, keyword in SLURM_KEYS.items():
+        value = getattr(slurm, key)
+        if value is not None:
+            kwargs[keyword] = list(value) if isinstance(value, (list, tuple)) else value
+    for key in REQUIRED:
+        if key not in kwargs and _site(key) is None:
+            raise ConfigError(
+                f"config error: cluster.slurm.{key} is not set and the site's dask-jobqueue "
+                f"config has no jobqueue.slurm.{key}; set cluster.slurm.{key}"
+            )
+    directory = slurm.local_directory
+    if directory is None and local_directory and _site("local_directory") is None:
+        directory = os.fspath(local_directory)  # the caller's, unless the site has one
     if directory:
         kwargs["local_directory"] = directory
     return kwargs
+
+
+def _site(key: str):
+    """The site's dask-jobqueue setting ``jobqueue.slurm.<key>`` (None when unset)."""
+    _jobqueue()  # registers dask-jobqueue's defaults in dask.config
+    import dask.config
+
+    return dask.config.get(f"jobqueue.slurm.{key.replace('_', '-')}", default=None)
 
 
 def _jobqueue():

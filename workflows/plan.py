@@ -101,6 +101,8 @@ def plan_workers(run: Run) -> int:
     if cluster.kind == "local":
         return int(cluster.n_workers or os.cpu_count() or 1)
     if cluster.kind == "slurm":
-        return int(cluster.slurm.jobs) * int(cluster.slurm.processes)
+        from workflows.cluster import slurm_workers
+
+        return slurm_workers(cluster)
     return max(1, int(getattr(cluster, "n_workers", None) or 1))
 

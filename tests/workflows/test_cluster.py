@@ -80,11 +80,99 @@ def test_slurm_job_script_has_the_configured_directives():
     assert "16.00GiB" in worker  # the job's memory shared by its two worker processes
 
 
-def test_slurm_job_script_omits_unset_queue_and_account():
-    script = slurm_job_script(cluster_cfg("cluster.slurm.cores=2"))
-    assert "#SBATCH -p" not in script and "#SBATCH -A" not in script
-    assert "#SBATCH --cpus-per-task=2" in script
-    assert "#SBATCH -t 08:00:00" in script and "#SBATCH --mem=16G" in script
+SITE_CONFIG = """\
+jobqueue:
+  slurm:
+    cores: 6
+    memory: 24GiB
+    walltime: '12:00:00'
+    queue: long
+    account: site-lab
+    job-extra-directives: [--constraint=haswell]
+    local-directory: /tmp/site-scratch
+"""
+
+
+@pytest.fixture
+def site_config(tmp_path):
+    """A site's dask-jobqueue defaults, read as dask reads DASK_CONFIG or ~/.config/dask."""
+    import dask.config
+
+    (tmp_path / "jobqueue.yaml").write_text(SITE_CONFIG)
+    dask.config.refresh(paths=[str(tmp_path)])
+    yield
+    dask.config.refresh()
+
+
+def directives(script: str) -> list[str]:
+    return [line for line in script.splitlines() if line.startswith("#SBATCH")]
+
+
+def test_slurm_job_script_takes_the_site_config_when_the_user_sets_nothing(site_config):
+    script = slurm_job_script(cluster_cfg("cluster.kind=slurm"))
+    lines = directives(script)
+    for expected in ("-p long", "-A site-lab", "--cpus-per-task=6", "--mem=24G",
+                     "-t 12:00:00", "--constraint=haswell", "-J silva-worker"):
+        assert f"#SBATCH {expected}" in lines, (expected, lines)
+    assert "--local-directory /tmp/site-scratch" in script
+
+
+def test_slurm_job_script_prefers_what_the_user_set_over_the_site(site_config):
+    cfg = cluster_cfg("cluster.kind=slurm",
+                      "cluster.slurm={cores: 2, memory: 4GiB, queue: short, "
+                      "local_directory: /scratch/me}")
+    lines = directives(slurm_job_script(cfg))
+    for expected in ("-p short", "--cpus-per-task=2", "--mem=4G"):
+        assert f"#SBATCH {expected}" in lines, (expected, lines)
+    # what the user did not set still comes from the site
+    assert "#SBATCH -t 12:00:00" in lines and "#SBATCH -A site-lab" in lines
+    assert "#SBATCH --cpus-per-task=6" not in lines and "#SBATCH -p long" not in lines
+    assert "/tmp/site-scratch" not in slurm_job_script(cfg)
+
+
+def test_slurm_without_cores_anywhere_names_the_key():
+    import dask.config
+
+    with dask.config.set({"jobqueue.slurm.cores": None, "jobqueue.slurm.memory": "8GiB"}):
+        with pytest.raises(ConfigError, match=r"cluster\.slurm\.cores is not set") as info:
+            slurm_job_script(cluster_cfg("cluster.kind=slurm"))
+    assert "jobqueue.slurm.cores" in str(info.value) and "\n" not in str(info.value)
+
+
+def test_slurm_workers_counts_site_processes(site_config):
+    from workflows.cluster import slurm_workers
+
+    import dask.config
+
+    with dask.config.set({"jobqueue.slurm.processes": 3}):
+        assert slurm_workers(cluster_cfg("cluster.kind=slurm", "cluster.slurm.jobs=4")) == 12
+        assert slurm_workers(cluster_cfg("cluster.kind=slurm",
+                                         "cluster.adapt={maximum_jobs: 5}")) == 15
+    assert slurm_workers(cluster_cfg("cluster.kind=slurm", "cluster.slurm.processes=2")) == 4
+
+
+def test_slurm_cluster_adapts_between_the_configured_jobs(site_config):
+    cfg = cluster_cfg("cluster.kind=slurm", "cluster.dashboard=false",
+                      "cluster.slurm.processes=2",
+                      "cluster.adapt={minimum_jobs: 0, maximum_jobs: 3}")
+    with open_client(cfg, quiet=True) as client:
+        adaptive = client.cluster._adaptive
+        assert adaptive is not None
+        assert (adaptive.minimum, adaptive.maximum) == (0, 6)  # workers: jobs x processes
+        assert not client.cluster.workers  # nothing to do, so no job was submitted
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (("cluster.adapt={maximum_jobs: 2}",), "cluster.adapt applies to cluster.kind 'slurm'"),
+    (("cluster.kind=slurm", "cluster.adapt={minimum_jobs: 3, maximum_jobs: 2}"),
+     r"cluster.adapt.minimum_jobs \(3\) is more than cluster.adapt.maximum_jobs \(2\)"),
+    (("cluster.kind=slurm", "cluster.n_workers=4", "cluster.adapt={maximum_jobs: 2}"),
+     "cluster.adapt and cluster.n_workers"),
+    (("cluster.kind=slurm", "cluster.adapt={minimum_jobs: 1}"), "maximum_jobs"),
+])
+def test_adapt_config_errors(overrides, message):
+    with pytest.raises(ConfigError, match=message):
+        cluster_cfg(*overrides)
 
 
 def test_slurm_without_dask_jobqueue(monkeypatch):

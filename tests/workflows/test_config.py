@@ -91,11 +91,14 @@ def test_defaults():
                             "seed": 0}
     assert d["cluster"]["kind"] == "local" and d["cluster"]["n_workers"] is None
     assert d["cluster"]["memory_limit"] == "auto" and d["cluster"]["dashboard"] is True
-    assert d["cluster"]["slurm"] == {"queue": None, "account": None, "cores": 4, "processes": 1,
-                                     "memory": "16GiB", "walltime": "08:00:00", "jobs": 2,
-                                     "job_extra_directives": [], "local_directory": None}
+    # unset SLURM settings are left to the site's dask-jobqueue config
+    assert d["cluster"]["slurm"] == {"queue": None, "account": None, "cores": None,
+                                     "processes": None, "memory": None, "walltime": None,
+                                     "jobs": 2, "job_extra_directives": None,
+                                     "local_directory": None}
+    assert d["cluster"]["adapt"] is None
     assert d["output"] == {"format": "laz", "write_classification": False,
-                           "probabilities": True}
+                           "probabilities": True, "feature_dims": [], "point_format": "auto"}
 
 
 def test_derived_radii_and_halo():
