@@ -1,5 +1,7 @@
-"""The chunk grid: every point in exactly one core, halos hold every neighbour within reach."""
+"""The chunk layouts: every point in exactly one core, halos hold every neighbour within reach;
+the balanced layout shares a skewed scene out evenly and depends only on the points."""
 
+import json
 import math
 
 import numpy as np
@@ -8,7 +10,18 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
-from pipeline.tiling import SIZE_SERIES, Grid, auto_chunk_size, global_ids, split_global_ids
+from pipeline.tiling import (
+    MIN_CORE_SHARE,
+    SIZE_SERIES,
+    BalancedLayout,
+    CellCounts,
+    Grid,
+    auto_chunk_size,
+    count_cell_size,
+    global_ids,
+    layout_from_dict,
+    split_global_ids,
+)
 
 
 @pytest.fixture
@@ -221,3 +234,212 @@ def test_denser_scenes_get_smaller_or_equal_chunks(n, more, width, height, shrin
     area = width * height
     assert auto_chunk_size(n, area * shrink, halo, target) <= auto_chunk_size(
         n, area, halo, target)
+
+
+# -- chunks balanced by point count ----------------------------------------------------------
+def tls_plot(n=60_000, seed=0, centre=(3.0, 2.0)):
+    """A terrestrial scan's density: points per m² fall as 1 / r² from the scanner (r log-
+    uniform in [0.5, 25] m), kept in a 40 m square around it."""
+    rng = np.random.default_rng(seed)
+    r = np.exp(rng.uniform(np.log(0.5), np.log(25.0), n))
+    t = rng.uniform(0.0, 2 * np.pi, n)
+    xy = np.c_[centre[0] + r * np.cos(t), centre[1] + r * np.sin(t)]
+    keep = np.all(np.abs(xy - centre) < 20.0, axis=1)
+    return np.c_[xy, rng.uniform(0.0, 10.0, n)][keep]
+
+
+def balanced(xyz, halo, target, area=1600.0):
+    return BalancedLayout.build(CellCounts.of(xyz, count_cell_size(halo, area)), halo, target)
+
+
+def window_counts(layout, xyz, halo):
+    """Points of each chunk's core, and of its core with its halo, by chunk index."""
+    core = np.bincount(layout.chunk_of(xyz), minlength=layout.n_chunks)
+    window = core.copy()
+    for chunk, rows in layout.halo_members(xyz, halo):
+        window[chunk] += len(rows)
+    return core, window
+
+
+def in_boxes(xy, boxes):
+    """bool (n, n_chunks): whether each point lies in each half-open box."""
+    x, y = xy[:, :1], xy[:, 1:2]
+    return (x >= boxes[:, 0]) & (x < boxes[:, 2]) & (y >= boxes[:, 1]) & (y < boxes[:, 3])
+
+
+@pytest.fixture(scope="module")
+def skewed():
+    xyz = tls_plot()
+    layout = balanced(xyz, 0.25, 10_000)
+    # points exactly on every cut and at the scene's far edges, and points beyond the counted
+    # box: each must still land in exactly one core
+    rng = np.random.default_rng(1)
+    extra = []
+    for axis, position, _, _ in layout.cuts:
+        p = rng.uniform(-20, 25, size=(20, 3))
+        p[:, axis] = position
+        extra.append(p)
+    extra.append(np.array([[-1e6, 3.0, 0.0], [1e6, -1e6, 0.0], [5.0, 1e7, 0.0]]))
+    return np.concatenate([xyz, *extra]), layout
+
+
+def test_balanced_every_point_in_exactly_one_core(skewed):
+    xyz, layout = skewed
+    assert layout.n_chunks > 4
+    chunk = layout.chunk_of(xyz)
+    assert chunk.dtype == np.int64 and chunk.min() >= 0 and chunk.max() < layout.n_chunks
+    inside = in_boxes(xyz, layout.boxes())
+    assert np.all(inside.sum(axis=1) == 1), "the cells do not tile the plane"
+    assert np.all(inside[np.arange(len(xyz)), chunk])
+
+
+def test_balanced_halo_is_the_grown_cell_and_holds_every_neighbour(skewed):
+    xyz, layout = skewed
+    halo = 0.25
+    chunk = layout.chunk_of(xyz)
+    boxes = layout.boxes() + [-halo, -halo, halo, halo]
+    expected = in_boxes(xyz, boxes) & (chunk[:, None] != np.arange(layout.n_chunks))
+    got = np.zeros_like(expected)
+    for target, rows in layout.halo_members(xyz, halo):
+        assert np.all(np.diff(rows) > 0)
+        assert not got[rows, target].any(), "a chunk yielded twice"
+        got[rows, target] = True
+    assert np.array_equal(got, expected)
+    # the superset property, by an oracle: every neighbour within halo of a core point
+    # (of the points near a cut)
+    tree = cKDTree(xyz[:, :2])
+    near = np.flatnonzero(got.any(axis=1))[::5]
+    for i, neighbours in zip(near, tree.query_ball_point(xyz[near, :2], halo)):
+        j = np.asarray(neighbours)
+        j = j[chunk[j] != chunk[i]]
+        assert got[j, chunk[i]].all(), i
+
+
+def test_balanced_chunks_share_a_skewed_scan_out_evenly(skewed):
+    xyz, layout = skewed
+    xyz = xyz[: -3 - 20 * len(layout.cuts)]
+    halo, target = 0.25, 10_000
+    core, window = window_counts(layout, xyz, halo)
+    # every chunk with its halo within the target, the cores within a factor 2.5
+    assert window.max() <= target
+    assert core.max() <= 2.5 * core.min()
+    assert core.sum() == len(xyz)
+    # the estimate from the counts is on the safe side
+    est_core, est_window = layout.estimate(CellCounts.of(xyz, layout.cell), halo)
+    assert np.all(est_window >= window) and est_core.sum() == len(xyz)
+    # the regular grid sized for the same target: the chunk at the scanner holds 3x more
+    # points than the target, most other chunks a few hundred
+    extent = xyz.max(axis=0) - xyz.min(axis=0)
+    size = auto_chunk_size(len(xyz), extent[0] * extent[1], halo, target, extent=extent.max())
+    grid = Grid.covering(xyz.min(axis=0), xyz.max(axis=0), size)
+    grid_core, grid_window = window_counts(grid, xyz, halo)
+    assert grid_window.max() > 3 * target and np.median(grid_core) < target / 10
+
+
+def test_balanced_cuts_are_readable_lattice_lines(skewed):
+    _, layout = skewed
+    assert layout.cell == 0.06  # a quarter halo rounded down to the series
+    for _, position, _, _ in layout.cuts:
+        assert position == round(position, 2)
+        assert abs(position / layout.cell - round(position / layout.cell)) < 1e-6
+
+
+def test_balanced_layout_depends_only_on_the_points():
+    xyz = tls_plot(20_000, seed=4)
+    cell = count_cell_size(0.5, 1600.0)
+    reference = BalancedLayout.build(CellCounts.of(xyz, cell), 0.5, 3_000)
+    assert reference.n_chunks > 4
+    rng = np.random.default_rng(0)
+    shuffled = xyz[rng.permutation(len(xyz))]
+    # counted in batches of another size, summed in another order
+    parts = [CellCounts.of(part, cell) for part in np.array_split(shuffled, 7)]
+    total = CellCounts.empty(cell)
+    for part in parts[::-1]:
+        total = total + part
+    assert BalancedLayout.build(total, 0.5, 3_000) == reference
+    assert total.total == len(xyz)
+
+
+def test_balanced_tiles_far_apart_hold_the_bound_and_empty_space_gets_no_chunk():
+    rng = np.random.default_rng(2)
+    near = rng.uniform([0, 0, 0], [30, 30, 5], size=(20_000, 3))
+    far = rng.uniform([10_000, 5_000, 0], [10_030, 5_030, 5], size=(20_000, 3))
+    xyz = np.concatenate([near, far])
+    halo, target = 0.5, 6_000
+    layout = balanced(xyz, halo, target, area=2 * 900.0)
+    core, window = window_counts(layout, xyz, halo)
+    # no empty chunk, each within the target
+    assert window.max() <= target and core.min() > target / 4
+    assert layout.n_chunks <= 2 * math.ceil(len(xyz) / target)
+    # the grid sized from the box around both: one cell spans the near tile and more
+    size = auto_chunk_size(len(xyz), 10_030 * 5_030, halo, target, extent=10_030.0)
+    assert window_counts(Grid.covering(xyz.min(0), xyz.max(0), size), xyz, halo)[1].max() \
+        == 20_000
+
+
+def test_balanced_small_or_empty_scenes_are_one_chunk():
+    xyz = tls_plot(5_000)
+    layout = balanced(xyz, 0.5, 5_000)
+    assert layout.n_chunks == 1 and layout.cuts == ()
+    assert np.all(layout.chunk_of(xyz) == 0) and list(layout.halo_members(xyz, 0.5)) == []
+    empty = BalancedLayout.build(CellCounts.empty(0.1), 0.5, 10)
+    assert empty.n_chunks == 1 and empty.chunk_of(np.zeros((0, 3))).shape == (0,)
+
+
+def test_balanced_refuses_chunks_that_would_be_mostly_halo():
+    # uniform points and a halo as large as the scene: one cut in halves keeps half of each
+    # side's points in its core; any further cut would leave chunks mostly copies of the
+    # others' points, so the halves stay whole, far above the target
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform(0, 4, size=(10_000, 3))
+    halves = balanced(xyz, 3.0, 1_000, area=16.0)
+    assert halves.n_chunks == 2
+    assert window_counts(halves, xyz, 3.0)[1].tolist() == [10_000, 10_000]
+    layout = balanced(xyz, 0.2, 2_000, area=16.0)
+    core, window = window_counts(layout, xyz, 0.2)
+    assert layout.n_chunks > 2 and np.all(core >= MIN_CORE_SHARE * window * 0.9)
+
+
+@pytest.mark.parametrize("layout", [
+    Grid(-15.0, 30.0, 15.0, 3, 2),
+    BalancedLayout.build(CellCounts.of(tls_plot(20_000), 0.1), 0.5, 3_000),
+])
+def test_layouts_round_trip_through_json(layout):
+    d = json.loads(json.dumps(layout.to_dict()))
+    back = layout_from_dict(d)
+    assert back == layout and type(back) is type(layout)
+    xyz = tls_plot(2_000, seed=9)
+    assert np.array_equal(back.chunk_of(xyz), layout.chunk_of(xyz))
+    names = {layout.chunk_name(c) for c in range(layout.n_chunks)}
+    assert len(names) == layout.n_chunks
+
+
+def test_grid_boxes_match_its_cells(cloud):
+    grid = Grid.covering(cloud.min(0), cloud.max(0), 10.0)
+    inside = in_boxes(cloud, grid.boxes())
+    assert np.all(inside.sum(axis=1) == 1)
+    assert np.all(inside[np.arange(len(cloud)), grid.chunk_of(cloud)])
+
+
+def test_count_cell_size():
+    assert count_cell_size(0.5, 1e4) == 0.12 and count_cell_size(3.70711, 190.0) == 0.8
+    # a huge sparse scene: at most MAX_COUNT_CELLS cells over its tiles
+    assert count_cell_size(0.5, 1e8) == 5.0
+    with pytest.raises(ValueError, match="halo must be a finite number > 0, got 0"):
+        count_cell_size(0, 1.0)
+
+
+def test_counts_on_different_lattices_do_not_add():
+    with pytest.raises(ValueError, match="lattices of 0.1 m and 0.2 m"):
+        CellCounts.empty(0.1) + CellCounts.empty(0.2)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(halo=0.0), "halo must be a finite number > 0, got 0.0"),
+    (dict(target_points=0), "target_points must be an integer >= 1, got 0"),
+    (dict(target_points=2.5), "target_points must be an integer >= 1, got 2.5"),
+])
+def test_balanced_refuses_bad_arguments(kwargs, message):
+    args = dict(counts=CellCounts.empty(0.1), halo=0.5, target_points=10) | kwargs
+    with pytest.raises(ValueError, match=message):
+        BalancedLayout.build(**args)
