@@ -32,8 +32,8 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
     ==========  ========================================================================
     ingest      data.train/test/predict (patterns, order ignored), data.label_field,
                 data.classes, data.ignore, data.split, data.drop_unlisted;
-                tiling.chunk_size, tiling.halo, tiling.target_points (only with chunk_size
-                auto)
+                tiling.chunk_size, tiling.halo, tiling.target_points and tiling.layout
+                (only with chunk_size auto)
     features    + features.set, r1, max_neighbors, plane, scales, column, voxel
     stage       + features.r2, features.context_max_neighbors, every cascade key except
                 cascade.stages (adding stages keeps the finished ones)
@@ -67,6 +67,7 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
     if cfg.tiling.chunk_size == "auto":
         # only then does it matter; an explicit size keeps the fingerprint it always had
         parts["ingest"]["target_points"] = cfg.tiling.target_points
+        parts["ingest"]["layout"] = cfg.tiling.layout
     if step != "ingest":
         parts["features"] = {k: d["features"][k] for k in FEATURE_KEYS}
     if step in ("stage", "export", "evaluate"):

@@ -1,8 +1,9 @@
 """``silva plan``: what a run of a configuration will do, before a night is spent on it.
 
-From the tiles' headers alone (no point is read): the tiles and points of each scene, the
-resolved radius and halo, the chunk grid, and rough estimates of a worker's memory, the
-store's size on disk and the run's duration. The estimates come from rates measured on the
+From the tiles' headers (and, for chunks balanced by point count, a quick pass that counts
+the points' XY on a lattice): the tiles and points of each scene, the resolved radius and
+halo, the chunk layout, and rough estimates of a worker's memory, the store's size on disk
+and the run's duration. The estimates come from rates measured on the
 2-core reference machine (docs/PERFORMANCE.md); they say the order of magnitude, not the
 minute.
 """
@@ -12,7 +13,7 @@ from pathlib import Path
 
 from pipeline.atomic import atomic_path
 from pipeline.features.sets import feature_set
-from pipeline.tiling import Grid, tile_area
+from pipeline.tiling import Grid, layout_from_dict, tile_area
 from workflows.progress import clock, counted
 from workflows.run import Run
 from workflows.steps.ingest import plan_scenes, plan_tiles
@@ -30,7 +31,7 @@ OTHER_RATE = 25_000
 
 
 def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
-    """The lines ``silva plan`` prints; with ``picture``, a PNG of the chunk grids."""
+    """The lines ``silva plan`` prints; with ``picture``, a PNG of the chunk layouts."""
     tiles = plan_tiles(run)
     scenes = plan_scenes(run, tiles)
     params = run.features
@@ -40,24 +41,33 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
                                        else "")]
     total, largest = 0, 0.0
     for scene, info in scenes.items():
-        grid = Grid(**info["grid"])
+        grid = layout_from_dict(info["grid"])
         members = [t for t in tiles if t["scene"] == scene]
         points = sum(t["n_points"] for t in members)
         area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
-        window = (grid.size + 2 * run.halo) ** 2
-        per_chunk = min(points, points / area * window)
+        head = (f"scene {scene}: {counted(len(members), 'tile')}, "
+                f"{counted(points, 'point')}, {points / area:,.1f} points/m²; ")
+        if isinstance(grid, Grid):
+            window = (grid.size + 2 * run.halo) ** 2
+            per_chunk = min(points, points / area * window)
+            lines.append(f"{head}chunks of {grid.size:g} m, a {grid.nx} x {grid.ny} grid; "
+                         f"about {counted(round(per_chunk), 'point')} in a chunk with its halo")
+        else:
+            core, window = info["estimate"]["core"], info["estimate"]["window"]
+            per_chunk = window[2]
+            lines.append(f"{head}{counted(grid.n_chunks, 'chunk')} balanced by point count; "
+                         "points in a core (min / median / max) "
+                         f"{' / '.join(f'{v:,}' for v in core)}, with its halo "
+                         f"{' / '.join(f'{v:,}' for v in window)}")
         largest = max(largest, per_chunk)
         total += points
-        lines.append(f"scene {scene}: {counted(len(members), 'tile')}, "
-                     f"{counted(points, 'point')}, {points / area:,.1f} points/m²; chunks of "
-                     f"{grid.size:g} m, a {grid.nx} x {grid.ny} grid; about "
-                     f"{counted(round(per_chunk), 'point')} in a chunk with its halo")
     memory = largest * WORKER_BYTES_PER_POINT
     disk = total * (STORE_BYTES_PER_POINT + 4 * columns)
     seconds = total / workers * (1 / FEATURE_RATES[params.set] + 1 / OTHER_RATE)
     lines += [
-        f"memory: about {memory / 2**30:.2f} GiB per worker at the mean density (dense parts "
-        "of a chunk hold more; tiling.target_points bounds it)",
+        f"memory: about {memory / 2**30:.2f} GiB per worker in the largest chunk" + (
+            " at the mean density (dense parts of a chunk hold more; tiling.target_points "
+            "bounds it)" if any("estimate" not in info for info in scenes.values()) else ""),
         f"disk: about {disk / 2**30:.2f} GiB for store.zarr",
         f"time: about {clock(seconds)} on {counted(workers, 'worker')} for the features, "
         "context and predictions, plus the forests' training",
@@ -77,18 +87,26 @@ def _draw(scenes: dict, tiles: list[dict], path: Path) -> None:
 
     fig, axes = plt.subplots(1, len(scenes), figsize=(5 * len(scenes), 5), squeeze=False)
     for ax, (scene, info) in zip(axes[0], scenes.items()):
-        grid = Grid(**info["grid"])
-        for i in range(grid.nx + 1):
-            ax.axvline(grid.x0 + i * grid.size, color="0.8", lw=0.5)
-        for j in range(grid.ny + 1):
-            ax.axhline(grid.y0 + j * grid.size, color="0.8", lw=0.5)
+        grid = layout_from_dict(info["grid"])
+        if isinstance(grid, Grid):
+            lo = (grid.x0, grid.y0)
+            hi = (grid.x0 + grid.nx * grid.size, grid.y0 + grid.ny * grid.size)
+            title = f"{scene}: chunks of {grid.size:g} m"
+        else:
+            lo, hi = grid.bounds[:2], grid.bounds[2:]
+            title = f"{scene}: {grid.n_chunks} chunks balanced by point count"
+        for x0, y0, x1, y1 in grid.boxes():  # cells, the open outer ones cut at the frame
+            x0, y0 = max(x0, lo[0]), max(y0, lo[1])
+            x1, y1 = min(x1, hi[0]), min(y1, hi[1])
+            ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, color="0.6",
+                                   lw=0.5))
         for t in (t for t in tiles if t["scene"] == scene):
             (x0, y0), (x1, y1) = t["mins"][:2], t["maxs"][:2]
             ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, color="C0"))
-        ax.set_xlim(grid.x0, grid.x0 + grid.nx * grid.size)
-        ax.set_ylim(grid.y0, grid.y0 + grid.ny * grid.size)
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
         ax.set_aspect("equal")
-        ax.set_title(f"{scene}: chunks of {grid.size:g} m")
+        ax.set_title(title)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=80)

@@ -7,6 +7,7 @@ import yaml
 from pipeline.errors import ModelError
 from pipeline.model import MODEL_FILE, read_description
 from pipeline.store import chunk_path, open_store
+from pipeline.tiling import layout_from_dict
 from workflows.lock import describe, held_by_other, read_lock
 from workflows.progress import counted
 from workflows.run import has_test_points
@@ -39,7 +40,7 @@ def _steps(out: Path) -> list[str]:
         total = len(info["chunks"])
         # steps in the order they ran (the order of the chunks' done records)
         done_text = ", ".join(f"{s} {n}/{total}" for s, n in steps.items()) or "no step done"
-        lines.append(f"scene {scene}: {counted(total, 'chunk')} of {info['grid']['size']:g} m; "
+        lines.append(f"scene {scene}: {counted(total, 'chunk')} {layout_from_dict(info['grid']).label}; "
                      f"{done_text}")
     model = out / "model"
     if (model / MODEL_FILE).is_file():

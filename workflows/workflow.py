@@ -43,7 +43,8 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     summary["points"] = sum(t["n_points"] for t in layout["tiles"])
     summary["chunks"] = sum(len(s["chunks"]) for s in layout["scenes"].values())
     summary["chunk size (m)"] = ", ".join(
-        f"{scene} {info['grid']['size']:g}" for scene, info in layout["scenes"].items())
+        f"{scene} {info['grid']['size']:g}" if "size" in info["grid"] else f"{scene} balanced"
+        for scene, info in layout["scenes"].items())
     if last < 1:
         return summary
     counts = timed("features", features, run, engine, layout, only)

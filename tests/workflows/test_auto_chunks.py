@@ -1,4 +1,4 @@
-"""Automatic chunk sizes: each scene's grid follows its tiles' header density."""
+"""Automatic chunks: balanced by point count (the default), or a grid sized from the headers."""
 
 import math
 
@@ -7,7 +7,8 @@ import pytest
 from click.testing import CliRunner
 
 from pipeline.io import read_info, read_points
-from pipeline.tiling import SIZE_SERIES
+from pipeline.store import open_store
+from pipeline.tiling import SIZE_SERIES, BalancedLayout, layout_from_dict
 from tests.workflows.conftest import SMALL_PLOT, write_config
 from workflows.cli import main
 from workflows.config import load_config
@@ -51,9 +52,15 @@ def window_counts(directory, grid: dict, halo: float) -> np.ndarray:
 
 
 def planned_grids(tmp_path, survey, **tiling) -> dict[str, dict]:
+    """The planned layouts by scene; a grid sized from the headers unless told otherwise."""
+    return {scene: info["grid"] for scene, info in planned(tmp_path, survey, **tiling).items()}
+
+
+def planned(tmp_path, survey, **tiling) -> dict[str, dict]:
+    tiling = {"layout": "grid", **tiling}
     cfg = load_config(write_config(tmp_path / "c.yaml", survey, tiling=tiling))
     run = Run(cfg, tmp_path / "out", quiet=True)
-    return {scene: info["grid"] for scene, info in plan_scenes(run, plan_tiles(run)).items()}
+    return plan_scenes(run, plan_tiles(run))
 
 
 @pytest.mark.parametrize("target_points", [10_000, 20_000])
@@ -105,8 +112,8 @@ def test_ingest_records_and_shows_the_resolved_size(tmp_path, survey):
     runner = CliRunner()
     sizes = {}
     for target_points in (10_000, 40_000):  # a changed target re-ingests with the new grid
-        config = write_config(tmp_path / "c.yaml", survey,
-                              tiling={"chunk_size": "auto", "target_points": target_points})
+        config = write_config(tmp_path / "c.yaml", survey, tiling={
+            "chunk_size": "auto", "layout": "grid", "target_points": target_points})
         result = runner.invoke(main, ["ingest", str(config), "--out", str(out), "--in-process"],
                                catch_exceptions=False)
         assert result.exit_code == 0, result.output
@@ -118,3 +125,68 @@ def test_ingest_records_and_shows_the_resolved_size(tmp_path, survey):
         assert f" chunks of {size:g} m;" in line
         sizes[target_points] = size
     assert sizes[10_000] < sizes[40_000]
+
+
+# -- chunks balanced by point count (the default of chunk_size auto) ---------------------------
+def scene_xy(directory) -> np.ndarray:
+    return np.concatenate([read_points(p, fields=()).xyz[:, :2]
+                           for p in sorted(directory.glob("*.laz"))])
+
+
+def test_auto_is_balanced_by_default(tmp_path, survey):
+    cfg = load_config(write_config(tmp_path / "c.yaml", survey, tiling={"chunk_size": "auto"}))
+    assert cfg.tiling.layout == "balanced"
+
+
+@pytest.mark.parametrize("target_points", [10_000, 20_000])
+def test_balanced_chunks_hold_at_most_target_points(tmp_path, survey, target_points):
+    scenes = planned(tmp_path, survey, chunk_size="auto", layout="balanced",
+                     target_points=target_points)
+    for scene, info in scenes.items():
+        layout = layout_from_dict(info["grid"])
+        assert isinstance(layout, BalancedLayout) and layout.n_chunks > 1
+        xy = scene_xy(survey[scene])
+        core = np.bincount(layout.chunk_of(xy), minlength=layout.n_chunks)
+        window = core.copy()
+        for chunk, rows in layout.halo_members(xy, HALO):
+            window[chunk] += len(rows)
+        # the real points: every chunk with its halo within the target, the cores even
+        assert window.max() <= target_points
+        assert core.max() <= 2.5 * core.min()
+        # the plan's estimate (from the lattice counts) is on the safe side
+        estimate = info["estimate"]
+        assert estimate["window"][2] >= window.max() and estimate["core"][2] >= core.max()
+        # the grid sized for the same target from the headers is far less even
+        grid = layout_from_dict(planned_grids(tmp_path, survey, chunk_size="auto",
+                                              target_points=target_points)[scene])
+        grid_core = np.bincount(grid.chunk_of(xy), minlength=grid.n_chunks)
+        assert grid_core.max() > 2.5 * max(grid_core.min(), 1)
+
+
+def ingest(config, out) -> str:
+    result = CliRunner().invoke(main, ["ingest", str(config), "--out", str(out), "--in-process"],
+                                catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+def test_ingest_and_status_show_the_balanced_layout_and_a_rerun_reads_it_back(tmp_path, survey):
+    config = write_config(tmp_path / "c.yaml", survey,
+                          tiling={"chunk_size": "auto", "target_points": 10_000})
+    out = tmp_path / "out"
+    output = ingest(config, out)
+    root = open_store(out / "store.zarr")
+    layout = root.attrs["layout"]
+    n = layout_from_dict(layout["scenes"]["train"]["grid"]).n_chunks
+    assert n > 1 and len(layout["scenes"]["train"]["chunks"]) == n
+    assert f"ingest: scene train in {n} chunks balanced by point count" in output
+    line = next(line for line in run_status(out) if line.startswith("scene train:"))
+    assert line.startswith(f"scene train: {n} chunks balanced by point count;")
+    # killed after the tiles were ingested, before the layout was recorded: the rerun
+    # keeps the ingested tiles, in the layout planned then
+    parts = sorted((out / "store.zarr").glob("scenes/*/parts/*/zarr.json"))
+    mtimes = [p.stat().st_mtime_ns for p in parts]
+    root.attrs["layout"] = None
+    ingest(config, out)
+    assert [p.stat().st_mtime_ns for p in parts] == mtimes
+    assert open_store(out / "store.zarr").attrs["layout"] == layout

@@ -80,8 +80,8 @@ def test_defaults():
     assert d["data"] == {"train": [], "test": [], "predict": [], "label_field": "classification",
                          "classes": {}, "ignore": [], "background": [], "split": None,
                          "drop_unlisted": False, "allow_overlap": False}
-    assert d["tiling"] == {"chunk_size": "auto", "target_points": 1_000_000, "halo": 0.5,
-                           "read_batch": 1_000_000}
+    assert d["tiling"] == {"chunk_size": "auto", "layout": "balanced",
+                           "target_points": 1_000_000, "halo": 0.5, "read_batch": 1_000_000}
     assert d["features"] == {"set": "paper", "r1": 0.5, "r2": 0.25, "max_neighbors": 64,
                              "context_max_neighbors": None, "plane": "pca",
                              "scales": [0.5, 1.0, 2.0, 4.0], "column": 6.0, "voxel": None}
@@ -457,6 +457,7 @@ def changed_steps(**sections) -> set[str]:
     ({"data": {"background": []}}, {"evaluate"}),
     ({"tiling": {"chunk_size": 20}}, set(STEPS)),
     ({"tiling": {"target_points": 2_000_000}}, set(STEPS)),  # BASE sizes chunks automatically
+    ({"tiling": {"layout": "grid"}}, set(STEPS)),
     ({"tiling": {"halo": 2.0}}, set(STEPS)),
     ({"data": {"label_field": "label"}}, set(STEPS)),
     ({"data": {"ignore": [7]}}, set(STEPS)),
@@ -478,6 +479,8 @@ def test_target_points_matters_only_with_auto_chunks():
     assert ingest(chunk_size=20, target_points=10**6) == ingest(chunk_size=20,
                                                                target_points=10**7)
     assert ingest(chunk_size=20) != ingest(chunk_size=30) != ingest()
+    assert ingest(layout="grid") != ingest()
+    assert ingest(chunk_size=20, layout="grid") == ingest(chunk_size=20)
 
 
 def test_unset_halo_follows_r1_into_ingest():

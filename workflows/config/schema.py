@@ -300,9 +300,16 @@ class TilingConfig(Section):
 
     chunk_size: ChunkSize = Field(
         "auto",
-        description="Side of a square chunk in metres, or 'auto': sized per scene from the "
-        "tiles' headers so that a chunk with its halo holds about tiling.target_points "
-        "points at the scene's mean density.",
+        description="Side of a square chunk of a regular grid in metres, or 'auto': chunks "
+        "that hold about tiling.target_points points each with their halo, cut as "
+        "tiling.layout says.",
+    )
+    layout: Literal["balanced", "grid"] = Field(
+        "balanced",
+        description="With chunk_size 'auto': 'balanced', rectangles cut where a quick first "
+        "pass over the points shares them out evenly (dense parts get small chunks, empty "
+        "space none); 'grid', squares sized from the tiles' headers at the scene's mean "
+        "density. Ignored when chunk_size is a number (a regular grid).",
     )
     target_points: Integer = Field(
         1_000_000, ge=1,

@@ -37,7 +37,7 @@ from pipeline.model import (
     write_description,
 )
 from pipeline.store import ROLE_TRAIN, context_array, proba_array, rows_of
-from pipeline.tiling import Grid
+from pipeline.tiling import layout_from_dict
 from workflows.engine import chunk_tasks
 from workflows.run import Run
 
@@ -92,7 +92,7 @@ def chunk_context(view, task: ContextTask):
     xyz, gid, halo_xyz, halo_gid = view.read("xyz", "gid", "halo_xyz", "halo_gid")
     proba = np.concatenate([
         view.read(proba_array(task.stage - 1)),
-        _halo_proba(view, Grid(**task.grid), halo_xyz, halo_gid, task.stage - 1,
+        _halo_proba(view, layout_from_dict(task.grid), halo_xyz, halo_gid, task.stage - 1,
                     task.n_classes),
     ])
     context = stage_context(

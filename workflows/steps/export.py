@@ -17,7 +17,7 @@ from pipeline.io import ExtraDim, export_with_extra_dims
 from pipeline.store import (
     chunk_path, is_done, mark_done, open_store, proba_array, read_array, rows_of,
 )
-from pipeline.tiling import Grid, global_ids
+from pipeline.tiling import global_ids, layout_from_dict
 from workflows.engine import Task
 from workflows.progress import counted, say
 from workflows.run import Run
@@ -111,7 +111,7 @@ def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilitie
     marker = root.require_group(f"exports/{tile['index']}")
     if is_done(marker, "export", fingerprint) and Path(dst).is_file():
         return {"path": dst, "no_features": marker.attrs.get("no_features", 0)}
-    predictions = _ChunkPredictions(root, tile["scene"], Grid(**grid), stage, allow_missing)
+    predictions = _ChunkPredictions(root, tile["scene"], layout_from_dict(grid), stage, allow_missing)
     codes_array = np.asarray(codes)
     n_undefined = 0
 

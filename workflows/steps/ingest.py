@@ -27,7 +27,16 @@ from pipeline.store import (
     open_store,
     part_path,
 )
-from pipeline.tiling import Grid, auto_chunk_size, global_ids
+from pipeline.tiling import (
+    BalancedLayout,
+    CellCounts,
+    Grid,
+    auto_chunk_size,
+    count_cell_size,
+    global_ids,
+    layout_from_dict,
+    tile_area,
+)
 from workflows.config import expand_inputs
 from workflows.engine import Task
 from workflows.progress import say
@@ -108,23 +117,76 @@ def plan_tiles(run: Run) -> list[dict]:
     return tiles
 
 
-def plan_scenes(run: Run, tiles: list[dict]) -> dict:
-    """The chunk grid of each scene, covering all its tiles.
+def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
+    """The chunk layout of each scene, covering all its tiles (under the key ``grid``).
 
-    With ``tiling.chunk_size: auto`` each scene gets its own chunk size, from its tiles'
-    header point counts and combined XY bounding box (see :func:`scene_chunk_size`).
+    With ``tiling.chunk_size: auto`` and ``tiling.layout: balanced`` (the default), a first
+    pass counts each tile's points on a lattice (one task per tile on ``engine``, or in this
+    process) and the scene is cut into chunks balanced by point count
+    (:class:`~pipeline.tiling.BalancedLayout`); ``estimate`` then holds the min, median and
+    max counted points of the chunks' cores and of their cores with halos. Otherwise a
+    regular grid: of ``chunk_size`` metres, or with ``layout: grid`` sized from the headers
+    (see :func:`scene_chunk_size`).
     """
+    tiling = run.cfg.tiling
     scenes = {}
     for scene in SCENES:
         members = [t for t in tiles if t["scene"] == scene]
         if not members:
             continue
-        mins = np.min([t["mins"] for t in members], axis=0)
-        maxs = np.max([t["maxs"] for t in members], axis=0)
-        size = scene_chunk_size(run, sum(t["n_points"] for t in members), mins, maxs)
-        grid = Grid.covering(mins, maxs, size)
-        scenes[scene] = {"tiles": [t["index"] for t in members], "grid": grid.to_dict()}
+        info: dict = {"tiles": [t["index"] for t in members]}
+        if tiling.chunk_size == "auto" and tiling.layout == "balanced":
+            counts = scene_counts(run, scene, members, engine)
+            layout = BalancedLayout.build(counts, run.halo, int(tiling.target_points))
+            info["grid"] = layout.to_dict()
+            info["estimate"] = {name: [int(v) for v in np.percentile(values, [0, 50, 100],
+                                                                     method="lower")]
+                                for name, values in zip(("core", "window"),
+                                                        layout.estimate(counts, run.halo))}
+        else:
+            mins = np.min([t["mins"] for t in members], axis=0)
+            maxs = np.max([t["maxs"] for t in members], axis=0)
+            size = scene_chunk_size(run, sum(t["n_points"] for t in members), mins, maxs)
+            info["grid"] = Grid.covering(mins, maxs, size).to_dict()
+        scenes[scene] = info
     return scenes
+
+
+def count_tile(path, cell: float, read_batch: int) -> CellCounts:
+    """Worker task: the points of one tile counted on the lattice of ``cell`` metres."""
+    counts = CellCounts.empty(cell)
+    for batch in iter_points(path, batch_size=read_batch, fields=()):
+        counts = counts + CellCounts.of(batch.xyz, cell)
+    return counts
+
+
+def scene_counts(run: Run, scene: str, members: list[dict], engine=None) -> CellCounts:
+    """The points of a scene's tiles counted on one lattice (the balanced layout's first
+    pass: XY only, streamed in read batches)."""
+    cell = count_cell_size(run.halo, sum(tile_area(t["mins"], t["maxs"]) for t in members))
+    batch = int(run.cfg.tiling.read_batch)
+    if engine is None:
+        parts = [count_tile(t["path"], cell, batch) for t in members]
+    else:
+        tasks = [Task(key=f"count-{scene}-{t['index']}-{cell:g}", fn=count_tile,
+                      kwargs=dict(path=t["path"], cell=cell, read_batch=batch),
+                      where=f"tile {t['path']} (scene '{scene}')",
+                      reproduce=f"silva plan CONFIG (reads tile {t['path']})")
+                 for t in members]
+        results = engine.map(f"count {scene}", tasks)
+        parts = [results[task.key] for task in tasks]
+    total = CellCounts.empty(cell)
+    for part in parts:
+        total = total + part
+    return total
+
+
+def layout_text(grid: dict) -> str:
+    """How a scene is cut, for messages: "in chunks of 15 m (3 x 2 grid)"."""
+    layout = layout_from_dict(grid)
+    if isinstance(layout, Grid):
+        return f"in chunks of {layout.size:g} m ({layout.nx} x {layout.ny} grid)"
+    return f"in {layout.n_chunks} chunks balanced by point count"
 
 
 def scene_chunk_size(run: Run, n_points: int, mins, maxs) -> float:
@@ -164,7 +226,7 @@ def ingest_tile(
         del marker[name]
     appender = Appender()
     n_read = 0
-    grid = Grid(**grid)
+    grid = layout_from_dict(grid)
     labelled = scene != "predict"
     counts: dict[str, int] = {}
     fields = (label_field,) if labelled else ()
@@ -240,6 +302,9 @@ def ingest(run: Run, engine) -> dict:
         if all(_ingested(root, tile, fingerprint) for tile in layout["tiles"]):
             return layout
         scenes = layout["scenes"]  # a tile found damaged since: ingest it again
+    elif (root.attrs.get("planned") or {}).get("fingerprint") == fingerprint:
+        # killed while ingesting: the tiles done are kept, in the layout planned then
+        scenes = root.attrs["planned"]["scenes"]
     else:
         if layout is not None or "scenes" in root:
             # Inputs or chunking changed: nothing stored is valid any more.
@@ -247,11 +312,10 @@ def ingest(run: Run, engine) -> dict:
                 if key in root:
                     del root[key]
             root.attrs["layout"] = None
-        scenes = plan_scenes(run, tiles)
+        scenes = plan_scenes(run, tiles, engine)
+        root.attrs["planned"] = {"fingerprint": fingerprint, "scenes": scenes}
     for scene, info in scenes.items():
-        grid = info["grid"]
-        say(f"ingest: scene {scene} in chunks of {grid['size']:g} m "
-            f"({grid['nx']} x {grid['ny']} grid)", quiet=run.quiet)
+        say(f"ingest: scene {scene} {layout_text(info['grid'])}", quiet=run.quiet)
     tasks = []
     for tile in tiles:
         scene = tile["scene"]
