@@ -31,7 +31,8 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
                 export, which both build on stage)
     ==========  ========================================================================
     ingest      data.train/test/predict (patterns, order ignored), data.label_field,
-                data.classes, data.ignore, data.split, data.drop_unlisted;
+                data.classes, data.ignore, data.split, data.drop_unlisted,
+                data.exclude_codes and data.exclude_withheld (when set);
                 tiling.chunk_size, tiling.halo, tiling.target_points and tiling.layout
                 (only with chunk_size auto)
     features    + features.set, r1, max_neighbors, plane, scales, column, voxel
@@ -64,6 +65,9 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
             "halo": cfg.halo,
         },
     }
+    for key in ("exclude_codes", "exclude_withheld"):
+        if data[key]:  # only when set: a config without filters keeps its fingerprint
+            parts["ingest"][key] = sorted(set(data[key])) if key == "exclude_codes" else True
     if cfg.tiling.chunk_size == "auto":
         # only then does it matter; an explicit size keeps the fingerprint it always had
         parts["ingest"]["target_points"] = cfg.tiling.target_points

@@ -15,7 +15,7 @@ from workflows.progress import say
 from workflows.run import Run, has_test_points
 from workflows.steps.cascade import cascade, check_model
 from workflows.steps.evaluate import evaluate, write_metrics
-from workflows.steps.export import export
+from workflows.steps.export import check_point_formats, export
 from workflows.steps.features import features
 from workflows.steps.ingest import ingest
 
@@ -45,6 +45,8 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     summary["chunk size (m)"] = ", ".join(
         f"{scene} {info['grid']['size']:g}" if "size" in info["grid"] else f"{scene} balanced"
         for scene, info in layout["scenes"].items())
+    summary["excluded points"] = sum(t.get("excluded", 0) for t in layout["tiles"])
+    check_point_formats(run, layout["tiles"])  # output.point_format: keep, before any work
     if last < 1:
         return summary
     counts = timed("features", features, run, engine, layout, only)
@@ -79,6 +81,8 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
         "input points": summary["points"],
         "chunks": summary["chunks"],
         "chunk size (m)": summary["chunk size (m)"],
+        **({"excluded points": summary["excluded points"]} if summary["excluded points"]
+           else {}),
         "durations (s)": ", ".join(f"{k} {v}" for k, v in timings.items()),
     }
     write_report(run.out, metrics, pr_data=plots["pr_data"], topdown=plots["topdown"],

@@ -394,8 +394,10 @@ def check_computed(values, extra_dims, set_classification: bool, src) -> dict:
     return dict(values)
 
 
-def _export_header(src_header: laspy.LasHeader, extra_dims: list[ExtraDim], src) -> tuple:
-    """The output header: src's, as LAS 1.4 point format 6-10, plus the new extra dims.
+def _export_header(src_header: laspy.LasHeader, extra_dims: list[ExtraDim], src,
+                   keep_point_format: bool = False) -> tuple:
+    """The output header: src's, as LAS 1.4 point format 6-10 (or, with
+    ``keep_point_format``, src's own version and point format), plus the new extra dims.
 
     Returns (header, same_layout): same_layout is True when the source point layout is kept
     byte for byte (new extra bytes appended after it). An extra dim that src already has
@@ -404,13 +406,15 @@ def _export_header(src_header: laspy.LasHeader, extra_dims: list[ExtraDim], src)
     header = copy.deepcopy(src_header)
     header.vlrs[:] = without_copc(header.vlrs)
     src_format = src_header.point_format
-    target = LEGACY_TO_14.get(src_format.id, src_format.id)
+    target = src_format.id if keep_point_format else LEGACY_TO_14.get(src_format.id,
+                                                                      src_format.id)
     same_layout = target == src_format.id
-    if not same_layout or header.version < Version(1, 4):
+    if not keep_point_format and (not same_layout or header.version < Version(1, 4)):
         point_format = laspy.PointFormat(target)
         point_format.dimensions.extend(src_format.extra_dimensions)
         header.set_version_and_point_format(Version(1, 4), point_format)
-    las14_crs(header, src)
+    if target >= 6:  # formats 0-5 may keep their GeoTIFF keys
+        las14_crs(header, src)
     existing = {d.name: d for d in src_format.extra_dimensions}
     standard = set(header.point_format.standard_dimension_names)
     new_dims = []
@@ -469,11 +473,14 @@ def export_las(
     *,
     batch_size: int = 1_000_000,
     set_classification: bool = False,
+    keep_point_format: bool = False,
 ) -> Path:
     """Stream a LAS/LAZ tile to dst with every point and dimension kept, plus extra dims.
 
     See :func:`pipeline.io.tiles.export_with_extra_dims`; the batch given to compute holds
-    ``classification``.
+    ``classification`` and ``withheld`` (bool). With ``keep_point_format`` the output keeps
+    src's LAS version and point format (and its CRS records as they are); a classification
+    that format cannot hold (formats 0-5: 0..31) is refused, never truncated.
     """
     src = check_file(src)
     dst = check_las_destination(dst)
@@ -483,7 +490,7 @@ def export_las(
         src_header = reader.header
         if src_header.point_count == 0:
             raise empty_tile(src)
-        header, same_layout = _export_header(src_header, dims, src)
+        header, same_layout = _export_header(src_header, dims, src, keep_point_format)
         evlrs = without_copc(src_header.evlrs or [])
     with atomic_writer(dst, header) as writer, open_las(src) as reader:
         start = 0
@@ -492,7 +499,8 @@ def export_las(
             _copy_points(chunk, out, same_layout)
             batch = PointBatch(
                 start=start, xyz=real_xyz(chunk, src_header),
-                fields={"classification": np.array(chunk["classification"])},
+                fields={"classification": np.array(chunk["classification"]),
+                        "withheld": np.array(chunk["withheld"]).astype(bool)},
             )
             values = check_computed(compute(batch), dims, set_classification, src)
             for name, array in values.items():

@@ -78,6 +78,7 @@ def export_with_extra_dims(
     *,
     batch_size: int = 1_000_000,
     set_classification: bool = False,
+    keep_point_format: bool = False,
 ) -> Path:
     """Copy a tile to a LAS 1.4 file (LAZ when dst ends in .laz) with extra dims added.
 
@@ -94,7 +95,8 @@ def export_with_extra_dims(
     fits 0..255; otherwise classification 0 and the raw label in extra dim ``label``
     (uint16, or int32 for codes beyond it). The confidence column becomes extra dim
     ``confidence`` (float32). An extra dim that a LAS src already has with the same dtype is
-    reused and its values replaced.
+    reused and its values replaced. ``keep_point_format`` keeps a LAS src's version and
+    point format instead (other formats have none to keep).
 
     The file appears at dst only when complete (temporary file + rename); if compute or
     anything else fails, no dst and no temporary file are left. Returns dst.
@@ -104,9 +106,11 @@ def export_with_extra_dims(
         raise InputError(f"compute must be a function batch -> dict, got {type(compute).__name__}")
     fmt = _format_of(src)
     if fmt.export is not None:
+        options = {"keep_point_format": True} if keep_point_format and fmt.name in (
+            "las", "laz") else {}  # text sources have no point format to keep
         return fmt.export(
             src, dst, list(extra_dims), compute, batch_size=batch_size,
-            set_classification=set_classification,
+            set_classification=set_classification, **options,
         )
     raise InputError(
         f"cannot export {src}: keeping every original dimension is supported for LAS/LAZ and "

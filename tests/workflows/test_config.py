@@ -79,6 +79,7 @@ def test_defaults():
     d = cfg.model_dump()
     assert d["data"] == {"train": [], "test": [], "predict": [], "label_field": "classification",
                          "classes": {}, "ignore": [], "background": [], "split": None,
+                         "exclude_codes": [], "exclude_withheld": False,
                          "drop_unlisted": False, "allow_overlap": False}
     assert d["tiling"] == {"chunk_size": "auto", "layout": "balanced",
                            "target_points": 1_000_000, "halo": 0.5, "read_batch": 1_000_000}
@@ -461,6 +462,10 @@ def changed_steps(**sections) -> set[str]:
     ({"tiling": {"halo": 2.0}}, set(STEPS)),
     ({"data": {"label_field": "label"}}, set(STEPS)),
     ({"data": {"ignore": [7]}}, set(STEPS)),
+    ({"data": {"exclude_codes": [7, 18]}}, set(STEPS)),
+    ({"data": {"exclude_withheld": True}}, set(STEPS)),
+    ({"output": {"feature_dims": "all"}}, {"export"}),
+    ({"output": {"point_format": "keep"}}, {"export"}),
     ({"data": {"predict": ["/d/more.laz"]}}, set(STEPS)),
     ({"data": {"train": ["/d/test/*.laz"], "test": ["/d/train/*.laz"]}}, set(STEPS)),
     ({"data": {"classes": dict(reversed(CLASSES.items()))}}, set(STEPS)),  # class order

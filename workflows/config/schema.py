@@ -7,12 +7,17 @@ Every key has a default and a description; validators resolve derived values (``
 ``tiling.halo``) and raise one-line errors naming the dotted key.
 """
 
-from typing import Any, Literal, Union
+import fnmatch
+import re
+from typing import Annotated, Any, Literal, Union
 
-from pydantic import Field, field_validator, model_validator
+import laspy
+from pydantic import BeforeValidator, Field, field_validator, model_validator
 
 from pipeline.cascade import CascadeParams, ForestParams
-from pipeline.features.sets import AUTO_NEIGHBORS, FEATURE_SETS, FeatureParams
+from pipeline.features.sets import (
+    AUTO_NEIGHBORS, FEATURE_SETS, FeatureParams, feature_set,
+)
 from pipeline.io.base import LAS_NAME_BYTES
 from workflows.config.fields import (
     AutoLength,
@@ -77,6 +82,17 @@ class DataConfig(Section):
     )
     split: SplitConfig | None = Field(
         None, description="Cut the labelled training cloud into a training and a test part.",
+    )
+    exclude_codes: list[Integer] = Field(
+        default_factory=list,
+        description="LAS classification codes whose points are left out of every "
+        "neighbourhood, of training and of the metrics, e.g. [7, 18] (low and high noise); "
+        "they are exported unchanged with Excluded 1 and PredictedClassification 0.",
+    )
+    exclude_withheld: bool = Field(
+        False,
+        description="Leave out the points whose LAS withheld flag is set, as exclude_codes "
+        "does.",
     )
     drop_unlisted: bool = Field(
         False,
@@ -157,6 +173,14 @@ class DataConfig(Section):
                            f"({show(codes)}); ignore the class by name instead")
         if self.classes and not self.class_names:
             raise fail("data.ignore drops every class in data.classes; keep at least one")
+        for i, code in enumerate(self.exclude_codes):
+            if not 0 <= code <= 255:
+                raise fail(f"data.exclude_codes[{i}] must be a LAS classification code "
+                           f"0..255, got {show(code)}")
+            owner = next((name for name, codes in self.classes.items() if code in codes), None)
+            if owner is not None and self.label_field == "classification":
+                raise fail(f"data.exclude_codes leaves out code {code}, which is a code of "
+                           f"class '{owner}'; remove it from one of them")
         if self.split is not None and not self.train:
             raise fail("data.split cuts the data.train cloud, but data.train is empty; "
                        "give data.train or remove data.split")
@@ -189,6 +213,12 @@ class DataConfig(Section):
         """Every source code named by a class or by ignore (kept by drop_unlisted)."""
         codes = {code for codes in self.classes.values() for code in codes}
         return sorted(codes | {c for c in self.ignore if isinstance(c, int)})
+
+    @property
+    def excludes(self) -> bool:
+        """Whether ingest leaves points out (exclude_codes, exclude_withheld, drop_unlisted):
+        the export then marks them in the ``Excluded`` dimension."""
+        return bool(self.exclude_codes or self.exclude_withheld or self.drop_unlisted)
 
     @property
     def background_indices(self) -> list[int]:
@@ -376,6 +406,29 @@ class CascadeConfig(Section):
 
 
 # -- output ----------------------------------------------------------------------------------
+#: The dimensions export adds besides the probabilities and the feature columns.
+SILVA_DIMS = ("PredictedClassification", "Confidence", "Entropy", "NoFeatures", "Excluded")
+
+
+def feature_dim_name(column: str) -> str:
+    """The extra-dimension name of a feature column: each character other than an ASCII
+    letter, digit or underscore becomes '_' (PDAL's dimension names allow no dots)."""
+    return re.sub(r"[^A-Za-z0-9_]", "_", column)
+
+
+def _feature_dims(value: Any) -> Any:
+    if isinstance(value, str) and value != "all":
+        value = [value]  # one column or pattern
+    if isinstance(value, (list, tuple)):
+        for item in value:
+            if not isinstance(item, str) or not item:
+                raise field_error("must be 'all' or a list of feature column names or patterns")
+    return value
+
+
+FeatureDims = Annotated[Union[Literal["all"], list[str]], BeforeValidator(_feature_dims)]
+
+
 class OutputConfig(Section):
     """The classified tiles written back."""
 
@@ -386,6 +439,33 @@ class OutputConfig(Section):
         "original is otherwise kept untouched).",
     )
     probabilities: bool = Field(True, description="One extra dimension per class.")
+    feature_dims: FeatureDims = Field(
+        default_factory=list,
+        description="Feature columns also written as float32 extra dimensions: 'all', or "
+        "a list of column names or patterns of the feature set (e.g. [linearity_*, "
+        "I2_22]); a dimension's name is the column's with each character other than a "
+        "letter, digit or _ replaced by _ (linearity_r0.5 -> linearity_r0_5).",
+    )
+    point_format: Literal["auto", "keep"] = Field(
+        "auto",
+        description="auto: LAS 1.4, the point format 6-10 that holds every input value; "
+        "keep: the input's LAS version and point format (formats 0-5 hold classification "
+        "codes 0..31 only, so write_classification then needs class codes <= 31).",
+    )
+
+    def feature_columns(self, columns, set_name: str) -> list[str]:
+        """The columns of ``columns`` (feature set ``set_name``'s, in its order) that
+        feature_dims names; a one-line error for a name or pattern that matches none."""
+        if self.feature_dims == "all":
+            return list(columns)
+        chosen = set()
+        for i, pattern in enumerate(self.feature_dims):
+            matched = fnmatch.filter(columns, pattern)
+            if not matched:
+                raise fail(f"output.feature_dims[{i}] '{pattern}' is not a column of "
+                           f"feature set '{set_name}'; valid: {', '.join(columns)}, or 'all'")
+            chosen.update(matched)
+        return [c for c in columns if c in chosen]
 
 
 # -- the whole configuration -----------------------------------------------------------------
@@ -411,6 +491,33 @@ class SilvaConfig(Section):
             raise fail(f"tiling.halo {show(halo)} is smaller than the largest radius "
                        f"{show(largest)}; use a halo >= {show(largest)} or leave it unset")
         return self
+
+    @model_validator(mode="after")
+    def _check_feature_dims(self) -> "SilvaConfig":
+        if not self.output.feature_dims or not self.features.resolved:
+            return self  # checked again once the run has resolved r1 and voxel
+        taken = {PROBABILITY_PREFIX + name for name in self.data.class_names}
+        taken |= set(SILVA_DIMS) | set(laspy.PointFormat(10).standard_dimension_names)
+        seen: dict[str, str] = {}
+        for column in self.feature_dim_columns:
+            name = feature_dim_name(column)
+            if len(name.encode()) > LAS_NAME_BYTES or name in taken or name in seen:
+                why = (f"is longer than the {LAS_NAME_BYTES}-byte LAS limit"
+                       if len(name.encode()) > LAS_NAME_BYTES else
+                       f"is also the dimension of column '{seen[name]}'" if name in seen
+                       else "is already an output dimension")
+                raise fail(f"output.feature_dims: the dimension '{name}' of feature column "
+                           f"'{column}' {why}; leave the column out of output.feature_dims")
+            seen[name] = column
+        return self
+
+    @property
+    def feature_dim_columns(self) -> list[str]:
+        """The feature columns written as extra dimensions (output.feature_dims resolved)."""
+        if not self.output.feature_dims:
+            return []
+        params = self.features.params
+        return self.output.feature_columns(list(feature_set(params).columns), params.set)
 
     @property
     def halo(self) -> float:

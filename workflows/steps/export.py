@@ -2,9 +2,18 @@
 
 Each task streams its input tile, finds each point's chunk from its coordinates (the same grid
 as ingest) and its row there by global id, and writes the original dimensions plus the
-predicted class, one probability per class, a confidence and ``NoFeatures`` (1 where the
-point's features could not be computed: too few neighbours, or collinear ones; its prediction
-then rests on what the forests make of missing values). Files are written atomically.
+predicted class, one probability per class, a confidence, an entropy and ``NoFeatures`` (1
+where the point's features could not be computed: too few neighbours, or collinear ones; its
+prediction then rests on what the forests make of missing values). Files are written
+atomically.
+
+When ingest leaves points out (``data.exclude_codes``, ``data.exclude_withheld``,
+``data.drop_unlisted``) a dimension ``Excluded`` is added: 1 for those points, which were in
+no neighbourhood and were never classified. They keep every input value (their
+classification too, even with ``output.write_classification``), and get
+PredictedClassification 0, Confidence, Entropy and probabilities 0 and NaN feature columns.
+``output.feature_dims`` adds chosen feature columns (float32, NaN where undefined), read from
+the features stored per chunk.
 """
 
 from pathlib import Path
@@ -12,20 +21,26 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.atomic import remove_parts
-from pipeline.errors import StoreError
-from pipeline.io import ExtraDim, export_with_extra_dims
+from pipeline.errors import ConfigError, StoreError
+from pipeline.features.sets import feature_set
+from pipeline.io import ExtraDim, export_with_extra_dims, read_info
 from pipeline.store import (
     chunk_path, is_done, mark_done, open_store, proba_array, read_array, rows_of,
 )
 from pipeline.tiling import global_ids, layout_from_dict
+from workflows.config.schema import feature_dim_name
 from workflows.engine import Task
 from workflows.progress import counted, say
 from workflows.run import Run
+from workflows.steps.ingest import excluded_points
 
 PREDICTED = "PredictedClassification"
 CONFIDENCE = "Confidence"
 ENTROPY = "Entropy"
 NO_FEATURES = "NoFeatures"
+EXCLUDED = "Excluded"
+#: Largest classification code of LAS point formats 0-5 (a 5-bit field); 6-10 hold 0..255.
+LEGACY_MAX_CLASS = 31
 
 
 def probability_dim(name: str) -> str:
@@ -41,8 +56,10 @@ def entropy(proba: np.ndarray) -> np.ndarray:
     return (-terms.sum(axis=1)).astype(np.float32)
 
 
-def extra_dims(classes: list[str], codes: list[int], probabilities: bool) -> list[ExtraDim]:
-    """The dimensions Silva adds to every exported point."""
+def extra_dims(classes: list[str], codes: list[int], probabilities: bool,
+               excluded: bool = False, features: tuple[str, ...] = ()) -> list[ExtraDim]:
+    """The dimensions Silva adds to every exported point: ``Excluded`` when ``excluded``
+    (ingest filters points out), one float32 dimension per feature column of ``features``."""
     dtype = "uint8" if max(codes) <= 255 else "uint16"
     dims = [
         ExtraDim(PREDICTED, dtype, "Predicted class code"),
@@ -50,22 +67,28 @@ def extra_dims(classes: list[str], codes: list[int], probabilities: bool) -> lis
         ExtraDim(ENTROPY, "float32", "Entropy of class probabilities"),
         ExtraDim(NO_FEATURES, "uint8", "1: features undefined"),
     ]
+    if excluded:
+        dims.append(ExtraDim(EXCLUDED, "uint8", "1: left out, not classified"))
     if probabilities:
         dims += [ExtraDim(probability_dim(n), "float32", f"Probability of {n}"[:32])
                  for n in classes]
+    dims += [ExtraDim(feature_dim_name(c), "float32", f"Feature {c}"[:32]) for c in features]
     return dims
 
 
 class _ChunkPredictions:
-    """Final probabilities of the chunks a tile touches, loaded once each."""
+    """Final probabilities (and chosen feature columns) of the chunks a tile touches,
+    loaded once each."""
 
-    def __init__(self, root, scene, grid, stage, allow_missing):
+    def __init__(self, root, scene, grid, stage, allow_missing, feature_index=()):
         self.root, self.scene, self.grid, self.stage = root, scene, grid, stage
         self.allow_missing = allow_missing  # points left out at ingest (data.drop_unlisted)
+        self.feature_index = list(feature_index)  # columns of 'features' to return
         self.cache = {}
 
     def _load(self, chunk, n_classes):
-        """(sorted global ids, probabilities) of one chunk; empty for a chunk never stored."""
+        """(sorted global ids, probabilities, undefined features, feature columns) of one
+        chunk; empty for a chunk never stored."""
         name = self.grid.chunk_name(chunk)
         try:
             group = self.root[chunk_path(self.scene, name)]
@@ -75,51 +98,77 @@ class _ChunkPredictions:
                 raise StoreError(f"chunk {name} of scene '{self.scene}' is missing from the "
                                  "store; rerun with --overwrite") from None
             return (np.empty(0, np.int64), np.empty((0, n_classes), np.float32),
-                    np.empty(0, bool))
-        undefined = np.isnan(read_array(group, "features")).any(axis=1)
-        return read_array(group, "gid"), read_array(group, proba_array(self.stage)), undefined
+                    np.empty(0, bool), np.empty((0, len(self.feature_index)), np.float32))
+        features = read_array(group, "features")
+        undefined = np.isnan(features).any(axis=1)
+        return (read_array(group, "gid"), read_array(group, proba_array(self.stage)), undefined,
+                features[:, self.feature_index])
 
     def lookup(self, xyz, gid, n_classes):
-        """float32 (n, C) probabilities, a bool mask of the points the store holds and one
-        of the points whose features are undefined."""
+        """float32 (n, C) probabilities, a bool mask of the points the store holds, one of
+        the points whose features are undefined, and float32 (n, F) feature columns (NaN for
+        a point the store does not hold)."""
         chunks = self.grid.chunk_of(xyz)
         proba = np.zeros((len(gid), n_classes), dtype=np.float32)
         found = np.ones(len(gid), dtype=bool)
         undefined = np.zeros(len(gid), dtype=bool)
+        columns = np.full((len(gid), len(self.feature_index)), np.nan, dtype=np.float32)
         for chunk in np.unique(chunks):
             rows = np.flatnonzero(chunks == chunk)
             if chunk not in self.cache:
                 if len(self.cache) >= 8:  # bounded memory on tiles spanning many chunks
                     self.cache.clear()
                 self.cache[chunk] = self._load(int(chunk), n_classes)
-            ids, chunk_proba, chunk_undefined = self.cache[chunk]
+            ids, chunk_proba, chunk_undefined, chunk_columns = self.cache[chunk]
             pos, hit = rows_of(ids, gid[rows])
             if not hit.all() and not self.allow_missing:
                 raise StoreError(f"points of scene '{self.scene}' missing from chunk "
                                  f"{self.grid.chunk_name(int(chunk))}; rerun with --overwrite")
             proba[rows[hit]] = chunk_proba[pos[hit]]
             undefined[rows[hit]] = chunk_undefined[pos[hit]]
+            columns[rows[hit]] = chunk_columns[pos[hit]]
             found[rows[~hit]] = False
-        return proba, found, undefined
+        return proba, found, undefined, columns
 
 
 def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilities,
-                write_classification, read_batch, fingerprint, allow_missing=False):
+                write_classification, read_batch, fingerprint, allow_missing=False,
+                exclude_codes=(), exclude_withheld=False, mark_excluded=False,
+                feature_columns=(), feature_index=(), keep_point_format=False):
     """Worker task: write the classified copy of one input tile; return its path and the
-    number of its points without features."""
+    number of its points without features and of its points excluded at ingest.
+
+    ``exclude_codes`` / ``exclude_withheld``: the ingest filters; the points they match are
+    not looked up in the store. ``mark_excluded`` adds the ``Excluded`` dimension.
+    ``feature_columns`` are written from the columns ``feature_index`` of the stored
+    features. ``keep_point_format`` keeps the input's LAS version and point format.
+    """
     root = open_store(store_path)
     marker = root.require_group(f"exports/{tile['index']}")
     if is_done(marker, "export", fingerprint) and Path(dst).is_file():
-        return {"path": dst, "no_features": marker.attrs.get("no_features", 0)}
-    predictions = _ChunkPredictions(root, tile["scene"], layout_from_dict(grid), stage, allow_missing)
+        return {"path": dst, "no_features": marker.attrs.get("no_features", 0),
+                "excluded": marker.attrs.get("excluded", 0)}
+    predictions = _ChunkPredictions(root, tile["scene"], layout_from_dict(grid), stage, allow_missing,
+                                    feature_index)
     codes_array = np.asarray(codes)
-    n_undefined = 0
+    n_undefined = n_excluded = 0
 
     def compute(batch):
-        nonlocal n_undefined
-        gid = global_ids(tile["index"], batch.start, len(batch.xyz))
-        proba, found, undefined = predictions.lookup(batch.xyz, gid, len(classes))
+        nonlocal n_undefined, n_excluded
+        n = len(batch.xyz)
+        gid = global_ids(tile["index"], batch.start, n)
+        filtered = excluded_points(batch.fields, exclude_codes, exclude_withheld)
+        if filtered is None:
+            filtered = np.zeros(n, dtype=bool)
+        look = np.flatnonzero(~filtered)  # the points ingest stored (or dropped if unlisted)
+        proba = np.zeros((n, len(classes)), dtype=np.float32)
+        found = np.zeros(n, dtype=bool)
+        undefined = np.zeros(n, dtype=bool)
+        columns = np.full((n, len(feature_columns)), np.nan, dtype=np.float32)
+        proba[look], found[look], undefined[look], columns[look] = predictions.lookup(
+            batch.xyz[look], gid[look], len(classes))
         n_undefined += int(np.count_nonzero(undefined))
+        n_excluded += int(np.count_nonzero(filtered))
         best = np.argmax(proba, axis=1)
         predicted = np.where(found, codes_array[best], 0)  # 0: never classified (LAS)
         values = {
@@ -128,19 +177,49 @@ def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilitie
             ENTROPY: entropy(proba),
             NO_FEATURES: undefined.astype(np.uint8),
         }
+        if mark_excluded:
+            values[EXCLUDED] = (~found).astype(np.uint8)
         if probabilities:
             for index, name in enumerate(classes):
                 values[probability_dim(name)] = proba[:, index]
+        for index, column in enumerate(feature_columns):
+            values[feature_dim_name(column)] = columns[:, index]
         if write_classification:
-            values["classification"] = predicted
+            original = batch.fields.get("classification")  # None for Oakland text
+            values["classification"] = (predicted if original is None
+                                        else np.where(found, predicted, original))
         return values
 
     export_with_extra_dims(
-        tile["path"], dst, extra_dims(classes, codes, probabilities), compute,
-        batch_size=read_batch, set_classification=write_classification,
+        tile["path"], dst,
+        extra_dims(classes, codes, probabilities, mark_excluded, tuple(feature_columns)),
+        compute, batch_size=read_batch, set_classification=write_classification,
+        keep_point_format=keep_point_format,
     )
-    mark_done(marker, "export", fingerprint, no_features=n_undefined)
-    return {"path": dst, "no_features": n_undefined}
+    mark_done(marker, "export", fingerprint, no_features=n_undefined, excluded=n_excluded)
+    return {"path": dst, "no_features": n_undefined, "excluded": n_excluded}
+
+
+def check_point_formats(run: Run, tiles: list[dict]) -> None:
+    """Refuse, before any work, ``output.point_format: keep`` with write_classification when
+    a LAS tile's point format (0-5: codes 0..31) cannot hold the class codes."""
+    out = run.cfg.output
+    if out.point_format != "keep" or not out.write_classification:
+        return
+    largest = max(run.class_codes, default=0)
+    if largest <= LEGACY_MAX_CLASS:
+        return
+    for tile in tiles:
+        if tile.get("format") not in ("las", "laz"):
+            continue
+        point_format = read_info(tile["path"]).point_format
+        if point_format is not None and point_format < 6:
+            raise ConfigError(
+                f"config error: output.point_format keep cannot write class code {largest} "
+                f"into the classification of {tile['path']}: its point format {point_format} "
+                f"holds codes 0..{LEGACY_MAX_CLASS}; set output.point_format: auto (LAS 1.4, "
+                "codes 0..255) or output.write_classification: false (the prediction stays "
+                f"in {PREDICTED})")
 
 
 def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> list[str]:
@@ -152,6 +231,10 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
     out_dir.mkdir(parents=True, exist_ok=True)
     remove_parts(out_dir)
     suffix = "." + run.cfg.output.format
+    check_point_formats(run, layout["tiles"])
+    feature_columns = run.cfg.feature_dim_columns
+    all_columns = list(feature_set(run.features).columns)
+    feature_index = [all_columns.index(c) for c in feature_columns]
     tasks = []
     for tile in layout["tiles"]:
         dst = out_dir / f"{tile['name']}{suffix}"
@@ -166,6 +249,11 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
                 write_classification=bool(run.cfg.output.write_classification),
                 read_batch=int(run.cfg.tiling.read_batch), fingerprint=fingerprint,
                 allow_missing=bool(run.cfg.data.drop_unlisted) and tile["scene"] != "predict",
+                exclude_codes=list(run.cfg.data.exclude_codes),
+                exclude_withheld=bool(run.cfg.data.exclude_withheld),
+                mark_excluded=run.cfg.data.excludes,
+                feature_columns=feature_columns, feature_index=feature_index,
+                keep_point_format=run.cfg.output.point_format == "keep",
             ),
             where=f"export of tile {tile['path']}",
             reproduce=f"silva export CONFIG --out {run.out} --in-process",

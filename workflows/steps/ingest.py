@@ -39,7 +39,7 @@ from pipeline.tiling import (
 )
 from workflows.config import expand_inputs
 from workflows.engine import Task
-from workflows.progress import say
+from workflows.progress import counted, say
 from workflows.run import SCENES, Run
 
 AXES = {"x": 0, "y": 1, "z": 2}
@@ -208,13 +208,42 @@ def point_roles(scene: str, xyz: np.ndarray, split) -> np.ndarray:
     return np.full(len(xyz), role, dtype=np.int8)
 
 
+def excluded_points(fields: dict, exclude_codes, exclude_withheld: bool) -> np.ndarray | None:
+    """bool (n,) mask of the points the ingest filters leave out, from a batch's fields
+    (``classification`` for ``exclude_codes``, ``withheld`` for ``exclude_withheld``); None
+    when no filter is set. Export uses the same mask to mark the points it finds excluded."""
+    if not exclude_codes and not exclude_withheld:
+        return None
+    mask = None
+    if exclude_codes:
+        mask = np.isin(np.asarray(fields["classification"]), list(exclude_codes))
+    if exclude_withheld:
+        withheld = np.asarray(fields["withheld"]).astype(bool)
+        mask = withheld if mask is None else mask | withheld
+    return mask
+
+
+def filter_fields(label_field, labelled: bool, exclude_codes, exclude_withheld) -> tuple:
+    """The point dimensions ingest reads: the labels, and what the filters look at."""
+    fields = [label_field] if labelled else []
+    if exclude_codes:
+        fields.append("classification")
+    if exclude_withheld:
+        fields.append("withheld")
+    return tuple(dict.fromkeys(fields))
+
+
 def ingest_tile(
     store_path, scene, tile, grid, halo, label_field, code_to_class, split, read_batch, fingerprint,
-    keep_codes=None,
+    keep_codes=None, exclude_codes=(), exclude_withheld=False,
 ):
     """Worker task: append one tile's points to the chunk parts of its scene.
 
     With ``keep_codes`` (data.drop_unlisted), labelled points with other codes are left out.
+    Points with a classification in ``exclude_codes``, or with the withheld flag when
+    ``exclude_withheld``, are left out of every scene (cores and halos): they are in no
+    neighbourhood, no training sample and no metric. Their number is recorded in the tile's
+    marker (``excluded``).
     """
     root = open_store(store_path)
     marker = root.require_group(f"scenes/{scene}/parts/{tile['index']}")
@@ -229,20 +258,27 @@ def ingest_tile(
     grid = layout_from_dict(grid)
     labelled = scene != "predict"
     counts: dict[str, int] = {}
-    fields = (label_field,) if labelled else ()
+    n_excluded = 0
+    fields = filter_fields(label_field, labelled, exclude_codes, exclude_withheld)
     for batch in iter_points(tile["path"], batch_size=read_batch, fields=fields):
         xyz = batch.xyz
         n_read += len(xyz)
         gid = global_ids(tile["index"], batch.start, len(xyz))
         label = np.full(len(xyz), -1, dtype=np.int16)
+        kept = np.ones(len(xyz), dtype=bool)
+        excluded = excluded_points(batch.fields, exclude_codes, exclude_withheld)
+        if excluded is not None:
+            n_excluded += int(np.count_nonzero(excluded))
+            kept &= ~excluded
         if labelled:
             raw = np.asarray(batch.fields[label_field]).astype(np.int64)
             label = labels_from_codes(raw, code_to_class)
             if keep_codes is not None:
-                kept = np.isin(raw, keep_codes)
-                xyz, gid, label = xyz[kept], gid[kept], label[kept]
-                if len(xyz) == 0:
-                    continue
+                kept &= np.isin(raw, keep_codes)
+        if not kept.all():
+            xyz, gid, label = xyz[kept], gid[kept], label[kept]
+            if len(xyz) == 0:
+                continue
         role = point_roles(scene, xyz, split)
         chunk = grid.chunk_of(xyz)
         order = np.argsort(chunk, kind="stable")
@@ -274,7 +310,7 @@ def ingest_tile(
                              f"{appended} were written: another process writes to this store; "
                              "run one Silva command per output directory and rerun")
         parts.setdefault(group.rsplit("/", 1)[1], set()).add(name.split("_")[0])
-    mark_done(marker, "ingest", fingerprint, core_counts=counts,
+    mark_done(marker, "ingest", fingerprint, core_counts=counts, excluded=n_excluded,
               parts={chunk: sorted(kinds) for chunk, kinds in parts.items()})
     return counts
 
@@ -336,6 +372,8 @@ def ingest(run: Run, engine) -> dict:
                     fingerprint=fingerprint,
                     keep_codes=(run.cfg.data.listed_codes if run.cfg.data.drop_unlisted
                                 else None),
+                    exclude_codes=list(run.cfg.data.exclude_codes),
+                    exclude_withheld=bool(run.cfg.data.exclude_withheld),
                 ),
                 where=f"tile {tile['path']} (scene '{scene}')",
                 reproduce=f"silva ingest CONFIG --out {run.out} --in-process",
@@ -348,6 +386,14 @@ def ingest(run: Run, engine) -> dict:
             if task.kwargs["scene"] == scene:
                 names.update(results[task.key])
         info["chunks"] = sorted(names)
+    for tile in tiles:  # points the ingest filters left out (data.exclude_*)
+        tile["excluded"] = int(root[f"scenes/{tile['scene']}/parts/{tile['index']}"]
+                               .attrs.get("excluded", 0))
+    excluded = sum(t["excluded"] for t in tiles)
+    if excluded:
+        say(f"ingest: {counted(excluded, 'point')} excluded (data.exclude_codes / "
+            "data.exclude_withheld): in no neighbourhood and no score, exported unchanged "
+            "with Excluded=1", quiet=run.quiet)
     layout = {"fingerprint": fingerprint, "tiles": tiles, "scenes": scenes}
     root.attrs["layout"] = layout
     return layout
