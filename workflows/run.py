@@ -10,9 +10,11 @@ The output directory of a run::
       predictions/       <input tile name>.laz, every input point with its prediction
       metrics.json       test-set metrics, written last, only by a complete evaluation
       report.html        the report with its plots
+      work/results.json  what metrics and report were made from (see forget_stale_results)
 """
 
 import hashlib
+import json
 import logging
 import os
 import shutil
@@ -26,6 +28,7 @@ from pipeline.features.sets import FeatureParams, feature_set
 from pipeline.store import open_store
 from workflows.autoparams import resolve_auto
 from workflows.config import SilvaConfig, dump_config, fingerprint
+from workflows.fingerprint import STEPS as FINGERPRINTED
 from workflows.inputs import expand_inputs
 from workflows.lock import LOCK_NAME, acquire, check_free
 
@@ -160,10 +163,47 @@ class Run:
         atomic_write_text(self.out / "config.yaml", text)
         return text
 
-    def forget_results(self) -> None:
-        """Remove metrics and report: they are rewritten only when a run completes."""
+    @property
+    def stamp_path(self) -> Path:
+        return self.work_path / "results.json"
+
+    def results_stamp(self) -> str:
+        """A digest of everything metrics and report follow from: the configuration of
+        every step, the number of stages, the input files (paths, sizes, modification times)
+        and the description of the applied model."""
+        inputs = []
+        for scene in SCENES:
+            patterns = list(getattr(self.cfg.data, scene))
+            for path in expand_inputs(patterns, key=f"data.{scene}") if patterns else ():
+                stat = path.stat()
+                inputs.append([scene, str(path), stat.st_size, stat.st_mtime_ns])
+        model = None
+        if self.model_dir is not None and (self.model_dir / "model.json").is_file():
+            model = hashlib.sha256((self.model_dir / "model.json").read_bytes()).hexdigest()
+        state = {"steps": [fingerprint(self.cfg, step) for step in FINGERPRINTED],
+                 "stages": self.cfg.cascade.stages, "inputs": inputs, "model": model}
+        return hashlib.sha256(json.dumps(state).encode()).hexdigest()[:16]
+
+    def forget_stale_results(self) -> None:
+        """Remove metrics and report unless they were made from what this run would make
+        them from (:meth:`results_stamp`); record the new stamp.
+
+        A rerun that changes nothing (``silva ingest``, ``--chunk`` on a finished run)
+        keeps them; any change removes them before a step writes anything, so a killed run
+        never leaves metrics of another configuration beside its store. The rest of the run
+        rewrites them when it gets that far.
+        """
+        stamp = self.results_stamp()
+        try:
+            recorded = json.loads(self.stamp_path.read_text()).get("stamp")
+        except (OSError, ValueError, AttributeError):
+            recorded = None
+        if recorded == stamp:
+            return
         for path in (self.metrics_path, self.report_path):
             path.unlink(missing_ok=True)
+        self.work_path.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(self.stamp_path, json.dumps({"stamp": stamp}))
 
 
 class OutputError(SilvaError, OSError):

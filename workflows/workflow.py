@@ -29,7 +29,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     last = STEPS.index(target)
     timings = {}
     summary = {"out": str(run.out), "timings": timings}  # timings fill in as steps finish
-    run.forget_results()
+    run.forget_stale_results()  # a rerun that changes nothing keeps metrics and report
     if run.model_dir is not None:
         check_model(run)  # before any work: a wrong model must not cost a night
 
@@ -86,9 +86,19 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
         "durations (s)": ", ".join(f"{k} {v}" for k, v in timings.items()),
     }
     write_report(run.out, metrics, pr_data=plots["pr_data"], topdown=plots["topdown"],
-                 run_info=run_info, config_text=(run.out / "config.yaml").read_text())
+                 run_info=run_info, config_text=(run.out / "config.yaml").read_text(),
+                 importances=[s.get("importances") for s in stages],
+                 no_features=_no_features(run, layout))
     # metrics.json last: its presence means the whole run completed.
     write_metrics(run, metrics)
     summary.update(metrics=str(run.metrics_path), report=str(run.report_path),
                    macro_f1=metrics["macro"]["f1"])
     return summary
+
+
+def _no_features(run: Run, layout: dict) -> dict:
+    """The points written without features (NoFeatures = 1), as export counted them."""
+    root = run.store
+    markers = [f"exports/{t['index']}" for t in layout["tiles"]]
+    points = sum(int(root[m].attrs.get("no_features", 0)) for m in markers if m in root)
+    return {"points": points, "total": sum(t["n_points"] for t in layout["tiles"])}

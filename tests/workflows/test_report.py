@@ -5,6 +5,7 @@ import io
 import re
 from html.parser import HTMLParser
 
+import matplotlib.colors
 import matplotlib.image
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from workflows.report import (
     class_colour,
     f1_per_stage_figure,
     format_score,
+    importance_figure,
     topdown_figure,
     write_report,
 )
@@ -42,6 +44,25 @@ def fake_run(names=NAMES, exclude=("misc",), n=3000, n_stages=3, seed=0):
     pr_data = {"y_true": truth, "proba": proba, "class_names": names, "exclude": list(exclude)}
     topdown = {"x": x, "y": y, "label": pred, "class_names": names}
     return metrics, pr_data, topdown
+
+
+FEATURES = ["I2_22", "I2_222", "I3_33", "I3_11", "I23_3_2", "I23_31_2", "I23_1_2", "I3_3333",
+            "I3_3131", "I3_3331", "I3_3111"]
+
+
+def fake_importances(names=NAMES, n_stages=3, seed=0):
+    """One {column: importance} dict per stage, as model.json records them (sum 1); the
+    first stage's context columns are constant, so their importance is 0."""
+    rng = np.random.default_rng(seed)
+    columns = FEATURES + [f"context_{r}_{n}" for r in ("r1", "r2") for n in names]
+    stages = []
+    for stage in range(n_stages):
+        values = rng.uniform(0.0, 1.0, len(columns))
+        if stage == 0:
+            values[len(FEATURES):] = 0.0
+        values /= values.sum()
+        stages.append({c: round(float(v), 6) for c, v in zip(columns, values)})
+    return stages
 
 
 class TagBalance(HTMLParser):
@@ -69,7 +90,8 @@ def full_report(tmp_path_factory):
     path = write_report(
         out, metrics, pr_data=pr_data, topdown=topdown, title="Forest plot 7",
         run_info={"command": "silva run forest.yaml", "input points": 1234567},
-        config_text="features:\n  r1: 0.5\n",
+        config_text="features:\n  r1: 0.5\n", importances=fake_importances(),
+        no_features={"points": 1234, "total": 1234567},
     )
     return out, path, metrics
 
@@ -154,6 +176,8 @@ def test_report_without_plot_data_notes_the_missing_plots(tmp_path):
     page = write_report(tmp_path, metrics).read_text(encoding="utf-8")
     assert len(IMG.findall(page)) == 2
     assert "No precision-recall data" in page and "No point positions" in page
+    assert "No feature importances were recorded" in page
+    assert 'id="no-features"' not in page  # not counted: not claimed either
     # Stale pictures of an earlier report are removed so plots/ matches the report.
     assert sorted(p.name for p in (tmp_path / "plots").iterdir()) == [
         "confusion.png", "f1_per_stage.png"]
@@ -174,6 +198,7 @@ def test_text_is_escaped(tmp_path):
         tmp_path, metrics, pr_data=pr_data, topdown=topdown, title="<b>t</b>",
         run_info={"<i>key</i>": "<script>x</script>"},
         config_text="note: </pre><script>evil()</script>",
+        importances=fake_importances(names=names),
     ).read_text(encoding="utf-8")
     assert "<script" not in page
     assert "&lt;script&gt;alert(1)&lt;/script&gt;" in page
@@ -227,3 +252,64 @@ def test_f1_legend_names_every_evaluated_class():
     plotted = [list(line.get_ydata()) for line in figure.axes[0].get_lines()]
     assert [s["macro"]["f1"] for s in metrics["stages"]] in plotted
     assert [s["per_class"]["_ground"]["f1"] for s in metrics["stages"]] in plotted
+
+
+# -- feature importances and points without features ----------------------------------------
+def importance_rows(page: str) -> list[list[tuple[str, str]]]:
+    """The (column, importance) cells of each rank row of the top-features table."""
+    table = page[page.index('<table class="importances">'):]
+    table = table[: table.index("</table>")]
+    rows = re.findall(r"<tr><td>\d+</td>(.*?)</tr>", table)
+    return [re.findall(r"<td>([^<]*)</td><td>([^<]*)</td>", row) for row in rows]
+
+
+def test_importance_table_ranks_each_stages_top_columns(full_report):
+    _, path, _ = full_report
+    page = path.read_text(encoding="utf-8")
+    stages = fake_importances()
+    rows = importance_rows(page)
+    assert len(rows) == 10
+    for number, stage in enumerate(stages):
+        shown = [row[number] for row in rows]
+        expected = sorted(stage.items(), key=lambda kv: -kv[1])[:10]
+        assert shown == [(name, format_score(value)) for name, value in expected]
+    # the first stage's context columns are constant: none of them ranks there
+    assert not any(row[0][0].startswith("context_") for row in rows)
+    # every column of every stage is in the full table
+    details = page[page.index("Every feature column"):]
+    for column, value in stages[1].items():
+        assert f"<tr><td>{column}</td><td>{format_score(stages[0][column])}</td>" \
+               f"<td>{format_score(value)}</td>" in details
+
+
+def test_importance_figure_has_a_panel_per_stage_with_the_top_columns():
+    stages = fake_importances(n_stages=2)
+    figure = importance_figure([stages[0], None, stages[1]], NAMES, top=5)
+    assert [ax.get_title() for ax in figure.axes] == ["stage 1", "stage 3"]
+    for ax, stage in zip(figure.axes, stages):
+        top = [k for k, _ in sorted(stage.items(), key=lambda kv: -kv[1])[:5]]
+        assert [t.get_text() for t in ax.get_yticklabels()] == top
+        widths = [bar.get_width() for bar in ax.patches]
+        assert widths == sorted(widths, reverse=True) and widths[0] == max(stage.values())
+        for name, bar in zip(top, ax.patches):  # a context column has its class's colour
+            if name.startswith("context_"):
+                cls = NAMES.index(name.split("_", 2)[2])
+                assert matplotlib.colors.to_hex(bar.get_facecolor()) == \
+                    class_colour(cls).lower()
+    with pytest.raises(InputError, match="no stage with feature importances"):
+        importance_figure([None, {}], NAMES)
+
+
+def test_points_without_features_are_counted_in_the_report(full_report, tmp_path):
+    _, path, _ = full_report
+    page = path.read_text(encoding="utf-8")
+    assert re.search(r'Points without features</div><div class="value">1,234</div>', page)
+    assert "1,234 of the 1,234,567 points written (0.10%) have no features" in page
+    assert "NoFeatures = 1" in page
+    metrics, _, _ = fake_run(n=200)
+    page = write_report(tmp_path, metrics, no_features={"points": 0, "total": 500}
+                        ).read_text(encoding="utf-8")
+    assert "Every one of the 500 points written has its features." in page
+    for bad in ({"points": 3}, {"points": 9, "total": 5}, {"points": -1, "total": 5}):
+        with pytest.raises(InputError, match="no_features"):
+            write_report(tmp_path, metrics, no_features=bad)

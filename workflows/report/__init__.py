@@ -13,6 +13,7 @@ from workflows.report.figures import (
     confusion_figure,
     f1_per_stage_figure,
     format_score,
+    importance_figure,
     precision_recall_figure,
     topdown_figure,
 )
@@ -25,6 +26,7 @@ __all__ = [
     "confusion_figure",
     "f1_per_stage_figure",
     "format_score",
+    "importance_figure",
     "precision_recall_figure",
     "topdown_figure",
     "write_report",

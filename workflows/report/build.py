@@ -7,11 +7,12 @@ from pipeline.errors import InputError
 from workflows.report.figures import (
     confusion_figure,
     f1_per_stage_figure,
+    importance_figure,
     png_bytes,
     precision_recall_figure,
     topdown_figure,
 )
-from workflows.report.html import render_page
+from workflows.report.html import TOP_FEATURES, render_page
 
 REQUIRED_KEYS = ("classes", "per_class", "macro", "overall_accuracy", "confusion",
                  "n_test_points")
@@ -26,6 +27,8 @@ def write_report(
     title: str = "Silva report",
     run_info: dict | None = None,
     config_text: str | None = None,
+    importances: list | None = None,
+    no_features: dict | None = None,
 ) -> Path:
     """Write ``out_dir/report.html`` and its plots as ``out_dir/plots/*.png``.
 
@@ -50,6 +53,13 @@ def write_report(
         Shown as a two-column table (command, date, software version, durations, ...).
     config_text : str, optional
         The resolved configuration, shown verbatim.
+    importances : list, optional
+        One ``{feature column: importance}`` dict per cascade stage (model.json's
+        ``stages[i]["importances"]``; None for a stage without one): a table and a bar
+        figure of each stage's top columns. Without it the report says they are missing.
+    no_features : dict, optional
+        ``{"points": int, "total": int}``: the points whose features could not be computed
+        (marked ``NoFeatures`` = 1 in the output) among all the points written.
 
     Returns
     -------
@@ -58,6 +68,7 @@ def write_report(
     always matches the report.
     """
     metrics = _check_metrics(metrics)
+    no_features = _check_no_features(no_features)
     stages = metrics.get("stages") or [metrics]
     out_dir = Path(out_dir)
     plot_dir = out_dir / "plots"
@@ -70,6 +81,11 @@ def write_report(
             "No precision-recall data was passed to the report, so this plot is omitted.",
         ),
         "f1_per_stage": (f1_per_stage_figure(stages), None),
+        "importances": _optional_figure(
+            importances if importances and any(importances) else None,
+            lambda: importance_figure(importances, metrics["classes"], TOP_FEATURES),
+            "No feature importances were recorded with the model, so this plot is omitted.",
+        ),
         "topdown": _optional_figure(
             topdown, lambda: topdown_figure(topdown),
             "No point positions were passed to the report, so the map is omitted.",
@@ -86,7 +102,8 @@ def write_report(
         atomic_write_bytes(path, png)
         images[name] = (png, None)
 
-    page = render_page(metrics, stages, images, title, run_info, config_text)
+    page = render_page(metrics, stages, images, title, run_info, config_text,
+                       importances=importances, no_features=no_features)
     target = out_dir / "report.html"
     with atomic_path(target) as tmp:
         tmp.write_text(page, encoding="utf-8")
@@ -104,6 +121,20 @@ def _check_metrics(metrics: dict) -> dict:
             raise InputError(f"{where} lacks {missing}: pass the dict of "
                              "pipeline.metrics.scores_from_confusion")
     return metrics
+
+
+def _check_no_features(no_features):
+    if no_features is None:
+        return None
+    try:
+        points, total = int(no_features["points"]), int(no_features["total"])
+    except (KeyError, TypeError, ValueError):
+        raise InputError(f"no_features must be {{'points': int, 'total': int}}, got "
+                         f"{no_features!r}") from None
+    if not 0 <= points <= total:
+        raise InputError(f"no_features counts {points} of {total} points: pass 0 <= points "
+                         "<= total")
+    return {"points": points, "total": total}
 
 
 def _optional_figure(data, draw, note):

@@ -243,6 +243,50 @@ def topdown_figure(topdown: dict) -> Figure:
     return fig
 
 
+def top_importances(importances: dict, top: int) -> list[tuple[str, float]]:
+    """The ``top`` (column, importance) pairs of one stage, largest first (ties by name)."""
+    pairs = sorted(((str(k), float(v)) for k, v in importances.items()),
+                   key=lambda kv: (-kv[1], kv[0]))
+    return pairs[:top]
+
+
+def importance_figure(importances: list, class_names=(), top: int = 10) -> Figure:
+    """The ``top`` feature columns by impurity importance, one bar panel per cascade stage.
+
+    ``importances`` holds one ``{column: importance}`` dict per stage (None or empty for a
+    stage without a record). Context columns (``context_r1_<class>``, ``context_r2_<class>``)
+    take their class's colour; the other feature columns are grey.
+    """
+    stages = [(i + 1, s) for i, s in enumerate(importances) if s]
+    if not stages:
+        raise InputError("importances holds no stage with feature importances")
+    names = [str(n) for n in class_names]
+    colour_of = {f"context_{r}_{n}": class_colour(i)
+                 for i, n in enumerate(names) for r in ("r1", "r2")}
+    n_rows = max(len(top_importances(s, top)) for _, s in stages)
+    largest = max(v for _, s in stages for _, v in top_importances(s, top))
+    width = min(3.4 * len(stages), 13.0)
+    with matplotlib.rc_context(STYLE):
+        fig = Figure(figsize=(max(width, 4.6), 0.9 + 0.26 * n_rows), dpi=DPI)
+        axes = fig.subplots(1, len(stages), squeeze=False)[0]
+        for ax, (number, stage) in zip(axes, stages):
+            pairs = top_importances(stage, top)
+            y = np.arange(len(pairs))
+            ax.barh(y, [v for _, v in pairs], height=0.72,
+                    color=[colour_of.get(k, "#8C959F") for k, _ in pairs])
+            ax.set_yticks(y, [_mpl_text(k) for k, _ in pairs], fontsize=7)
+            ax.set_ylim(n_rows - 0.5, -0.5)  # largest on top
+            ax.set_xlim(0.0, largest * 1.08)
+            ax.grid(True, axis="x")
+            ax.tick_params(axis="y", length=0)
+            ax.set_title(f"stage {number}")
+            ax.set_xlabel("importance")
+        fig.suptitle(f"Top {top} feature columns by importance", fontweight="bold",
+                     fontsize=10)
+        fig.tight_layout()
+    return fig
+
+
 def png_bytes(figure: Figure) -> bytes:
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png", dpi=DPI, bbox_inches="tight", pad_inches=0.12,

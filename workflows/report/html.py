@@ -5,9 +5,10 @@ import html
 
 import numpy as np
 
-from workflows.report.figures import class_colour, format_score
+from workflows.report.figures import class_colour, format_score, top_importances
 
-PLOT_NAMES = ("confusion", "precision_recall", "f1_per_stage", "topdown")
+PLOT_NAMES = ("confusion", "precision_recall", "f1_per_stage", "importances", "topdown")
+TOP_FEATURES = 10  # feature columns shown per stage
 SCORES = ("precision", "recall", "f1", "iou")
 SCORE_LABELS = {"precision": "Precision", "recall": "Recall", "f1": "F1", "iou": "IoU"}
 
@@ -71,17 +72,24 @@ CAPTIONS = {
         "F1 after each stage of the cascade: every stage adds the class frequencies around "
         "each point (the context) predicted by the previous stage."
     ),
+    "importances": (
+        "The feature columns each stage's forest relied on most: impurity importance (mean "
+        "decrease of the Gini impurity, over all trees; a stage's columns sum to 1). Context "
+        "columns take their class's colour, the point's own features are grey."
+    ),
     "topdown": "Final predicted class of a sample of the points, seen from above.",
 }
 TITLES = {
     "confusion": "Confusion matrix",
     "precision_recall": "Precision-recall curves",
     "f1_per_stage": "F1 per stage",
+    "importances": "Feature importances",
     "topdown": "Map of predicted classes",
 }
 
 
-def render_page(metrics, stages, images, title, run_info, config_text) -> str:
+def render_page(metrics, stages, images, title, run_info, config_text, *, importances=None,
+                no_features=None) -> str:
     e = _escape
     names = list(metrics["classes"])
     excluded = list(metrics.get("excluded", ()))
@@ -104,18 +112,23 @@ def render_page(metrics, stages, images, title, run_info, config_text) -> str:
         parts.append("</table>")
 
     parts.append("<h2>Summary</h2>")
-    parts.append(_cards(metrics))
+    parts.append(_cards(metrics, no_features))
     excluded_text = (f"; excluded as background: {', '.join(excluded)}" if excluded else "")
     note = (f"Macro scores are unweighted means over the {n_eval} evaluated classes"
             f"{excluded_text}. Overall accuracy and the point count cover the test points of "
             "evaluated classes.")
     parts.append(f'<p class="note">{e(note)}</p>')
+    if no_features is not None:
+        parts.append(f'<p class="note" id="no-features">{e(_no_features_note(no_features))}</p>')
 
     parts.append("<h2>Per class (final stage)</h2>")
     parts.append(_class_table(metrics))
 
     parts.append("<h2>Cascade stages</h2>")
     parts.append(_stage_table(stages))
+
+    parts.append("<h2>Feature importances</h2>")
+    parts.append(_importance_tables(importances))
 
     parts.append("<h2>Plots</h2>")
     for name in PLOT_NAMES:
@@ -150,13 +163,63 @@ def render_page(metrics, stages, images, title, run_info, config_text) -> str:
     return "\n".join(parts) + "\n"
 
 
-def _cards(metrics) -> str:
+def _no_features_note(no_features) -> str:
+    points, total = no_features["points"], no_features["total"]
+    if points == 0:
+        return f"Every one of the {total:,} points written has its features."
+    return (f"{points:,} of the {total:,} points written ({points / max(total, 1):.2%}) have "
+            "no features (too few neighbours within features.r1 to form a surface, or "
+            "collinear ones): their predictions are unreliable. They are marked NoFeatures = 1 "
+            "in the output files.")
+
+
+def _importance_tables(importances) -> str:
+    """The top columns of every stage side by side, and every column in a details block."""
+    e = _escape
+    stages = [(i + 1, s) for i, s in enumerate(importances or ()) if s]
+    if not stages:
+        return ('<p class="missing">No feature importances were recorded with the model '
+                "(a model saved by an older Silva), so they are omitted.</p>")
+    tops = {number: top_importances(s, TOP_FEATURES) for number, s in stages}
+    head = "".join(f"<th>Stage {n}</th><th></th>" for n, _ in stages)
+    rows = [f'<table class="importances"><tr><th>Rank</th>{head}</tr>']
+    for rank in range(max(len(t) for t in tops.values())):
+        cells = ""
+        for number, _ in stages:
+            pairs = tops[number]
+            if rank < len(pairs):
+                name, value = pairs[rank]
+                cells += f"<td>{e(name)}</td><td>{format_score(value)}</td>"
+            else:
+                cells += "<td></td><td></td>"
+        rows.append(f"<tr><td>{rank + 1}</td>{cells}</tr>")
+    rows.append("</table>")
+    columns = list(dict.fromkeys(k for _, s in stages for k in s))
+    rows.append("<details><summary>Every feature column</summary><table><tr><th>Column</th>"
+                + "".join(f"<th>Stage {n}</th>" for n, _ in stages) + "</tr>")
+    for column in columns:
+        cells = "".join(f"<td>{format_score(s[column])}</td>" if column in s else "<td>–</td>"
+                        for _, s in stages)
+        rows.append(f"<tr><td>{e(column)}</td>{cells}</tr>")
+    rows.append("</table></details>")
+    rows.append(
+        '<p class="note">Impurity importance of each column in the forest of each stage '
+        f"(the top {TOP_FEATURES}; a stage's columns sum to 1). context_r1_&lt;class&gt; and "
+        "context_r2_&lt;class&gt; are the shares of the points around each point (within r1 "
+        "and r2) that the previous stage gave that class; the first stage sees only 1/C "
+        "there, so its context columns carry nothing.</p>")
+    return "\n".join(rows)
+
+
+def _cards(metrics, no_features=None) -> str:
     macro = metrics["macro"]
     cards = [("Macro F1", format_score(macro["f1"]), True)]
     cards += [(f"Macro {SCORE_LABELS[k].lower() if k != 'iou' else 'IoU'}",
                format_score(macro[k]), False) for k in ("precision", "recall", "iou")]
     cards += [("Overall accuracy", format_score(metrics["overall_accuracy"]), False),
               ("Test points", f"{metrics['n_test_points']:,}", False)]
+    if no_features is not None:
+        cards.append(("Points without features", f"{no_features['points']:,}", False))
     return '<div class="cards">' + "".join(
         f'<div class="card{" main" if main else ""}"><div class="label">{_escape(label)}</div>'
         f'<div class="value">{_escape(value)}</div></div>'
