@@ -103,6 +103,20 @@ def test_chunk_invariance_many_chunks_two_workers(reference, many_chunks):
     assert_same_predictions(reference, many_chunks)
 
 
+def test_chunk_invariance_balanced_chunks(reference, survey, tmp_path):
+    """Chunks balanced by point count (chunk_size auto, the default layout): uneven
+    rectangles, the same predictions as one chunk, bit for bit."""
+    config = write_config(tmp_path / "balanced.yaml", survey,
+                          tiling={"chunk_size": "auto", "target_points": 12_000})
+    out = tmp_path / "out"
+    result = silva("run", config, "--out", out, "--quiet", "--in-process")
+    assert result.exit_code == 0, result.output
+    layout = open_store(out / "store.zarr", mode="r").attrs["layout"]
+    for info in layout["scenes"].values():
+        assert info["grid"]["kind"] == "balanced" and len(info["chunks"]) >= 4
+    assert_same_predictions(reference, out)
+
+
 def _scene_points(out: Path, scene: str):
     """(xyz, label, gid, per-stage probabilities) of every core point of a scene, by gid."""
     root = open_store(out / "store.zarr", mode="r")
