@@ -2,25 +2,41 @@
 
 Layout::
 
-    store.zarr/                      attrs: schema_version, tiles, scenes, classes, ingest
-      scenes/<scene>/parts/<tile>/<chunk>/   points of one tile in one chunk (written by ingest)
-          core_xyz (n, 3) f8, core_gid (n,) i8, core_label (n,) i2, core_role (n,) i1
-          halo_xyz (m, 3) f8, halo_gid (m,) i8
-      scenes/<scene>/chunks/<chunk>/         one chunk, assembled from its parts
-          xyz, gid, label, role              core points sorted by global id
-          halo_xyz, halo_gid                 halo copies sorted by global id
-          features (n, d) f4                the feature set's columns
-          stage<t>_context (n, 2C) f4, stage<t>_proba (n, C) f4   (t = 1, 2, ...)
-        attrs: done = {step: fingerprint}, counts
+    store.zarr/                      attrs: schema_version, layout (tiles, scenes, chunks)
+      scenes/<scene>/parts/<tile>/           marker of an ingested tile: attrs done, parts
+      scenes/<scene>/parts/<tile>/<chunk>/   points of one tile in one chunk (written by ingest,
+          core_xyz (n, 3) f8, core_gid (n,) i8,   removed once the chunk is assembled)
+          core_label (n,) i2, core_role (n,) i1, halo_xyz (m, 3) f8, halo_gid (m,) i8
+      scenes/<scene>/chunks/<chunk>/         one chunk
+          points/   pack: xyz, gid, label, role (core points sorted by global id),
+                          halo_xyz, halo_gid (halo copies sorted by global id)
+          features/ pack: features (n, d) f4, the feature set's columns
+          stage<t>_context (n, 2C) f4, stage<t>_proba (n, C) f4     (t = 1, 2, ...)
+        attrs: done = {step: fingerprint}, results, assembled, arrays = {array: pack}
+
+**Packs.** :func:`write_arrays` writes the arrays of one call as one zarr array, a *pack*:
+a (B, R) uint8 array whose B rows are the byte planes of its members (byte k of every row of
+a member, R the longest member's rows), stored as one shard (``<pack>/0.0``) whose inner chunks
+are the planes, each compressed with zstd. So a write is two files (metadata and shard) in
+one directory whatever it holds, and the byte planes compress like a byte shuffle: the exponent bytes of the floats
+and the high bytes of sorted ids almost vanish. Reading one array reads only its planes.
+The logical names stay: :func:`read_array` finds an array's pack in the group's attributes.
+Coordinates stay float64 and every value is stored exactly.
+
+**Assembly.** The features step assembles a chunk from the parts of every tile
+(:func:`chunk_points`), writes its ``points`` pack, records the ingest fingerprint it was
+built from (``assembled``) and removes those parts: a later features step with another
+configuration reads the chunk's own points, and no intermediate part outlives the step.
 
 A step marks a group done only after all its arrays are written (zarr's local store writes
 each file atomically), so a run killed at any moment redoes exactly the unfinished groups.
 
-Every array records the CRC-32 of its values in its attributes (``crc32``) when it is
-written, and :func:`read_array` checks it: a chunk file that disappeared (which zarr would
-read as fill values) or changed is a :class:`StoreError`, never silently wrong data. The
-error also clears the done-marks that claimed the damaged group complete, so running the same
-command again recomputes it. Chunks are compressed with zstd's own frame checksum too.
+Every array records the CRC-32 of its values in its pack's attributes (``members``) when it
+is written, and :func:`read_array` checks it: a file that disappeared (which zarr would read
+as fill values) or changed is a :class:`StoreError`, never silently wrong data. The error
+also clears the done-marks that claimed the damaged group complete, so running the same
+command again recomputes it. Chunks are compressed with zstd's own frame checksum too, and
+the shard index carries a CRC-32C.
 """
 
 import zlib
@@ -32,12 +48,20 @@ from zarr.codecs import ZstdCodec
 
 from pipeline.errors import StoreError
 
-SCHEMA_VERSION = 2  # 2: every array records the checksum of its values
+SCHEMA_VERSION = 3  # 3: packs of byte planes in one shard per write; parts removed once assembled
 CHECKSUM = "crc32"
 _COMPRESSOR = ZstdCodec(level=0, checksum=True)
+_FLAT_KEYS = {"name": "v2", "separator": "."}  # a pack's shard is <pack>/0.0: no directories
 
 #: Point roles: what a point is used for.
 ROLE_TRAIN, ROLE_TEST, ROLE_PREDICT = 0, 1, 2
+
+#: The arrays of a chunk's ``points`` pack, assembled from the parts, and their empty forms.
+CORE = ("xyz", "gid", "label", "role")
+HALO = ("xyz", "gid")
+POINTS = "points"
+_EMPTY = {"xyz": np.empty((0, 3)), "gid": np.empty(0, np.int64),
+          "label": np.empty(0, np.int16), "role": np.empty(0, np.int8)}
 
 
 def open_store(path: str | Path, mode: str = "a") -> zarr.Group:
@@ -69,20 +93,60 @@ def checksum(data: np.ndarray, previous: int = 0) -> int:
     return zlib.crc32(np.ascontiguousarray(data).view(np.uint8).reshape(-1), previous)
 
 
-def write_arrays(group: zarr.Group, arrays: dict[str, np.ndarray]) -> None:
-    """Write (replacing) whole arrays into a group, chunked along the first axis."""
+def write_arrays(group: zarr.Group, arrays: dict[str, np.ndarray], pack: str | None = None
+                 ) -> None:
+    """Write (replacing) whole arrays into a group as one pack named ``pack`` (by default
+    the first array's name); each array keeps its name, dtype and shape for :func:`read_array`.
+    """
+    if not arrays:
+        return
+    pack = pack or next(iter(arrays))
+    arrays = {name: np.ascontiguousarray(data) for name, data in arrays.items()}
+    widths = {name: (data.nbytes // len(data) if len(data) else
+                     data.dtype.itemsize * int(np.prod(data.shape[1:])))
+              for name, data in arrays.items()}
+    n_planes = sum(widths.values())
+    n_rows = max(len(data) for data in arrays.values())
+    planes = np.zeros((n_planes, n_rows), dtype=np.uint8)
+    members, plane = {}, 0
     for name, data in arrays.items():
-        data = np.ascontiguousarray(data)
-        rows = max(1, min(len(data), 1 << 20))
-        chunks = (rows,) + data.shape[1:]
-        group.create_array(name, data=data, chunks=chunks, overwrite=True,
-                           compressors=_COMPRESSOR, attributes={CHECKSUM: checksum(data)})
+        width = widths[name]
+        if len(data):
+            planes[plane:plane + width, :len(data)] = data.view(np.uint8).reshape(len(data),
+                                                                                  width).T
+        members[name] = {"dtype": data.dtype.str, "shape": list(data.shape), "plane": plane,
+                         CHECKSUM: checksum(data)}
+        plane += width
+    shape = (max(n_planes, 1), max(n_rows, 1))
+    group.create_array(pack, data=planes, chunks=(1, shape[1]), shards=shape, overwrite=True,
+                       compressors=_COMPRESSOR, chunk_key_encoding=_FLAT_KEYS,
+                       attributes={"members": members})
+    index = dict(group.attrs.get("arrays", {}))
+    index.update({name: pack for name in arrays})
+    group.update_attributes({"arrays": index})
+
+
+def _member(group: zarr.Group, name: str):
+    """(pack array, description of ``name`` in it) or None when no pack holds ``name``."""
+    pack = group.attrs.get("arrays", {}).get(name)
+    if pack is None:
+        return None
+    try:
+        array = group[pack]
+    except KeyError:
+        return None
+    member = array.attrs.get("members", {}).get(name)
+    return None if member is None else (array, member)
 
 
 class Appender:
     """Appends rows to arrays of groups, creating them on first use; :meth:`seal` then
     records each array's checksum and returns the rows each holds, as read back from the
-    store, by ``(group path, array name)``. An array not sealed reads as damaged."""
+    store, by ``(group path, array name)``. An array not sealed reads as damaged.
+
+    Appended arrays are plain zarr arrays (one per name): ingest's parts, which the features
+    step reads once and then removes.
+    """
 
     def __init__(self):
         self._arrays: dict[tuple[str, str], list] = {}  # -> [array, crc, rows appended]
@@ -119,7 +183,12 @@ def read_array(group: zarr.Group, name: str) -> np.ndarray:
     command again recomputes the group.
     """
     try:
-        array = group[name]
+        found = _member(group, name)
+        if found is None:
+            array, expected = group[name], None  # an appended array (a part)
+        else:
+            array, member = found
+            expected = member[CHECKSUM]
     except KeyError:
         _forget(group)
         raise StoreError(
@@ -127,8 +196,11 @@ def read_array(group: zarr.Group, name: str) -> np.ndarray:
             "not finish: run the same command again to redo it"
         ) from None
     try:
-        data = array[...]
-        expected = array.attrs.get(CHECKSUM)
+        if found is None:
+            data = array[...]
+            expected = array.attrs.get(CHECKSUM)
+        else:
+            data = _unpack(array, member)
     except Exception as err:  # noqa: BLE001 - any decoding failure means damaged bytes
         problem = f"its bytes cannot be decoded ({type(err).__name__})"
     else:
@@ -144,22 +216,35 @@ def read_array(group: zarr.Group, name: str) -> np.ndarray:
     )
 
 
+def _unpack(array, member: dict) -> np.ndarray:
+    """The values of one member of a pack, from its byte planes."""
+    dtype, shape = np.dtype(member["dtype"]), tuple(member["shape"])
+    rows = shape[0]
+    width = dtype.itemsize * int(np.prod(shape[1:]))
+    if rows == 0 or width == 0:
+        return np.zeros(shape, dtype)
+    plane = member["plane"]
+    planes = array[plane:plane + width, :rows]
+    return np.ascontiguousarray(planes.T).view(dtype).reshape(shape)
+
+
 def _forget(group: zarr.Group) -> None:
-    """Clear the done-marks of ``group`` and of every group above it (below the root)."""
+    """Clear the done-marks (and the assembly mark) of ``group`` and of every group above it
+    (below the root)."""
     parts = group.path.split("/")
     for depth in range(len(parts), 0, -1):
         try:
             node = zarr.open_group(store=group.store, path="/".join(parts[:depth]), mode="r+")
-            if node.attrs.get("done"):
-                node.attrs["done"] = {}
+            if node.attrs.get("done") or node.attrs.get("assembled"):
+                node.update_attributes({"done": {}, "assembled": None})
         except Exception:  # noqa: BLE001 - a read-only or half-deleted store: nothing to clear
             continue
 
 
 def forget_done(group: zarr.Group) -> None:
-    """Clear every done-mark of ``group``: its steps run again."""
-    if group.attrs.get("done"):
-        group.attrs["done"] = {}
+    """Clear every done-mark of ``group`` (and its assembly mark): its steps run again."""
+    if group.attrs.get("done") or group.attrs.get("assembled"):
+        group.update_attributes({"done": {}, "assembled": None})
 
 
 def rows_of(sorted_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -219,3 +304,107 @@ def chunk_path(scene: str, chunk_name: str) -> str:
 
 def part_path(scene: str, tile_index: int, chunk_name: str) -> str:
     return f"scenes/{scene}/parts/{tile_index}/{chunk_name}"
+
+
+# -- chunks assembled from ingest's parts ---------------------------------------------------
+def chunk_points(root: zarr.Group, scene: str, chunk: str, tiles, group: zarr.Group | None = None
+                 ) -> tuple[dict, dict]:
+    """The core and halo points of a chunk, each a dict of arrays sorted by global id:
+    core ``xyz`` (n, 3) f8, ``gid`` (n,) i8, ``label`` (n,) i2, ``role`` (n,) i1; halo
+    ``xyz`` (m, 3) f8, ``gid`` (m,) i8.
+
+    The first call after an ingest gathers them from the parts of ``tiles`` (tile indices),
+    writes the chunk's ``points`` pack, marks the chunk assembled from that ingest and
+    removes the parts; later calls read the pack. Parts that ingest wrote and that are gone
+    are one :class:`StoreError` naming them, and all their tiles are marked to be ingested
+    again. ``group`` is the chunk's group when the caller holds it open (its attributes are
+    then updated through it, so that the caller's later marks keep them).
+    """
+    group = root.require_group(chunk_path(scene, chunk)) if group is None else group
+    built_from = (root.attrs.get("layout") or {}).get("fingerprint")
+    if built_from is not None and group.attrs.get("assembled") == built_from:
+        core = {name: read_array(group, name) for name in CORE}
+        halo = {name: read_array(group, f"halo_{name}") for name in HALO}
+        return core, halo
+    found, missing = {}, []
+    for tile in tiles:
+        for prefix in ("core", "halo"):
+            try:
+                found[tile, prefix] = tile_part(root, scene, tile, chunk, prefix)
+            except StoreError as err:
+                missing.append(err)
+    if missing:
+        more = f" (and {len(missing) - 1} more tiles)" if len(missing) > 1 else ""
+        raise StoreError(f"{missing[0]}{more}")
+    core = _gather(found, tiles, "core", CORE)
+    halo = _gather(found, tiles, "halo", HALO)
+    write_arrays(group, {**core, **{f"halo_{name}": halo[name] for name in HALO}}, pack=POINTS)
+    if built_from is not None:
+        group.update_attributes({"assembled": built_from})
+        for tile in tiles:
+            drop_part(root, scene, tile, chunk)
+    return core, halo
+
+
+def _gather(found: dict, tiles, prefix: str, names) -> dict:
+    """The ``prefix`` (core or halo) points of a chunk from every tile's part, by global id."""
+    arrays = {name: [] for name in names}
+    for tile in tiles:
+        part = found.get((tile, prefix))
+        if part is not None:
+            for name in names:
+                arrays[name].append(read_array(part, f"{prefix}_{name}"))
+    arrays = {k: np.concatenate(v) if v else _EMPTY[k] for k, v in arrays.items()}
+    order = np.argsort(arrays["gid"], kind="stable")
+    return {k: v[order] for k, v in arrays.items()}
+
+
+def drop_part(root: zarr.Group, scene: str, tile: int, chunk: str) -> None:
+    """Remove the part of ``tile`` in ``chunk`` (nothing when there is none)."""
+    marker = f"scenes/{scene}/parts/{tile}"
+    if part_path(scene, tile, chunk) in root:
+        del root[marker][chunk]
+
+
+def drop_assembled_parts(root: zarr.Group) -> int:
+    """Remove every part whose chunk is assembled from the current ingest (parts a tile
+    ingested again left behind); return how many were removed."""
+    built_from = (root.attrs.get("layout") or {}).get("fingerprint")
+    if built_from is None or "scenes" not in root:
+        return 0
+    removed = 0
+    for scene in list(root["scenes"].group_keys()):
+        if f"scenes/{scene}/parts" not in root:
+            continue
+        for tile in list(root[f"scenes/{scene}/parts"].group_keys()):
+            marker = root[f"scenes/{scene}/parts/{tile}"]
+            for chunk in list(marker.group_keys()):
+                path = chunk_path(scene, chunk)
+                if path in root and root[path].attrs.get("assembled") == built_from:
+                    del marker[chunk]
+                    removed += 1
+    return removed
+
+
+# -- a store removed after its run ----------------------------------------------------------
+def remove_chunks(root: zarr.Group, record: dict) -> None:
+    """Remove every scene (chunks, parts and tile marks: the bulk of the store), keeping the
+    root's attributes and the export marks; ``record`` describes the finished run and is kept
+    as the root's ``removed`` attribute (see :func:`removed_record`)."""
+    root.update_attributes({"removed": record})  # first: a kill in between leaves it marked
+    if "scenes" in root:
+        del root["scenes"]
+
+
+def removed_record(root: zarr.Group) -> dict | None:
+    """What :func:`remove_chunks` recorded, or None when the store holds its chunks."""
+    return root.attrs.get("removed") or None
+
+
+def forget_removed(root: zarr.Group) -> None:
+    """Clear a removed store completely (layout, export marks, record): a run starts afresh."""
+    for key in ("scenes", "exports"):
+        if key in root:
+            del root[key]
+    root.update_attributes({"layout": None, "removed": None})
+

@@ -46,8 +46,8 @@ def run_copy(finished, tmp_path):
 
 
 def _chunk_file(out: Path, scene: str, array: str) -> Path:
-    files = sorted((out / "store.zarr" / "scenes" / scene / "chunks").glob(f"*/{array}/c/**/*"))
-    return [f for f in files if f.is_file()][0]
+    files = sorted((out / "store.zarr" / "scenes" / scene / "chunks").glob(f"*/{array}/**/*"))
+    return [f for f in files if f.is_file() and f.name != "zarr.json"][0]
 
 
 def _metrics(out: Path) -> dict:

@@ -1,7 +1,8 @@
 """Features: assemble each chunk from its parts and compute its core points' feature set.
 
 Core and halo points are sorted by global id, so a chunk's arrays do not depend on the order
-in which tiles and batches were read. The features never change between cascade stages:
+in which tiles and batches were read (:func:`pipeline.store.chunk_points`, which also removes
+the parts once the chunk is assembled). The features never change between cascade stages:
 they are computed once here.
 """
 
@@ -13,17 +14,13 @@ from pipeline.cascade import id_hash
 from pipeline.errors import InputError
 from pipeline.features.neighbors import RadiusIndex
 from pipeline.features.sets import FeatureParams, feature_set
-from pipeline.store import ROLE_TRAIN, read_array, tile_part
+from pipeline.store import ROLE_TRAIN, chunk_points
 from workflows.engine import chunk_tasks
 from workflows.progress import say
 from workflows.run import Run
 
 SPARSE_NEIGHBORS = 8  # fewer points in S1 than this make a poor surface
 SPARSE_SAMPLE = 0.02  # fraction of the points whose neighbourhood size is checked
-CORE = ("xyz", "gid", "label", "role")
-HALO = ("xyz", "gid")
-_EMPTY = {"xyz": np.empty((0, 3)), "gid": np.empty(0, np.int64),
-          "label": np.empty(0, np.int16), "role": np.empty(0, np.int8)}
 
 
 @dataclass(frozen=True)
@@ -35,23 +32,9 @@ class FeatureTask:
     tiles: tuple[int, ...]  # the tiles with points in this scene
 
 
-def _gather(root, scene, tiles, chunk, prefix, names):
-    """The ``prefix`` (core or halo) points of a chunk from every tile's part, by global id."""
-    arrays = {name: [] for name in names}
-    for tile in tiles:
-        part = tile_part(root, scene, tile, chunk, prefix)  # None: no such points there
-        if part is not None:
-            for name in names:
-                arrays[name].append(read_array(part, f"{prefix}_{name}"))
-    arrays = {k: np.concatenate(v) if v else _EMPTY[k] for k, v in arrays.items()}
-    order = np.argsort(arrays["gid"], kind="stable")
-    return {k: v[order] for k, v in arrays.items()}
-
-
 def chunk_features(view, task: FeatureTask):
     """Worker task: assemble one chunk and compute its features; return its class counts."""
-    core = _gather(view.root, view.scene, task.tiles, view.chunk, "core", CORE)
-    halo = _gather(view.root, view.scene, task.tiles, view.chunk, "halo", HALO)
+    core, halo = chunk_points(view.root, view.scene, view.chunk, task.tiles, view.group)
     if not np.isfinite(core["xyz"]).all():
         raise InputError(f"chunk {view.chunk} of scene '{view.scene}' holds non-finite "
                          "coordinates")
@@ -59,7 +42,7 @@ def chunk_features(view, task: FeatureTask):
     ids = np.concatenate([core["gid"], halo["gid"]])
     query = np.arange(len(core["gid"]), dtype=np.int64)
     features = feature_set(task.features)(xyz, query, ids)
-    view.write(**core, halo_xyz=halo["xyz"], halo_gid=halo["gid"], features=features)
+    view.write(features=features)
     trained = (core["role"] == ROLE_TRAIN) & (core["label"] >= 0)
     return {"train_counts": np.bincount(core["label"][trained],
                                         minlength=task.n_classes).tolist(),
