@@ -78,18 +78,33 @@ def _engine(cfg, *, quiet, in_process, debug):
         yield Engine(client, quiet=quiet)
 
 
-def announce_compilation(quiet: bool) -> bool:
-    """Say so when numba has no compiled kernels for this version yet; True when it said it."""
+def announce_compilation(quiet: bool, groups=None) -> bool:
+    """Say so when numba has not compiled the kernel ``groups`` (default all) for this
+    version yet; True when it said it."""
     import numba
 
     import pipeline.features  # noqa: F401 - points numba at the source-keyed cache
+    from pipeline.features.numba_cache import kernels_cold
 
     folder = Path(numba.config.CACHE_DIR)
-    if folder.is_dir() and any(folder.rglob("*.nbi")):
+    if not kernels_cold(groups, folder):
         return False
-    say(f"compiling the feature kernels (numba) for this version of Silva: the first chunks "
-        f"take a minute or two longer; later runs reuse them from {folder}", quiet=quiet)
+    say(f"compiling the feature kernels (numba) once for this version of Silva, before the "
+        f"workers start (about a minute); later runs reuse them from {folder}", quiet=quiet)
     return True
+
+
+def prepare_kernels(quiet: bool, features=None) -> None:
+    """Compile the kernels a run of ``features`` (FeatureParams; None: every set) uses, once
+    here, when they are not cached yet: the workers then load them instead of each
+    compiling them."""
+    from pipeline.features.numba_cache import kernel_groups, warm_kernels
+
+    groups = kernel_groups(*(() if features is None else (features.set,
+                                                          features.voxel is not None)))
+    if announce_compilation(quiet, groups):
+        seconds = warm_kernels(groups)
+        log.info("compiled the feature kernels in %.1f s", seconds)
 
 
 def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, target,
@@ -115,7 +130,7 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
             click.echo(f"# resolved configuration (saved to {out / 'config.yaml'})\n{text}",
                        err=True)
         if "features" in steps:
-            announce_compilation(quiet)
+            prepare_kernels(quiet, run.features)
         try:
             with run_progress(steps, quiet=quiet, stages=int(cfg.cascade.stages)) as progress:
                 with _engine(cfg, quiet=quiet, in_process=in_process,

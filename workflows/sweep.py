@@ -114,7 +114,7 @@ def run_sweep(config: Path, key: str, values: str, seeds: int, out: Path, overri
               quiet: bool = False, in_process: bool = False, verbose: int = 0,
               command: str = "silva sweep") -> list[dict]:
     """Run every value x seed; write sweep.csv, sweep.md and the plots; return the rows."""
-    from workflows.commands import LOG_NAME, Interrupted, _engine, announce_compilation
+    from workflows.commands import LOG_NAME, Interrupted, _engine, prepare_kernels
     from workflows.run import prepare_output
 
     plan = plan_sweep(config, key, values, seeds, out, overrides)
@@ -127,7 +127,7 @@ def run_sweep(config: Path, key: str, values: str, seeds: int, out: Path, overri
         where = (f"ingest and features once, in {works[0]}" if len(works) == 1
                  else "ingest and features per value")
         say(f"sweep of {key}: {len(plan)} runs ({where})", quiet=quiet)
-        announce_compilation(quiet)
+        prepare_kernels(quiet)
         try:
             with _engine(plan[0].cfg, quiet=quiet, in_process=in_process,
                          debug=False) as engine:

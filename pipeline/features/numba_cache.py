@@ -8,15 +8,27 @@ a digest of every source file of this package makes any change start a fresh cac
 
 The directory is ``$NUMBA_CACHE_DIR`` (or ``$XDG_CACHE_HOME``, or ``~/.cache``) followed by
 ``silva-numba/<digest>``; when that cannot be created, the system's temporary directory.
+
+:func:`warm_kernels` compiles every cached kernel once, in a few processes side by side, and
+records it (a ``warm.json`` in the directory, with the sources' stamps); the worker processes
+of a run then load the kernels instead of each compiling them. :func:`kernels_cold` says
+whether that is still to do.
 """
 
 import getpass
 import hashlib
+import json
+import logging
 import os
+import subprocess
+import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numba
+
+log = logging.getLogger(__name__)
 
 SOURCES = Path(__file__).resolve().parent
 
@@ -57,3 +69,179 @@ def use_source_keyed_cache() -> Path:
     folder = cache_dir(source_digest())
     numba.config.CACHE_DIR = str(folder)
     return folder
+
+
+# -- compiling once, before the workers start ------------------------------------------------
+MARKER = "warm.json"
+
+
+def source_stamps(folder: Path = SOURCES) -> dict[str, list[int]]:
+    """{file name: [mtime in ns, size]} of the ``*.py`` files in ``folder``: numba keys each
+    cached kernel by its file's stamp, so a touched file means compiling again."""
+    return {p.name: [p.stat().st_mtime_ns, p.stat().st_size] for p in sorted(folder.glob("*.py"))}
+
+
+def _folder(folder) -> Path:
+    return Path(numba.config.CACHE_DIR if folder is None else folder)
+
+
+def _recorded(folder: Path) -> list[str]:
+    """The kernel groups recorded warm in ``folder`` for today's sources ([] if none)."""
+    try:
+        recorded = json.loads((folder / MARKER).read_text())
+    except (OSError, ValueError):
+        return []
+    if not isinstance(recorded, dict) or recorded.get("stamps") != source_stamps():
+        return []
+    return list(recorded.get("groups", []))
+
+
+def kernels_cold(groups=None, folder: str | os.PathLike | None = None) -> bool:
+    """True unless :func:`warm_kernels` compiled every kernel group of ``groups`` (default
+    all of :data:`GROUPS`) for these sources into ``folder`` (default: numba's cache
+    directory, as :func:`use_source_keyed_cache` set it)."""
+    return not set(GROUPS if groups is None else groups) <= set(_recorded(_folder(folder)))
+
+
+def mark_warm(groups=None, folder: str | os.PathLike | None = None) -> None:
+    """Record the kernel ``groups`` (default all) as compiled into ``folder`` for these
+    sources."""
+    folder = _folder(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    done = sorted(set(_recorded(folder)) | set(GROUPS if groups is None else groups))
+    tmp = folder / f".{MARKER}.{os.getpid()}"
+    tmp.write_text(json.dumps({"stamps": source_stamps(), "groups": done}))
+    os.replace(tmp, folder / MARKER)
+
+
+def _tiny_cloud():
+    """A 600-point cloud (a wavy sheet with a cluster above it), its ids and 500 queries:
+    the dtypes of a chunk (float64 xyz, int64 ids and rows)."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0.0, 3.0, size=(450, 2))
+    sheet = np.column_stack([xy, 0.1 * np.sin(xy[:, 0])])
+    blob = rng.normal([1.5, 1.5, 1.0], 0.3, size=(150, 3))
+    xyz = np.ascontiguousarray(np.vstack([sheet, blob]), dtype=np.float64)
+    ids = np.arange(len(xyz), dtype=np.int64) * 3 + 7
+    return xyz, ids, np.arange(500, dtype=np.int64)
+
+
+def _warm_surface() -> None:
+    """The triangulation + moments kernel, on neighbourhoods found by brute force (so this
+    group compiles no search kernel)."""
+    import numpy as np
+
+    from pipeline.features.local import local_moments
+
+    xyz, _, query = _tiny_cloud()
+    d2 = ((xyz[query, None, :] - xyz[None, :, :]) ** 2).sum(axis=2)
+    nearest = np.argsort(d2, axis=1, kind="stable")[:, :16]
+    nbr_ptr = np.arange(0, 16 * len(query) + 1, 16, dtype=np.int64)
+    local_moments(xyz, nearest.ravel().astype(np.int64), nbr_ptr, query)
+
+
+def _warm_search() -> None:
+    """Neighbour search (capped and not), sphere sums and the context of every kind."""
+    import numpy as np
+
+    from pipeline.features.context import context_features
+    from pipeline.features.neighbors import RadiusIndex
+
+    xyz, ids, query = _tiny_cloud()
+    index = RadiusIndex(xyz, 0.5, ids)
+    order = index.spatial_order(query)
+    for cap in (64, 8, None):
+        index.query(query[order], cap)
+    labels = (np.arange(len(xyz)) % 4).astype(np.int16)
+    proba = np.full((len(xyz), 4), 0.25, dtype=np.float32)
+    for cap in (None, 32):
+        context_features(xyz, 0.5, 0.25, labels=labels, n_classes=4, max_neighbors=cap,
+                         query=query, ids=ids)
+        context_features(xyz, 0.5, 0.25, proba=proba, max_neighbors=cap, query=query, ids=ids)
+
+
+def _warm_covariance() -> None:
+    """Covariance features (CSR and multiscale) and the height features."""
+    from pipeline.features.covariance import covariance_features, multiscale_covariance
+    from pipeline.features.height import height_features
+    from pipeline.features.neighbors import RadiusIndex
+
+    xyz, ids, query = _tiny_cloud()
+    nbr_idx, nbr_ptr = RadiusIndex(xyz, 0.5, ids).query(query, 64)
+    covariance_features(xyz, nbr_idx, nbr_ptr, query)
+    multiscale_covariance(xyz, ids, query, (0.5, 1.0))
+    height_features(xyz, ids, query, 1.5, 0.5)
+
+
+def _warm_voxel() -> None:
+    """Voxel representatives."""
+    from pipeline.features.voxel import representative_of
+
+    xyz, ids, _ = _tiny_cloud()
+    representative_of(xyz, ids, 0.1)
+
+
+#: kernel group -> the function that compiles it. ``surface`` (the triangulation) takes
+#: about as long to compile as all the others together.
+GROUPS = {"surface": _warm_surface, "search": _warm_search,
+          "covariance": _warm_covariance, "voxel": _warm_voxel}
+
+
+def kernel_groups(feature_set: str | None = None, voxel: bool = False) -> tuple[str, ...]:
+    """The kernel groups a run of the feature set named ``feature_set`` ("paper",
+    "covariance", "default"; None: every group) uses, context included."""
+    if feature_set is None:
+        return tuple(GROUPS)
+    groups = ["surface"] if feature_set in ("paper", "default") else []
+    groups.append("search")
+    if feature_set in ("covariance", "default"):
+        groups.append("covariance")
+    if voxel:
+        groups.append("voxel")
+    return tuple(groups)
+
+
+def warm_kernels(groups=None, processes: int | None = None) -> float:
+    """Compile the kernels of ``groups`` (default all of :data:`GROUPS`), or load them from
+    the cache; return the seconds it took.
+
+    The first group compiles in this process while new Python processes compile the others
+    (``processes`` in all; default one per core, at most one per group), into the same cache
+    directory (``NUMBA_CACHE_DIR``), so a cold cache costs the longest group, not their sum.
+    When every group succeeded they are recorded warm (:func:`kernels_cold`). A group that
+    fails is logged as a warning and left to whoever calls its kernels next.
+    """
+    started = time.perf_counter()
+    groups = list(GROUPS if groups is None else groups)
+    processes = max(1, min(processes or os.cpu_count() or 1, len(groups)))
+    folder = numba.config.CACHE_DIR
+    # the new processes: the same cache directory and this copy of the package
+    path = [str(SOURCES.parents[1]), *filter(None, [os.environ.get("PYTHONPATH")])]
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(Path(folder).parents[1]),
+           "PYTHONPATH": os.pathsep.join(path)}
+    shares = [groups[i::processes] for i in range(processes)]  # shares[0] runs here
+    spawned = []
+    for share in shares[1:]:
+        calls = "; ".join(f"GROUPS[{name!r}]()" for name in share)
+        spawned.append((share, subprocess.Popen(
+            [sys.executable, "-c", f"from {__name__} import GROUPS; {calls}"], env=env,
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)))
+    done = []
+    for name in shares[0]:
+        try:
+            GROUPS[name]()
+            done.append(name)
+        except Exception as err:  # noqa: BLE001 - warming only saves time
+            log.warning("compiling the %s kernels failed: %s", name, err)
+    for share, process in spawned:
+        _, err = process.communicate()
+        if process.returncode == 0:
+            done.extend(share)
+        else:
+            last = (err or "").strip().splitlines()[-1:] or [f"exit code {process.returncode}"]
+            log.warning("compiling the %s kernels failed: %s", ", ".join(share), last[0])
+    if done:
+        mark_warm(done, folder)
+    return time.perf_counter() - started

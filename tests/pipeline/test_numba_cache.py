@@ -4,7 +4,7 @@ from pathlib import Path
 
 import numba
 
-from pipeline.features import local
+from pipeline.features import local, numba_cache
 from pipeline.features.numba_cache import SOURCES, cache_dir, source_digest
 
 
@@ -40,3 +40,62 @@ def test_kernels_cache_under_the_digest_of_their_sources():
     assert numba.config.CACHE_DIR == expected
     kernel_cache = Path(local._local_moments_kernel._cache._cache_path)
     assert kernel_cache.is_relative_to(expected)
+
+
+# -- compiling once before the workers start ---------------------------------------------------
+def test_cold_until_every_wanted_group_is_marked_warm(tmp_path):
+    folder = tmp_path / "cache"
+    assert numba_cache.kernels_cold(folder=folder)
+    numba_cache.mark_warm(["surface", "search"], folder)
+    assert not numba_cache.kernels_cold(["search", "surface"], folder)
+    assert numba_cache.kernels_cold(["covariance"], folder)
+    assert numba_cache.kernels_cold(folder=folder)  # default: every group
+    numba_cache.mark_warm(["covariance", "voxel"], folder)  # adds to what was recorded
+    assert not numba_cache.kernels_cold(folder=folder)
+
+
+def test_a_changed_source_file_makes_the_cache_cold(tmp_path, monkeypatch):
+    numba_cache.mark_warm(folder=tmp_path)
+    assert not numba_cache.kernels_cold(folder=tmp_path)
+    stamps = numba_cache.source_stamps()
+    touched = {**stamps, "local.py": [stamps["local.py"][0] + 1, stamps["local.py"][1]]}
+    monkeypatch.setattr(numba_cache, "source_stamps", lambda folder=SOURCES: touched)
+    assert numba_cache.kernels_cold(folder=tmp_path)
+
+
+def test_an_unreadable_marker_means_cold(tmp_path):
+    (tmp_path / numba_cache.MARKER).write_text("{not json")
+    assert numba_cache.kernels_cold(folder=tmp_path)
+    (tmp_path / numba_cache.MARKER).write_text("[1, 2]")
+    assert numba_cache.kernels_cold(folder=tmp_path)
+
+
+def test_kernel_groups_follow_the_feature_set():
+    assert numba_cache.kernel_groups("paper") == ("surface", "search")
+    assert numba_cache.kernel_groups("covariance") == ("search", "covariance")
+    assert numba_cache.kernel_groups("default", voxel=True) == (
+        "surface", "search", "covariance", "voxel")
+    assert set(numba_cache.kernel_groups()) == set(numba_cache.GROUPS)
+
+
+def test_warm_kernels_records_only_the_groups_that_compiled(tmp_path, monkeypatch):
+    ran = []
+    monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path / "silva-numba" / "digest"))
+    monkeypatch.setattr(numba_cache, "GROUPS", {"a": lambda: ran.append("a"),
+                                                "b": lambda: 1 / 0})
+    numba_cache.warm_kernels(["a", "b"], processes=1)
+    assert ran == ["a"]
+    folder = tmp_path / "silva-numba" / "digest"
+    assert not numba_cache.kernels_cold(["a"], folder)
+    assert numba_cache.kernels_cold(["b"], folder)
+
+
+def test_warm_kernels_compiles_in_another_process_too(tmp_path, monkeypatch):
+    # "a" runs here; "nowhere" runs in a new Python process, where no such group exists:
+    # that process fails, and only "a" is recorded
+    monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path / "silva-numba" / "digest"))
+    monkeypatch.setattr(numba_cache, "GROUPS", {"a": lambda: None, "nowhere": lambda: None})
+    numba_cache.warm_kernels(["a", "nowhere"], processes=2)
+    folder = tmp_path / "silva-numba" / "digest"
+    assert not numba_cache.kernels_cold(["a"], folder)
+    assert numba_cache.kernels_cold(["nowhere"], folder)
