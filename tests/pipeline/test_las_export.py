@@ -147,3 +147,59 @@ def test_topography_tile_gets_a_wkt_crs(shared_data, tmp_path):
     assert not [v for v in records if isinstance(v, GeoKeyDirectoryVlr)]
     assert header.parse_crs().to_epsg() == 2949  # NAD83(CSRS) / MTM zone 7, as its keys say
     assert header.point_count == read_info(src).n_points
+
+
+# -- keep_point_format: the input's version and point format -------------------------------
+
+
+def _legacy_tile(path, version="1.2", point_format=3, n=300):
+    """A LAS tile of a legacy point format with GeoTIFF keys and varied dimension values."""
+    path = _keyed_tile(path, (3072, 32610), version=version, point_format=point_format, n=n)
+    las = laspy.read(path)
+    rng = np.random.default_rng(2)
+    las.classification = rng.integers(0, 32, n).astype(np.uint8)
+    las.intensity = rng.integers(0, 65535, n).astype(np.uint16)
+    if point_format < 6:
+        las.scan_angle_rank = rng.integers(-90, 90, n).astype(np.int8)
+    las.withheld = rng.integers(0, 2, n).astype(np.uint8)
+    las.write(path)
+    return path
+
+
+@pytest.mark.parametrize("version, point_format", [("1.2", 1), ("1.2", 3), ("1.4", 6)])
+def test_keep_point_format_round_trips_every_dimension(tmp_path, version, point_format):
+    src = _legacy_tile(tmp_path / "legacy.las", version, point_format)
+    seen = {}
+
+    def compute(batch):
+        seen["withheld"] = batch.fields["withheld"]
+        return _confidence(batch)
+
+    dst = export_with_extra_dims(src, tmp_path / "kept.laz", DIMS, compute,
+                                 keep_point_format=True)
+    original, out = laspy.read(src), laspy.read(dst)
+    assert str(out.header.version) == version and out.point_format.id == point_format
+    for name in original.point_format.dimension_names:
+        assert np.array_equal(np.asarray(out[name]), np.asarray(original[name])), name
+    assert np.allclose(out["Confidence"], 0.5)
+    assert np.array_equal(seen["withheld"], np.asarray(original.withheld).astype(bool))
+    if point_format < 6:  # the GeoTIFF keys of a legacy format stay as they are
+        assert [v for v in out.header.vlrs if isinstance(v, GeoKeyDirectoryVlr)]
+    assert read_info(dst).crs_wkt == read_info(src).crs_wkt
+
+
+def test_keep_point_format_refuses_a_class_its_format_cannot_hold(tmp_path):
+    src = _legacy_tile(tmp_path / "legacy.las", "1.2", 1)
+
+    def compute(batch):
+        return {**_confidence(batch), "classification": np.full(len(batch), 64, np.uint8)}
+
+    dst = tmp_path / "kept.las"
+    with pytest.raises(InputError, match=r"'classification'.*0\.\.31"):
+        export_with_extra_dims(src, dst, DIMS, compute, set_classification=True,
+                               keep_point_format=True)
+    assert not dst.exists()
+    # without keep, the same values go to a LAS 1.4 point format that holds them
+    auto = export_with_extra_dims(src, dst, DIMS, compute, set_classification=True)
+    out = laspy.read(auto)
+    assert out.point_format.id == 6 and np.all(out.classification == 64)

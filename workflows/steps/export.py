@@ -148,8 +148,8 @@ def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilitie
     if is_done(marker, "export", fingerprint) and Path(dst).is_file():
         return {"path": dst, "no_features": marker.attrs.get("no_features", 0),
                 "excluded": marker.attrs.get("excluded", 0)}
-    predictions = _ChunkPredictions(root, tile["scene"], layout_from_dict(grid), stage, allow_missing,
-                                    feature_index)
+    predictions = _ChunkPredictions(root, tile["scene"], layout_from_dict(grid), stage,
+                                    allow_missing, feature_index)
     codes_array = np.asarray(codes)
     n_undefined = n_excluded = 0
 
