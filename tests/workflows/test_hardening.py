@@ -330,3 +330,60 @@ def test_a_real_scheduler_passes_the_check_and_connects():
                                            "address": cluster.scheduler_address}}).cluster
         with open_client(cfg) as client:
             assert client.submit(sum, [1, 2]).result() == 3
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory):
+    """A complete run on two tiny plots: its config and output directory."""
+    from pipeline.synth import write_synthetic_plot
+
+    root = tmp_path_factory.mktemp("finished")
+    for role, seed in (("train", 1), ("test", 2)):
+        write_synthetic_plot(root / role, seed=seed, size=8.0, tile_size=8.0)
+    config = write_config(root / "c.yaml", {"train": root / "train", "test": root / "test"},
+                          cascade={"n_estimators": 4, "max_train_points": 3000})
+    out = root / "out"
+    result = silva("run", config, "--out", out, "--in-process", "-q")
+    assert result.exit_code == 0, result.output
+    return config, out
+
+
+def test_report_shows_the_models_importances_and_the_points_without_features(finished_run):
+    from tests.workflows.conftest import read_predictions
+    from workflows.report import format_score
+
+    _, out = finished_run
+    page = (out / "report.html").read_text(encoding="utf-8")
+    stages = json.loads((out / "model" / "model.json").read_text())["stages"]
+    assert len(stages) == 2
+    for number, stage in enumerate(stages):
+        top = sorted(stage["importances"].items(), key=lambda kv: (-kv[1], kv[0]))[0]
+        first = page[page.index('<table class="importances">'):].split("</tr>")[1]
+        cells = first.split("</td><td>")
+        assert cells[1 + 2 * number].removeprefix("<td>") == top[0], first
+    flagged = sum(int(dims["NoFeatures"].sum()) for dims in read_predictions(out).values())
+    total = sum(len(dims["xyz"]) for dims in read_predictions(out).values())
+    if flagged:
+        assert f"{flagged:,} of the {total:,} points written" in page
+    else:
+        assert f"Every one of the {total:,} points written has its features." in page
+    assert format_score(stages[1]["importances"][top[0]]) in page
+
+
+def test_rerun_that_changes_nothing_keeps_metrics_and_report(finished_run):
+    from pipeline.store import open_store
+
+    config, out = finished_run
+    results = [out / "metrics.json", out / "report.html"]
+    before = [p.read_bytes() for p in results]
+    chunk = open_store(out / "store.zarr").attrs["layout"]["scenes"]["test"]["chunks"][0]
+    for args in (("ingest",), ("features", "--chunk", f"test/{chunk}"),
+                 ("export", "--set", "cluster.n_workers=2")):  # no result depends on it
+        result = silva(*args[:1], config, "--out", out, "--in-process", "-q", *args[1:])
+        assert result.exit_code == 0, result.output
+        assert [p.read_bytes() for p in results] == before, args
+    # a change the results follow from removes them before any step writes
+    result = silva("ingest", config, "--out", out, "--in-process", "-q",
+                   "--set", "output.probabilities=false")
+    assert result.exit_code == 0, result.output
+    assert not any(p.exists() for p in results)
