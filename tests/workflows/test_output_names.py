@@ -8,7 +8,7 @@ from pipeline.io import ExtraDim
 from tests.workflows.conftest import write_config
 from workflows.cli import main
 from workflows.config import validate_config
-from workflows.config.schema import MAX_CLASS_NAME_BYTES, PROBABILITY_PREFIX
+from workflows.config.schema import MAX_CLASS_NAME_BYTES, PROBABILITY_PREFIX, feature_dim_name
 from workflows.steps.export import probability_dim
 
 LONGEST = "x" * MAX_CLASS_NAME_BYTES
@@ -48,4 +48,47 @@ def test_run_refuses_a_long_class_name_before_any_work(tmp_path, survey):
     assert result.exit_code == 1
     lines = [line for line in result.output.splitlines() if line.startswith("silva: error:")]
     assert len(lines) == 1 and "coarse_woody_debris_pieces" in lines[0], result.output
+    assert not (out / "store.zarr").exists()
+
+
+# -- output.feature_dims: feature columns as extra dimensions --------------------------------
+def test_feature_dim_names_are_valid_las_and_pdal_names():
+    assert feature_dim_name("linearity_r0.5") == "linearity_r0_5"
+    assert feature_dim_name("I2_22") == "I2_22"
+    ExtraDim(feature_dim_name("change_of_curvature_r12.3457"), "float32")
+
+
+def test_unknown_feature_column_is_a_one_line_config_error():
+    with pytest.raises(ConfigError) as err:
+        validate_config({"features": {"set": "paper"},
+                         "output": {"feature_dims": ["I2_22", "linearity_r0.5"]}})
+    message = str(err.value)
+    assert "\n" not in message
+    assert ("output.feature_dims[1] 'linearity_r0.5' is not a column of feature set "
+            "'paper'") in message
+    assert "valid: I2_22, I2_222," in message and "I3_3111" in message
+
+
+def test_feature_columns_are_chosen_by_name_pattern_or_all():
+    def chosen(value, **features):
+        cfg = validate_config({"features": {"set": "default", "r1": 0.5, **features},
+                               "output": {"feature_dims": value}})
+        return cfg.feature_dim_columns
+
+    assert chosen("relative_height") == ["relative_height"]
+    assert chosen(["linearity_*", "I2_22"]) == [
+        "linearity_r0.25", "linearity_r0.5", "linearity_r1", "linearity_r2", "I2_22"]
+    from pipeline.features.sets import FeatureParams, feature_set
+
+    columns = feature_set(FeatureParams(set="default", r1=0.5)).columns
+    assert chosen("all") == list(columns) and chosen([]) == []
+
+
+def test_run_refuses_an_unknown_feature_column_before_any_work(tmp_path, survey):
+    config = write_config(tmp_path / "c.yaml", survey, output={"feature_dims": ["planarity"]})
+    out = tmp_path / "out"
+    result = CliRunner().invoke(main, ["run", str(config), "--out", str(out), "--quiet"])
+    assert result.exit_code == 1
+    lines = [line for line in result.output.splitlines() if line.startswith("silva: error:")]
+    assert len(lines) == 1 and "output.feature_dims[0] 'planarity'" in lines[0], result.output
     assert not (out / "store.zarr").exists()
