@@ -67,7 +67,16 @@ class SilvaGroup(click.Group):
              context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="silva")
 def main():
-    """Classify every point of large LiDAR scans with 3D moment invariants and auto-context."""
+    """Classify every point of large LiDAR scans with 3D moment invariants and auto-context.
+
+    \b
+    Examples:
+      silva demo                            # a synthetic forest, end to end
+      silva init survey.yaml                # a config to edit, then:
+      silva plan survey.yaml
+      silva run survey.yaml --out results/
+      silva <command> --help                # each command's options and examples
+    """
 
 
 for _command in [*COMMANDS, sweep]:

@@ -153,6 +153,11 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
     return summary
 
 
+def examples(*lines: str) -> str:
+    """A help text's example invocations: a paragraph click keeps line by line."""
+    return "\n\n\b\nExamples:\n" + "\n".join(f"  {line}" for line in lines)
+
+
 def _step_command(name: str, target: str, doc: str) -> click.Command:
     @run_options
     def command(config, out, overrides, overwrite, quiet, in_process, chunk, verbose):
@@ -165,14 +170,26 @@ def _step_command(name: str, target: str, doc: str) -> click.Command:
 # command -> (the step it runs up to, its help)
 STEP_COMMANDS = {
     "run": ("report", "Run every step on CONFIG: ingest, features, train, export, evaluate, "
-                      "report."),
-    "ingest": ("ingest", "Stream the input tiles of CONFIG into chunks with halos (store.zarr)."),
-    "features": ("features", "Compute the moment invariants of every chunk (after ingest)."),
+                      "report. A rerun resumes: finished work with the same configuration "
+                      "is kept." + examples(
+                          "silva run survey.yaml --out results/",
+                          "silva run survey.yaml --out results/ --set features.r1=0.4 -q",
+                      )),
+    "ingest": ("ingest", "Stream the input tiles of CONFIG into chunks with halos (store.zarr)."
+               + examples("silva ingest survey.yaml --out results/")),
+    "features": ("features", "Compute the moment invariants of every chunk (after ingest)."
+                 + examples(
+                     "silva features survey.yaml --out results/",
+                     "silva features survey.yaml --out results/ --chunk test/0_0",
+                 )),
     "train": ("train", "Train the cascade and predict every stage (after features); saves "
-                       "OUT/model."),
-    "export": ("export", "Write predictions/<tile>.laz for every input tile (after train)."),
-    "evaluate": ("evaluate", "Write metrics.json for the test points (after export)."),
-    "report": ("report", "Write report.html with its plots (after evaluate)."),
+                       "OUT/model." + examples("silva train survey.yaml --out results/")),
+    "export": ("export", "Write predictions/<tile>.laz for every input tile (after train)."
+               + examples("silva export survey.yaml --out results/ --set output.format=las")),
+    "evaluate": ("evaluate", "Write metrics.json for the test points (after export)."
+                 + examples("silva evaluate survey.yaml --out results/")),
+    "report": ("report", "Write report.html with its plots (after evaluate)."
+               + examples("silva report survey.yaml --out results/")),
 }
 
 
@@ -182,7 +199,12 @@ STEP_COMMANDS = {
               type=click.Path(file_okay=False, exists=True, path_type=Path),
               help="A model directory written by 'silva train' or 'silva run' (OUT/model).")
 def predict(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, model_dir):
-    """Classify the data of CONFIG with a saved model; evaluate when it has test labels."""
+    """Classify the data of CONFIG with a saved model; evaluate when it has test labels.
+
+    \b
+    Examples:
+      silva predict new-tiles.yaml --model results/model --out new-results/
+    """
     start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, "report",
               model_dir=model_dir)
 
@@ -197,7 +219,10 @@ def plan(config, overrides, picture):
     """Show what a run of CONFIG will do, from the tiles' headers: tiles, points, chunk grid,
     memory per worker, store size and duration (rough estimates). Nothing is written.
 
-    Example: silva plan survey.yaml --set tiling.target_points=500000 --picture grid.png
+    \b
+    Examples:
+      silva plan survey.yaml
+      silva plan survey.yaml --set tiling.target_points=500000 --picture grid.png
     """
     from workflows.config import load_config
     from workflows.plan import plan as plan_run
@@ -212,7 +237,12 @@ def plan(config, overrides, picture):
 @click.command("status")
 @click.argument("out", type=click.Path(file_okay=False, exists=True, path_type=Path))
 def status(out):
-    """Show how far the run in OUT got."""
+    """Show how far the run in OUT got.
+
+    \b
+    Examples:
+      silva status results/
+    """
     from workflows.status import run_status
 
     for line in run_status(out):
@@ -232,7 +262,13 @@ def status(out):
 @click.option("-v", "--verbose", count=True,
               help="Show the resolved configuration and info logs (-vv: debug).")
 def demo(out, quiet, in_process, overwrite, overrides, plot_size, verbose):
-    """Synthesise a training and a test forest plot, run the whole workflow, report."""
+    """Synthesise a training and a test forest plot, run the whole workflow, report.
+
+    \b
+    Examples:
+      silva demo
+      silva demo --out /tmp/silva-demo --plot-size 20 -q
+    """
     from pipeline.synth import write_synthetic_plot
     from workflows.run import prepare_output
 
@@ -262,7 +298,13 @@ def demo(out, quiet, in_process, overwrite, overrides, plot_size, verbose):
 @click.option("--size", default=None, type=float, help="Side of the square plot in metres.")
 @click.option("--tile-size", default=None, type=float, help="Side of the square LAZ tiles.")
 def synth(out_dir, seed, size, tile_size):
-    """Write a labelled synthetic forest plot as LAZ tiles into OUT_DIR."""
+    """Write a labelled synthetic forest plot as LAZ tiles into OUT_DIR.
+
+    \b
+    Examples:
+      silva synth plots/train --seed 1
+      silva synth plots/test --seed 2 --size 30 --tile-size 15
+    """
     from pipeline.synth import write_synthetic_plot
 
     kwargs = {k: v for k, v in {"size": size, "tile_size": tile_size}.items() if v is not None}
@@ -279,7 +321,13 @@ def synth(out_dir, seed, size, tile_size):
                    "benchmark.")
 @click.option("--force", is_flag=True, help="Overwrite PATH when it exists.")
 def init(path, template, force):
-    """Write a template config to PATH to edit, e.g. 'silva init my-survey.yaml'."""
+    """Write a template config to PATH to edit.
+
+    \b
+    Examples:
+      silva init my-survey.yaml
+      silva init urban.yaml --template oakland
+    """
     write_template(template, path, force=force)
     click.echo(f"wrote {path} from the {template} template ({TEMPLATES[template]}); edit "
                f"data.train, data.test and data.classes, then: silva run "

@@ -291,7 +291,13 @@ def write_plots(out: Path, key: str, results) -> None:
 @click.option("-v", "--verbose", count=True, help="Info logs (-vv: debug).")
 def sweep(config, key, values, seeds, out, overrides, quiet, in_process, verbose):
     """Run CONFIG once per value of a config key (and per seed); tabulate and plot the
-    test metrics. Features are computed once when the key does not change them."""
+    test metrics. Features are computed once when the key does not change them.
+
+    \b
+    Examples:
+      silva sweep survey.yaml --param features.r1 --values 0.3,0.4,0.5
+      silva sweep survey.yaml --param cascade.stages --values 1,2,3 --seeds 3
+    """
     from workflows.commands import _command_line
 
     out = out or Path(f"silva-sweep-{Path(config).stem}")
