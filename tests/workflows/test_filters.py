@@ -124,6 +124,7 @@ def test_excluded_points_are_exported_unchanged_and_not_scored(noisy, survey, tm
     tested = (np.asarray(src.y) >= float(np.median(src.y))) & kept
     labelled = np.isin(np.asarray(src.classification), [2, 5, 64, 1])
     assert int(np.sum(metrics["confusion"])) == int((tested & labelled).sum())
+    assert metrics["excluded_points"] == int(added.sum())
 
 
 def test_exclude_codes_config():

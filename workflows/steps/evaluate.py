@@ -3,6 +3,9 @@
 Confusion matrices are additive, so each chunk returns its own and the coordinator sums them:
 the metrics are exact over every test point, whatever the chunking. Points for the
 precision-recall curves and the top-down picture are sampled by a hash of their global id.
+Points excluded at ingest (``data.exclude_codes``, ``data.exclude_withheld``) are in no chunk,
+so they are never scored; ``excluded_points`` in the metrics counts those of the evaluated
+scenes' tiles (both sides of a ``data.split``).
 """
 
 import json
@@ -62,7 +65,9 @@ def evaluate(run: Run, engine, layout: dict, n_stages: int) -> dict:
     for stage in range(n_stages):
         confusion = sum(r["confusions"][stage] for r in results)
         stages.append(scores_from_confusion(confusion, run.classes, exclude=background))
-    metrics = {**stages[-1], "stages": stages}
+    scored = {"test"} | ({"train"} if run.cfg.data.split is not None else set())
+    excluded = sum(t.get("excluded", 0) for t in layout["tiles"] if t["scene"] in scored)
+    metrics = {**stages[-1], "excluded_points": excluded, "stages": stages}
     plots = {
         "pr_data": {
             "y_true": np.concatenate([r["pr_true"] for r in results]),
