@@ -75,6 +75,7 @@ def open_las(path) -> Iterator[laspy.LasReader]:
         raise unreadable(path, exc) from exc
     try:
         _check_size(path, reader.header)
+        _check_point_count(path, reader)
         yield reader
     finally:
         reader.close()
@@ -92,6 +93,64 @@ def _check_size(path: Path, header: laspy.LasHeader) -> None:
             f"{header.point_count} points, {expected} bytes, but it has {actual} bytes); "
             "re-export or re-download it"
         )
+
+
+#: lazrs' chunk size of a LAZ file whose chunks each record their own point count.
+VARIABLE_CHUNKS = 0xFFFFFFFF
+
+
+def held_points(path: Path, reader: laspy.LasReader) -> int | None:
+    """How many points the file's point data holds, independently of the header's count;
+    for LAZ a lower bound from its chunk table. None when the file cannot tell.
+
+    Uncompressed LAS: the bytes between the start of the point data and the first record
+    after it (extended VLRs, waveform packets, or the end of the file) divided by the size
+    of a point record. LAZ: the sum of the chunk table's point counts when chunks have
+    variable sizes; with fixed-size chunks (the default, 50,000 points) every chunk but the
+    last is full, so more chunks than the header's count needs means more points than
+    announced (a shortfall within the last chunk cannot be seen without decoding it).
+    """
+    header = reader.header
+    start = header.offset_to_point_data
+    if not header.are_points_compressed:
+        end = path.stat().st_size
+        for after in (getattr(header, "start_of_first_evlr", 0) if header.number_of_evlrs
+                      else 0, getattr(header, "start_of_waveform_data_packet_record", 0)):
+            if after and start < after < end:
+                end = after
+        return max(0, end - start) // header.point_format.size
+    import lazrs
+
+    try:
+        vlr = getattr(reader.point_source, "vlr", None)  # decodes the LAZ record
+        if not isinstance(vlr, lazrs.LazVlr):
+            return None  # not the lazrs backend: no chunk table to read
+        with open(path, "rb") as source:
+            source.seek(start)
+            table = lazrs.read_chunk_table(source, vlr)
+    except Exception:  # noqa: BLE001 - no chunk table, or a damaged one: reading will tell
+        return None
+    if not table:
+        return None
+    if vlr.chunk_size() == VARIABLE_CHUNKS:
+        return int(sum(count for count, _ in table))
+    return (len(table) - 1) * int(vlr.chunk_size()) + 1
+
+
+def _check_point_count(path: Path, reader: laspy.LasReader) -> None:
+    """Refuse a file that holds more points than its header announces: reading it would
+    drop the rest silently (a header left stale by the program that appended them)."""
+    announced = int(reader.header.point_count)
+    held = held_points(path, reader)
+    if held is None or held <= announced:
+        return
+    more = "at least " if reader.header.are_points_compressed else ""
+    raise InputError(
+        f"cannot read {path}: its header announces {announced} points but the file holds "
+        f"{more}{held}; "
+        "reading it would drop the rest. Repair the header's point count and bounds "
+        f"(LAStools: lasinfo -i {path} -repair) or export the tile again"
+    )
 
 
 def read_las_info(path) -> TileInfo:

@@ -458,6 +458,63 @@ def test_las_cut_at_a_point_boundary(tmp_path):
         assert str(cut) in _one_line(exc)
 
 
+def _announce(src, dst, n):
+    """A copy of ``src`` whose header announces ``n`` points (legacy and LAS 1.4 counts)."""
+    data = bytearray(src.read_bytes())
+    with laspy.open(src) as reader:
+        version = reader.header.version
+    data[107:111] = np.uint32(n).tobytes()  # legacy number of point records
+    if version.minor >= 4:
+        data[247:255] = np.uint64(n).tobytes()  # LAS 1.4 number of point records
+    dst.write_bytes(bytes(data))
+    return dst
+
+
+@pytest.mark.parametrize("version, point_format", [("1.2", 3), ("1.4", 6)])
+def test_las_holding_more_points_than_its_header_announces(tmp_path, version, point_format):
+    las = laspy.LasData(laspy.LasHeader(version=version, point_format=point_format))
+    las.x, las.y, las.z = np.arange(100.0), np.zeros(100), np.zeros(100)
+    whole = tmp_path / "whole.las"
+    las.write(whole)
+    assert read_info(whole).n_points == 100
+    short = _announce(whole, tmp_path / "plot.v1.las", 60)
+    for call in (read_info, read_points, lambda p: iter_points(p, 10)):
+        with pytest.raises(InputError) as exc:
+            call(short)
+        message = _one_line(exc)
+        assert message.startswith(f"cannot read {short}: its header announces 60 points "
+                                  "but the file holds 100;"), message
+        assert "lasinfo -i" in message
+    with pytest.raises(InputError, match="announces 60 points"):
+        export_with_extra_dims(short, tmp_path / "o.las", [], dict)
+
+
+def test_records_after_the_points_are_not_counted_as_points(tmp_path):
+    """Extended VLRs follow the point data of LAS 1.4: they are no extra points."""
+    las = laspy.LasData(laspy.LasHeader(version="1.4", point_format=6))
+    las.x, las.y, las.z = np.arange(50.0), np.zeros(50), np.zeros(50)
+    las.evlrs = VLRList([WktCoordinateSystemVlr(WKT * 4)])  # longer than a point record
+    src = tmp_path / "evlr.las"
+    las.write(src)
+    assert read_info(src).n_points == 50 and len(read_points(src).xyz) == 50
+
+
+def test_laz_holding_more_chunks_than_its_header_announces(tmp_path):
+    n = 120_000  # three chunks of laszip's default 50,000 points
+    las = laspy.LasData(laspy.LasHeader(version="1.4", point_format=6))
+    las.x, las.y, las.z = np.arange(n) * 0.001, np.zeros(n), np.zeros(n)
+    whole = tmp_path / "whole.laz"
+    las.write(whole)
+    assert read_info(whole).n_points == n
+    short = _announce(whole, tmp_path / "short.laz", 60_000)
+    with pytest.raises(InputError) as exc:
+        read_info(short)
+    assert _one_line(exc).startswith(f"cannot read {short}: its header announces 60000 "
+                                     "points but the file holds at least 100001;")
+    # within the last chunk a shortfall cannot be seen without decoding: read as announced
+    assert len(read_points(_announce(whole, tmp_path / "last.laz", 110_000)).xyz) == 110_000
+
+
 def test_empty_tiles(tmp_path):
     las = write_las(tmp_path / "empty.las", np.zeros((0, 3)))
     assert read_info(las).n_points == 0
