@@ -92,3 +92,14 @@ def test_run_refuses_an_unknown_feature_column_before_any_work(tmp_path, survey)
     lines = [line for line in result.output.splitlines() if line.startswith("silva: error:")]
     assert len(lines) == 1 and "output.feature_dims[0] 'planarity'" in lines[0], result.output
     assert not (out / "store.zarr").exists()
+
+
+def test_the_reserved_names_are_the_exported_ones():
+    from workflows.config.schema import SILVA_DIMS
+    from workflows.steps import export
+
+    names = (export.PREDICTED, export.CONFIDENCE, export.ENTROPY, export.NO_FEATURES,
+             export.EXCLUDED)
+    assert set(SILVA_DIMS) == set(names)
+    dims = export.extra_dims(["tree"], [5], True, excluded=True, features=("linearity_r0.5",))
+    assert [d.name for d in dims] == [*names, "Probability_tree", "linearity_r0_5"]
