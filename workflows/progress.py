@@ -80,8 +80,8 @@ class RunProgress:
         self.lines: list[str] = []  # what quiet mode printed
 
     def step_of(self, name: str) -> int:
-        if name in self.steps:
-            return self.steps.index(name)
+        if name.split(" ", 1)[0] in self.steps:  # "ingest (count)" is part of ingest
+            return self.steps.index(name.split(" ", 1)[0])
         fixed = {"ingest", "features", "export", "evaluate", "report"}
         cascade = [i for i, step in enumerate(self.steps) if step not in fixed]
         return cascade[0] if cascade else len(self.steps) - 1

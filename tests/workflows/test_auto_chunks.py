@@ -190,3 +190,15 @@ def test_ingest_and_status_show_the_balanced_layout_and_a_rerun_reads_it_back(tm
     ingest(config, out)
     assert [p.stat().st_mtime_ns for p in parts] == mtimes
     assert open_store(out / "store.zarr").attrs["layout"] == layout
+
+
+def test_balanced_scene_within_the_target_is_one_chunk_from_the_headers(tmp_path, survey,
+                                                                        monkeypatch):
+    import workflows.steps.ingest as ingest_step
+
+    monkeypatch.setattr(ingest_step, "count_tile", None)  # no point is read
+    scenes = planned(tmp_path, survey, chunk_size="auto", layout="balanced",
+                     target_points=10_000_000)
+    for scene, info in scenes.items():
+        n_points = scene_headers(survey[scene])[0]
+        assert info["grid"]["cuts"] == [] and info["estimate"]["window"] == [n_points] * 3

@@ -135,18 +135,24 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
         if not members:
             continue
         info: dict = {"tiles": [t["index"] for t in members]}
+        n_points = sum(t["n_points"] for t in members)
+        mins = np.min([t["mins"] for t in members], axis=0)
+        maxs = np.max([t["maxs"] for t in members], axis=0)
         if tiling.chunk_size == "auto" and tiling.layout == "balanced":
-            counts = scene_counts(run, scene, members, engine)
-            layout = BalancedLayout.build(counts, run.halo, int(tiling.target_points))
+            if n_points <= tiling.target_points:  # one chunk: the headers say so, no count
+                bounds = (*np.floor(mins[:2]), *np.ceil(maxs[:2]))
+                layout = BalancedLayout((), 1.0, tuple(float(v) for v in bounds))
+                estimates = ([n_points], [n_points])
+            else:
+                counts = scene_counts(run, scene, members, engine)
+                layout = BalancedLayout.build(counts, run.halo, int(tiling.target_points))
+                estimates = layout.estimate(counts, run.halo)
             info["grid"] = layout.to_dict()
             info["estimate"] = {name: [int(v) for v in np.percentile(values, [0, 50, 100],
                                                                      method="lower")]
-                                for name, values in zip(("core", "window"),
-                                                        layout.estimate(counts, run.halo))}
+                                for name, values in zip(("core", "window"), estimates)}
         else:
-            mins = np.min([t["mins"] for t in members], axis=0)
-            maxs = np.max([t["maxs"] for t in members], axis=0)
-            size = scene_chunk_size(run, sum(t["n_points"] for t in members), mins, maxs)
+            size = scene_chunk_size(run, n_points, mins, maxs)
             info["grid"] = Grid.covering(mins, maxs, size).to_dict()
         scenes[scene] = info
     return scenes
@@ -173,7 +179,7 @@ def scene_counts(run: Run, scene: str, members: list[dict], engine=None) -> Cell
                       where=f"tile {t['path']} (scene '{scene}')",
                       reproduce=f"silva plan CONFIG (reads tile {t['path']})")
                  for t in members]
-        results = engine.map(f"count {scene}", tasks)
+        results = engine.map("ingest (count)", tasks)
         parts = [results[task.key] for task in tasks]
     total = CellCounts.empty(cell)
     for part in parts:
