@@ -75,8 +75,26 @@ def _wrapped(lo: float, hi: float) -> list[tuple[float, float]]:
     return [(lo, hi)]
 
 
+def _concatenate(arrays: list, dtype, width: int | None = None) -> np.ndarray:
+    """np.concatenate of ``arrays`` that frees each piece once copied (the list is emptied):
+    the copy is filled page by page, so memory holds about one copy, not two."""
+    total = sum(len(a) for a in arrays)
+    out = np.empty((total,) if width is None else (total, width), dtype=dtype)
+    start = 0
+    for i in range(len(arrays)):
+        piece, arrays[i] = arrays[i], None
+        out[start : start + len(piece)] = piece
+        start += len(piece)
+    arrays.clear()
+    return out
+
+
 def scan(rng, parts, layout: Layout):
-    """Scan every part: (xyz (N, 3) local, labels (N,) uint8, recording scanner (N,) int)."""
+    """Scan every part: (xyz (N, 3) local, labels (N,) uint8, recording scanner (N,) int32).
+
+    Memory: the recorded samples once (float64 xyz, 29 bytes per sample in all) plus one
+    batch; occlusion and noise work in place on them.
+    """
     scanners = layout.scanners
     kd = cKDTree(scanners)
     kept, labels, owner = [], [], []
@@ -85,11 +103,11 @@ def scan(rng, parts, layout: Layout):
             batch = points[start : start + BATCH]
             keep, which = capture(rng, batch, scanners, kd)
             kept.append(batch[keep])
-            owner.append(which[keep])
+            owner.append(which[keep].astype(np.int32))
             labels.append(np.full(int(keep.sum()), code, dtype=np.uint8))
-    xyz = np.concatenate(kept)
-    labels = np.concatenate(labels)
-    owner = np.concatenate(owner)
+    xyz = _concatenate(kept, np.float64, 3)
+    labels = _concatenate(labels, np.uint8)
+    owner = _concatenate(owner, np.int32)
 
     # Occlusion: each scanner against the stems, testing only the samples in the sector of
     # azimuths a stem covers as seen from the scanner (found by bisection on sorted azimuths).
@@ -98,8 +116,10 @@ def scan(rng, parts, layout: Layout):
         sel = np.flatnonzero(owner == k)
         rel = xyz[sel, :2] - scanner[:2]
         azimuth = np.arctan2(rel[:, 1], rel[:, 0])
+        del rel
         order = np.argsort(azimuth)
         sel, azimuth = sel[order], azimuth[order]
+        del order
         for stem in layout.occluders:
             offset = stem.base[:2] - scanner[:2]
             dist = float(np.hypot(*offset))
@@ -113,13 +133,26 @@ def scan(rng, parts, layout: Layout):
                 if i1 > i0:
                     idx = sel[i0:i1]
                     visible[idx] &= ~occluded(scanner, xyz[idx], stem)
-    xyz, labels, owner = xyz[visible], labels[visible], owner[visible]
+        del sel, azimuth
 
-    # Range noise along the beam, growing with the range.
-    beam = xyz - scanners[owner]
-    rng_m = np.linalg.norm(beam, axis=1)
-    sigma = RANGE_NOISE[0] + RANGE_NOISE[1] * rng_m
-    xyz = xyz + beam / np.maximum(rng_m, 1e-9)[:, None] * (rng.normal(size=len(xyz)) * sigma)[
-        :, None]
-    inside = np.all((xyz[:, :2] >= 0.0) & (xyz[:, :2] < layout.size), axis=1)
-    return xyz[inside], labels[inside], owner[inside]
+    # Range noise along the beam, growing with the range, then the samples inside the plot:
+    # batch by batch of the visible samples (the normal draws are one stream, as in one
+    # call), compacted in place (rows written never lie after rows still to be read).
+    rows = np.flatnonzero(visible)
+    del visible
+    n_out = 0
+    for start in range(0, len(rows), BATCH):
+        sel = rows[start : start + BATCH]
+        batch, who = xyz[sel], owner[sel]
+        beam = batch - scanners[who]
+        rng_m = np.linalg.norm(beam, axis=1)
+        sigma = RANGE_NOISE[0] + RANGE_NOISE[1] * rng_m
+        batch = batch + beam / np.maximum(rng_m, 1e-9)[:, None] * (
+            rng.normal(size=len(batch)) * sigma)[:, None]
+        inside = np.all((batch[:, :2] >= 0.0) & (batch[:, :2] < layout.size), axis=1)
+        n = int(inside.sum())
+        xyz[n_out : n_out + n] = batch[inside]
+        labels[n_out : n_out + n] = labels[sel][inside]
+        owner[n_out : n_out + n] = who[inside]
+        n_out += n
+    return xyz[:n_out], labels[:n_out], owner[:n_out]

@@ -53,14 +53,10 @@ def synthetic_scene(
     Same ``seed``, same points and labels; a different seed gives a different plot.
     """
     seed, size, origin = check_plot_args(seed, size, origin)
-    rng = np.random.default_rng(seed)
-    layout = random_layout(rng, size)
-    parts = sample_surfaces(rng, layout)
-    xyz, labels, scanner = scan(rng, parts, layout)
-    order = rng.permutation(len(xyz))  # no spatial or per-class order in the output
-    xyz = xyz[order] + np.asarray(origin)
+    xyz, labels, order, layout = scanned_plot(seed, size)
+    xyz = xyz[order]
+    xyz += np.asarray(origin)
     labels = labels[order]
-    log.debug("synthetic plot seed=%d size=%.1f m: %d points", seed, size, len(xyz))
     return SynthScene(
         xyz=xyz,
         labels=labels,
@@ -72,6 +68,23 @@ def synthetic_scene(
         size=size,
         seed=seed,
     )
+
+
+def scanned_plot(seed: int, size: float):
+    """The scanned points of a plot before they are shuffled, and the shuffle.
+
+    Returns xyz (N, 3) float64 in the local frame, labels (N,) uint8, ``order`` (N,) int64
+    (the plot's points are ``xyz[order] + origin``, ``labels[order]``: no spatial or per-class
+    order in the output) and the :class:`~pipeline.synth.layout.Layout`. Arguments are
+    trusted (see :func:`check_plot_args`). Memory: about 37 bytes per point.
+    """
+    rng = np.random.default_rng(seed)
+    layout = random_layout(rng, size)
+    parts = sample_surfaces(rng, layout)
+    xyz, labels, _ = scan(rng, parts, layout)
+    order = rng.permutation(len(xyz))
+    log.debug("synthetic plot seed=%d size=%.1f m: %d points", seed, size, len(xyz))
+    return xyz, labels, order, layout
 
 
 def synthetic_plot(

@@ -1,4 +1,10 @@
-"""A synthetic plot written as LAZ tiles of a regular grid."""
+"""A synthetic plot written as LAZ tiles of a regular grid, one tile at a time.
+
+The plot is generated once (one random stream over the whole plot, so a seed gives the same
+points whatever the tiling), then each tile's points are gathered and written in turn: no
+shuffled copy of the plot is made. Peak memory is about 50 bytes per point of the plot
+(about 1.2 GB at the largest size, 300 m: 24 million points).
+"""
 
 from __future__ import annotations
 
@@ -9,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import ConfigError
-from pipeline.synth.params import CRS_WKT, DEFAULT_ORIGIN, DEFAULT_SIZE, DEFAULT_TILE_SIZE
-from pipeline.synth.scene import check_plot_args, check_positive, synthetic_plot
+from pipeline.synth.params import BATCH, CRS_WKT, DEFAULT_ORIGIN, DEFAULT_SIZE, DEFAULT_TILE_SIZE
+from pipeline.synth.scene import check_plot_args, check_positive, scanned_plot
 
 log = logging.getLogger(__name__)
 
@@ -33,15 +39,24 @@ def write_synthetic_plot(
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise ConfigError(f"output directory {out_dir} is a file; choose a directory path")
-    xyz, labels = synthetic_plot(seed, size)
+    xyz, labels, order, _ = scanned_plot(seed, size)
     origin = np.asarray(DEFAULT_ORIGIN)
     n_tiles = max(1, math.ceil(size / tile_size))
-    cell = np.floor((xyz[:, :2] - origin[:2]) / tile_size).astype(np.int64)
-    cell = np.clip(cell, 0, n_tiles - 1)
-    key = cell[:, 0] * n_tiles + cell[:, 1]
-    order = np.argsort(key, kind="stable")  # keeps each tile's points in plot order
-    keys, starts = np.unique(key[order], return_index=True)
-    bounds = np.append(starts, len(order))
+    # The tile of each point of the shuffled plot, then the points of each tile in shuffled
+    # order, as indices into the unshuffled arrays: no shuffled copy of the plot is made.
+    key = np.empty(len(order), dtype=np.int64)
+    for start in range(0, len(order), BATCH):
+        rows = order[start : start + BATCH]
+        cell = np.floor(((xyz[rows, :2] + origin[:2]) - origin[:2]) / tile_size).astype(np.int64)
+        cell = np.clip(cell, 0, n_tiles - 1)
+        key[start : start + len(rows)] = cell[:, 0] * n_tiles + cell[:, 1]
+    by_tile = np.argsort(key, kind="stable")  # keeps each tile's points in plot order
+    keys, starts = np.unique(key[by_tile], return_index=True)
+    del key
+    np.take(order, by_tile, out=by_tile, mode="clip")  # shuffled position -> unshuffled row
+    # (mode clip: unbuffered, in place; every index is valid)
+    del order
+    bounds = np.append(starts, len(by_tile))
     names = [f"plot_s{seed}_{k // n_tiles}_{k % n_tiles}.laz" for k in keys]
 
     stale = sorted(
@@ -55,11 +70,11 @@ def write_synthetic_plot(
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     for i, (k, name) in enumerate(zip(keys, names)):
-        sel = order[bounds[i] : bounds[i + 1]]
+        sel = by_tile[bounds[i] : bounds[i + 1]]
         paths.append(
             write_las(
                 out_dir / name,
-                xyz[sel],
+                xyz[sel] + origin,
                 fields={"classification": labels[sel]},
                 crs_wkt=CRS_WKT,
                 scale=(0.001, 0.001, 0.001),

@@ -177,7 +177,7 @@ def test_tiles_hold_every_point_once(tmp_path):
     paths = write_synthetic_plot(tmp_path / "plot", seed=seed, size=size, tile_size=tile)
     assert [p.name for p in paths] == [f"plot_s{seed}_{ix}_{iy}.laz"
                                        for ix in range(3) for iy in range(3)]
-    got_xyz, got_labels = [], []
+    got_xyz, got_labels, lengths = [], [], []
     for path in paths:
         info = read_info(path)
         assert path.suffix == ".laz" and info.version == "1.4" and info.point_format == 6
@@ -191,6 +191,7 @@ def test_tiles_hold_every_point_once(tmp_path):
         assert local.min() >= -0.0005 and local.max() <= tile + 0.0005  # its own cell
         got_xyz.append(batch.xyz)
         got_labels.append(batch.fields["classification"])
+        lengths.append(len(batch.xyz))
     got_xyz, got_labels = np.concatenate(got_xyz), np.concatenate(got_labels)
     assert len(got_xyz) == len(xyz)
     # A one-to-one match within half a millimetre per axis, with the same labels.
@@ -198,6 +199,8 @@ def test_tiles_hold_every_point_once(tmp_path):
     assert dist.max() <= 0.0005 * np.sqrt(3) + 1e-9
     assert len(np.unique(idx)) == len(xyz)
     assert np.array_equal(got_labels, labels[idx])
+    # each tile holds its points in the plot's order (tiles are cut from the one plot)
+    assert all(np.all(np.diff(part) > 0) for part in np.split(idx, np.cumsum(lengths)[:-1]))
     with open(paths[0], "rb") as f:
         assert f.read(4) == b"LASF"
 
