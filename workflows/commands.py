@@ -214,10 +214,11 @@ def predict(config, out, overrides, overwrite, quiet, in_process, chunk, verbose
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="Override a config key, e.g. --set tiling.chunk_size=20 (repeatable).")
 @click.option("--picture", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Also write a PNG of each scene's chunk grid over its tiles.")
+              help="Also write a PNG of each scene's chunk layout over its tiles.")
 def plan(config, overrides, picture):
-    """Show what a run of CONFIG will do, from the tiles' headers: tiles, points, chunk grid,
-    memory per worker, store size and duration (rough estimates). Nothing is written.
+    """Show what a run of CONFIG will do, from the tiles' headers (and a quick count of the
+    points for balanced chunks): tiles, points, chunk layout, memory per worker, store size
+    and duration (rough estimates). Nothing is written.
 
     \b
     Examples:
