@@ -11,6 +11,7 @@ import sys
 import click
 
 from pipeline.errors import SilvaError
+from workflows.bench import bench
 from workflows.commands import COMMANDS
 from workflows.sweep import sweep  # it runs its runs through commands: registered here
 
@@ -79,5 +80,5 @@ def main():
     """
 
 
-for _command in [*COMMANDS, sweep]:
+for _command in [*COMMANDS, sweep, bench]:
     main.add_command(_command)

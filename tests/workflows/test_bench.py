@@ -1,0 +1,136 @@
+"""``silva bench``: both commands on tiny inputs give every figure, positive and finite; bad
+input is one line and exit code 1. No test looks at how fast anything was."""
+
+import importlib.util
+import json
+import math
+
+import numba
+import numpy as np
+import pytest
+
+from pipeline.features.numba_cache import kernels_cold, mark_warm
+from tests.workflows.conftest import error_line, silva, write_config
+from workflows import bench as bench_module
+from workflows import commands
+
+FEATURE_KEYS = ("points", "silva_points_per_s", "baseline_name", "baseline_points_per_s",
+                "knn_points_per_s", "time_ratio")
+PIPELINE_KEYS = ("points", "workers", "points_per_s", "points_per_s_one_worker", "speedup",
+                 "chunk_overhead", "peak_rss_per_worker_mib")
+HAS_PEER = any(importlib.util.find_spec(name) for name in bench_module.PEERS)
+
+
+def _last_json(result) -> dict:
+    assert result.exit_code == 0, result.output
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def _positive(value) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value) and value > 0
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> dict:
+    """A 6 m training and test plot (a few thousand points each), as 3 m tiles."""
+    from pipeline.synth import write_synthetic_plot
+
+    root = tmp_path_factory.mktemp("tiny")
+    for role, seed in (("train", 1), ("test", 2)):
+        write_synthetic_plot(root / role, seed=seed, size=6.0, tile_size=3.0)
+    return {"train": root / "train", "test": root / "test"}
+
+
+@pytest.fixture(scope="module")
+def tile(tiny):
+    return sorted(tiny["test"].glob("*.laz"))[0]
+
+
+# -- features ----------------------------------------------------------------------------------
+@pytest.mark.skipif(not HAS_PEER, reason="no peer library: pip install -e '.[bench]'")
+def test_bench_features_gives_every_figure(tile):
+    result = silva("bench", "features", tile, "--points", 1500, "--repeat", 1,
+                   "--reference-points", 30, "--json")
+    figures = _last_json(result)
+    assert set(FEATURE_KEYS) <= figures.keys()
+    assert figures["points"] == 1500 and figures["baseline_name"] in bench_module.PEERS
+    for key in FEATURE_KEYS:
+        if key != "baseline_name":
+            assert _positive(figures[key]), (key, figures[key])
+    assert "time ratio Silva / " in result.stdout and "neighbour search" in result.stdout
+
+
+def test_bench_features_without_a_peer_says_how_to_install_one(tile, monkeypatch):
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name in bench_module.PEERS else find_spec(name, *a))
+    result = silva("bench", "features", tile, "--points", 500, "--repeat", 1,
+                   "--reference-points", 0, "--json")
+    figures = _last_json(result)
+    assert figures["baseline_name"] is None and _positive(figures["silva_points_per_s"])
+    assert [line for line in result.stdout.splitlines() if "bench extra" in line] == [
+        bench_module.INSTALL_PEERS]
+
+
+def test_bench_features_threads_give_the_same_invariants(tile):
+    xyz = bench_module.load_cloud(tile, 2000)
+    query = np.arange(len(xyz), dtype=np.int64)
+    one = bench_module.silva_invariants(xyz, 0.5, 64, 1)
+    two = bench_module.silva_invariants(xyz, 0.5, 64, 2, bench_module._blocks(query, 2))
+    assert np.array_equal(one, two, equal_nan=True)
+
+
+def test_pgeof_rows_are_silva_rows_in_point_order():
+    query = np.array([2, 0, 1])
+    nbr_idx = np.array([2, 1, 0, 1, 2, 0, 1])
+    nbr_ptr = np.array([0, 2, 5, 7])  # rows of points 2, 0, 1
+    idx, ptr = bench_module._pgeof_inputs(3, query, nbr_idx, nbr_ptr)
+    assert ptr.tolist() == [0, 3, 5, 7]
+    assert idx.tolist() == [0, 1, 2, 0, 1, 2, 1]
+
+
+def test_bench_features_of_a_missing_file_is_one_line(tmp_path):
+    line = error_line(silva("bench", "features", tmp_path / "nope.laz"))
+    assert "nope.laz not found" in line
+
+
+# -- pipeline ----------------------------------------------------------------------------------
+def test_bench_pipeline_gives_every_figure(tiny, tmp_path):
+    config = write_config(tmp_path / "tiny.yaml", tiny, tiling={"chunk_size": 3.0},
+                          cascade={"stages": 1, "n_estimators": 4, "max_train_points": 2000})
+    result = silva("bench", "pipeline", config, "--workers", 1, "--json", "-q")
+    figures = _last_json(result)
+    assert set(PIPELINE_KEYS) <= figures.keys()
+    assert figures["workers"] == 1 and figures["speedup"] == 1.0
+    assert figures["chunks"] > 1 and figures["chunks_one_chunk_run"] == 2  # train, test
+    for key in PIPELINE_KEYS:
+        assert _positive(figures[key]) or key == "chunk_overhead", (key, figures[key])
+    assert math.isfinite(figures["chunk_overhead"]) and figures["chunk_overhead"] > -1
+    assert "chunk overhead" in result.stdout
+
+
+def test_bench_pipeline_of_a_missing_config_or_model_is_one_line(tiny, tmp_path):
+    assert "not found" in error_line(silva("bench", "pipeline", tmp_path / "none.yaml"))
+    config = write_config(tmp_path / "tiny.yaml", tiny)
+    line = error_line(silva("bench", "pipeline", config, "--model", tmp_path / "no-model"))
+    assert "no-model not found" in line
+
+
+# -- a fast first run: the kernels compile once, before the workers start --------------------
+def test_a_cold_cache_is_announced_and_compiled_once(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path / "cache"))
+    compiled = []
+    monkeypatch.setattr("pipeline.features.numba_cache.warm_kernels",
+                        lambda groups: compiled.append(tuple(groups)) or 0.0)
+    from pipeline.features.sets import FeatureParams
+
+    commands.prepare_kernels(False, FeatureParams(set="paper"))
+    err = capsys.readouterr().err
+    assert err.startswith("compiling the feature kernels (numba) once") and err.count("\n") == 1
+    assert compiled == [("surface", "search")]
+    mark_warm(compiled[0], tmp_path / "cache")
+    assert not kernels_cold(compiled[0], tmp_path / "cache")
+    commands.prepare_kernels(False, FeatureParams(set="paper"))  # warm: no line, no compile
+    assert capsys.readouterr().err == "" and len(compiled) == 1
+    commands.prepare_kernels(False, FeatureParams(set="covariance"))  # another group is cold
+    assert compiled[-1] == ("search", "covariance")
