@@ -243,5 +243,8 @@ def warm_kernels(groups=None, processes: int | None = None) -> float:
             last = (err or "").strip().splitlines()[-1:] or [f"exit code {process.returncode}"]
             log.warning("compiling the %s kernels failed: %s", ", ".join(share), last[0])
     if done:
-        mark_warm(done, folder)
+        try:
+            mark_warm(done, folder)
+        except OSError as err:  # an unwritable cache: numba compiles in every process
+            log.warning("cannot record the compiled kernels in %s: %s", folder, err)
     return time.perf_counter() - started
