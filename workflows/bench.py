@@ -40,7 +40,13 @@ INSTALL_PEERS = ("no covariance-feature library to compare with: install the ben
 
 @click.group("bench")
 def bench():
-    """Throughput numbers: the feature kernels on a cloud, a whole run on a cluster."""
+    """Throughput numbers: the feature kernels on a cloud, a whole run on a cluster.
+
+    \b
+    Examples:
+      silva bench features tiles/plot.laz --threads 2
+      silva bench pipeline survey.yaml --workers 2
+    """
 
 
 def _emit(result: dict, as_json: bool) -> None:
@@ -282,7 +288,10 @@ def features_command(path, radius, max_neighbors, threads, n_points, repeat, ref
     peer's covariance features (the bench extra: jakteristics or pgeof) on PATH
     (LAS/LAZ/Oakland text), in this process.
 
-    Example: silva bench features ../shared/data/oakland/oakland_part3_am.xyz_label_conf
+    \b
+    Examples:
+      silva bench features ../shared/data/oakland/oakland_part3_am.xyz_label_conf
+      silva bench features tiles/plot.laz --radius 0.4 --threads 2 --json
     """
     result = bench_features(path, radius, max_neighbors, threads, n_points=n_points,
                             repeat=repeat, reference_points=reference_points)
@@ -467,7 +476,10 @@ def pipeline_command(config, model_dir, workers, overrides, quiet, as_json):
     """Time 'silva run' of CONFIG (with --model: its classification) end to end on 1 worker,
     on N workers and on 1 worker with one chunk per scene, each in a temporary directory.
 
-    Example: silva bench pipeline survey.yaml --model results/model --workers 2
+    \b
+    Examples:
+      silva bench pipeline survey.yaml --workers 2
+      silva bench pipeline survey.yaml --model results/model --workers 2
     """
     if model_dir is not None and not model_dir.is_dir():
         raise MissingFileError(f"model directory {model_dir} not found; give OUT/model of a "
