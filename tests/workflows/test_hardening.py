@@ -12,6 +12,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pipeline.errors import ConfigError, InputError
@@ -363,6 +364,14 @@ def test_report_shows_the_models_importances_and_the_points_without_features(fin
         assert cells[1 + 2 * number].removeprefix("<td>") == top[0], first
     flagged = sum(int(dims["NoFeatures"].sum()) for dims in read_predictions(out).values())
     total = sum(len(dims["xyz"]) for dims in read_predictions(out).values())
+    # metrics.json counts those of the scored test points: the test plot's labelled points
+    codes = [1, 2, 5, 64]  # write_config's classes
+    scored = sum(int((dims["NoFeatures"].astype(bool)
+                      & np.isin(dims["classification"], codes)).sum())
+                 for name, dims in read_predictions(out).items()
+                 if name.startswith("plot_s2"))  # the test plot, seed 2
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["points_without_features"] == scored
     if flagged:
         assert f"{flagged:,} of the {total:,} points written" in page
     else:

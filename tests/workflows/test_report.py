@@ -306,7 +306,11 @@ def test_points_without_features_are_counted_in_the_report(full_report, tmp_path
     assert re.search(r'Points without features</div><div class="value">1,234</div>', page)
     assert "1,234 of the 1,234,567 points written (0.10%) have no features" in page
     assert "NoFeatures = 1" in page
+    assert "scored test points" not in page  # the metrics do not count them
     metrics, _, _ = fake_run(n=200)
+    page = write_report(tmp_path, {**metrics, "points_without_features": 3},
+                        no_features={"points": 7, "total": 500}).read_text(encoding="utf-8")
+    assert f"Of the {metrics['n_test_points']:,} scored test points, 3 (" in page
     page = write_report(tmp_path, metrics, no_features={"points": 0, "total": 500}
                         ).read_text(encoding="utf-8")
     assert "Every one of the 500 points written has its features." in page

@@ -119,7 +119,9 @@ def render_page(metrics, stages, images, title, run_info, config_text, *, import
             "evaluated classes.")
     parts.append(f'<p class="note">{e(note)}</p>')
     if no_features is not None:
-        parts.append(f'<p class="note" id="no-features">{e(_no_features_note(no_features))}</p>')
+        note = _no_features_note(no_features, metrics.get("points_without_features"),
+                                 metrics["n_test_points"])
+        parts.append(f'<p class="note" id="no-features">{e(note)}</p>')
 
     parts.append("<h2>Per class (final stage)</h2>")
     parts.append(_class_table(metrics))
@@ -163,14 +165,20 @@ def render_page(metrics, stages, images, title, run_info, config_text, *, import
     return "\n".join(parts) + "\n"
 
 
-def _no_features_note(no_features) -> str:
+def _no_features_note(no_features, scored=None, n_test=0) -> str:
+    """The points written without features; ``scored``: how many of the ``n_test`` scored
+    test points are among them (metrics.json's points_without_features), when known."""
     points, total = no_features["points"], no_features["total"]
     if points == 0:
         return f"Every one of the {total:,} points written has its features."
-    return (f"{points:,} of the {total:,} points written ({points / max(total, 1):.2%}) have "
+    note = (f"{points:,} of the {total:,} points written ({points / max(total, 1):.2%}) have "
             "no features (too few neighbours within features.r1 to form a surface, or "
             "collinear ones): their predictions are unreliable. They are marked NoFeatures = 1 "
             "in the output files.")
+    if scored is not None:
+        note += (f" Of the {n_test:,} scored test points, {int(scored):,} "
+                 f"({int(scored) / max(n_test, 1):.2%}) are among them.")
+    return note
 
 
 def _importance_tables(importances) -> str:

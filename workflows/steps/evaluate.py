@@ -5,7 +5,9 @@ the metrics are exact over every test point, whatever the chunking. Points for t
 precision-recall curves and the top-down picture are sampled by a hash of their global id.
 Points excluded at ingest (``data.exclude_codes``, ``data.exclude_withheld``) are in no chunk,
 so they are never scored; ``excluded_points`` in the metrics counts those of the evaluated
-scenes' tiles (both sides of a ``data.split``).
+scenes' tiles (both sides of a ``data.split``). ``points_without_features`` counts the scored
+test points whose features could not be computed (``NoFeatures`` = 1 in the output): they are
+scored like the others, on predictions that rest on no surface.
 """
 
 import json
@@ -34,6 +36,7 @@ def chunk_evaluation(view, task: EvaluationTask):
     """Worker task: per-stage confusion of the chunk's test points, and plot samples."""
     label, role, gid, xyz = view.read("label", "role", "gid", "xyz")
     test = (role == ROLE_TEST) & (label >= 0)
+    undefined = np.isnan(view.read("features")).any(axis=1)
     confusions, final = [], None
     for stage in range(task.n_stages):
         final = view.read(proba_array(stage))
@@ -49,6 +52,7 @@ def chunk_evaluation(view, task: EvaluationTask):
         "map_y": xyz[picked, 1],
         "map_label": labels_from_proba(final[picked]),
         "n_points": len(gid),
+        "no_features": int(np.count_nonzero(undefined & test)),
     }
 
 
@@ -67,7 +71,9 @@ def evaluate(run: Run, engine, layout: dict, n_stages: int) -> dict:
         stages.append(scores_from_confusion(confusion, run.classes, exclude=background))
     scored = {"test"} | ({"train"} if run.cfg.data.split is not None else set())
     excluded = sum(t.get("excluded", 0) for t in layout["tiles"] if t["scene"] in scored)
-    metrics = {**stages[-1], "excluded_points": excluded, "stages": stages}
+    metrics = {**stages[-1], "excluded_points": excluded,
+               "points_without_features": sum(r["no_features"] for r in results),
+               "stages": stages}
     plots = {
         "pr_data": {
             "y_true": np.concatenate([r["pr_true"] for r in results]),
