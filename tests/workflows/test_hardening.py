@@ -396,3 +396,15 @@ def test_rerun_that_changes_nothing_keeps_metrics_and_report(finished_run):
                    "--set", "output.probabilities=false")
     assert result.exit_code == 0, result.output
     assert not any(p.exists() for p in results)
+
+
+def test_corrupt_root_store_metadata_is_one_line(tmp_path, survey):
+    from pipeline.store import open_store
+
+    out = tmp_path / "out"
+    open_store(out / "store.zarr")
+    (out / "store.zarr" / "zarr.json").write_text("{not json")
+    config = write_config(tmp_path / "c.yaml", survey)
+    for args in (("status", out), ("ingest", config, "--out", out, "-q", "--in-process")):
+        line = error_line(silva(*args))
+        assert f"store {out / 'store.zarr'} is damaged" in line and "--overwrite" in line
