@@ -38,7 +38,7 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
     features    + features.set, r1, max_neighbors, plane, scales, column, voxel
     stage       + features.r2, features.context_max_neighbors, every cascade key except
                 cascade.stages (adding stages keeps the finished ones)
-    export      stage + output.*
+    export      stage + output.* (except output.keep_store)
     evaluate    stage + data.background
     ==========  ========================================================================
 
@@ -79,7 +79,8 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
                             "context_max_neighbors": cfg.features.context_max_neighbors}
         parts["cascade"] = {k: v for k, v in d["cascade"].items() if k != "stages"}
     if step == "export":
-        parts["output"] = d["output"]
+        # output.keep_store decides what is kept after the run, not what is written
+        parts["output"] = {k: v for k, v in d["output"].items() if k != "keep_store"}
     if step == "evaluate":
         parts["background"] = data["background"]
     text = json.dumps(parts, sort_keys=True, separators=(",", ":"), ensure_ascii=True)

@@ -6,7 +6,7 @@ import yaml
 
 from pipeline.errors import ModelError
 from pipeline.model import MODEL_FILE, read_description
-from pipeline.store import chunk_path, open_store
+from pipeline.store import chunk_path, open_store, removed_record
 from pipeline.tiling import layout_from_dict
 from workflows.lock import describe, held_by_other, read_lock
 from workflows.progress import counted
@@ -30,7 +30,10 @@ def _steps(out: Path) -> list[str]:
         return [f"{out}: ingest did not finish; rerun the command to resume"]
     lines = [f"{out}: {counted(len(layout['tiles']), 'tile')}, "
              f"{counted(sum(t['n_points'] for t in layout['tiles']), 'point')}"]
-    for scene, info in layout["scenes"].items():
+    if removed_record(root) is not None:
+        lines.append("store: its chunks were removed after the run completed (output.keep_store: "
+                     "false); the same run again has nothing to do, any other recomputes them")
+    for scene, info in (layout["scenes"].items() if removed_record(root) is None else ()):
         steps: dict[str, int] = {}
         for chunk in info["chunks"]:
             path = chunk_path(scene, chunk)

@@ -3,14 +3,20 @@ export, evaluate, report.
 
 Every command is a target: it runs the steps up to and including its own. Steps skip the work
 a previous run finished with the same configuration, so rerunning a killed command resumes it.
+
+With ``output.keep_store: false`` a run that completed removes the chunks of its store and
+records what it completed (:func:`pipeline.store.remove_chunks`); the same run again then
+only says so, and any other command starts afresh from the input tiles.
 """
 
 import logging
+import os
 import platform
 import time
 from datetime import datetime, timezone
 
 from pipeline import __version__
+from pipeline.store import forget_removed, remove_chunks, removed_record
 from workflows.progress import say
 from workflows.run import Run, has_test_points
 from workflows.steps.cascade import cascade, check_model
@@ -30,6 +36,8 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     timings = {}
     summary = {"out": str(run.out), "timings": timings}  # timings fill in as steps finish
     run.forget_stale_results()  # a rerun that changes nothing keeps metrics and report
+    if _already_complete(run, target, only, summary):
+        return summary
     if run.model_dir is not None:
         check_model(run)  # before any work: a wrong model must not cost a night
 
@@ -66,6 +74,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     if not has_test_points(layout, run.cfg.data.split):
         say("evaluate: no labelled test points (data.test or data.split): no metrics",
             quiet=run.quiet)
+        _finish(run, target, only, summary, stages)
         return summary
     metrics, plots = timed("evaluate", evaluate, run, engine, layout, n_stages)
     if last < 5:
@@ -93,7 +102,55 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     write_metrics(run, metrics)
     summary.update(metrics=str(run.metrics_path), report=str(run.report_path),
                    macro_f1=metrics["macro"]["f1"])
+    _finish(run, target, only, summary, stages)
     return summary
+
+
+# -- output.keep_store: false ----------------------------------------------------------------
+_SUMMARY_KEYS = ("points", "chunks", "chunk size (m)", "excluded points", "predictions",
+                 "metrics", "report", "macro_f1")
+
+
+def _outputs(run: Run, summary: dict) -> list[str]:
+    """The files a complete run leaves, relative to its output directory."""
+    paths = [*summary.get("predictions", ()), summary.get("metrics"), summary.get("report")]
+    if run.model_dir is None:
+        paths.append(str(run.model_path / "model.json"))
+    return sorted(os.path.relpath(p, run.out) for p in paths if p)
+
+
+def _finish(run: Run, target: str, only, summary: dict, stages: list[dict]) -> None:
+    """After a complete run: remove the store's chunks unless output.keep_store."""
+    if target != STEPS[-1] or only is not None or run.cfg.output.keep_store:
+        return
+    record = {"completed": run.results_stamp(),
+              "outputs": _outputs(run, summary),
+              "summary": {k: summary[k] for k in _SUMMARY_KEYS if k in summary}}
+    remove_chunks(run.store, record)
+    say(f"store: chunks removed from {run.store_path} (output.keep_store: false)",
+        quiet=run.quiet)
+
+
+def _already_complete(run: Run, target: str, only, summary: dict) -> bool:
+    """Whether the store was removed after a complete run of this very configuration whose
+    outputs are all still there (then say so and fill ``summary``); a removed store that
+    does not qualify is cleared, so that the steps start afresh."""
+    record = removed_record(run.store)
+    if record is None:
+        return False
+    complete = (target == STEPS[-1] and only is None
+                and record.get("completed") == run.results_stamp()
+                and all((run.out / p).is_file() for p in record.get("outputs", ())))
+    if complete:
+        summary.update(record.get("summary", {}))
+        say(f"{run.out}: the results of this configuration are complete (its store was removed "
+            "after the run: output.keep_store false); nothing to do. To compute them again, "
+            "rerun with --overwrite")  # even with --quiet: it explains why nothing runs
+        return True
+    say(f"{run.store_path}: its chunks were removed after the last run (output.keep_store "
+        "false); computing again from the input tiles")
+    forget_removed(run.store)
+    return False
 
 
 def _no_features(run: Run, layout: dict) -> dict:

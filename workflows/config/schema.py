@@ -439,6 +439,13 @@ class OutputConfig(Section):
         "original is otherwise kept untouched).",
     )
     probabilities: bool = Field(True, description="One extra dimension per class.")
+    keep_store: bool = Field(
+        True,
+        description="false: once a run has completed (predictions, metrics and report "
+        "written), remove the chunks of store.zarr, the bulk of the output directory; a "
+        "rerun of the same configuration then says the results are complete, any other "
+        "recomputes from the input tiles.",
+    )
     feature_dims: FeatureDims = Field(
         default_factory=list,
         description="Feature columns also written as float32 extra dimensions: 'all', or "
