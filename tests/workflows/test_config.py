@@ -99,7 +99,8 @@ def test_defaults():
                                      "local_directory": None}
     assert d["cluster"]["adapt"] is None
     assert d["output"] == {"format": "laz", "write_classification": False,
-                           "probabilities": True, "feature_dims": [], "point_format": "auto"}
+                           "probabilities": True, "keep_store": True, "feature_dims": [],
+                           "point_format": "auto"}
 
 
 def test_derived_radii_and_halo():
@@ -455,6 +456,7 @@ def changed_steps(**sections) -> set[str]:
     ({"tiling": {"read_batch": 1000}}, set()),
     ({"output": {"format": "las"}}, {"export"}),
     ({"output": {"probabilities": False}}, {"export"}),
+    ({"output": {"keep_store": False}}, set()),
     ({"data": {"background": []}}, {"evaluate"}),
     ({"tiling": {"chunk_size": 20}}, set(STEPS)),
     ({"tiling": {"target_points": 2_000_000}}, set(STEPS)),  # BASE sizes chunks automatically
