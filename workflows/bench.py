@@ -301,13 +301,16 @@ def features_command(path, radius, max_neighbors, threads, n_points, repeat, ref
 # -- pipeline ----------------------------------------------------------------------------------
 class RssSampler:
     """Samples the resident memory of given processes every ``interval`` s in a thread; the
-    peak of each is in :attr:`peaks` (MiB) after the block."""
+    peak of each is in :attr:`peaks` (MiB) after the block, and the CPU seconds they used
+    in the block in :attr:`cpu_seconds` (on a shared machine, points per CPU second say
+    more than points per wall second)."""
 
     def __init__(self, pids, interval: float = 0.2):
         import psutil
 
         self.processes = {pid: psutil.Process(pid) for pid in pids}
         self.peaks = dict.fromkeys(self.processes, 0.0)
+        self._cpu = {}  # pid -> [CPU seconds when first seen, last seen]
         self.interval = interval
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -318,9 +321,15 @@ class RssSampler:
         for pid, process in self.processes.items():
             try:
                 rss = process.memory_info().rss / 2**20
+                cpu = sum(process.cpu_times()[:2])
             except psutil.Error:  # the worker ended
                 continue
             self.peaks[pid] = max(self.peaks[pid], rss)
+            self._cpu.setdefault(pid, [cpu, cpu])[1] = cpu
+
+    @property
+    def cpu_seconds(self) -> float:
+        return sum(last - first for first, last in self._cpu.values())
 
     def _run(self):
         while not self._stop.wait(self.interval):
@@ -402,15 +411,18 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
                 "cluster.threads_per_worker=1", "cluster.dashboard=false"]).cluster
             with open_client(cluster, quiet=True, local_directory=work / "dask") as client:
                 client.run(prime_worker, groups)
-                with RssSampler(_worker_pids(client)) as memory:
-                    for label, extra in items:
-                        say(f"run on {label}", quiet=quiet)
+                pids = _worker_pids(client)
+                for label, extra in items:
+                    say(f"run on {label}", quiet=quiet)
+                    with RssSampler(pids) as memory:
                         runs[label] = summary = one_run(
                             config, [*overrides, *extra], work / f"run{len(runs)}", model,
                             client)
-                        say(f"  {summary['points']:,} points, {summary['chunks']} chunks: "
-                            f"{summary['seconds']:.1f} s", quiet=quiet)
-                peaks += memory.peaks.values()
+                    summary["cpu_seconds"] = memory.cpu_seconds
+                    peaks += memory.peaks.values()
+                    say(f"  {summary['points']:,} points, {summary['chunks']} chunks: "
+                        f"{summary['seconds']:.1f} s, workers' CPU "
+                        f"{summary['cpu_seconds']:.1f} s", quiet=quiet)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     one = runs["1 worker"]
@@ -429,6 +441,8 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
         "points_per_s_one_worker": round(points / one["seconds"], 1),
         "speedup": round(one["seconds"] / many["seconds"], 3),
         "chunk_overhead": round(one["seconds"] / single["seconds"] - 1, 3),
+        "worker_cpu_seconds": {label: round(r["cpu_seconds"], 2) for label, r in runs.items()},
+        "points_per_worker_cpu_s": round(points / max(many["cpu_seconds"], 1e-9), 1),
         "peak_rss_per_worker_mib": round(max(peaks), 1),
         "peak_rss_coordinator_mib": round(_peak_rss_mib(), 1),
         "timings": {label: r["timings"] for label, r in runs.items()},
@@ -457,7 +471,8 @@ def _print_runs(runs: dict, result: dict) -> None:
                f"({result['points_per_s_per_worker']:,.0f} per worker), "
                f"{result['speedup']:.2f}x one worker; chunk overhead "
                f"{100 * result['chunk_overhead']:.1f} %; peak worker memory "
-               f"{result['peak_rss_per_worker_mib']:,.0f} MiB")
+               f"{result['peak_rss_per_worker_mib']:,.0f} MiB; "
+               f"{result['points_per_worker_cpu_s']:,.0f} points per CPU second of a worker")
 
 
 @bench.command("pipeline")

@@ -17,7 +17,7 @@ from workflows import commands
 FEATURE_KEYS = ("points", "silva_points_per_s", "baseline_name", "baseline_points_per_s",
                 "knn_points_per_s", "time_ratio")
 PIPELINE_KEYS = ("points", "workers", "points_per_s", "points_per_s_one_worker", "speedup",
-                 "chunk_overhead", "peak_rss_per_worker_mib")
+                 "chunk_overhead", "peak_rss_per_worker_mib", "points_per_worker_cpu_s")
 HAS_PEER = any(importlib.util.find_spec(name) for name in bench_module.PEERS)
 
 
