@@ -135,6 +135,8 @@ def _already_complete(run: Run, target: str, only, summary: dict) -> bool:
     """Whether the store was removed after a complete run of this very configuration whose
     outputs are all still there (then say so and fill ``summary``); a removed store that
     does not qualify is cleared, so that the steps start afresh."""
+    if not run.store_path.exists():  # never create the store before ingest checks the inputs
+        return False
     record = removed_record(run.store)
     if record is None:
         return False
