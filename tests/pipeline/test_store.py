@@ -63,7 +63,8 @@ def test_one_pack_of_several_arrays_and_row_counts_is_two_files(tmp_path):
     arrays = {"xyz": rng.normal(size=(700, 3)) * 1e5, "gid": np.arange(700, dtype=np.int64),
               "label": rng.integers(-1, 4, 700).astype(np.int16),
               "halo_xyz": rng.normal(size=(90, 3)), "empty": np.empty((0, 4), np.float32),
-              "p": rng.random((700, 5)).astype(np.float32)}
+              "p": rng.random((700, 5)).astype(np.float32), "w": rng.random(700),
+              "m": rng.random((0, 3))}
     write_arrays(group, arrays, pack="points")
     files = sorted(p.relative_to(tmp_path / "s.zarr" / "c") for p in
                    (tmp_path / "s.zarr" / "c").rglob("*") if p.is_file())
