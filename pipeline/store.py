@@ -15,14 +15,15 @@ Layout::
         attrs: done = {step: fingerprint}, results, assembled, arrays = {array: pack}
 
 **Packs.** :func:`write_arrays` writes the arrays of one call as one zarr array, a *pack*:
-a (B, R) uint8 array whose B rows are the byte planes of its members (byte k of every row
-of a member; for float64, the bytes of each column in turn), R the longest member's rows,
-stored as one shard (``<pack>/0.0``) whose inner chunks are the planes, each compressed with
-zstd. So a write is two files (metadata and shard) in one directory whatever it holds, and
-the planes compress like a byte shuffle: the exponent bytes of the floats and the high
-bytes of sorted ids almost vanish. Reading one array reads only its planes. The logical
-names stay: :func:`read_array` finds an array's pack in the group's attributes.
-Coordinates stay float64 and every value is stored exactly.
+a (B, R) uint8 array whose B rows are byte planes of its members (R the longest member's
+rows), stored as one shard (``<pack>/0.0``) whose inner chunks are the planes, each
+compressed with zstd. A member fills its planes in the layout (:data:`LAYOUTS`) that
+compresses best on its first rows: byte k of every row in plane k (a byte shuffle: the
+exponent bytes of float32 and the high bytes of sorted ids almost vanish), each column in
+turn (float64 coordinates), or the bytes as they are (probabilities). So a write is two
+files (metadata and shard) in one directory whatever it holds; reading one array reads
+only its planes. The logical names stay: :func:`read_array` finds an array's pack in the
+group's attributes. Coordinates stay float64 and every value is stored exactly.
 
 **Assembly.** The features step assembles a chunk from the parts of every tile
 (:func:`chunk_points`), writes its ``points`` pack, records the ingest fingerprint it was
@@ -43,6 +44,7 @@ the shard index carries a CRC-32C.
 import zlib
 from pathlib import Path
 
+import numcodecs
 import numpy as np
 import zarr
 from zarr.codecs import ZstdCodec
@@ -52,6 +54,7 @@ from pipeline.errors import StoreError
 SCHEMA_VERSION = 3  # 3: packs of byte planes in one shard per write; parts removed once assembled
 CHECKSUM = "crc32"
 _COMPRESSOR = ZstdCodec(level=0, checksum=True)
+_ZSTD = numcodecs.Zstd(level=0)  # to choose a layout on a sample
 _FLAT_KEYS = {"name": "v2", "separator": "."}  # a pack's shard is <pack>/0.0: no directories
 
 #: Point roles: what a point is used for.
@@ -111,15 +114,9 @@ def write_arrays(group: zarr.Group, arrays: dict[str, np.ndarray], pack: str | N
     planes = np.zeros((n_planes, n_rows), dtype=np.uint8)
     members, plane = {}, 0
     for name, data in arrays.items():
-        width, layout = widths[name], _layout(data.dtype)
+        width, layout = widths[name], _layout(data)
         if len(data):
-            rows = data.reshape(len(data), -1)
-            if layout == "columns":  # each column's values in turn, cut into planes
-                planes[plane:plane + width, :len(data)] = (
-                    np.ascontiguousarray(rows.T).view(np.uint8).reshape(width, len(data)))
-            else:
-                planes[plane:plane + width, :len(data)] = rows.view(np.uint8).reshape(
-                    len(data), width).T
+            planes[plane:plane + width, :len(data)] = _to_planes(data, layout)
         members[name] = {"dtype": data.dtype.str, "shape": list(data.shape), "plane": plane,
                          "layout": layout, CHECKSUM: checksum(data)}
         plane += width
@@ -132,11 +129,44 @@ def write_arrays(group: zarr.Group, arrays: dict[str, np.ndarray], pack: str | N
     group.update_attributes({"arrays": index})
 
 
-def _layout(dtype: np.dtype) -> str:
-    """How a member's bytes fill its planes: ``bytes``, byte k of every row in plane k (a byte
-    shuffle: best for integers and float32); ``columns``, the values of each column in turn
-    (float64 coordinates, whose low bytes are noise in any order, compress 24 % better so)."""
-    return "columns" if dtype.kind == "f" and dtype.itemsize == 8 else "bytes"
+#: How a member's bytes fill its planes (each plane is compressed on its own):
+#: ``bytes``, byte k of every row in plane k (a byte shuffle: sorted ids, float32 features);
+#: ``columns``, the bytes of each column in turn (float64 coordinates, whose low bytes are
+#: noise in any order); ``rows``, the bytes as they lie (probabilities: few distinct rows).
+LAYOUTS = ("bytes", "columns", "rows")
+_SAMPLE_ROWS = 1 << 15
+
+
+def _layout(data: np.ndarray) -> str:
+    """The layout whose planes compress best, judged on the first rows."""
+    if len(data) < 2:
+        return LAYOUTS[0]
+    sample = data[:_SAMPLE_ROWS]
+    sizes = [len(_ZSTD.encode(np.ascontiguousarray(_to_planes(sample, layout))))
+             for layout in LAYOUTS]
+    return LAYOUTS[int(np.argmin(sizes))]
+
+
+def _to_planes(data: np.ndarray, layout: str) -> np.ndarray:
+    """(width, n) uint8 planes of ``data`` (n rows of width bytes) in ``layout``."""
+    n = len(data)
+    rows = data.reshape(n, -1)
+    if layout == "bytes":
+        return rows.view(np.uint8).reshape(n, -1).T
+    if layout == "columns":
+        return np.ascontiguousarray(rows.T).view(np.uint8).reshape(-1, n)
+    return rows.view(np.uint8).reshape(-1, n)
+
+
+def _from_planes(planes: np.ndarray, layout: str, dtype, shape) -> np.ndarray:
+    """The inverse of :func:`_to_planes`."""
+    n = shape[0]
+    if layout == "bytes":
+        return np.ascontiguousarray(planes.T).view(dtype).reshape(shape)
+    values = np.ascontiguousarray(planes).reshape(-1).view(dtype)
+    if layout == "columns":
+        return np.ascontiguousarray(values.reshape(-1, n).T).reshape(shape)
+    return values.reshape(shape)
 
 
 def _member(group: zarr.Group, name: str):
@@ -237,11 +267,7 @@ def _unpack(array, member: dict) -> np.ndarray:
     if rows == 0 or width == 0:
         return np.zeros(shape, dtype)
     plane = member["plane"]
-    planes = array[plane:plane + width, :rows]
-    if member.get("layout") == "columns":
-        values = np.ascontiguousarray(planes).reshape(-1).view(dtype).reshape(-1, rows)
-        return np.ascontiguousarray(values.T).reshape(shape)
-    return np.ascontiguousarray(planes.T).view(dtype).reshape(shape)
+    return _from_planes(array[plane:plane + width, :rows], member["layout"], dtype, shape)
 
 
 def _forget(group: zarr.Group) -> None:

@@ -76,6 +76,18 @@ def test_one_pack_of_several_arrays_and_row_counts_is_two_files(tmp_path):
         assert np.array_equal(out, data)
 
 
+@pytest.mark.parametrize("layout", ["bytes", "columns", "rows"])
+@pytest.mark.parametrize("shape, dtype", [((40, 3), np.float64), ((40,), np.int16),
+                                          ((40, 2, 3), np.float32)])
+def test_every_layout_round_trips(layout, shape, dtype):
+    from pipeline.store import _from_planes, _to_planes
+
+    data = (np.random.default_rng(4).normal(size=shape) * 100).astype(dtype)
+    planes = _to_planes(data, layout)
+    assert planes.shape == (data.nbytes // len(data), len(data)) and planes.dtype == np.uint8
+    assert np.array_equal(_from_planes(planes, layout, data.dtype, data.shape), data)
+
+
 def test_packs_compress_sorted_ids_and_float_exponents(tmp_path):
     root = open_store(tmp_path / "s.zarr")
     n = 200_000
