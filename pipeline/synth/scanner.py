@@ -136,13 +136,11 @@ def scan(rng, parts, layout: Layout):
         del sel, azimuth
 
     # Range noise along the beam, growing with the range, then the samples inside the plot:
-    # batch by batch of the visible samples (the normal draws are one stream, as in one
+    # batch by batch (the normal draws of the visible samples are one stream, as in one
     # call), compacted in place (rows written never lie after rows still to be read).
-    rows = np.flatnonzero(visible)
-    del visible
     n_out = 0
-    for start in range(0, len(rows), BATCH):
-        sel = rows[start : start + BATCH]
+    for start in range(0, len(xyz), BATCH):
+        sel = start + np.flatnonzero(visible[start : start + BATCH])
         batch, who = xyz[sel], owner[sel]
         beam = batch - scanners[who]
         rng_m = np.linalg.norm(beam, axis=1)

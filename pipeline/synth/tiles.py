@@ -44,19 +44,22 @@ def write_synthetic_plot(
     n_tiles = max(1, math.ceil(size / tile_size))
     # The tile of each point of the shuffled plot, then the points of each tile in shuffled
     # order, as indices into the unshuffled arrays: no shuffled copy of the plot is made.
-    key = np.empty(len(order), dtype=np.int64)
+    n_cells = n_tiles * n_tiles
+    # small integer keys: a radix sort (16 bits) or a merge sort without an int64 copy
+    key = np.empty(len(order), dtype=np.uint16 if n_cells <= 1 << 16 else np.int64)
     for start in range(0, len(order), BATCH):
         rows = order[start : start + BATCH]
         cell = np.floor(((xyz[rows, :2] + origin[:2]) - origin[:2]) / tile_size).astype(np.int64)
         cell = np.clip(cell, 0, n_tiles - 1)
         key[start : start + len(rows)] = cell[:, 0] * n_tiles + cell[:, 1]
+    counts = np.bincount(key, minlength=n_cells)
     by_tile = np.argsort(key, kind="stable")  # keeps each tile's points in plot order
-    keys, starts = np.unique(key[by_tile], return_index=True)
     del key
     np.take(order, by_tile, out=by_tile, mode="clip")  # shuffled position -> unshuffled row
     # (mode clip: unbuffered, in place; every index is valid)
     del order
-    bounds = np.append(starts, len(by_tile))
+    keys = np.flatnonzero(counts)
+    bounds = np.append(np.cumsum(counts)[keys] - counts[keys], len(by_tile))
     names = [f"plot_s{seed}_{k // n_tiles}_{k % n_tiles}.laz" for k in keys]
 
     stale = sorted(
