@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 
 #: The keys of the features section that change the features (r2 and the context cap change
 #: only the cascade's context).
-FEATURE_KEYS = ("set", "r1", "max_neighbors", "plane", "scales", "column", "voxel")
+FEATURE_KEYS = ("set", "r1", "max_neighbors", "plane", "scales", "column", "cell", "voxel")
 STEPS = ("ingest", "features", "stage", "export", "evaluate")
 _FINGERPRINT_VERSION = "silva-config-1"  # bump when the meaning of a fingerprinted key changes
 
@@ -35,7 +35,7 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
                 data.exclude_codes and data.exclude_withheld (when set);
                 tiling.chunk_size, tiling.halo, tiling.target_points and tiling.layout
                 (only with chunk_size auto)
-    features    + features.set, r1, max_neighbors, plane, scales, column, voxel
+    features    + features.set, r1, max_neighbors, plane, scales, column, cell, voxel
     stage       + features.r2, features.context_max_neighbors, every cascade key except
                 cascade.stages (adding stages keeps the finished ones)
     export      stage + output.* (except output.keep_store)

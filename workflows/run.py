@@ -152,6 +152,7 @@ class Run:
             "features.plane": params.plane,
             "features.scales": list(params.scales),
             "features.column": params.column,
+            "features.cell": params.cell,
             "features.voxel": params.voxel,
             "cascade.context": self.cfg.cascade.context,
         }

@@ -10,7 +10,7 @@ and a saved model records the set's name and columns.
   order-preserving scale (:mod:`pipeline.features.conditioning`).
 - ``covariance``: eigenvalue features at the radii ``scales`` x r1 (voxel-subsampled
   neighbourhoods, :mod:`pipeline.features.covariance`) and the height features of a column
-  of radius ``column`` x r1 (:mod:`pipeline.features.height`): the usual features of the
+  of radius ``column`` metres (:mod:`pipeline.features.height`): the usual features of the
   field, the peer baseline inside Silva.
 - ``default``: ``covariance`` plus the moment invariants, the size of S1 (log point count)
   and the log area of its triangulated surface — size cues the paper leaves out.
@@ -69,9 +69,13 @@ class FeatureParams:
     ``r2`` (the inner context sphere) defaults to r1 / 2, the paper's choice;
     ``context_max_neighbors`` None counts every point within r1 in the context (the paper).
     ``plane`` is where S1 is triangulated (:data:`pipeline.features.local.PLANES`);
-    ``scales`` the covariance radii as multiples of r1; ``column`` the radius of the height
-    column as a multiple of r1 (its cells have side r1); ``voxel`` the side in metres of the
-    voxels of the surface features, or None for every point.
+    ``scales`` the covariance radii as multiples of r1; ``column`` the radius in metres of
+    the height column and ``cell`` the side in metres of its cells; ``voxel`` the side in
+    metres of the voxels of the surface features, or None for every point.
+
+    The column does not grow with r1: the terrain under a point is a matter of metres at any
+    density (a wider column on a slope reaches the next hillside's lowest points), and a
+    cell that holds no point simply does not count.
     """
 
     set: str = "paper"
@@ -81,7 +85,8 @@ class FeatureParams:
     context_max_neighbors: int | None = None
     plane: str = "pca"
     scales: tuple[float, ...] = (0.5, 1.0, 2.0, 4.0)
-    column: float = 6.0
+    column: float = 3.0
+    cell: float = 0.5
     voxel: float | None = None
 
     def __post_init__(self):
@@ -100,9 +105,12 @@ class FeatureParams:
             raise ValueError(f"scales must be distinct multiples of r1 > 0, got {self.scales}")
         if not self.column > 0:
             raise ValueError(f"column must be > 0, got {self.column}")
+        if not 0 < self.cell <= self.column:
+            raise ValueError(f"cell must satisfy 0 < cell <= column = {self.column}, "
+                             f"got {self.cell}")
         if self.voxel is not None and not self.voxel > 0:
             raise ValueError(f"voxel must be > 0 or None, got {self.voxel}")
-        for name in ("r1", "r2", "column"):
+        for name in ("r1", "r2", "column", "cell"):
             object.__setattr__(self, name, float(getattr(self, name)))
         object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))
 
@@ -165,7 +173,7 @@ def _surface(params: FeatureParams, with_size: bool):
 
 def _covariance(params: FeatureParams):
     radii = tuple(s * params.r1 for s in params.scales)
-    column, cell = params.column * params.r1, params.r1
+    column, cell = params.column, params.cell
     heights = [HEIGHT_NAMES.index(name) for name in HEIGHT_COLUMNS]
     columns = multiscale_names(radii) + HEIGHT_COLUMNS
     reach = max(multiscale_halo(radii), height_halo(column, cell))

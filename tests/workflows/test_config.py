@@ -85,7 +85,8 @@ def test_defaults():
                            "target_points": 1_000_000, "halo": 0.5, "read_batch": 1_000_000}
     assert d["features"] == {"set": "paper", "r1": 0.5, "r2": 0.25, "max_neighbors": 64,
                              "context_max_neighbors": None, "plane": "pca",
-                             "scales": [0.5, 1.0, 2.0, 4.0], "column": 6.0, "voxel": None}
+                             "scales": [0.5, 1.0, 2.0, 4.0], "column": 3.0, "cell": 0.5,
+                                 "voxel": None}
     assert d["cascade"] == {"stages": 3, "n_estimators": 20, "min_samples_leaf": 15,
                             "max_features": "sqrt", "context": "hard", "out_of_fold": False,
                             "folds": 5, "max_train_points": 200_000, "balanced": False,
@@ -183,6 +184,7 @@ def test_a_single_code_or_path_is_a_list():
     ({"features": {"set": "enhanced"}}, "features.set must be one of the feature sets 'paper', "
                                         "'covariance', 'default', got 'enhanced'"),
     ({"features": {"scales": [1, 1]}}, "features.scales must be distinct numbers > 0"),
+    ({"features": {"cell": 4}}, "features.cell (4.0) must not exceed features.column (3.0)"),
     ({"features": {"plane": "xz"}}, "features.plane"),
     ({"features": {"max_neighbors": 2}}, "features.max_neighbors must be >= 3, got 2"),
     ({"features": {"context_max_neighbors": 0}}, "features.context_max_neighbors must be >= 1"),

@@ -268,8 +268,13 @@ class FeaturesConfig(Section):
     )
     column: Number = Field(
         _FEATURES.column, gt=0,
-        description="Sets 'covariance' and 'default': radius of the column of the height "
-        "features, as a multiple of r1.",
+        description="Sets 'covariance' and 'default': radius in metres of the column of "
+        "the height features (the terrain under a point is a matter of metres at any density).",
+    )
+    cell: Number = Field(
+        _FEATURES.cell, gt=0,
+        description="Sets 'covariance' and 'default': side in metres of the cells of the height "
+        "column; the lowest points of its cells are the terrain reference.",
     )
     voxel: AutoLength | None = Field(
         _FEATURES.voxel,
@@ -301,6 +306,9 @@ class FeaturesConfig(Section):
                        f"got {show(self.r2)}")
         if len(set(self.scales)) < len(self.scales) or min(self.scales) <= 0:
             raise fail(f"features.scales must be distinct numbers > 0, got {show(self.scales)}")
+        if self.cell > self.column:
+            raise fail(f"features.cell ({show(self.cell)}) must not exceed features.column "
+                       f"({show(self.column)}): the column is made of cells")
         if self.r2 is None:
             object.__setattr__(self, "r2", self.params.r2)  # FeatureParams' default, r1 / 2
         return self
@@ -312,7 +320,8 @@ class FeaturesConfig(Section):
             self.set, float(self.r1), None if self.r2 is None else float(self.r2),
             int(self.max_neighbors),
             self.context_max_neighbors, self.plane, tuple(float(v) for v in self.scales),
-            float(self.column), None if self.voxel is None else float(self.voxel))
+            float(self.column), float(self.cell),
+            None if self.voxel is None else float(self.voxel))
 
     @property
     def radius2(self) -> float:
