@@ -233,7 +233,7 @@ def read_array(group: zarr.Group, name: str) -> np.ndarray:
             array, member = found
             expected = member[CHECKSUM]
     except KeyError:
-        _forget(group)
+        _forget(group, name)
         raise StoreError(
             f"array '{name}' missing in store group '{group.path}'; the step that writes it did "
             "not finish: run the same command again to redo it"
@@ -252,7 +252,7 @@ def read_array(group: zarr.Group, name: str) -> np.ndarray:
         problem = ("it was never completely written" if expected is None else
                    "its values differ from what was written: a chunk file is missing or "
                    "corrupt")
-    _forget(group)
+    _forget(group, name)
     raise StoreError(
         f"store array '{group.path}/{name}' is damaged ({problem}); its chunk is marked for "
         "recomputation: run the same command again (or start afresh with --overwrite)"
@@ -270,15 +270,19 @@ def _unpack(array, member: dict) -> np.ndarray:
     return _from_planes(array[plane:plane + width, :rows], member["layout"], dtype, shape)
 
 
-def _forget(group: zarr.Group) -> None:
-    """Clear the done-marks (and the assembly mark) of ``group`` and of every group above it
-    (below the root)."""
+def _forget(group: zarr.Group, name: str | None = None) -> None:
+    """Clear the done-marks of ``group`` and of every group above it (below the root), and
+    the assembly mark when the array ``name`` that failed holds the chunk's points (None:
+    any): the points of a chunk are kept when only what was computed from them is lost,
+    since its parts are gone once it is assembled."""
+    points = name is None or name in CORE or name in {f"halo_{n}" for n in HALO}
+    cleared = {"done": {}, **({"assembled": None} if points else {})}
     parts = group.path.split("/")
     for depth in range(len(parts), 0, -1):
         try:
             node = zarr.open_group(store=group.store, path="/".join(parts[:depth]), mode="r+")
-            if node.attrs.get("done") or node.attrs.get("assembled"):
-                node.update_attributes({"done": {}, "assembled": None})
+            if node.attrs.get("done") or (points and node.attrs.get("assembled")):
+                node.update_attributes(cleared)
         except Exception:  # noqa: BLE001 - a read-only or half-deleted store: nothing to clear
             continue
 

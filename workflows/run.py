@@ -185,6 +185,11 @@ class Run:
                  "stages": self.cfg.cascade.stages, "inputs": inputs, "model": model}
         return hashlib.sha256(json.dumps(state).encode()).hexdigest()[:16]
 
+    def drop_results(self) -> None:
+        """Remove metrics and report: what they were made from is gone or damaged."""
+        for path in (self.metrics_path, self.report_path):
+            path.unlink(missing_ok=True)
+
     def forget_stale_results(self) -> None:
         """Remove metrics and report unless they were made from what this run would make
         them from (:meth:`results_stamp`); record the new stamp.
@@ -201,8 +206,7 @@ class Run:
             recorded = None
         if recorded == stamp:
             return
-        for path in (self.metrics_path, self.report_path):
-            path.unlink(missing_ok=True)
+        self.drop_results()
         self.work_path.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.stamp_path, json.dumps({"stamp": stamp}))
 

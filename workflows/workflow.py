@@ -16,6 +16,7 @@ import time
 from datetime import datetime, timezone
 
 from pipeline import __version__
+from pipeline.errors import StoreError
 from pipeline.store import forget_removed, remove_chunks, removed_record
 from workflows.progress import say
 from workflows.run import Run, has_test_points
@@ -43,7 +44,11 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
 
     def timed(step, fn, *args, **kwargs):
         started = time.monotonic()
-        result = fn(*args, **kwargs)
+        try:
+            result = fn(*args, **kwargs)
+        except StoreError:
+            run.drop_results()  # a damaged store certifies no metrics made from it
+            raise
         timings[step] = round(time.monotonic() - started, 2)
         return result
 
@@ -94,6 +99,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
            else {}),
         "durations (s)": ", ".join(f"{k} {v}" for k, v in timings.items()),
     }
+    run.metrics_path.unlink(missing_ok=True)  # until the new report is written in full
     write_report(run.out, metrics, pr_data=plots["pr_data"], topdown=plots["topdown"],
                  run_info=run_info, config_text=(run.out / "config.yaml").read_text(),
                  importances=[s.get("importances") for s in stages],
