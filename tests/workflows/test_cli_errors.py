@@ -1,43 +1,28 @@
 """Bad input gets one clear line, exit code 1, and no output passed off as complete."""
 
-from pathlib import Path
-
 import pytest
-from click.testing import CliRunner
 
-from tests.workflows.conftest import write_config
-from workflows.cli import main
-
-
-def silva(*args):
-    return CliRunner().invoke(main, [str(a) for a in args])
-
-
-def _error_line(result) -> str:
-    lines = [line for line in result.output.splitlines() if line.startswith("silva: error:")]
-    assert len(lines) == 1, result.output
-    assert "Traceback" not in result.output
-    return lines[0]
+from tests.workflows.conftest import error_line, silva, write_config
 
 
 def test_unknown_config_key(tmp_path, survey):
     config = write_config(tmp_path / "c.yaml", survey, tiling={"chunksize": 3})
     result = silva("run", config, "--out", tmp_path / "out", "--in-process", "--quiet")
     assert result.exit_code == 1
-    assert "tiling.chunksize" in _error_line(result)
+    assert "tiling.chunksize" in error_line(result)
 
 
 def test_bad_override(tmp_path, survey):
     config = write_config(tmp_path / "c.yaml", survey)
     result = silva("run", config, "--out", tmp_path / "out", "--set", "features.r1=-1")
     assert result.exit_code == 1
-    assert "features.r1" in _error_line(result)
+    assert "features.r1" in error_line(result)
 
 
 def test_missing_config_file(tmp_path):
     result = silva("run", tmp_path / "nope.yaml", "--out", tmp_path / "out")
     assert result.exit_code == 1
-    assert "nope.yaml" in _error_line(result)
+    assert "nope.yaml" in error_line(result)
 
 
 @pytest.mark.parametrize("args, expected", [
@@ -50,7 +35,7 @@ def test_missing_config_file(tmp_path):
 def test_usage_errors_are_one_line_and_exit_1(args, expected):
     result = silva(*args)
     assert result.exit_code == 1
-    assert expected in _error_line(result)
+    assert expected in error_line(result)
     assert "Usage:" not in result.output
 
 
@@ -68,7 +53,7 @@ def test_corrupt_tile_names_the_file(tmp_path, survey):
     result = silva("run", config, "--out", tmp_path / "out", "--in-process", "--quiet",
                    "--set", f"data.test=[{bad}/*.laz]")
     assert result.exit_code == 1
-    assert "broken.laz" in _error_line(result)
+    assert "broken.laz" in error_line(result)
     assert not (tmp_path / "out" / "metrics.json").exists()
 
 
@@ -77,7 +62,7 @@ def test_glob_matching_nothing(tmp_path, survey):
     result = silva("run", config, "--out", tmp_path / "out", "--in-process", "--quiet",
                    "--set", f"data.test=[{tmp_path}/none/*.laz]")
     assert result.exit_code == 1
-    assert "none/*.laz" in _error_line(result)
+    assert "none/*.laz" in error_line(result)
 
 
 def test_class_without_training_points(tmp_path, survey):
@@ -87,7 +72,7 @@ def test_class_without_training_points(tmp_path, survey):
                     "building": [6]}, "background": ["misc"]})
     result = silva("run", config, "--out", tmp_path / "out", "--in-process", "--quiet")
     assert result.exit_code == 1
-    line = _error_line(result)
+    line = error_line(result)
     assert "building" in line and "data.classes" in line
     assert not (tmp_path / "out" / "metrics.json").exists()
 

@@ -1,12 +1,10 @@
 """Output dimension names are checked when the config is read, not at export after training."""
 
 import pytest
-from click.testing import CliRunner
 
 from pipeline.errors import ConfigError
 from pipeline.io import ExtraDim
-from tests.workflows.conftest import write_config
-from workflows.cli import main
+from tests.workflows.conftest import error_line, silva, write_config
 from workflows.config import validate_config
 from workflows.config.schema import MAX_CLASS_NAME_BYTES, PROBABILITY_PREFIX, feature_dim_name
 from workflows.steps.export import probability_dim
@@ -44,10 +42,8 @@ def test_run_refuses_a_long_class_name_before_any_work(tmp_path, survey):
     classes = {"terrain": [2], "tree": [5], "coarse_woody_debris_pieces": [64], "misc": [1]}
     config = write_config(tmp_path / "c.yaml", survey, data={"classes": classes})
     out = tmp_path / "out"
-    result = CliRunner().invoke(main, ["run", str(config), "--out", str(out), "--quiet"])
-    assert result.exit_code == 1
-    lines = [line for line in result.output.splitlines() if line.startswith("silva: error:")]
-    assert len(lines) == 1 and "coarse_woody_debris_pieces" in lines[0], result.output
+    line = error_line(silva("run", config, "--out", out, "--quiet"))
+    assert "coarse_woody_debris_pieces" in line
     assert not (out / "store.zarr").exists()
 
 
@@ -87,10 +83,8 @@ def test_feature_columns_are_chosen_by_name_pattern_or_all():
 def test_run_refuses_an_unknown_feature_column_before_any_work(tmp_path, survey):
     config = write_config(tmp_path / "c.yaml", survey, output={"feature_dims": ["planarity"]})
     out = tmp_path / "out"
-    result = CliRunner().invoke(main, ["run", str(config), "--out", str(out), "--quiet"])
-    assert result.exit_code == 1
-    lines = [line for line in result.output.splitlines() if line.startswith("silva: error:")]
-    assert len(lines) == 1 and "output.feature_dims[0] 'planarity'" in lines[0], result.output
+    line = error_line(silva("run", config, "--out", out, "--quiet"))
+    assert "output.feature_dims[0] 'planarity'" in line
     assert not (out / "store.zarr").exists()
 
 
