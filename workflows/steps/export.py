@@ -231,7 +231,6 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
     out_dir.mkdir(parents=True, exist_ok=True)
     remove_parts(out_dir)
     suffix = "." + run.cfg.output.format
-    check_point_formats(run, layout["tiles"])
     feature_columns = run.cfg.feature_dim_columns
     all_columns = list(feature_set(run.features).columns)
     feature_index = [all_columns.index(c) for c in feature_columns]
