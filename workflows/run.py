@@ -190,9 +190,9 @@ class Run:
         for path in (self.metrics_path, self.report_path):
             path.unlink(missing_ok=True)
 
-    def forget_stale_results(self) -> None:
+    def forget_stale_results(self) -> str:
         """Remove metrics and report unless they were made from what this run would make
-        them from (:meth:`results_stamp`); record the new stamp.
+        them from (:meth:`results_stamp`); record the new stamp and return it.
 
         A rerun that changes nothing (``silva ingest``, ``--chunk`` on a finished run)
         keeps them; any change removes them before a step writes anything, so a killed run
@@ -204,11 +204,11 @@ class Run:
             recorded = json.loads(self.stamp_path.read_text()).get("stamp")
         except (OSError, ValueError, AttributeError):
             recorded = None
-        if recorded == stamp:
-            return
-        self.drop_results()
-        self.work_path.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(self.stamp_path, json.dumps({"stamp": stamp}))
+        if recorded != stamp:
+            self.drop_results()
+            self.work_path.mkdir(parents=True, exist_ok=True)
+            atomic_write_text(self.stamp_path, json.dumps({"stamp": stamp}))
+        return stamp
 
 
 class OutputError(SilvaError, OSError):

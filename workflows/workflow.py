@@ -36,8 +36,8 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     last = STEPS.index(target)
     timings = {}
     summary = {"out": str(run.out), "timings": timings}  # timings fill in as steps finish
-    run.forget_stale_results()  # a rerun that changes nothing keeps metrics and report
-    if _already_complete(run, target, only, summary):
+    stamp = run.forget_stale_results()  # a rerun that changes nothing keeps metrics, report
+    if _already_complete(run, target, only, summary, stamp):
         return summary
     if run.model_dir is not None:
         check_model(run)  # before any work: a wrong model must not cost a night
@@ -79,7 +79,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     if not has_test_points(layout, run.cfg.data.split):
         say("evaluate: no labelled test points (data.test or data.split): no metrics",
             quiet=run.quiet)
-        _finish(run, target, only, summary, stages)
+        _finish(run, target, only, summary, stamp)
         return summary
     metrics, plots = timed("evaluate", evaluate, run, engine, layout, n_stages)
     if last < 5:
@@ -108,7 +108,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     write_metrics(run, metrics)
     summary.update(metrics=str(run.metrics_path), report=str(run.report_path),
                    macro_f1=metrics["macro"]["f1"])
-    _finish(run, target, only, summary, stages)
+    _finish(run, target, only, summary, stamp)
     return summary
 
 
@@ -125,11 +125,12 @@ def _outputs(run: Run, summary: dict) -> list[str]:
     return sorted(os.path.relpath(p, run.out) for p in paths if p)
 
 
-def _finish(run: Run, target: str, only, summary: dict, stages: list[dict]) -> None:
-    """After a complete run: remove the store's chunks unless output.keep_store."""
+def _finish(run: Run, target: str, only, summary: dict, stamp: str) -> None:
+    """After a complete run (its results stamp ``stamp``): remove the store's chunks unless
+    output.keep_store."""
     if target != STEPS[-1] or only is not None or run.cfg.output.keep_store:
         return
-    record = {"completed": run.results_stamp(),
+    record = {"completed": stamp,
               "outputs": _outputs(run, summary),
               "summary": {k: summary[k] for k in _SUMMARY_KEYS if k in summary}}
     remove_chunks(run.store, record)
@@ -137,17 +138,17 @@ def _finish(run: Run, target: str, only, summary: dict, stages: list[dict]) -> N
         quiet=run.quiet)
 
 
-def _already_complete(run: Run, target: str, only, summary: dict) -> bool:
-    """Whether the store was removed after a complete run of this very configuration whose
-    outputs are all still there (then say so and fill ``summary``); a removed store that
-    does not qualify is cleared, so that the steps start afresh."""
+def _already_complete(run: Run, target: str, only, summary: dict, stamp: str) -> bool:
+    """Whether the store was removed after a complete run of this very configuration (results
+    stamp ``stamp``) whose outputs are all still there (then say so and fill ``summary``); a
+    removed store that does not qualify is cleared, so that the steps start afresh."""
     if not run.store_path.exists():  # never create the store before ingest checks the inputs
         return False
     record = removed_record(run.store)
     if record is None:
         return False
     complete = (target == STEPS[-1] and only is None
-                and record.get("completed") == run.results_stamp()
+                and record.get("completed") == stamp
                 and all((run.out / p).is_file() for p in record.get("outputs", ())))
     if complete:
         summary.update(record.get("summary", {}))
