@@ -30,10 +30,11 @@ def _steps(out: Path) -> list[str]:
         return [f"{out}: ingest did not finish; rerun the command to resume"]
     lines = [f"{out}: {counted(len(layout['tiles']), 'tile')}, "
              f"{counted(sum(t['n_points'] for t in layout['tiles']), 'point')}"]
-    if removed_record(root) is not None:
+    removed = removed_record(root) is not None
+    if removed:
         lines.append("store: its chunks were removed after the run completed (output.keep_store: "
                      "false); the same run again has nothing to do, any other recomputes them")
-    for scene, info in (layout["scenes"].items() if removed_record(root) is None else ()):
+    for scene, info in (() if removed else layout["scenes"].items()):
         steps: dict[str, int] = {}
         for chunk in info["chunks"]:
             path = chunk_path(scene, chunk)
@@ -43,8 +44,8 @@ def _steps(out: Path) -> list[str]:
         total = len(info["chunks"])
         # steps in the order they ran (the order of the chunks' done records)
         done_text = ", ".join(f"{s} {n}/{total}" for s, n in steps.items()) or "no step done"
-        lines.append(f"scene {scene}: {counted(total, 'chunk')} {layout_from_dict(info['grid']).label}; "
-                     f"{done_text}")
+        label = layout_from_dict(info["grid"]).label
+        lines.append(f"scene {scene}: {counted(total, 'chunk')} {label}; {done_text}")
     model = out / "model"
     if (model / MODEL_FILE).is_file():
         try:
