@@ -64,6 +64,7 @@ ROLE_TRAIN, ROLE_TEST, ROLE_PREDICT = 0, 1, 2
 CORE = ("xyz", "gid", "label", "role")
 HALO = ("xyz", "gid")
 POINTS = "points"
+POINT_ARRAYS = CORE + tuple(f"halo_{name}" for name in HALO)  # the members of the pack
 _EMPTY = {"xyz": np.empty((0, 3)), "gid": np.empty(0, np.int64),
           "label": np.empty(0, np.int16), "role": np.empty(0, np.int8)}
 
@@ -275,7 +276,7 @@ def _forget(group: zarr.Group, name: str | None = None) -> None:
     the assembly mark when the array ``name`` that failed holds the chunk's points (None:
     any): the points of a chunk are kept when only what was computed from them is lost,
     since its parts are gone once it is assembled."""
-    points = name is None or name in CORE or name in {f"halo_{n}" for n in HALO}
+    points = name is None or name in POINT_ARRAYS
     cleared = {"done": {}, **({"assembled": None} if points else {})}
     parts = group.path.split("/")
     for depth in range(len(parts), 0, -1):
