@@ -212,16 +212,10 @@ def slurm_workers(cluster_cfg) -> int:
     return int(jobs) * int(processes)
 
 
-# The user's cluster.slurm key -> SLURMCluster/SLURMJob keyword (and jobqueue.slurm key).
-SLURM_KEYS = {
-    "queue": "queue",
-    "account": "account",
-    "cores": "cores",
-    "processes": "processes",
-    "memory": "memory",
-    "walltime": "walltime",
-    "job_extra_directives": "job_extra_directives",
-}
+# The cluster.slurm keys passed on when set: each is also the SLURMCluster/SLURMJob keyword
+# (and, with '-' for '_', the jobqueue.slurm key of the site's config).
+SLURM_KEYS = ("queue", "account", "cores", "processes", "memory", "walltime",
+              "job_extra_directives")
 REQUIRED = ("cores", "memory")  # dask-jobqueue refuses a job without them
 
 
@@ -230,10 +224,10 @@ def _slurm_kwargs(cfg, local_directory) -> dict:
     gave, so that dask-jobqueue takes every other one from the site's config."""
     slurm = cfg.slurm
     kwargs = {"job_name": JOB_NAME}
-    for key, keyword in SLURM_KEYS.items():
+    for key in SLURM_KEYS:
         value = getattr(slurm, key)
         if value is not None:
-            kwargs[keyword] = list(value) if isinstance(value, (list, tuple)) else value
+            kwargs[key] = list(value) if isinstance(value, (list, tuple)) else value
     for key in REQUIRED:
         if key not in kwargs and _site(key) is None:
             raise ConfigError(
