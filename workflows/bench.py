@@ -387,7 +387,6 @@ ONE_CHUNK = ("tiling.chunk_size=auto", "tiling.layout=balanced",
 def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(), *,
                    quiet: bool = False) -> dict:
     """Time the runs of ``config`` (see module); return the figures."""
-    from pipeline.features.numba_cache import kernel_groups
     from workflows.cluster import open_client
     from workflows.commands import prepare_kernels
     from workflows.config import load_config
@@ -396,8 +395,7 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
     cfg = load_config(config, overrides)  # a bad config or a missing input: now, not later
     read_paths(cfg, config, model)
     params = Run(cfg, Path("."), quiet=True).features
-    prepare_kernels(quiet, params)
-    groups = kernel_groups(params.set, params.voxel is not None)
+    groups = prepare_kernels(quiet, params)
     # (label, workers, extra overrides), grouped by cluster: the 1-worker runs share one
     plan = {1: [("1 worker", ()), ("1 worker, one chunk per scene", ONE_CHUNK)]}
     if workers > 1:

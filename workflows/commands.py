@@ -94,10 +94,10 @@ def announce_compilation(quiet: bool, groups=None) -> bool:
     return True
 
 
-def prepare_kernels(quiet: bool, features=None) -> None:
+def prepare_kernels(quiet: bool, features=None) -> tuple[str, ...]:
     """Compile the kernels a run of ``features`` (FeatureParams; None: every set) uses, once
     here, when they are not cached yet: the workers then load them instead of each
-    compiling them."""
+    compiling them. Returns the names of those kernel groups."""
     from pipeline.features.numba_cache import kernel_groups, warm_kernels
 
     groups = kernel_groups(*(() if features is None else (features.set,
@@ -105,6 +105,7 @@ def prepare_kernels(quiet: bool, features=None) -> None:
     if announce_compilation(quiet, groups):
         seconds = warm_kernels(groups)
         log.info("compiled the feature kernels in %.1f s", seconds)
+    return groups
 
 
 def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, target,
