@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numba
 
+from pipeline.atomic import atomic_write_text
+
 log = logging.getLogger(__name__)
 
 SOURCES = Path(__file__).resolve().parent
@@ -107,11 +109,8 @@ def mark_warm(groups=None, folder: str | os.PathLike | None = None) -> None:
     """Record the kernel ``groups`` (default all) as compiled into ``folder`` for these
     sources."""
     folder = _folder(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     done = sorted(set(_recorded(folder)) | set(GROUPS if groups is None else groups))
-    tmp = folder / f".{MARKER}.{os.getpid()}"
-    tmp.write_text(json.dumps({"stamps": source_stamps(), "groups": done}))
-    os.replace(tmp, folder / MARKER)
+    atomic_write_text(folder / MARKER, json.dumps({"stamps": source_stamps(), "groups": done}))
 
 
 def _tiny_cloud():
