@@ -49,6 +49,7 @@ def write_synthetic_plot(
     key = np.empty(len(order), dtype=np.uint16 if n_cells <= 1 << 16 else np.int64)
     for start in range(0, len(order), BATCH):
         rows = order[start : start + BATCH]
+        # from the written (shifted) coordinates, so a point on a tile edge rounds as written
         cell = np.floor(((xyz[rows, :2] + origin[:2]) - origin[:2]) / tile_size).astype(np.int64)
         cell = np.clip(cell, 0, n_tiles - 1)
         key[start : start + len(rows)] = cell[:, 0] * n_tiles + cell[:, 1]
