@@ -55,7 +55,7 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
         else:
             core, window = info["estimate"]["core"], info["estimate"]["window"]
             per_chunk = window[2]
-            lines.append(f"{head}{counted(grid.n_chunks, 'chunk')} balanced by point count; "
+            lines.append(f"{head}{counted(grid.n_chunks, 'chunk')} {grid.label}; "
                          "points in a core (min / median / max) "
                          f"{' / '.join(f'{v:,}' for v in core)}, with its halo "
                          f"{' / '.join(f'{v:,}' for v in window)}")
@@ -91,10 +91,10 @@ def _draw(scenes: dict, tiles: list[dict], path: Path) -> None:
         if isinstance(grid, Grid):
             lo = (grid.x0, grid.y0)
             hi = (grid.x0 + grid.nx * grid.size, grid.y0 + grid.ny * grid.size)
-            title = f"{scene}: chunks of {grid.size:g} m"
+            title = f"{scene}: chunks {grid.label}"
         else:
             lo, hi = grid.bounds[:2], grid.bounds[2:]
-            title = f"{scene}: {grid.n_chunks} chunks balanced by point count"
+            title = f"{scene}: {grid.n_chunks} chunks {grid.label}"
         for x0, y0, x1, y1 in grid.boxes():  # cells, the open outer ones cut at the frame
             x0, y0 = max(x0, lo[0]), max(y0, lo[1])
             x1, y1 = min(x1, hi[0]), min(y1, hi[1])

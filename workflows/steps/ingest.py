@@ -191,8 +191,8 @@ def layout_text(grid: dict) -> str:
     """How a scene is cut, for messages: "in chunks of 15 m (3 x 2 grid)"."""
     layout = layout_from_dict(grid)
     if isinstance(layout, Grid):
-        return f"in chunks of {layout.size:g} m ({layout.nx} x {layout.ny} grid)"
-    return f"in {layout.n_chunks} chunks balanced by point count"
+        return f"in chunks {layout.label} ({layout.nx} x {layout.ny} grid)"
+    return f"in {layout.n_chunks} chunks {layout.label}"
 
 
 def scene_chunk_size(run: Run, n_points: int, mins, maxs) -> float:
