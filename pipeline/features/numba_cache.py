@@ -9,8 +9,9 @@ a digest of every source file of this package makes any change start a fresh cac
 The directory is ``$NUMBA_CACHE_DIR`` (or ``$XDG_CACHE_HOME``, or ``~/.cache``) followed by
 ``silva-numba/<digest>``; when that cannot be created, the system's temporary directory.
 
-:func:`warm_kernels` compiles every cached kernel once, in a few processes side by side, and
-records it (a ``warm.json`` in the directory, with the sources' stamps); the worker processes
+:class:`Warming` compiles kernel groups once, in new processes side by side, in the
+background while a run ingests its tiles, and records them (a ``warm.json`` in the directory,
+with the sources' stamps); :func:`warm_kernels` does the same and waits. The worker processes
 of a run then load the kernels instead of each compiling them. :func:`kernels_cold` says
 whether that is still to do.
 """
@@ -73,7 +74,7 @@ def use_source_keyed_cache() -> Path:
     return folder
 
 
-# -- compiling once, before the workers start ------------------------------------------------
+# -- compiling once, before the workers need the kernels --------------------------------------
 MARKER = "warm.json"
 
 
@@ -189,61 +190,137 @@ GROUPS = {"surface": _warm_surface, "search": _warm_search,
 
 
 def kernel_groups(feature_set: str | None = None, voxel: bool = False) -> tuple[str, ...]:
-    """The kernel groups a run of the feature set named ``feature_set`` ("paper",
-    "covariance", "default"; None: every group) uses, context included."""
+    """The kernel groups a run of the feature set named ``feature_set`` (None: every group)
+    uses: those the set declares (:data:`pipeline.features.sets.KERNEL_GROUPS`), the
+    neighbour search and context of every run, and the voxel kernels when ``voxel``."""
     if feature_set is None:
         return tuple(GROUPS)
-    groups = ["surface"] if feature_set in ("paper", "default") else []
-    groups.append("search")
-    if feature_set in ("covariance", "default"):
-        groups.append("covariance")
-    if voxel:
-        groups.append("voxel")
-    return tuple(groups)
+    from pipeline.features.sets import KERNEL_GROUPS  # the sets import every kernel module
+
+    wanted = {*KERNEL_GROUPS[feature_set], "search", *(["voxel"] if voxel else [])}
+    return tuple(name for name in GROUPS if name in wanted)
+
+
+def _shares(groups: list[str], processes: int) -> list[list[str]]:
+    """``groups`` dealt to at most ``processes`` processes, longest first; ``surface`` counts
+    as much as all the others, so it gets a process of its own when there are two."""
+    weight = {"surface": max(1, len(groups) - 1)}
+    shares: list[list[str]] = [[] for _ in range(max(1, min(processes, len(groups))))]
+    loads = [0] * len(shares)
+    for name in sorted(groups, key=lambda g: -weight.get(g, 1)):
+        i = loads.index(min(loads))
+        shares[i].append(name)
+        loads[i] += weight.get(name, 1)
+    return [share for share in shares if share]
+
+
+class Warming:
+    """Kernel groups compiling in new Python processes, in the background.
+
+    Each process compiles its share of ``groups`` into numba's cache directory (the same
+    ``NUMBA_CACHE_DIR`` and this copy of the package). :meth:`wait` collects them and records
+    the groups that compiled (:func:`kernels_cold`); :meth:`stop` (also on leaving a
+    ``with`` block) kills those still running, so an error or Ctrl-C leaves none behind.
+    A killed compilation loses nothing: numba replaces a cache file only once it is whole.
+    """
+
+    def __init__(self, groups, processes: int | None = None):
+        self.groups = list(GROUPS if groups is None else groups)
+        self.folder = numba.config.CACHE_DIR
+        self.started = time.perf_counter()
+        path = [str(SOURCES.parents[1]), *filter(None, [os.environ.get("PYTHONPATH")])]
+        env = {**os.environ, "NUMBA_CACHE_DIR": str(Path(self.folder).parents[1]),
+               "PYTHONPATH": os.pathsep.join(path)}
+        self._spawned = []
+        try:
+            for share in _shares(self.groups, processes or os.cpu_count() or 1):
+                calls = "; ".join(f"GROUPS[{name!r}]()" for name in share)
+                # stderr to a file: a pipe nobody reads while the run goes on could fill
+                err = tempfile.TemporaryFile(mode="w+")
+                self._spawned.append((share, err, subprocess.Popen(
+                    [sys.executable, "-c", f"from {__name__} import GROUPS; {calls}"],
+                    env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err)))
+        except BaseException:
+            self.stop()
+            raise
+
+    @property
+    def processes(self) -> list[subprocess.Popen]:
+        """The processes not yet collected by :meth:`wait` or :meth:`stop`."""
+        return [process for _, _, process in self._spawned]
+
+    def done(self) -> bool:
+        """Whether every process has exited."""
+        return all(process.poll() is not None for _, _, process in self._spawned)
+
+    def wait(self) -> list[str]:
+        """Wait for every process; record and return the groups that compiled. A group
+        whose process failed is logged as a warning, left to whoever calls its kernels."""
+        done = []
+        for share, err, process in self._spawned:
+            code = process.wait()
+            err.seek(0)
+            last = err.read().strip().splitlines()[-1:] or [f"exit code {code}"]
+            err.close()
+            if code == 0:
+                done.extend(share)
+            else:
+                log.warning("compiling the %s kernels failed: %s", ", ".join(share), last[0])
+        self._spawned = []
+        if done:
+            try:
+                mark_warm(done, self.folder)
+            except OSError as err:  # an unwritable cache: numba compiles in every process
+                log.warning("cannot record the compiled kernels in %s: %s", self.folder, err)
+        return done
+
+    @property
+    def seconds(self) -> float:
+        """Seconds since the processes started."""
+        return time.perf_counter() - self.started
+
+    def stop(self) -> None:
+        """Kill the processes still running (nothing is recorded)."""
+        for _, err, process in self._spawned:
+            if process.poll() is None:
+                process.kill()
+            process.wait()
+            err.close()
+        self._spawned = []
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
 
 
 def warm_kernels(groups=None, processes: int | None = None) -> float:
     """Compile the kernels of ``groups`` (default all of :data:`GROUPS`), or load them from
     the cache; return the seconds it took.
 
-    The first group compiles in this process while new Python processes compile the others
-    (``processes`` in all; default one per core, at most one per group), into the same cache
-    directory (``NUMBA_CACHE_DIR``), so a cold cache costs the longest group, not their sum.
-    When every group succeeded they are recorded warm (:func:`kernels_cold`). A group that
-    fails is logged as a warning and left to whoever calls its kernels next.
+    The first share of the groups compiles in this process while new Python processes compile
+    the others (``processes`` in all; default one per core, at most one per group), into the
+    same cache directory, so a cold cache costs the longest share, not their sum. The groups
+    that succeeded are recorded warm (:func:`kernels_cold`). A group that fails is logged as
+    a warning and left to whoever calls its kernels next. :class:`Warming` compiles every
+    share in the background instead.
     """
     started = time.perf_counter()
     groups = list(GROUPS if groups is None else groups)
-    processes = max(1, min(processes or os.cpu_count() or 1, len(groups)))
-    folder = numba.config.CACHE_DIR
-    # the new processes: the same cache directory and this copy of the package
-    path = [str(SOURCES.parents[1]), *filter(None, [os.environ.get("PYTHONPATH")])]
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(Path(folder).parents[1]),
-           "PYTHONPATH": os.pathsep.join(path)}
-    shares = [groups[i::processes] for i in range(processes)]  # shares[0] runs here
-    spawned = []
-    for share in shares[1:]:
-        calls = "; ".join(f"GROUPS[{name!r}]()" for name in share)
-        spawned.append((share, subprocess.Popen(
-            [sys.executable, "-c", f"from {__name__} import GROUPS; {calls}"], env=env,
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)))
+    shares = _shares(groups, processes or os.cpu_count() or 1)
     done = []
-    for name in shares[0]:
-        try:
-            GROUPS[name]()
-            done.append(name)
-        except Exception as err:  # noqa: BLE001 - warming only saves time
-            log.warning("compiling the %s kernels failed: %s", name, err)
-    for share, process in spawned:
-        _, err = process.communicate()
-        if process.returncode == 0:
-            done.extend(share)
-        else:
-            last = (err or "").strip().splitlines()[-1:] or [f"exit code {process.returncode}"]
-            log.warning("compiling the %s kernels failed: %s", ", ".join(share), last[0])
-    if done:
-        try:
-            mark_warm(done, folder)
-        except OSError as err:  # an unwritable cache: numba compiles in every process
-            log.warning("cannot record the compiled kernels in %s: %s", folder, err)
+    with Warming([g for share in shares[1:] for g in share], len(shares) - 1) as others:
+        for name in shares[0]:
+            try:
+                GROUPS[name]()
+                done.append(name)
+            except Exception as err:  # noqa: BLE001 - warming only saves time
+                log.warning("compiling the %s kernels failed: %s", name, err)
+        if done:
+            try:
+                mark_warm(done)
+            except OSError as err:
+                log.warning("cannot record the compiled kernels in %s: %s", _folder(None), err)
+        others.wait()
     return time.perf_counter() - started

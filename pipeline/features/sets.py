@@ -201,6 +201,14 @@ FEATURE_SETS: dict[str, Callable[[FeatureParams], FeatureSet]] = {
     "covariance": lambda p: _combine("covariance", _covariance(p)),
     "default": lambda p: _combine("default", _covariance(p), _surface(p, with_size=True)),
 }
+#: name -> the numba kernel groups (:data:`pipeline.features.numba_cache.GROUPS`) its
+#: features call, compiled while a run ingests; every run also calls the neighbour search and
+#: the context, and with ``voxel`` the voxel kernels
+KERNEL_GROUPS: dict[str, tuple[str, ...]] = {
+    "paper": ("surface",),
+    "covariance": ("covariance",),
+    "default": ("covariance", "surface"),
+}
 
 
 def feature_set(params: FeatureParams) -> FeatureSet:

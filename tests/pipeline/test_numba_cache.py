@@ -1,5 +1,6 @@
 """The compiled kernels are cached under a digest of their sources, so no stale kernel runs."""
 
+import signal
 from pathlib import Path
 
 import numba
@@ -78,6 +79,21 @@ def test_kernel_groups_follow_the_feature_set():
     assert set(numba_cache.kernel_groups()) == set(numba_cache.GROUPS)
 
 
+def test_every_feature_set_declares_known_kernel_groups():
+    from pipeline.features.sets import FEATURE_SETS, KERNEL_GROUPS
+
+    assert KERNEL_GROUPS.keys() == FEATURE_SETS.keys()
+    for name in FEATURE_SETS:
+        assert set(numba_cache.kernel_groups(name)) <= set(numba_cache.GROUPS)
+
+
+def test_the_triangulation_gets_a_process_of_its_own():
+    shares = numba_cache._shares(["surface", "search", "covariance", "voxel"], 2)
+    assert shares == [["surface"], ["search", "covariance", "voxel"]]
+    assert numba_cache._shares(["search", "covariance"], 4) == [["search"], ["covariance"]]
+    assert numba_cache._shares(["surface", "search"], 1) == [["surface", "search"]]
+
+
 def test_warm_kernels_records_only_the_groups_that_compiled(tmp_path, monkeypatch):
     ran = []
     monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path / "silva-numba" / "digest"))
@@ -99,3 +115,31 @@ def test_warm_kernels_compiles_in_another_process_too(tmp_path, monkeypatch):
     folder = tmp_path / "silva-numba" / "digest"
     assert not numba_cache.kernels_cold(["a"], folder)
     assert numba_cache.kernels_cold(["nowhere"], folder)
+
+
+def _private_cache(tmp_path, monkeypatch):
+    folder = tmp_path / "silva-numba" / source_digest()
+    monkeypatch.setattr(numba.config, "CACHE_DIR", str(folder))
+    return folder
+
+
+def test_warming_runs_in_the_background_and_records_what_compiled(tmp_path, monkeypatch):
+    # "voxel" compiles in seconds; "nowhere" is no group: its process fails
+    folder = _private_cache(tmp_path, monkeypatch)
+    with numba_cache.Warming(["voxel", "nowhere"], processes=2) as warming:
+        assert len(warming.processes) == 2  # started, not waited for
+        assert warming.wait() == ["voxel"]
+        assert warming.done() and warming.processes == []
+    assert not numba_cache.kernels_cold(["voxel"], folder)
+    assert numba_cache.kernels_cold(["nowhere"], folder)
+    assert any(folder.rglob("voxel.*.nbi"))  # the kernels' cache files, where workers look
+
+
+def test_stopping_a_warming_kills_its_processes_and_records_nothing(tmp_path, monkeypatch):
+    folder = _private_cache(tmp_path, monkeypatch)
+    warming = numba_cache.Warming(["surface"])  # tens of seconds into an empty cache
+    processes = warming.processes
+    assert processes and all(p.poll() is None for p in processes)
+    warming.stop()
+    assert all(p.returncode == -signal.SIGKILL for p in processes)
+    assert numba_cache.kernels_cold(["surface"], folder)
