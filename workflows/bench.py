@@ -395,34 +395,35 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
     cfg = load_config(config, overrides)  # a bad config or a missing input: now, not later
     read_paths(cfg, config, model)
     params = Run(cfg, Path("."), quiet=True).features
-    groups = prepare_kernels(quiet, params)
-    # (label, workers, extra overrides), grouped by cluster: the 1-worker runs share one
-    plan = {1: [("1 worker", ()), ("1 worker, one chunk per scene", ONE_CHUNK)]}
-    if workers > 1:
-        plan[workers] = [(f"{workers} workers", ())]
-    runs, peaks = {}, []
-    work = Path(tempfile.mkdtemp(prefix="silva-bench-"))
-    try:
-        for n, items in plan.items():
-            cluster = load_config(config, [
-                *overrides, "cluster.kind=local", f"cluster.n_workers={n}",
-                "cluster.threads_per_worker=1", "cluster.dashboard=false"]).cluster
-            with open_client(cluster, quiet=True, local_directory=work / "dask") as client:
-                client.run(prime_worker, groups)
-                pids = _worker_pids(client)
-                for label, extra in items:
-                    say(f"run on {label}", quiet=quiet)
-                    with RssSampler(pids) as memory:
-                        runs[label] = summary = one_run(
-                            config, [*overrides, *extra], work / f"run{len(runs)}", model,
-                            client)
-                    summary["cpu_seconds"] = memory.cpu_seconds
-                    peaks += memory.peaks.values()
-                    say(f"  {summary['points']:,} points, {summary['chunks']} chunks: "
-                        f"{summary['seconds']:.1f} s, workers' CPU "
-                        f"{summary['cpu_seconds']:.1f} s", quiet=quiet)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
+    with prepare_kernels(quiet, params) as kernels:
+        # (label, workers, extra overrides), grouped by cluster: the 1-worker runs share one
+        plan = {1: [("1 worker", ()), ("1 worker, one chunk per scene", ONE_CHUNK)]}
+        if workers > 1:
+            plan[workers] = [(f"{workers} workers", ())]
+        runs, peaks = {}, []
+        work = Path(tempfile.mkdtemp(prefix="silva-bench-"))
+        try:
+            for n, items in plan.items():
+                cluster = load_config(config, [
+                    *overrides, "cluster.kind=local", f"cluster.n_workers={n}",
+                    "cluster.threads_per_worker=1", "cluster.dashboard=false"]).cluster
+                with open_client(cluster, quiet=True, local_directory=work / "dask") as client:
+                    kernels.wait()  # compiled while the cluster started
+                    client.run(prime_worker, kernels.groups)
+                    pids = _worker_pids(client)
+                    for label, extra in items:
+                        say(f"run on {label}", quiet=quiet)
+                        with RssSampler(pids) as memory:
+                            runs[label] = summary = one_run(
+                                config, [*overrides, *extra], work / f"run{len(runs)}", model,
+                                client)
+                        summary["cpu_seconds"] = memory.cpu_seconds
+                        peaks += memory.peaks.values()
+                        say(f"  {summary['points']:,} points, {summary['chunks']} chunks: "
+                            f"{summary['seconds']:.1f} s, workers' CPU "
+                            f"{summary['cpu_seconds']:.1f} s", quiet=quiet)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
     one = runs["1 worker"]
     many = runs[f"{workers} workers"] if workers > 1 else one
     single = runs["1 worker, one chunk per scene"]

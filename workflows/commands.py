@@ -89,28 +89,77 @@ def announce_compilation(quiet: bool, groups=None) -> bool:
     folder = Path(numba.config.CACHE_DIR)
     if not kernels_cold(groups, folder):
         return False
-    say(f"compiling the feature kernels (numba) once for this version of Silva, before the "
-        f"workers start (about a minute); later runs reuse them from {folder}", quiet=quiet)
+    say(f"compiling the feature kernels (numba) in the background, once for this version of "
+        f"Silva (about a minute); later runs reuse them from {folder}", quiet=quiet)
     return True
 
 
-def prepare_kernels(quiet: bool, features=None) -> tuple[str, ...]:
-    """Compile the kernels a run of ``features`` (FeatureParams; None: every set) uses, once
-    here, when they are not cached yet: the workers then load them instead of each
-    compiling them. Returns the names of those kernel groups."""
-    from pipeline.features.numba_cache import kernel_groups, warm_kernels
+class Kernels:
+    """The feature kernels of a run: ``groups`` (numba_cache kernel groups) and their
+    compilation, when one was started. :meth:`wait` returns once they are compiled."""
+
+    def __init__(self, groups: tuple[str, ...], warming=None, quiet: bool = False):
+        self.groups, self.quiet = groups, quiet
+        self._warming = warming
+
+    def wait(self) -> None:
+        """Wait for the compilation (with a line when it is still running); at once when
+        none runs. A compilation that failed is logged: the workers then compile."""
+        warming, self._warming = self._warming, None
+        if warming is None:
+            return
+        if not warming.done():
+            say("waiting for the feature kernels to finish compiling", quiet=self.quiet)
+        with warming:  # Ctrl-C while waiting stops it
+            done = warming.wait()
+        log.info("compiled the feature kernels (%s) in %.1f s", ", ".join(done) or "none",
+                 warming.seconds)
+
+    def stop(self) -> None:
+        """Stop a compilation still running (an error, Ctrl-C, or a run that needed none)."""
+        warming, self._warming = self._warming, None
+        if warming is not None:
+            warming.stop()
+
+
+@contextlib.contextmanager
+def prepare_kernels(quiet: bool, features=None):
+    """Start compiling, in the background, the kernels a run of ``features`` uses
+    (FeatureParams or the config's features section; None: every set) when they are not
+    cached yet; yields the :class:`Kernels`, whose ``wait()`` comes before the features step:
+    the workers then load the kernels instead of each compiling them. Leaving the block
+    stops a compilation still running; one that cannot start leaves it to the workers."""
+    from pipeline.features.numba_cache import Warming, kernel_groups
 
     groups = kernel_groups(*(() if features is None else (features.set,
                                                           features.voxel is not None)))
+    warming = None
     if announce_compilation(quiet, groups):
-        seconds = warm_kernels(groups)
-        log.info("compiled the feature kernels in %.1f s", seconds)
-    return groups
+        try:
+            warming = Warming(groups)
+        except OSError as err:  # no new process: each worker compiles what it uses
+            log.warning("cannot start compiling the feature kernels: %s", err)
+    kernels = Kernels(groups, warming, quiet)
+    try:
+        yield kernels
+    finally:
+        kernels.stop()
+
+
+def _kernels_of(run, steps, quiet: bool, kernels=None):
+    """The kernels of ``run`` as a context: ``kernels`` when the caller started them, else
+    their compilation started now when the ``steps`` include features, else None."""
+    if kernels is not None:
+        return contextlib.nullcontext(kernels)
+    if "features" in steps:
+        return prepare_kernels(quiet, run.features)
+    return contextlib.nullcontext(None)
 
 
 def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, target,
-              *, model_dir=None, command=None, config_path=None):
-    """Load the config, prepare the output directory and run the steps up to ``target``."""
+              *, model_dir=None, command=None, config_path=None, kernels=None):
+    """Load the config, prepare the output directory and run the steps up to ``target``;
+    ``kernels``: the run's :class:`Kernels` when the caller already started them."""
     from workflows.config import load_config
     from workflows.run import Run, prepare_output, read_paths
     from workflows.workflow import STEPS, execute
@@ -130,13 +179,13 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
         if verbose:
             click.echo(f"# resolved configuration (saved to {out / 'config.yaml'})\n{text}",
                        err=True)
-        if "features" in steps:
-            prepare_kernels(quiet, run.features)
         try:
-            with run_progress(steps, quiet=quiet, stages=int(cfg.cascade.stages)) as progress:
+            with run_progress(steps, quiet=quiet, stages=int(cfg.cascade.stages)) as progress, \
+                    _kernels_of(run, steps, quiet, kernels) as ready:
                 with _engine(cfg, quiet=quiet, in_process=in_process,
                              debug=chunk is not None) as engine:
-                    summary = execute(run, engine, target, only=chunk, command=command)
+                    summary = execute(run, engine, target, only=chunk, command=command,
+                                      kernels=ready)
                 done = [*summary["timings"], *(["report"] if "report" in summary else [])]
                 progress.finish(summary["timings"], done)
         except KeyboardInterrupt:
@@ -272,23 +321,28 @@ def demo(out, quiet, in_process, overwrite, overrides, plot_size, verbose):
       silva demo --out /tmp/silva-demo --plot-size 20 -q
     """
     from pipeline.synth import write_synthetic_plot
+    from workflows.config import load_config
     from workflows.run import prepare_output
 
     prepare_output(out, overwrite=overwrite)
     data = out / "data"
-    for role, seed in (("train", 1), ("test", 2)):
-        if not any((data / role).glob("*.laz")):
-            say(f"synthesising the {role} plot (seed {seed}) into {data / role}", quiet=quiet)
-            size = {} if plot_size is None else {"size": plot_size, "tile_size": plot_size / 2}
-            write_synthetic_plot(data / role, seed=seed, **size)
     overrides = (
         f"data.train=[{(data / 'train').resolve()}/*.laz]",
         f"data.test=[{(data / 'test').resolve()}/*.laz]",
         *overrides,
     )
     with template_path("demo") as config:
-        summary = start_run(config, out, overrides, False, quiet, in_process, None, verbose,
-                            "report")
+        # the kernels compile while the plots are synthesised (the set is in the config)
+        with prepare_kernels(quiet, load_config(config, overrides).features) as kernels:
+            for role, seed in (("train", 1), ("test", 2)):
+                if not any((data / role).glob("*.laz")):
+                    say(f"synthesising the {role} plot (seed {seed}) into {data / role}",
+                        quiet=quiet)
+                    size = ({} if plot_size is None
+                            else {"size": plot_size, "tile_size": plot_size / 2})
+                    write_synthetic_plot(data / role, seed=seed, **size)
+            summary = start_run(config, out, overrides, False, quiet, in_process, None,
+                                verbose, "report", kernels=kernels)
     if "report" in summary:
         click.echo(f"open {summary['report']} in a browser to see the report")
     return summary

@@ -127,14 +127,14 @@ def run_sweep(config: Path, key: str, values: str, seeds: int, out: Path, overri
         where = (f"ingest and features once, in {works[0]}" if len(works) == 1
                  else "ingest and features per value")
         say(f"sweep of {key}: {len(plan)} runs ({where})", quiet=quiet)
-        prepare_kernels(quiet)
+        kernels = stack.enter_context(prepare_kernels(quiet))  # waited for before features
         try:
             with _engine(plan[0].cfg, quiet=quiet, in_process=in_process,
                          debug=False) as engine:
                 for i, item in enumerate(plan, 1):
                     say(f"run {i}/{len(plan)}: {key}={item.text}, cascade.seed={item.seed}",
                         quiet=quiet)
-                    metrics = _run_one(item, engine, quiet, command)
+                    metrics = _run_one(item, engine, quiet, command, kernels)
                     results.append((item, metrics))
                     click.echo(f"{key}={item.text} seed {item.seed}: macro F1 "
                                f"{metrics['macro']['f1']:.3f} ({item.result / 'metrics.json'})")
@@ -149,7 +149,7 @@ def run_sweep(config: Path, key: str, values: str, seeds: int, out: Path, overri
     return rows
 
 
-def _run_one(item: SweepRun, engine, quiet: bool, command: str) -> dict:
+def _run_one(item: SweepRun, engine, quiet: bool, command: str, kernels=None) -> dict:
     """Run ``item`` up to evaluate in its run directory; keep and return its metrics."""
     from pipeline.atomic import atomic_write_text
     from workflows.run import Run
@@ -159,7 +159,7 @@ def _run_one(item: SweepRun, engine, quiet: bool, command: str) -> dict:
     run.save_config()
     steps = STEPS[: STEPS.index("evaluate") + 1]
     with run_progress(steps, quiet=quiet, stages=int(item.cfg.cascade.stages)) as progress:
-        summary = execute(run, engine, "evaluate", command=command)
+        summary = execute(run, engine, "evaluate", command=command, kernels=kernels)
         progress.finish(summary["timings"], list(summary["timings"]))
     if "metrics" not in summary:
         raise SilvaError(f"the run with {item.text} found no labelled test points: nothing "

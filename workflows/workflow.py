@@ -31,8 +31,13 @@ log = logging.getLogger(__name__)
 STEPS = ("ingest", "features", "train", "export", "evaluate", "report")
 
 
-def execute(run: Run, engine, target: str, *, only: str | None = None, command: str = "") -> dict:
-    """Run the steps up to ``target``; return a summary (durations, counts, output paths)."""
+def execute(run: Run, engine, target: str, *, only: str | None = None, command: str = "",
+            kernels=None) -> dict:
+    """Run the steps up to ``target``; return a summary (durations, counts, output paths).
+
+    ``kernels`` (:class:`workflows.commands.Kernels`, optional): the feature kernels
+    compiling in the background while ingest runs; waited for before the features step.
+    """
     last = STEPS.index(target)
     timings = {}
     summary = {"out": str(run.out), "timings": timings}  # timings fill in as steps finish
@@ -62,6 +67,8 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     check_point_formats(run, layout["tiles"])  # output.point_format: keep, before any work
     if last < 1:
         return summary
+    if kernels is not None:
+        kernels.wait()  # started with the run; the workers need the kernels from here on
     counts = timed("features", features, run, engine, layout, only)
     if last < 2:
         return summary

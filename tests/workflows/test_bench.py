@@ -5,14 +5,11 @@ import importlib.util
 import json
 import math
 
-import numba
 import numpy as np
 import pytest
 
-from pipeline.features.numba_cache import kernels_cold, mark_warm
 from tests.workflows.conftest import error_line, silva, write_config
 from workflows import bench as bench_module
-from workflows import commands
 
 FEATURE_KEYS = ("points", "silva_points_per_s", "baseline_name", "baseline_points_per_s",
                 "knn_points_per_s", "time_ratio")
@@ -115,22 +112,3 @@ def test_bench_pipeline_of_a_missing_config_or_model_is_one_line(tiny, tmp_path)
     line = error_line(silva("bench", "pipeline", config, "--model", tmp_path / "no-model"))
     assert "no-model not found" in line
 
-
-# -- a fast first run: the kernels compile once, before the workers start --------------------
-def test_a_cold_cache_is_announced_and_compiled_once(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path / "cache"))
-    compiled = []
-    monkeypatch.setattr("pipeline.features.numba_cache.warm_kernels",
-                        lambda groups: compiled.append(tuple(groups)) or 0.0)
-    from pipeline.features.sets import FeatureParams
-
-    commands.prepare_kernels(False, FeatureParams(set="paper"))
-    err = capsys.readouterr().err
-    assert err.startswith("compiling the feature kernels (numba) once") and err.count("\n") == 1
-    assert compiled == [("surface", "search")]
-    mark_warm(compiled[0], tmp_path / "cache")
-    assert not kernels_cold(compiled[0], tmp_path / "cache")
-    commands.prepare_kernels(False, FeatureParams(set="paper"))  # warm: no line, no compile
-    assert capsys.readouterr().err == "" and len(compiled) == 1
-    commands.prepare_kernels(False, FeatureParams(set="covariance"))  # another group is cold
-    assert compiled[-1] == ("search", "covariance")

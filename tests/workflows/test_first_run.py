@@ -1,0 +1,162 @@
+"""A fast first run: the feature kernels compile in the background from the start of a run,
+the run waits for them only before the features step, a failed compilation leaves the
+compiling to the workers, and an error or Ctrl-C leaves no compiling process behind."""
+
+import logging
+import signal
+
+import numba
+import pytest
+
+from pipeline.features import numba_cache
+from pipeline.features.numba_cache import kernels_cold, mark_warm, source_digest
+from pipeline.features.sets import FeatureParams
+from tests.workflows.conftest import silva, write_config
+from workflows import commands
+
+
+@pytest.fixture
+def cold(tmp_path, monkeypatch):
+    """A private, empty kernel cache: every kernel group is cold."""
+    folder = tmp_path / "numba" / "silva-numba" / source_digest()
+    monkeypatch.setattr(numba.config, "CACHE_DIR", str(folder))
+    return folder
+
+
+class FakeWarming:
+    """Stands in for numba_cache.Warming: records what it was asked, compiles nothing."""
+
+    def __init__(self, groups, events, running=True):
+        self.groups, self.events, self.running = list(groups), events, running
+        self.seconds = 0.0
+        events.append(("start", tuple(groups)))
+
+    def done(self):
+        return not self.running
+
+    def wait(self):
+        self.events.append("wait")
+        self.running = False
+        return self.groups
+
+    def stop(self):
+        if self.running:
+            self.events.append("stop")  # the real one kills what still runs
+            self.running = False
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+
+
+@pytest.fixture
+def events(monkeypatch):
+    found = []
+    monkeypatch.setattr(numba_cache, "Warming", lambda groups: FakeWarming(groups, found))
+    return found
+
+
+def test_a_cold_cache_starts_compiling_with_one_line_and_a_warm_one_does_not(
+        cold, events, capsys):
+    with commands.prepare_kernels(False, FeatureParams(set="paper")) as kernels:
+        err = capsys.readouterr().err
+        assert err.startswith("compiling the feature kernels (numba) in the background")
+        assert err.count("\n") == 1 and str(cold) in err
+        assert events == [("start", ("surface", "search"))]  # started, not waited for
+        assert kernels.groups == ("surface", "search")
+        kernels.wait()
+        assert "waiting for the feature kernels" in capsys.readouterr().err
+        kernels.wait()  # once only
+    assert events[1:] == ["wait"]  # nothing left to stop
+    mark_warm(("surface", "search"), cold)
+    with commands.prepare_kernels(False, FeatureParams(set="paper")) as kernels:
+        kernels.wait()
+    assert capsys.readouterr().err == "" and len(events) == 2  # warm: no line, no compile
+    with commands.prepare_kernels(False, FeatureParams(set="covariance")):
+        pass  # another group is cold; leaving without waiting stops it
+    assert events[2:] == [("start", ("search", "covariance")), "stop"]
+
+
+def _record_steps(events, monkeypatch):
+    """Ingest runs and says so in ``events``; features only says so."""
+    from workflows import workflow
+
+    ingest = workflow.ingest
+    monkeypatch.setattr(workflow, "ingest", lambda *a, **k: events.append("ingest") or
+                        ingest(*a, **k))
+    monkeypatch.setattr(workflow, "features", lambda *a, **k: events.append("features"))
+
+
+def test_the_run_waits_for_the_kernels_only_before_the_features_step(
+        cold, events, survey, tmp_path, monkeypatch):
+    _record_steps(events, monkeypatch)
+    config = write_config(tmp_path / "c.yaml", survey)
+    result = silva("features", config, "--out", tmp_path / "out", "--in-process")
+    assert result.exit_code == 0, result.output
+    assert events == [("start", ("surface", "search")), "ingest", "wait", "features"]
+    lines = result.stderr.splitlines()
+    assert lines[0].startswith("compiling the feature kernels (numba) in the background")
+    assert sum(line.startswith("waiting for the feature kernels") for line in lines) == 1
+
+
+def test_a_run_that_stops_before_features_compiles_nothing(cold, events, survey, tmp_path):
+    config = write_config(tmp_path / "c.yaml", survey)
+    result = silva("ingest", config, "--out", tmp_path / "out", "--in-process")
+    assert result.exit_code == 0, result.output
+    assert events == [] and "compiling" not in result.stderr
+
+
+def test_the_demo_compiles_while_it_synthesises_its_plots(events, tmp_path, monkeypatch):
+    import pipeline.synth
+
+    monkeypatch.setattr(numba_cache, "kernels_cold", lambda groups, folder: True)
+    monkeypatch.setattr(pipeline.synth, "write_synthetic_plot",
+                        lambda folder, **kw: events.append("synthesise"))
+    given = {}
+
+    def start_run(*args, kernels=None, **kwargs):
+        given["kernels"] = kernels
+        events.append("run")
+        return {}
+
+    monkeypatch.setattr(commands, "start_run", start_run)
+    result = silva("demo", "--out", tmp_path / "demo")
+    assert result.exit_code == 0, result.output
+    assert events == [("start", ("surface", "search")), "synthesise", "synthesise", "run",
+                      "stop"]  # start_run did not wait: leaving the demo stops it
+    assert given["kernels"].groups == ("surface", "search")
+
+
+def test_a_failed_compilation_does_not_fail_the_run(cold, survey, tmp_path, monkeypatch,
+                                                     caplog):
+    # a real process, asked for a kernel group that does not exist: it fails at once
+    monkeypatch.setattr(numba_cache, "kernel_groups", lambda *args: ("nowhere",))
+    _record_steps([], monkeypatch)
+    config = write_config(tmp_path / "c.yaml", survey)
+    with caplog.at_level(logging.WARNING, logger="pipeline.features.numba_cache"):
+        result = silva("features", config, "--out", tmp_path / "out", "--in-process")
+    assert result.exit_code == 0, result.output
+    assert "compiling the nowhere kernels failed" in caplog.text
+    assert kernels_cold(["nowhere"], cold)  # left for the workers; nothing recorded
+
+
+@pytest.mark.parametrize("error", [RuntimeError("boom"), KeyboardInterrupt()])
+def test_an_error_or_ctrl_c_kills_the_compiling_processes(error, cold, survey, tmp_path,
+                                                          monkeypatch):
+    from workflows import workflow
+
+    seen = []
+
+    def execute(run, engine, target, *, kernels=None, **kwargs):
+        seen.extend(kernels._warming.processes)  # compiling surface into an empty cache
+        assert seen and all(process.poll() is None for process in seen)
+        raise error
+
+    monkeypatch.setattr(workflow, "execute", execute)
+    config = write_config(tmp_path / "c.yaml", survey)
+    result = silva("run", config, "--out", tmp_path / "out", "--in-process")
+    assert result.exit_code != 0
+    assert all(process.returncode == -signal.SIGKILL for process in seen)
+    assert kernels_cold(("surface", "search"), cold)
