@@ -13,7 +13,7 @@ the header's WKT bit set): GeoTIFF CRS keys of older files are converted with py
 import copy
 import logging
 import os
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -65,12 +65,44 @@ def unreadable(path, exc: BaseException) -> InputError:
     )
 
 
+#: The LAZ layer of each dimension of LAS 1.4 point formats 6-10: a reader of a few
+#: dimensions decompresses only their layers (X, Y, the returns and the scanner channel are
+#: one layer, always decompressed; any other name is an extra dimension). Older formats
+#: compress whole records: there every dimension is decompressed.
+_Layer = laspy.DecompressionSelection
+LAZ_LAYERS = {
+    "Z": _Layer.Z, "classification": _Layer.CLASSIFICATION,
+    **dict.fromkeys(("synthetic", "key_point", "withheld", "overlap", "scan_direction_flag",
+                     "edge_of_flight_line"), _Layer.FLAGS),
+    "intensity": _Layer.INTENSITY, "scan_angle": _Layer.SCAN_ANGLE,
+    "user_data": _Layer.USER_DATA, "point_source_id": _Layer.POINT_SOURCE_ID,
+    "gps_time": _Layer.GPS_TIME, **dict.fromkeys(("red", "green", "blue"), _Layer.RGB),
+    "nir": _Layer.NIR,
+    **dict.fromkeys(("wavepacket_index", "wavepacket_offset", "wavepacket_size",
+                     "return_point_wave_location", "x_t", "y_t", "z_t"), _Layer.WAVEPACKET),
+    **dict.fromkeys(("X", "Y", "return_number", "number_of_returns", "scanner_channel"),
+                    _Layer.XY_RETURNS_CHANNEL),
+}
+
+
+def decompression_selection(dimensions: Iterable[str]) -> laspy.DecompressionSelection:
+    """The LAZ layers that hold x, y, z and ``dimensions`` (names as the tile spells them)."""
+    selection = _Layer.base() | _Layer.Z
+    for name in dimensions:
+        selection |= LAZ_LAYERS.get(name, _Layer.ALL_EXTRA_BYTES)
+    return selection
+
+
 @contextmanager
-def open_las(path) -> Iterator[laspy.LasReader]:
-    """A laspy reader on an existing file; decoding failures become InputError."""
+def open_las(path, selection: laspy.DecompressionSelection | None = None
+             ) -> Iterator[laspy.LasReader]:
+    """A laspy reader on an existing file; decoding failures become InputError. With a
+    ``selection`` (:func:`decompression_selection`) a LAZ file of point format 6-10
+    decompresses only those layers: the values of the other dimensions are meaningless."""
     path = check_file(path)
     try:
-        reader = laspy.open(path)
+        reader = laspy.open(path, decompression_selection=(
+            _Layer.all() if selection is None else selection))
     except Exception as exc:  # laspy and lazrs raise many types for a bad file
         raise unreadable(path, exc) from exc
     try:
@@ -207,8 +239,9 @@ def iter_las_points(path, batch_size=1_000_000, fields=("classification",)) -> I
     """Stream a LAS/LAZ tile as PointBatch objects of at most batch_size points.
 
     ``fields`` are dimension names of the tile (``TileInfo.dimensions``), returned in the
-    file's dtype. The file, its header and the fields are checked before this returns;
-    InputError for an empty, truncated or corrupt file or an unknown field.
+    file's dtype; of a LAZ tile of point format 6-10 only the layers of x, y, z and
+    ``fields`` are decompressed. The file, its header and the fields are checked before
+    this returns; InputError for an empty, truncated or corrupt file or an unknown field.
     """
     names = normalise_fields(fields)
     batch_size = check_batch_size(batch_size)
@@ -220,7 +253,7 @@ def iter_las_points(path, batch_size=1_000_000, fields=("classification",)) -> I
 
 
 def _stream_las(path, batch_size: int, resolved: dict[str, str]) -> Iterator[PointBatch]:
-    with open_las(path) as reader:
+    with open_las(path, decompression_selection(resolved.values())) as reader:
         header = reader.header
         start = 0
         for chunk in _chunks(reader, path, batch_size):
