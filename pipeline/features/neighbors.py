@@ -22,6 +22,11 @@ scans hold thousands of points within 0.5 m) a capped query needs only the neare
 the cells are ``span`` times smaller and the search grows ring by ring until the cap is met
 (see :meth:`RadiusIndex.span_for`); the result is the same. Queries are processed in cell order
 (random order is several times slower) and the rows put back in the caller's order.
+
+The uncapped class counts (:meth:`RadiusIndex.sphere_sums` with labels) settle whole cells at
+once where a cell's bounding box lies entirely inside or outside a sphere, the box's d2 being
+rounded like its points' d2, and test the other cells' points class by class: the same counts
+as a test of every point.
 """
 
 import math
@@ -78,9 +83,9 @@ def _query_cell(xyz, q, origin, cell, dims):
 
 
 @_inline
-def _column_run(ukeys, ustart, key0, key1):
-    """The points of the non-empty cells with keys in [key0, key1] (one z column of cells):
-    (start, stop) of their run in the cell-sorted cloud, empty when there are none."""
+def _cell_run(ukeys, key0, key1):
+    """The non-empty cells with keys in [key0, key1] (one z column of cells): (first, past
+    the last) of their positions in ``ukeys``, empty when there are none."""
     n_cells = ukeys.shape[0]
     lo = 0  # first non-empty cell with key >= key0
     hi = n_cells
@@ -93,6 +98,14 @@ def _column_run(ukeys, ustart, key0, key1):
     end = lo  # past the last cell with key <= key1
     while end < n_cells and ukeys[end] <= key1:
         end += 1
+    return lo, end
+
+
+@_inline
+def _column_run(ukeys, ustart, key0, key1):
+    """The points of the non-empty cells with keys in [key0, key1] (one z column of cells):
+    (start, stop) of their run in the cell-sorted cloud, empty when there are none."""
+    lo, end = _cell_run(ukeys, key0, key1)
     return ustart[lo], ustart[end]
 
 
@@ -246,14 +259,13 @@ def _count_block(xyz, qrows, sxyz, ukeys, ustart, origin, cell, dims, span, r2, 
 
 @_jit
 def _sphere_sums_block(
-    xyz, qrows, sxyz, slabels, sweights, ukeys, ustart, origin, cell, dims, span, r2, r2_inner,
+    xyz, qrows, sxyz, sweights, ukeys, ustart, origin, cell, dims, span, r2, r2_inner,
     n_classes, out,
 ):  # fmt: skip
-    """Per-class sums over every point within the radius of each xyz[qrows[b]] (columns
-    0..C-1) and within the inner radius (C..2C-1): counts of ``slabels`` when it is not
-    empty, else sums of the int64 ``sweights`` rows. Integer sums: exact in any order."""
+    """Sums of the int64 ``sweights`` rows over every point within the radius of each
+    xyz[qrows[b]] (columns 0..C-1) and within the inner radius (C..2C-1). Integer sums:
+    exact in any order."""
     nx, ny, nz = dims[0], dims[1], dims[2]
-    hard = slabels.shape[0] > 0
     for b in range(qrows.shape[0]):
         xq, yq, zq, cx, cy, cz = _query_cell(xyz, qrows[b], origin, cell, dims)
         z0 = max(cz - span, 0)
@@ -269,16 +281,133 @@ def _sphere_sums_block(
                     # the accumulation of context._neighbor_sums_kernel; a shared inlined
                     # helper makes this loop five times slower in numba
                     inner = d2 <= r2_inner
-                    if hard:
-                        c = slabels[s]
-                        out[b, c] += 1
+                    for c in range(n_classes):
+                        out[b, c] += sweights[s, c]
                         if inner:
-                            out[b, n_classes + c] += 1
+                            out[b, n_classes + c] += sweights[s, c]
+
+
+@_jit
+def _class_runs(ustart, slabels, n_classes):
+    """The cell-sorted points regrouped by class within each cell (stable): ``perm``, int64
+    (N,) positions in the cell-sorted cloud, and ``runs``, int64 (cells, C + 1): the points
+    of class c in cell k are perm[runs[k, c]:runs[k, c + 1]]."""
+    n_cells = ustart.shape[0] - 1
+    runs = np.zeros((n_cells, n_classes + 1), dtype=np.int64)
+    perm = np.empty(ustart[n_cells], dtype=np.int64)
+    fill = np.empty(n_classes, dtype=np.int64)
+    for k in range(n_cells):
+        for s in range(ustart[k], ustart[k + 1]):
+            runs[k, slabels[s] + 1] += 1
+        runs[k, 0] = ustart[k]
+        for c in range(n_classes):
+            runs[k, c + 1] += runs[k, c]
+            fill[c] = runs[k, c]
+        for s in range(ustart[k], ustart[k + 1]):
+            c = slabels[s]
+            perm[fill[c]] = s
+            fill[c] += 1
+    return perm, runs
+
+
+@_jit
+def _cell_boxes(sx, sy, sz, ustart):
+    """float64 (cells, 6): the bounding box of each cell's points (x min, x max, y min, ...)."""
+    n_cells = ustart.shape[0] - 1
+    box = np.empty((n_cells, 6))
+    for k in range(n_cells):
+        x0 = y0 = z0 = np.inf
+        x1 = y1 = z1 = -np.inf
+        for s in range(ustart[k], ustart[k + 1]):
+            x0 = min(x0, sx[s])
+            x1 = max(x1, sx[s])
+            y0 = min(y0, sy[s])
+            y1 = max(y1, sy[s])
+            z0 = min(z0, sz[s])
+            z1 = max(z1, sz[s])
+        box[k, 0] = x0
+        box[k, 1] = x1
+        box[k, 2] = y0
+        box[k, 3] = y1
+        box[k, 4] = z0
+        box[k, 5] = z1
+    return box
+
+
+@_inline
+def _far_near(lo, hi, x):
+    """Bounds on |fl(v - x)| for every v in [lo, hi]: (largest, smallest)."""
+    a = lo - x
+    b = hi - x
+    near = 0.0
+    if a > 0.0:
+        near = a
+    elif b < 0.0:
+        near = -b
+    return max(abs(a), abs(b)), near
+
+
+@_inline
+def _run_hits(sx, sy, sz, start, stop, xq, yq, zq, r2, r2_inner):
+    """Points of sx[start:stop], ... within the radius and within the inner radius (the d2
+    of :func:`squared_distance`); branch-free, so numba vectorises it."""
+    n_outer = 0
+    n_inner = 0
+    for s in range(start, stop):
+        d0 = sx[s] - xq
+        d1 = sy[s] - yq
+        dz = sz[s] - zq
+        d2 = d0 * d0 + d1 * d1 + dz * dz
+        n_outer += d2 <= r2
+        n_inner += d2 <= r2_inner
+    return n_outer, n_inner
+
+
+@_jit
+def _class_counts_block(
+    xyz, qrows, sx, sy, sz, runs, box, ukeys, origin, cell, dims, span, r2, r2_inner,
+    n_classes, out,
+):  # fmt: skip
+    """Per-class counts of the points within the radius of each xyz[qrows[b]] (columns
+    0..C-1) and within the inner radius (C..2C-1), d2 as :func:`squared_distance` gives it.
+
+    Cell by cell: d2 is rounded the same way for a cell's bounding box as for its points and
+    rounding is monotone, so the box's smallest and largest d2 bound every point's d2
+    exactly. A cell whose bounds settle both spheres adds its class counts whole; the others
+    test their points class run by class run.
+    """
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    for b in range(qrows.shape[0]):
+        xq, yq, zq, cx, cy, cz = _query_cell(xyz, qrows[b], origin, cell, dims)
+        z0 = max(cz - span, 0)
+        z1 = min(cz + span, nz - 1)
+        for gx in range(max(cx - span, 0), min(cx + span + 1, nx)):
+            for gy in range(max(cy - span, 0), min(cy + span + 1, ny)):
+                base = (gx * ny + gy) * nz
+                first, end = _cell_run(ukeys, base + z0, base + z1)
+                for k in range(first, end):
+                    f0, n0 = _far_near(box[k, 0], box[k, 1], xq)
+                    f1, n1 = _far_near(box[k, 2], box[k, 3], yq)
+                    f2, n2 = _far_near(box[k, 4], box[k, 5], zq)
+                    near = n0 * n0 + n1 * n1 + n2 * n2
+                    if near > r2:
+                        continue
+                    far = f0 * f0 + f1 * f1 + f2 * f2
+                    if far <= r2_inner:
+                        for c in range(n_classes):
+                            count = runs[k, c + 1] - runs[k, c]
+                            out[b, c] += count
+                            out[b, n_classes + c] += count
+                    elif far <= r2 and near > r2_inner:
+                        for c in range(n_classes):
+                            out[b, c] += runs[k, c + 1] - runs[k, c]
                     else:
                         for c in range(n_classes):
-                            out[b, c] += sweights[s, c]
-                            if inner:
-                                out[b, n_classes + c] += sweights[s, c]
+                            n_outer, n_inner = _run_hits(sx, sy, sz, runs[k, c],
+                                                         runs[k, c + 1], xq, yq, zq, r2,
+                                                         r2_inner)  # fmt: skip
+                            out[b, c] += n_outer
+                            out[b, n_classes + c] += n_inner
 
 
 @_jit
@@ -548,13 +677,23 @@ class RadiusIndex:
         span = max(1, int(math.ceil(self._grids[1].cell / grid.cell - 1e-9)))
         order = np.argsort(grid.keys[query], kind="stable")
         sorted_out = np.zeros_like(out)
-        _sphere_sums_block(
-            self.xyz, query[order], grid.xyz,
-            slabels[grid.rows] if labels is not None else slabels,
-            weights2d[grid.rows] if weights is not None else weights2d,
-            grid.ukeys, grid.ustart, self.origin, grid.cell, grid.dims, span, self.r2,
-            inner * inner, n_classes, sorted_out,
-        )  # fmt: skip
+        if labels is not None:
+            # each cell's points grouped by class, coordinates by axis: the counting loop
+            # then has no branch and no store per point
+            perm, runs = _class_runs(grid.ustart, slabels[grid.rows], n_classes)
+            points = grid.xyz[perm]
+            sx, sy, sz = (np.ascontiguousarray(points[:, k]) for k in range(3))
+            box = _cell_boxes(sx, sy, sz, grid.ustart)
+            _class_counts_block(
+                self.xyz, query[order], sx, sy, sz, runs, box, grid.ukeys, self.origin,
+                grid.cell, grid.dims, span, self.r2, inner * inner, n_classes, sorted_out,
+            )  # fmt: skip
+        else:
+            _sphere_sums_block(
+                self.xyz, query[order], grid.xyz, weights2d[grid.rows], grid.ukeys,
+                grid.ustart, self.origin, grid.cell, grid.dims, span, self.r2, inner * inner,
+                n_classes, sorted_out,
+            )  # fmt: skip
         out[order] = sorted_out
         return out
 

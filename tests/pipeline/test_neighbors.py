@@ -253,3 +253,28 @@ def test_sphere_sums_reject_bad_input():
         index.sphere_sums([0], 0.5, labels=[0, 1])
     with pytest.raises(InputError, match="class indices"):
         index.sphere_sums([0], 0.5, labels=[0, 1, 2, 3], n_classes=2)
+
+
+@pytest.mark.parametrize("offset", [0.0, 500_000.25])
+@pytest.mark.parametrize("inner", [0.1, 0.2])
+def test_class_counts_settle_whole_cells_exactly(offset, inner):
+    # a dense lattice: many cells lie wholly inside one sphere or the other, and points at
+    # exactly r or r/2 from a query (ties of the rounded d2) sit in the cells that do not
+    rng = np.random.default_rng(3)
+    grid = np.stack(np.meshgrid(*[np.arange(24) * 0.05] * 2, np.arange(6) * 0.05,
+                                indexing="ij"), axis=-1).reshape(-1, 3)
+    xyz = np.concatenate([grid, rng.uniform(0, 1.2, (3000, 3)) * [1, 1, 0.25]]) + offset
+    labels = rng.integers(0, 3, len(xyz))
+    index = RadiusIndex(xyz, 0.25)
+    assert index.cell_population > 64  # the small cells of dense clouds
+    query = rng.choice(len(xyz), 400, replace=False)
+    counts = index.sphere_sums(query, inner, labels=labels, n_classes=3)
+    one_hot = np.eye(3, dtype=np.int64)[labels]
+    assert np.array_equal(counts, index.sphere_sums(query, inner, weights=one_hot))
+    for row, q in enumerate(query):
+        d0, d1, d2 = (xyz[:, k] - xyz[q, k] for k in range(3))
+        dist2 = d0 * d0 + d1 * d1 + d2 * d2
+        for half, radius in ((0, 0.25), (1, inner)):
+            inside = dist2 <= radius * radius
+            assert np.array_equal(counts[row, 3 * half:3 * half + 3],
+                                  np.bincount(labels[inside], minlength=3))
