@@ -16,7 +16,7 @@ from pathlib import Path
 
 import click
 
-from workflows.progress import counted, run_logging, run_progress, say
+from workflows.progress import counted, report_finished_step, run_logging, run_progress, say
 from workflows.templates import TEMPLATES, template_path, write_template
 
 log = logging.getLogger(__name__)
@@ -109,6 +109,7 @@ class Kernels:
         if warming is None:
             return
         if not warming.done():
+            report_finished_step()  # ingest's line first, then why the run stands still
             say("waiting for the feature kernels to finish compiling", quiet=self.quiet)
         with warming:  # Ctrl-C while waiting stops it
             done = warming.wait()

@@ -73,6 +73,7 @@ class RunProgress:
         self.weights = [float(weights.get(step, 0.1)) for step in self.steps]
         self.started = time.monotonic()
         self._index = -1  # the current step
+        self._reported = -1  # the last step whose line is out
         self._fraction = 0.0  # of the current step
         self._tasks = 0  # of the current step
         self._step_started = self.started
@@ -106,6 +107,12 @@ class RunProgress:
 
     def end(self) -> None:
         self._step_ended = time.monotonic()
+
+    def report_current(self) -> None:
+        """Print the line of the step whose tasks just ended now, before anything the run
+        does between two steps (waiting for the kernels) and not when the next one begins."""
+        if self._index >= 0 and self._tasks:
+            self._close_until(self._index + 1)
 
     @property
     def step_label(self) -> str:
@@ -147,7 +154,7 @@ class RunProgress:
         While the run goes on, a step that ran no tasks was done by an earlier run.
         """
         timings = timings or {}
-        for i in range(max(self._index, 0), min(index, len(self.steps))):
+        for i in range(max(self._index, self._reported + 1, 0), min(index, len(self.steps))):
             step = self.steps[i]
             seconds = timings.get(step)
             if i == self._index and self._tasks:
@@ -160,7 +167,7 @@ class RunProgress:
                 what = "skipped"
             else:
                 what = "done" if seconds is None else f"done in {seconds:.1f} s"
-            self._index, self._fraction = i, 1.0
+            self._index, self._fraction, self._reported = i, 1.0, i
             line = f"[{i + 1}/{len(self.steps)}] {step}: {what} ({self.status()})"
             self.lines.append(line)
             say(line, quiet=not self.quiet)
@@ -168,6 +175,12 @@ class RunProgress:
 
 
 _RUN: RunProgress | None = None
+
+
+def report_finished_step() -> None:
+    """:meth:`RunProgress.report_current` of the run in progress, if any."""
+    if _RUN is not None:
+        _RUN.report_current()
 
 
 @contextlib.contextmanager

@@ -93,6 +93,19 @@ def test_run_progress_says_which_steps_were_done_before_or_skipped():
         "skipped"]
 
 
+def test_a_step_reported_early_is_reported_once():
+    progress = RunProgress(STEPS, quiet=True)
+    progress.begin("ingest", 2)
+    progress.end()
+    progress.report_current()  # e.g. before waiting for the kernels
+    assert len(progress.lines) == 1 and "ingest: 2 tasks in" in progress.lines[0]
+    progress.begin("features", 3)
+    progress.end()
+    progress.finish({}, done=STEPS[:2])
+    assert [line.split(": ", 1)[1].split(" (")[0].split(" in ")[0] for line in progress.lines] == [
+        "2 tasks", "3 tasks", "skipped", "skipped", "skipped", "skipped"]
+
+
 def test_eta_of_the_whole_run_shows_once_some_work_is_done():
     progress = RunProgress(STEPS)
     progress.started -= 10  # ten seconds ago
