@@ -201,6 +201,17 @@ def kernel_groups(feature_set: str | None = None, voxel: bool = False) -> tuple[
     return tuple(name for name in GROUPS if name in wanted)
 
 
+def _record(done: list[str], folder) -> None:
+    """:func:`mark_warm` of the groups that compiled, if any; a cache that cannot be written
+    is only logged (numba then compiles in every process)."""
+    if not done:
+        return
+    try:
+        mark_warm(done, folder)
+    except OSError as err:
+        log.warning("cannot record the compiled kernels in %s: %s", folder, err)
+
+
 def _shares(groups: list[str], processes: int) -> list[list[str]]:
     """``groups`` dealt to at most ``processes`` processes, longest first; ``surface`` counts
     as much as all the others, so it gets a process of its own when there are two."""
@@ -267,11 +278,7 @@ class Warming:
             else:
                 log.warning("compiling the %s kernels failed: %s", ", ".join(share), last[0])
         self._spawned = []
-        if done:
-            try:
-                mark_warm(done, self.folder)
-            except OSError as err:  # an unwritable cache: numba compiles in every process
-                log.warning("cannot record the compiled kernels in %s: %s", self.folder, err)
+        _record(done, self.folder)
         return done
 
     @property
@@ -317,10 +324,6 @@ def warm_kernels(groups=None, processes: int | None = None) -> float:
                 done.append(name)
             except Exception as err:  # noqa: BLE001 - warming only saves time
                 log.warning("compiling the %s kernels failed: %s", name, err)
-        if done:
-            try:
-                mark_warm(done)
-            except OSError as err:
-                log.warning("cannot record the compiled kernels in %s: %s", _folder(None), err)
+        _record(done, numba.config.CACHE_DIR)
         others.wait()
     return time.perf_counter() - started
