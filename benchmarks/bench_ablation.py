@@ -81,14 +81,15 @@ def cascade_f1(xyz, features, labels, test, params: CascadeParams, r1: float, cl
 
 
 def peer_f1(train, test, seed: int, forest: ForestParams, classes, background) -> float:
+    """Macro F1 on ``test`` of a plain forest fitted on ``train``: (peer features, labels)."""
     from sklearn.ensemble import RandomForestClassifier
 
     model = RandomForestClassifier(n_estimators=forest.n_estimators,
                                    min_samples_leaf=forest.min_samples_leaf,
                                    n_jobs=THREADS, random_state=seed)
-    model.fit(oakland.peer_features(train[0]), train[2])
-    predicted = model.predict(oakland.peer_features(test[0]))
-    return classification_scores(test[2], predicted, classes, exclude=background)["macro"]["f1"]
+    model.fit(*train)
+    predicted = model.predict(test[0])
+    return classification_scores(test[1], predicted, classes, exclude=background)["macro"]["f1"]
 
 
 def oakland_scenes():
@@ -152,7 +153,8 @@ def main() -> None:
                                        fparams.r1, classes, background))
         results[name] = np.mean(runs, axis=0).tolist()
         print(f"{name}: " + " / ".join(f"{v:.3f}" for v in results[name]), flush=True)
-    peer = [peer_f1(data[a], data[b], seed, forest, classes, background)
+    peer_data = {role: (oakland.peer_features(xyz), y) for role, (xyz, y) in scenes.items()}
+    peer = [peer_f1(peer_data[a], peer_data[b], seed, forest, classes, background)
             for seed in range(args.seeds) for a, b in directions]
     results["peer: jakteristics covariance, plain forest"] = [float(np.mean(peer))]
     lines = [f"{args.data}: macro F1, mean over {args.seeds} seed(s) and {len(directions)} "
