@@ -51,7 +51,8 @@ from zarr.codecs import ZstdCodec
 
 from pipeline.errors import StoreError
 
-SCHEMA_VERSION = 3  # 3: packs of byte planes in one shard per write; parts removed once assembled
+SCHEMA_VERSION = 4  # 3: packs of byte planes in one shard per write; parts removed once
+# assembled; 4: a flag per point whose features are undefined, chunks classified in one pass
 CHECKSUM = "crc32"
 _COMPRESSOR = ZstdCodec(level=0, checksum=True)
 _ZSTD = numcodecs.Zstd(level=0)  # to choose a layout on a sample
@@ -338,6 +339,12 @@ def tile_part(root: zarr.Group, scene: str, tile: int, chunk: str, prefix: str):
 def proba_array(stage: int) -> str:
     """Name of the probabilities array of cascade stage ``stage`` (0-based; named from 1)."""
     return f"stage{stage + 1}_proba"
+
+
+def labels_array(stage: int) -> str:
+    """Name of the predicted labels of cascade stage ``stage`` where its probabilities are
+    not kept (the earlier stages of a chunk classified in one pass)."""
+    return f"stage{stage + 1}_labels"
 
 
 def context_array(stage: int) -> str:

@@ -158,6 +158,10 @@ class ChunkView:
         return ChunkView(self.store_path, self.scene, chunk)
 
 
+#: The steps that assemble a chunk from ingest's parts, creating its group.
+ASSEMBLING = ("features", "apply")
+
+
 def _chunk_step(fn, store_path, scene, chunk, step, fingerprint, params):
     """Runs on the worker: skip a chunk the step finished, else run ``fn`` and mark it done.
 
@@ -165,7 +169,7 @@ def _chunk_step(fn, store_path, scene, chunk, step, fingerprint, params):
     so a skipped chunk returns the summary of the run that did the work. ``step`` None: a
     step that leaves nothing in the store (its result is only returned).
     """
-    view = ChunkView(store_path, scene, chunk, create=step == "features")
+    view = ChunkView(store_path, scene, chunk, create=step in ASSEMBLING)
     if step is not None and is_done(view.group, step, fingerprint):
         return view.group.attrs.get("results", {}).get(step)
     result = fn(view, params)
@@ -199,7 +203,13 @@ def chunk_tasks(run, layout: dict, step: str, fn, params, fingerprint: str, verb
                 reproduce=f"silva {verb} CONFIG --out {run.out} --chunk {scene}/{chunk}",
             ))
     if only is not None and not tasks:
-        known = [f"{s}/{c}" for s, info in layout["scenes"].items() for c in info["chunks"]]
+        check_chunk(layout, only)
+    return tasks
+
+
+def check_chunk(layout: dict, only: str) -> None:
+    """Raise :class:`ChunkError` unless ``only`` ("scene/chunk") is a chunk of ``layout``."""
+    known = [f"{s}/{c}" for s, info in layout["scenes"].items() for c in info["chunks"]]
+    if only not in known:
         raise ChunkError(f"--chunk {only}: no such chunk in this run; give SCENE/CHUNK, one of "
                          f"{', '.join(known[:6])}{' ...' if len(known) > 6 else ''}")
-    return tasks

@@ -37,14 +37,16 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
                 (only with chunk_size auto)
     features    + features.set, r1, max_neighbors, plane, scales, column, cell, voxel
     stage       + features.r2, features.context_max_neighbors, every cascade key except
-                cascade.stages (adding stages keeps the finished ones)
-    export      stage + output.* (except output.keep_store)
+                cascade.stages (adding stages keeps the finished ones when tiling.halo
+                is set; unset, it grows with the stages, see below)
+    export      stage + output.* (except output.keep_store and output.keep_features)
     evaluate    stage + data.background
     ==========  ========================================================================
 
     Never hashed: cluster.*, tiling.read_batch (they change how, not what, is computed).
     The halo is hashed resolved, so with ``tiling.halo`` unset, changing ``features.r1``
-    also changes the halo and thus ``ingest``. With ``chunk_size: auto`` the size ingest
+    (or ``cascade.stages``, which the default halo reaches across) also changes the halo
+    and thus ``ingest``. With ``chunk_size: auto`` the size ingest
     resolves also depends on the tiles' headers, which the run's inputs digest covers. Globs
     are hashed as written, not the files they match. Returns 16 hexadecimal digits of the
     SHA-256 of the canonical JSON.
@@ -79,8 +81,9 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
                             "context_max_neighbors": cfg.features.context_max_neighbors}
         parts["cascade"] = {k: v for k, v in d["cascade"].items() if k != "stages"}
     if step == "export":
-        # output.keep_store decides what is kept after the run, not what is written
-        parts["output"] = {k: v for k, v in d["output"].items() if k != "keep_store"}
+        # what the store keeps does not change what is written
+        parts["output"] = {k: v for k, v in d["output"].items()
+                           if k not in ("keep_store", "keep_features")}
     if step == "evaluate":
         parts["background"] = data["background"]
     text = json.dumps(parts, sort_keys=True, separators=(",", ":"), ensure_ascii=True)

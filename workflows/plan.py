@@ -17,6 +17,7 @@ from pipeline.tiling import Grid, layout_from_dict, tile_area
 from workflows.progress import clock, counted
 from workflows.run import Run
 from workflows.steps.ingest import plan_scenes, plan_tiles
+from workflows.steps.one_pass import one_pass_scenes
 
 #: Resident bytes per point of a chunk (core and halo) while a worker computes it: the
 #: measured peak of a 1,000,000-point chunk is about 0.7 GiB.
@@ -24,6 +25,10 @@ WORKER_BYTES_PER_POINT = 700
 #: Store bytes per point besides the feature columns (coordinates, ids, labels, halo copies,
 #: per-stage context and probabilities, compressed): about 114 bytes measured with 11 columns.
 STORE_BYTES_PER_POINT = 70
+#: Store bytes per point of a scene classified in one pass (no features, no context): about
+#: 16 for the points with their halo copies and 6 for the probabilities and labels, measured
+#: on the demo's plots.
+ONE_PASS_BYTES_PER_POINT = 22
 #: Points per second on one core, measured: per feature set, and for the rest of the run
 #: (ingest, context and prediction of every stage, export).
 FEATURE_RATES = {"paper": 44_000, "covariance": 50_000, "default": 28_000}
@@ -39,7 +44,8 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
     lines = [f"features: set {params.set} ({columns} columns), r1 {params.r1:g} m, "
              f"halo {run.halo:g} m" + (f", voxels of {params.voxel:.3g} m" if params.voxel
                                        else "")]
-    total, largest = 0, 0.0
+    total, largest, disk = 0, 0.0, 0.0
+    one_pass = one_pass_scenes(run, {"scenes": scenes}, run.cfg.cascade.stages)
     for scene, info in scenes.items():
         grid = layout_from_dict(info["grid"])
         members = [t for t in tiles if t["scene"] == scene]
@@ -61,8 +67,9 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
                          f"{' / '.join(f'{v:,}' for v in window)}")
         largest = max(largest, per_chunk)
         total += points
+        disk += points * (ONE_PASS_BYTES_PER_POINT if scene in one_pass
+                          else STORE_BYTES_PER_POINT + 4 * columns)
     memory = largest * WORKER_BYTES_PER_POINT
-    disk = total * (STORE_BYTES_PER_POINT + 4 * columns)
     seconds = total / workers * (1 / FEATURE_RATES[params.set] + 1 / OTHER_RATE)
     lines += [
         f"memory: about {memory / 2**30:.2f} GiB per worker in the largest chunk" + (

@@ -79,6 +79,7 @@ class RunProgress:
         self._step_started = self.started
         self._step_ended = self.started
         self.lines: list[str] = []  # what quiet mode printed
+        self._folded: dict[int, str] = {}  # steps done inside the next one: how
 
     def step_of(self, name: str) -> int:
         if name.split(" ", 1)[0] in self.steps:  # "ingest (count)" is part of ingest
@@ -113,6 +114,15 @@ class RunProgress:
         does between two steps (waiting for the kernels) and not when the next one begins."""
         if self._index >= 0 and self._tasks:
             self._close_until(self._index + 1)
+
+    def fold(self, step: str, how: str) -> None:
+        """``step`` is done inside the step after it (``how`` says so in its line): its
+        share of the run's work moves there."""
+        if step in self.steps[:-1]:
+            i = self.steps.index(step)
+            self.weights[i + 1] += self.weights[i]
+            self.weights[i] = 0.0
+            self._folded[i] = how
 
     @property
     def step_label(self) -> str:
@@ -161,6 +171,8 @@ class RunProgress:
                 if seconds is None:
                     seconds = self._step_ended - self._step_started
                 what = f"{counted(self._tasks, 'task')} in {seconds:.1f} s"
+            elif i in self._folded:
+                what = self._folded[i]
             elif done is None:
                 what = "already done"
             elif step not in done:
@@ -181,6 +193,12 @@ def report_finished_step() -> None:
     """:meth:`RunProgress.report_current` of the run in progress, if any."""
     if _RUN is not None:
         _RUN.report_current()
+
+
+def fold_step(step: str, how: str) -> None:
+    """:meth:`RunProgress.fold` of the run in progress, if any."""
+    if _RUN is not None:
+        _RUN.fold(step, how)
 
 
 @contextlib.contextmanager

@@ -4,7 +4,8 @@ The output directory of a run::
 
     OUT/
       config.yaml        the resolved configuration
-      store.zarr/        chunks, features, per-stage context and probabilities
+      store.zarr/        chunks; features, per-stage context and probabilities of the scenes
+                         trained on; the results of scenes classified in one pass
       model/             model.json + one forest per stage (loadable by 'silva predict')
       work/              out-of-fold forests and other intermediate files
       predictions/       <input tile name>.laz, every input point with its prediction

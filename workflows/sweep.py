@@ -94,7 +94,9 @@ def plan_sweep(config: Path, key: str, values: str, seeds: int, out: Path,
     for name, (text, value) in zip(names, parsed):
         for seed in seed_list:
             extra = [] if seed is None else [f"cascade.seed={seed}"]
-            cfg = load_config(config, [*overrides, *extra, f"{key}={text}"])
+            # the runs of a run directory share the test scenes' features too
+            cfg = load_config(config, ["output.keep_features=true", *overrides, *extra,
+                                       f"{key}={text}"])
             if seed == seed_list[0]:
                 if not cfg.data.test and cfg.data.split is None:
                     raise ConfigError(f"config error: {config} has no labelled test points "

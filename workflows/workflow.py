@@ -1,6 +1,10 @@
 """The steps of a run, in order, each resumable: ingest, features, train (the cascade),
 export, evaluate, report.
 
+The features and the stage-by-stage cascade cover the scenes the forests train on (and
+every scene with ``output.keep_features``); the other scenes are classified afterwards, in
+one pass per chunk (:mod:`workflows.steps.one_pass`), which stores no features.
+
 Every command is a target: it runs the steps up to and including its own. Steps skip the work
 a previous run finished with the same configuration, so rerunning a killed command resumes it.
 
@@ -18,13 +22,15 @@ from datetime import datetime, timezone
 from pipeline import __version__
 from pipeline.errors import StoreError
 from pipeline.store import forget_removed, remove_chunks, removed_record
-from workflows.progress import say
+from workflows.engine import check_chunk
+from workflows.progress import fold_step, say
 from workflows.run import Run, has_test_points
 from workflows.steps.cascade import cascade, check_model
 from workflows.steps.evaluate import evaluate, write_metrics
 from workflows.steps.export import check_point_formats, export
 from workflows.steps.features import features
 from workflows.steps.ingest import ingest
+from workflows.steps.one_pass import classify_in_one_pass, one_pass_scenes
 
 log = logging.getLogger(__name__)
 
@@ -44,8 +50,8 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     stamp = run.forget_stale_results()  # a rerun that changes nothing keeps metrics, report
     if _already_complete(run, target, only, summary, stamp):
         return summary
-    if run.model_dir is not None:
-        check_model(run)  # before any work: a wrong model must not cost a night
+    model_stages = None if run.model_dir is None else check_model(run)  # before any work:
+    # a wrong model must not cost a night
 
     def timed(step, fn, *args, **kwargs):
         started = time.monotonic()
@@ -54,7 +60,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
         except StoreError:
             run.drop_results()  # a damaged store certifies no metrics made from it
             raise
-        timings[step] = round(time.monotonic() - started, 2)
+        timings[step] = round(timings.get(step, 0) + time.monotonic() - started, 2)
         return result
 
     layout = timed("ingest", ingest, run, engine)
@@ -69,12 +75,25 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
         return summary
     if kernels is not None:
         kernels.wait()  # started with the run; the workers need the kernels from here on
-    counts = timed("features", features, run, engine, layout, only)
+    fit = model_stages is None
+    n_stages = run.cfg.cascade.stages if fit else len(model_stages)
+    passes = one_pass_scenes(run, layout, n_stages) if last >= 2 else set()
+    if only is not None:  # one chunk alone: the steps of its scene only
+        check_chunk(layout, only)
+    staged = scenes_of(layout, lambda s: s not in passes, only)
+    one_pass = scenes_of(layout, lambda s: s in passes, only)
+    if one_pass["scenes"] and not staged["scenes"]:
+        fold_step("features", "computed with the stages, in one pass per chunk")
+    counts = timed("features", features, run, engine, staged, only)
     if last < 2:
         return summary
-    fit = run.model_dir is None
-    stages = timed("train" if fit else "apply", cascade, run, engine, layout, counts, fit=fit,
-                   only=only)
+    if staged["scenes"]:
+        stages = timed("train" if fit else "apply", cascade, run, engine, staged, counts,
+                       fit=fit, only=only)
+    else:
+        stages = model_stages or check_model(run)  # --chunk of a scene classified in one pass
+    if one_pass["scenes"]:
+        timed("apply", classify_in_one_pass, run, engine, one_pass, stages, only)
     if only is not None or last < 3:
         return summary
     n_stages = len(stages)
@@ -117,6 +136,15 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
                    macro_f1=metrics["macro"]["f1"])
     _finish(run, target, only, summary, stamp)
     return summary
+
+
+def scenes_of(layout: dict, keep, only: str | None = None) -> dict:
+    """``layout`` with the scenes ``keep(scene)`` holds (and only the scene of ``only``, a
+    "scene/chunk" computed alone, when given)."""
+    scenes = {s: info for s, info in layout["scenes"].items() if keep(s)}
+    if only is not None:
+        scenes = {s: info for s, info in scenes.items() if s == only.split("/", 1)[0]}
+    return {**layout, "scenes": scenes}
 
 
 # -- output.keep_store: false ----------------------------------------------------------------

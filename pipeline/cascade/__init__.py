@@ -5,6 +5,7 @@
 - :mod:`~pipeline.cascade.sampling`: training rows, folds and seeds from global point ids;
 - :mod:`~pipeline.cascade.stage`: one stage's work on the arrays of a chunk;
 - :mod:`~pipeline.cascade.driver`: the one loop over the stages, against a data interface;
+- :mod:`~pipeline.cascade.one_pass`: every stage of a fitted cascade for one chunk at once;
 - :mod:`~pipeline.cascade.estimator`: :class:`CascadedForest`, the scikit-learn estimator.
 
 Everything that selects or orders training rows depends on global point ids, never on
@@ -13,6 +14,7 @@ positions in an array, so the result does not depend on how a survey is chunked.
 
 from pipeline.cascade.driver import CascadeData, CloudData, FittedStage, run_cascade
 from pipeline.cascade.estimator import CascadedForest
+from pipeline.cascade.one_pass import one_pass, one_pass_halo
 from pipeline.cascade.params import CascadeParams, ForestParams, resolve_seed
 from pipeline.cascade.sampling import (
     fold_of,
@@ -37,7 +39,7 @@ from pipeline.cascade.stage import (
 __all__ = [
     "CascadeData", "CascadeParams", "CascadedForest", "CloudData", "FittedStage",
     "ForestParams", "chunk_proba", "feature_matrix", "fit_stage", "fit_stage_forest",
-    "fold_of", "id_hash", "labels_from_proba", "predict_stage", "predict_stage_proba",
+    "fold_of", "id_hash", "labels_from_proba", "one_pass", "one_pass_halo", "predict_stage", "predict_stage_proba",
     "resolve_seed", "run_cascade", "sampling_fractions", "stage_context", "stage_input",
     "stage_seed", "training_mask", "training_rows",
 ]

@@ -17,7 +17,7 @@ from workflows.status import run_status
 from workflows.steps.ingest import plan_scenes, plan_tiles
 
 
-HALO = 0.5  # write_config's features.r1, and so the resolved halo
+HALO = 0.5  # the halo the plans below are made with: write_config's features.r1
 
 
 def scene_headers(directory) -> tuple[int, np.ndarray, np.ndarray]:
@@ -57,7 +57,7 @@ def planned_grids(tmp_path, survey, **tiling) -> dict[str, dict]:
 
 
 def planned(tmp_path, survey, **tiling) -> dict[str, dict]:
-    tiling = {"layout": "grid", **tiling}
+    tiling = {"layout": "grid", "halo": HALO, **tiling}
     cfg = load_config(write_config(tmp_path / "c.yaml", survey, tiling=tiling))
     run = Run(cfg, tmp_path / "out", quiet=True)
     return plan_scenes(run, plan_tiles(run))
@@ -113,7 +113,8 @@ def test_ingest_records_and_shows_the_resolved_size(tmp_path, survey):
     sizes = {}
     for target_points in (10_000, 40_000):  # a changed target re-ingests with the new grid
         config = write_config(tmp_path / "c.yaml", survey, tiling={
-            "chunk_size": "auto", "layout": "grid", "target_points": target_points})
+            "chunk_size": "auto", "layout": "grid", "target_points": target_points,
+            "halo": HALO})
         result = runner.invoke(main, ["ingest", str(config), "--out", str(out), "--in-process"],
                                catch_exceptions=False)
         assert result.exit_code == 0, result.output

@@ -5,6 +5,7 @@ import json
 import numpy as np
 import pytest
 
+from pipeline.cascade import one_pass_halo
 from pipeline.features.sets import AUTO_NEIGHBORS, auto_radius, auto_voxel
 from pipeline.io import write_las
 from workflows.autoparams import header_density, resolve_auto
@@ -30,7 +31,8 @@ def test_r1_auto_follows_the_header_density(tmp_path, density, r1):
     assert header_density(cfg) == pytest.approx(density, rel=0.01)
     resolved = resolve_auto(cfg)
     assert resolved.features.r1 == r1 == auto_radius(density)
-    assert resolved.halo == resolved.features.params.halo >= r1  # derived once the radius is
+    assert resolved.halo == one_pass_halo(resolved.features.params.halo, r1, 3)  # derived
+    # once the radius is
     # a disc of radius r1 holds at least AUTO_NEIGHBORS points at that density
     assert density * np.pi * r1**2 >= AUTO_NEIGHBORS or r1 == 0.5
 

@@ -82,7 +82,7 @@ def test_defaults():
                          "exclude_codes": [], "exclude_withheld": False,
                          "drop_unlisted": False, "allow_overlap": False}
     assert d["tiling"] == {"chunk_size": "auto", "layout": "balanced",
-                           "target_points": 1_000_000, "halo": 0.5, "read_batch": 1_000_000}
+                           "target_points": 1_000_000, "halo": 1.52, "read_batch": 1_000_000}
     assert d["features"] == {"set": "paper", "r1": 0.5, "r2": 0.25, "max_neighbors": 64,
                              "context_max_neighbors": None, "plane": "pca",
                              "scales": [0.5, 1.0, 2.0, 4.0], "column": 3.0, "cell": 0.5,
@@ -100,14 +100,17 @@ def test_defaults():
                                      "local_directory": None}
     assert d["cluster"]["adapt"] is None
     assert d["output"] == {"format": "laz", "write_classification": False,
-                           "probabilities": True, "keep_store": True, "feature_dims": [],
-                           "point_format": "auto"}
+                           "probabilities": True, "keep_store": True, "keep_features": False,
+                           "feature_dims": [], "point_format": "auto"}
 
 
 def test_derived_radii_and_halo():
     cfg = validate_config({"features": {"r1": 0.8}})
     assert cfg.features.r2 == cfg.features.radius2 == 0.4
-    assert cfg.tiling.halo == cfg.halo == cfg.tiling.halo_resolved(cfg.features) == 0.8
+    # the features' reach (r1 for the paper set) and r1 + 1 cm for each of 2 later stages
+    assert cfg.tiling.halo == cfg.halo == 2.42
+    cfg = validate_config({"features": {"r1": 0.8}, "cascade": {"stages": 1}})
+    assert cfg.halo == 0.8
     cfg = validate_config({"features": {"r1": 0.8, "r2": 0.3}, "tiling": {"halo": 2.0}})
     assert cfg.features.radius2 == 0.3 and cfg.halo == 2.0
 
@@ -320,7 +323,7 @@ def test_overrides_scalars_lists_and_nested_keys(tmp_path):
     assert cfg.data.split.axis == "y" and cfg.data.split.at == 528.0
     assert cfg.output.write_classification is True
     # derived values follow the overridden radius
-    assert cfg.features.r2 == 0.3 and cfg.halo == 0.6
+    assert cfg.features.r2 == 0.3 and cfg.halo == 1.82  # 0.6 + 2 x 0.61
 
 
 def test_later_override_wins(tmp_path):
@@ -398,7 +401,7 @@ def test_dump_load_round_trip(tmp_path, monkeypatch):
         "output.format=las",
     ])
     text = dump_config(cfg)
-    assert "r2: 0.15" in text and "halo: 0.3" in text  # derived values written out
+    assert "r2: 0.15" in text and "halo: 0.92" in text  # derived values written out
     saved = tmp_path / "elsewhere" / "config.yaml"
     saved.parent.mkdir()
     saved.write_text(text)
@@ -497,7 +500,7 @@ def test_unset_halo_follows_r1_into_ingest():
     b = validate_config({"features": {"r1": 0.6}})
     assert fingerprint(a, "ingest") != fingerprint(b, "ingest")
     # the same halo written out or left to its default is the same ingest
-    c = validate_config({"features": {"r1": 0.5}, "tiling": {"halo": 0.5}})
+    c = validate_config({"features": {"r1": 0.5}, "tiling": {"halo": 1.52}})
     assert all(fingerprint(a, step) == fingerprint(c, step) for step in STEPS)
 
 

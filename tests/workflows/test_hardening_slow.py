@@ -57,7 +57,7 @@ def _metrics(out: Path) -> dict:
 # -- 1: a damaged store ------------------------------------------------------------------
 def test_missing_chunk_file_stops_export_then_the_rerun_recomputes_it(finished, run_copy):
     config, out = run_copy
-    _chunk_file(out, "test", "stage2_proba").unlink()
+    _chunk_file(out, "test", "predictions").unlink()  # the one pass's results
     shutil.rmtree(out / "predictions")
     line = error_line(silva("export", config, "--out", out, "--in-process", "-q"))
     assert "stage2_proba' is damaged" in line and "run the same command again" in line
@@ -71,7 +71,7 @@ def test_missing_chunk_file_stops_export_then_the_rerun_recomputes_it(finished, 
 
 def test_missing_chunk_file_stops_evaluate_without_metrics(finished, run_copy):
     config, out = run_copy
-    _chunk_file(out, "test", "stage1_proba").unlink()
+    _chunk_file(out, "test", "predictions").unlink()
     assert "is damaged" in error_line(silva("evaluate", config, "--out", out, "--in-process",
                                             "-q"))
     assert not (out / "metrics.json").exists()

@@ -12,7 +12,7 @@ def test_plan_prints_scenes_grid_and_estimates_and_writes_nothing(tmp_path, surv
     result = CliRunner().invoke(main, ["plan", str(config), "--picture", str(picture)])
     assert result.exit_code == 0, result.output
     lines = result.output.splitlines()
-    assert lines[0].startswith("features: set paper (11 columns), r1 0.5 m, halo 0.5 m")
+    assert lines[0].startswith("features: set paper (11 columns), r1 0.5 m, halo 1.01 m")
     scenes = [line for line in lines if line.startswith("scene ")]
     assert [s.split(":")[0] for s in scenes] == ["scene train", "scene test"]
     assert all("4 tiles" in s and "chunks of 5 m, a 3 x 3 grid" in s for s in scenes)

@@ -105,12 +105,18 @@ def test_only_a_key_that_changes_the_features_gets_a_run_directory_per_value(sur
                                                                              tmp_path):
     config = write_config(tmp_path / "c.yaml", survey)
     out = tmp_path / "out"
-    for key, values in (("cascade.context", "hard,soft"), ("features.r2", "0.1,0.2"),
-                        ("features.context_max_neighbors", "null,16"),
-                        ("cascade.stages", "1,3")):
-        plan = plan_sweep(config, key, values, 2, out)
+    for key, values, overrides in (
+            ("cascade.context", "hard,soft", ()), ("features.r2", "0.1,0.2", ()),
+            ("features.context_max_neighbors", "null,16", ()),
+            # the default halo reaches across the stages: only a set halo keeps the ingest
+            ("cascade.stages", "1,3", ("tiling.halo=2.0",))):
+        plan = plan_sweep(config, key, values, 2, out, overrides)
         assert {r.work for r in plan} == {out / "run"}
         assert [r.seed for r in plan] == [0, 1, 0, 1]
+        assert all(r.cfg.output.keep_features for r in plan)  # shared by the runs
+    plan = plan_sweep(config, "cascade.stages", "1,3", 1, out)
+    assert [r.work for r in plan] == [out / "cascade.stages=1" / "run",
+                                      out / "cascade.stages=3" / "run"]
     plan = plan_sweep(config, "features.r1", "0.4,0.5", 2, out)
     assert [r.work for r in plan] == [out / "features.r1=0.4" / "run"] * 2 + [
         out / "features.r1=0.5" / "run"] * 2

@@ -22,7 +22,7 @@ from click.testing import CliRunner
 
 from pipeline.io import write_las
 from tests.workflows.conftest import assert_same_predictions, read_predictions, write_config
-from pipeline.cascade import CascadedForest
+from pipeline.cascade import CascadedForest, labels_from_proba
 from pipeline.store import open_store, proba_array, read_array
 from workflows.cli import main
 
@@ -117,26 +117,30 @@ def test_chunk_invariance_balanced_chunks(reference, survey, tmp_path):
     assert_same_predictions(reference, out)
 
 
-def _scene_points(out: Path, scene: str):
-    """(xyz, label, gid, per-stage probabilities) of every core point of a scene, by gid."""
+def _scene_points(out: Path, scene: str, first: str = "stage1_proba"):
+    """xyz, label, gid, the ``first`` stage's probabilities (or labels: ``stage1_labels``,
+    where a scene classified in one pass keeps no more) and the second stage's
+    probabilities of every core point of a scene, by gid."""
     root = open_store(out / "store.zarr", mode="r")
     chunks = root[f"scenes/{scene}/chunks"]
-    parts = {"xyz": [], "label": [], "gid": [], "proba": []}
-    for name in sorted(chunks.group_keys()):
-        group = chunks[name]
-        for key in ("xyz", "label", "gid"):
-            parts[key].append(read_array(group, key))
-        parts["proba"].append(np.stack([read_array(group, proba_array(t)) for t in range(2)]))
-    arrays = {k: np.concatenate(v, axis=1 if k == "proba" else 0) for k, v in parts.items()}
+    names = ("xyz", "label", "gid", first, proba_array(1))
+    parts = {name: [] for name in names}
+    for chunk in sorted(chunks.group_keys()):
+        for name in names:
+            parts[name].append(read_array(chunks[chunk], name))
+    arrays = {k: np.concatenate(v) for k, v in parts.items()}
     order = np.argsort(arrays["gid"])
-    return {k: v[:, order] if k == "proba" else v[order] for k, v in arrays.items()}
+    return {k: v[order] for k, v in arrays.items()}
 
 
 def test_estimator_equals_the_workflow(survey, tmp_path, many_chunks):
     """CascadedForest and `silva run` are one method: same seed and parameters, the same
-    probabilities bit for bit, in one chunk in this process and in many chunks on 2 workers."""
+    probabilities bit for bit, stage by stage over stored features in one chunk in this
+    process, and in one pass over many chunks on 2 workers (which keeps the first stage's
+    labels only)."""
     config = write_config(tmp_path / "one.yaml", survey)
-    result = silva("run", config, "--out", tmp_path / "out", "--quiet", "--in-process")
+    result = silva("run", config, "--out", tmp_path / "out", "--quiet", "--in-process",
+                   "--set", "output.keep_features=true")
     assert result.exit_code == 0, result.output
     train, test = _scene_points(tmp_path / "out", "train"), _scene_points(tmp_path / "out", "test")
     model = CascadedForest(stages=2, n_estimators=6, min_samples_leaf=15, r1=0.5,
@@ -144,11 +148,12 @@ def test_estimator_equals_the_workflow(survey, tmp_path, many_chunks):
     model.fit(train["xyz"], train["label"], ids=train["gid"])
     assert list(model.classes_) == [0, 1, 2, 3]
     staged = list(model.staged_predict_proba(test["xyz"], ids=test["gid"]))
-    for stage in range(2):
-        assert np.array_equal(staged[stage], test["proba"][stage]), f"stage {stage + 1}"
-    distributed = _scene_points(many_chunks, "test")
+    assert np.array_equal(staged[0], test["stage1_proba"])
+    assert np.array_equal(staged[1], test["stage2_proba"])
+    distributed = _scene_points(many_chunks, "test", first="stage1_labels")
     assert np.array_equal(distributed["gid"], test["gid"])
-    assert np.array_equal(distributed["proba"], test["proba"])
+    assert np.array_equal(distributed["stage1_labels"], labels_from_proba(staged[0]))
+    assert np.array_equal(distributed["stage2_proba"], staged[1])
 
 
 def _invariant_mtimes(out: Path) -> dict[str, float]:

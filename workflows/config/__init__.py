@@ -12,7 +12,8 @@ received and what is allowed::
 
 A key left empty in YAML (``n_estimators:``) means its default. Derived values are
 resolved during validation: ``features.r2`` becomes ``r1 / 2`` and ``tiling.halo`` becomes
-the largest radius (``features.r1``) when unset, so :func:`dump_config` writes out exactly
+the features' reach plus a context radius per later cascade stage
+(:func:`pipeline.cascade.one_pass_halo`) when unset, so :func:`dump_config` writes out exactly
 what a run used and loading that text again gives an equal configuration.
 
 Modules: :mod:`~workflows.config.schema` (the sections), :mod:`~workflows.config.loading`

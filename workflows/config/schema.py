@@ -14,7 +14,7 @@ from typing import Annotated, Any, Literal, Union
 import laspy
 from pydantic import BeforeValidator, Field, field_validator, model_validator
 
-from pipeline.cascade import CascadeParams, ForestParams
+from pipeline.cascade import CascadeParams, ForestParams, one_pass_halo
 from pipeline.features.sets import (
     AUTO_NEIGHBORS, FEATURE_SETS, FeatureParams, feature_set,
 )
@@ -359,15 +359,15 @@ class TilingConfig(Section):
     halo: Number | None = Field(
         None, gt=0,
         description="Width in metres of the copies of neighbouring points around a chunk; "
-        "default (and minimum) = the largest radius used, features.r1.",
+        "minimum: the features' reach (their largest radius or height column); default: "
+        "that plus one context radius (features.r1) and a centimetre per cascade stage "
+        "after the first, with which a chunk that is only classified computes all its "
+        "stages in one pass and stores no features.",
     )
     read_batch: Integer = Field(
         1_000_000, ge=1, description="Points per read batch when streaming tiles."
     )
 
-    def halo_resolved(self, features: FeaturesConfig) -> float:
-        """The halo in metres: as set, or the largest radius of ``features``."""
-        return float(self.halo) if self.halo is not None else features.largest_radius
 
 
 # -- cascade ---------------------------------------------------------------------------------
@@ -455,6 +455,15 @@ class OutputConfig(Section):
         "rerun of the same configuration then says the results are complete, any other "
         "recomputes from the input tiles.",
     )
+    keep_features: bool = Field(
+        False,
+        description="true: keep the features of every scene in store.zarr, so that a rerun "
+        "with other cascade settings, or another model applied to the same output, reuses "
+        "them (silva sweep sets it). false: the scenes no forest trains on (data.test, "
+        "data.predict, every scene of silva predict) are classified in one pass per chunk "
+        "and store no features: a store a few times the input instead of some forty. "
+        "Exported feature columns (output.feature_dims) keep them too.",
+    )
     feature_dims: FeatureDims = Field(
         default_factory=list,
         description="Feature columns also written as float32 extra dimensions: 'all', or "
@@ -502,7 +511,7 @@ class SilvaConfig(Section):
         largest = self.features.largest_radius
         halo = self.tiling.halo
         if halo is None:
-            object.__setattr__(self, "tiling", self.tiling.model_copy(update={"halo": largest}))
+            object.__setattr__(self, "tiling", self.tiling.model_copy(update={"halo": self.halo}))
         elif halo < largest:
             raise fail(f"tiling.halo {show(halo)} is smaller than the largest radius "
                        f"{show(largest)}; use a halo >= {show(largest)} or leave it unset")
@@ -537,8 +546,11 @@ class SilvaConfig(Section):
 
     @property
     def halo(self) -> float:
-        """The halo in metres (resolved: the largest radius unless set larger)."""
-        return self.tiling.halo_resolved(self.features)
+        """The halo in metres (resolved: see :attr:`TilingConfig.halo`)."""
+        if self.tiling.halo is not None:
+            return float(self.tiling.halo)
+        return one_pass_halo(self.features.largest_radius, self.features.params.r1,
+                             int(self.cascade.stages))
 
     @property
     def class_names(self) -> list[str]:

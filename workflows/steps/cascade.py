@@ -111,20 +111,21 @@ def chunk_training_rows(view, task: StageTask):
 
 
 @lru_cache(maxsize=8)
-def _cached_forest(path: str, mtime: float):
+def _loaded_forest(path: str, mtime: float):
     return load_forest(Path(path))
 
 
-def _forest(path: str):
-    return _cached_forest(path, os.path.getmtime(path))
+def cached_forest(path: str):
+    """The forest saved at ``path``, loaded once per worker (again when the file changes)."""
+    return _loaded_forest(path, os.path.getmtime(path))
 
 
 def chunk_predict(view, task: StageTask):
     """Worker task: stage probabilities of one chunk's core points."""
     features, context, labels, gid = _chunk_inputs(view, task)
-    proba = chunk_proba(_forest(task.forest_path), [_forest(p) for p in task.fold_paths],
-                        features, context, labels, gid, np.asarray(task.fractions),
-                        task.seed, task.n_classes)
+    proba = chunk_proba(cached_forest(task.forest_path),
+                        [cached_forest(p) for p in task.fold_paths], features, context, labels,
+                        gid, np.asarray(task.fractions), task.seed, task.n_classes)
     view.write(**{proba_array(task.stage): proba})
 
 

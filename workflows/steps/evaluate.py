@@ -18,9 +18,10 @@ import numpy as np
 from pipeline.cascade import id_hash, labels_from_proba
 from pipeline.metrics import confusion_matrix, scores_from_confusion
 from pipeline.atomic import atomic_write_text
-from pipeline.store import ROLE_TEST, proba_array
+from pipeline.store import ROLE_TEST, labels_array, proba_array
 from workflows.engine import chunk_tasks
 from workflows.run import Run
+from workflows.steps.one_pass import one_pass_scenes
 
 PLOT_POINTS = 200_000  # points drawn in the report's plots
 
@@ -30,18 +31,20 @@ class EvaluationTask:
     n_stages: int
     n_classes: int
     sample_fraction: float  # of the points drawn in the report's plots
+    one_pass_scenes: tuple[str, ...] = ()  # scenes classified in one pass
 
 
 def chunk_evaluation(view, task: EvaluationTask):
     """Worker task: per-stage confusion of the chunk's test points, and plot samples."""
     label, role, gid, xyz = view.read("label", "role", "gid", "xyz")
     test = (role == ROLE_TEST) & (label >= 0)
-    undefined = np.isnan(view.read("features")).any(axis=1)
-    confusions, final = [], None
-    for stage in range(task.n_stages):
-        final = view.read(proba_array(stage))
-        confusions.append(confusion_matrix(label[test], labels_from_proba(final[test]),
-                                           task.n_classes))
+    undefined = view.read("undefined")
+    final = view.read(proba_array(task.n_stages - 1))
+    one_pass = view.scene in task.one_pass_scenes
+    confusions = [confusion_matrix(label[test], _stage_labels(view, stage, one_pass)[test],
+                                   task.n_classes) for stage in range(task.n_stages - 1)]
+    confusions.append(confusion_matrix(label[test], labels_from_proba(final[test]),
+                                       task.n_classes))
     picked = id_hash(gid, 7) < task.sample_fraction
     test_pick = picked & test
     return {
@@ -56,12 +59,21 @@ def chunk_evaluation(view, task: EvaluationTask):
     }
 
 
+def _stage_labels(view, stage: int, one_pass: bool):
+    """A stage's predicted labels of a chunk's points: kept as labels when its scene is
+    classified in one pass, else from the stage's probabilities."""
+    if one_pass:
+        return view.read(labels_array(stage))
+    return labels_from_proba(view.read(proba_array(stage)))
+
+
 def evaluate(run: Run, engine, layout: dict, n_stages: int) -> dict:
     """Return the metrics dict (metrics.json) and the report's plot data."""
     total = sum(t["n_points"] for t in layout["tiles"])
     fraction = min(1.0, PLOT_POINTS / max(total, 1))
     tasks = chunk_tasks(run, layout, "evaluate", chunk_evaluation,
-                        EvaluationTask(n_stages, run.n_classes, fraction),
+                        EvaluationTask(n_stages, run.n_classes, fraction,
+                                       tuple(sorted(one_pass_scenes(run, layout, n_stages)))),
                         run.fingerprint("evaluate"), "evaluate", marks=False)
     results = list(engine.map("evaluate", tasks).values())
     background = list(run.cfg.data.background)

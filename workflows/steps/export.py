@@ -99,10 +99,11 @@ class _ChunkPredictions:
                                  "store; rerun with --overwrite") from None
             return (np.empty(0, np.int64), np.empty((0, n_classes), np.float32),
                     np.empty(0, bool), np.empty((0, len(self.feature_index)), np.float32))
-        features = read_array(group, "features")
-        undefined = np.isnan(features).any(axis=1)
-        return (read_array(group, "gid"), read_array(group, proba_array(self.stage)), undefined,
-                features[:, self.feature_index])
+        gid = read_array(group, "gid")
+        columns = (read_array(group, "features")[:, self.feature_index] if self.feature_index
+                   else np.empty((len(gid), 0), np.float32))  # kept features: see one_pass
+        return (gid, read_array(group, proba_array(self.stage)), read_array(group, "undefined"),
+                columns)
 
     def lookup(self, xyz, gid, n_classes):
         """float32 (n, C) probabilities, a bool mask of the points the store holds, one of

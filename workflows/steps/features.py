@@ -3,7 +3,8 @@
 Core and halo points are sorted by global id, so a chunk's arrays do not depend on the order
 in which tiles and batches were read (:func:`pipeline.store.chunk_points`, which also removes
 the parts once the chunk is assembled). The features never change between cascade stages:
-they are computed once here.
+they are computed once here, with a flag for the points whose features are undefined.
+Scenes classified in one pass (:mod:`workflows.steps.one_pass`) are left to that step.
 """
 
 from dataclasses import dataclass
@@ -42,14 +43,14 @@ def chunk_features(view, task: FeatureTask):
     ids = np.concatenate([core["gid"], halo["gid"]])
     query = np.arange(len(core["gid"]), dtype=np.int64)
     features = feature_set(task.features)(xyz, query, ids)
-    view.write(features=features)
+    view.write(features=features, undefined=np.isnan(features).any(axis=1))
     trained = (core["role"] == ROLE_TRAIN) & (core["label"] >= 0)
     return {"train_counts": np.bincount(core["label"][trained],
                                         minlength=task.n_classes).tolist(),
-            "sparse": _sparse_points(xyz, ids, query, task.features.r1)}
+            "sparse": sparse_points(xyz, ids, query, task.features.r1)}
 
 
-def _sparse_points(xyz, ids, query, r1) -> list[int]:
+def sparse_points(xyz, ids, query, r1) -> list[int]:
     """[sampled, sparse]: core points sampled by id, and those of them with fewer than
     :data:`SPARSE_NEIGHBORS` points within r1, too few for a local surface."""
     sample = query[id_hash(ids[query], 11) < SPARSE_SAMPLE]
@@ -65,14 +66,20 @@ def features(run: Run, engine, layout: dict, only: str | None = None) -> np.ndar
         run, layout, "features", chunk_features,
         lambda info: FeatureTask(run.features, run.n_classes, tuple(info["tiles"])),
         run.fingerprint("features"), "features", only=only,
-    )
+    ) if layout["scenes"] else []  # every scene classified in one pass
+    results = list(engine.map("features", tasks).values()) if tasks else []
     counts = np.zeros(run.n_classes, dtype=np.int64)
-    sampled = sparse = 0
-    for value in engine.map("features", tasks).values():
+    for value in results:
         counts += np.asarray(value["train_counts"], dtype=np.int64)
-        sampled, sparse = sampled + value["sparse"][0], sparse + value["sparse"][1]
+    warn_sparse(run, results)
+    return counts
+
+
+def warn_sparse(run: Run, results) -> None:
+    """Warn when most sampled points (the tasks' ``sparse`` counts) have too few neighbours."""
+    sampled = sum(value["sparse"][0] for value in results)
+    sparse = sum(value["sparse"][1] for value in results)
     if sampled and sparse > sampled / 2:
         say(f"warning: {100 * sparse / sampled:.0f}% of the points have fewer than "
              f"{SPARSE_NEIGHBORS} neighbours within r1 = {run.r1:g} m, too few for a local "
              "surface: set features.r1 larger, or to auto (from the point density)")
-    return counts

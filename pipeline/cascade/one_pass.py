@@ -1,0 +1,82 @@
+"""Every stage of a fitted cascade for one chunk at once, with no stage barrier between
+chunks.
+
+Stage t of a point needs the stage t-1 probabilities of its neighbours within r1, which
+need their own features, and so on back to the first stage. A chunk whose halo covers all
+of that, the features' reach plus one context radius per later stage, can compute every
+stage itself: stage 1 for its core and the halo points within (stages - 1) context radii
+of it, stage 2 for one radius less, and the last stage for its core alone. Nothing has to
+be read back from neighbouring chunks, and the features never leave the worker.
+
+The results equal those of the stage-by-stage cascade bit for bit: every point's features
+and context follow from the same points by the same code (the chunk invariance that the
+halo contract gives), and each forest answers a row alone.
+"""
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from pipeline.cascade.stage import predict_stage_proba, stage_context, stage_input
+
+#: Metres added to every context radius: distances computed in floating point may exceed
+#: the exact ones by far less than this, so a ring never misses a neighbour it needs.
+SLACK = 0.005
+
+
+def one_pass_halo(feature_reach: float, r1: float, stages: int) -> float:
+    """The smallest halo with which a chunk computes all ``stages`` in one pass (rounded
+    to micrometres, far inside the slack, so that configurations show it plainly)."""
+    if stages <= 1:
+        return feature_reach
+    return round(feature_reach + (stages - 1) * (r1 + 2 * SLACK), 6)
+
+
+def box_distance(xy: np.ndarray, box) -> np.ndarray:
+    """float64 (n,) distance of each point from the chunk's box (xmin, ymin, xmax, ymax)
+    along the farther axis: the distance by which the box must grow to hold the point, the
+    measure the halo is cut by. Zero inside; a box may be open (infinite) outwards."""
+    x0, y0, x1, y1 = box
+    dx = np.maximum(np.maximum(x0 - xy[:, 0], xy[:, 0] - x1), 0.0)
+    dy = np.maximum(np.maximum(y0 - xy[:, 1], xy[:, 1] - y1), 0.0)
+    return np.maximum(dx, dy)
+
+
+def stage_rows(xy: np.ndarray, n_core: int, box, r1: float, stages: int) -> list[np.ndarray]:
+    """Rows of a chunk's window (core first, then halo) that each stage is computed for:
+    the core and the halo points within (stages - 1 - t) x (r1 + slack) of the box for
+    stage t. Ascending and nested, the last stage's rows are the core."""
+    distance = box_distance(xy[n_core:], box)
+    core = np.arange(n_core, dtype=np.int64)
+    return [np.concatenate([core, n_core + np.flatnonzero(
+        distance <= (stages - 1 - t) * (r1 + SLACK))]) if t < stages - 1 else core
+        for t in range(stages)]
+
+
+def one_pass(xyz: np.ndarray, ids: np.ndarray, n_core: int, box,
+             features_of: Callable[[np.ndarray], np.ndarray], forests: Sequence, *,
+             n_classes: int, mode: str, r1: float, r2: float, max_neighbors: int | None
+             ) -> tuple[list[np.ndarray], np.ndarray]:
+    """Each stage's float32 (n_core, C) probabilities of the core points, and a bool
+    (n_core,) mask of the core points whose features are undefined.
+
+    ``xyz``/``ids`` are the chunk's window, its ``n_core`` core points first, with a halo
+    of at least :func:`one_pass_halo`; ``features_of(rows)`` gives the feature rows of
+    those window rows; ``forests`` are the fitted stages in order; ``mode``, ``r1``, ``r2``
+    and ``max_neighbors`` the context's, as :func:`pipeline.cascade.stage_context` takes
+    them. No point here is a training point of the forests.
+    """
+    rows = stage_rows(xyz, n_core, box, r1, len(forests))
+    features = features_of(rows[0])
+    probas, proba = [], None
+    for t, forest in enumerate(forests):
+        context = None
+        if t:
+            context = stage_context(
+                xyz[rows[t - 1]], proba, mode, r1=r1, r2=r2, max_neighbors=max_neighbors,
+                query=np.searchsorted(rows[t - 1], rows[t]), ids=ids[rows[t - 1]])
+        stage_features = features[np.searchsorted(rows[0], rows[t])]
+        proba = predict_stage_proba(forest, stage_input(stage_features, context, n_classes),
+                                    n_classes)
+        probas.append(proba[:n_core])
+    return probas, np.isnan(features[:n_core]).any(axis=1)

@@ -1,0 +1,160 @@
+"""Scenes no forest trains on are classified in one pass per chunk: the same bits as the
+stage-by-stage cascade over stored features, a store without features, and a run killed
+in the middle of it resumes to the same result without redoing finished chunks."""
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.store import open_store
+from tests.workflows.conftest import (
+    assert_same_predictions,
+    read_predictions,
+    silva,
+    write_config,
+)
+
+pytestmark = pytest.mark.slow
+
+SMALL_CHUNKS = {"chunk_size": "auto", "target_points": 12_000}
+
+
+@pytest.fixture(scope="module")
+def trained(survey, tmp_path_factory):
+    """A run with the defaults (its test scene classified in one pass), and its config."""
+    root = tmp_path_factory.mktemp("one_pass")
+    config = write_config(root / "c.yaml", survey)
+    result = silva("run", config, "--out", root / "out", "--quiet", "--in-process")
+    assert result.exit_code == 0, result.output
+    return root / "out", config
+
+
+def _members(out: Path, scene: str) -> set[str]:
+    """The array names stored in the chunks of a scene."""
+    root = open_store(out / "store.zarr", mode="r")
+    chunks = root[f"scenes/{scene}/chunks"]
+    return {name for chunk in chunks.group_keys()
+            for name in chunks[chunk].attrs.get("arrays", {})}
+
+
+def _apply_marks(out: Path) -> dict[str, int]:
+    """mtime of the results of every chunk whose one-pass step is marked done."""
+    marks = {}
+    for meta in (out / "store.zarr").glob("scenes/*/chunks/*/zarr.json"):
+        try:
+            done = json.loads(meta.read_text())["attributes"].get("done", {})
+        except (OSError, ValueError, KeyError):
+            continue
+        pack = meta.parent / "predictions" / "zarr.json"
+        if "apply" in done and pack.exists():
+            marks[str(meta.parent)] = pack.stat().st_mtime_ns
+    return marks
+
+
+def _same_test_tiles(a: Path, b: Path) -> None:
+    """The tiles of ``b`` were exported by ``a`` too, with the same predictions."""
+    pa, pb = read_predictions(a), read_predictions(b)
+    assert pb and set(pb) <= set(pa)
+    for tile in pb:
+        for dim in ("PredictedClassification", "Confidence", "Probability_tree"):
+            assert np.array_equal(pa[tile][dim], pb[tile][dim]), (tile, dim)
+
+
+def test_the_same_bits_as_stored_features_and_a_store_without_them(trained, tmp_path):
+    out, config = trained
+    kept = tmp_path / "kept"
+    result = silva("run", config, "--out", kept, "--quiet", "--in-process",
+                   "--set", "output.keep_features=true")
+    assert result.exit_code == 0, result.output
+    assert_same_predictions(out, kept)
+    assert json.loads((out / "metrics.json").read_text()) == json.loads(
+        (kept / "metrics.json").read_text())
+    # the test scene keeps its points, the last stage's probabilities, the first's labels
+    # and the flags; the train scene its features
+    assert _members(out, "test") == {"xyz", "gid", "label", "role", "halo_xyz", "halo_gid",
+                                     "undefined", "stage1_labels", "stage2_proba"}
+    assert "features" in _members(out, "train") and "features" in _members(kept, "test")
+    size = {d: sum(f.stat().st_size for f in (d / "store.zarr/scenes/test").rglob("*")
+                   if f.is_file()) for d in (out, kept)}
+    assert size[out] * 2 < size[kept]
+
+
+def test_predict_in_one_pass_over_many_chunks(trained, survey, tmp_path):
+    """A saved model applied to balanced chunks in one pass, on two workers, gives what the
+    stage-by-stage cascade gives with the features kept; one chunk recomputed alone
+    (--chunk) gives its bits again."""
+    out, _ = trained
+    config = write_config(tmp_path / "p.yaml", survey, tiling=SMALL_CHUNKS,
+                          data={"train": [], "test": [], "predict": [
+                              str(survey["test"] / "*.laz")]},
+                          cluster={"n_workers": 2})
+    runs = {}
+    for keep in ("false", "true"):
+        runs[keep] = tmp_path / f"keep_{keep}"
+        result = silva("predict", config, "--model", out / "model", "--out", runs[keep],
+                       "--quiet", "--set", f"output.keep_features={keep}")
+        assert result.exit_code == 0, result.output
+    assert_same_predictions(runs["false"], runs["true"])
+    _same_test_tiles(out, runs["false"])  # the run's own test scene, in one chunk
+    assert "features" not in _members(runs["false"], "predict")
+    layout = open_store(runs["false"] / "store.zarr", mode="r").attrs["layout"]
+    chunks = layout["scenes"]["predict"]["chunks"]
+    assert len(chunks) >= 4
+    result = silva("predict", config, "--model", out / "model", "--out", runs["false"],
+                   "--quiet", "--in-process", "--chunk", f"predict/{chunks[1]}")
+    assert result.exit_code == 0, result.output
+    result = silva("predict", config, "--model", out / "model", "--out", runs["false"],
+                   "--quiet", "--in-process")
+    assert result.exit_code == 0, result.output
+    assert_same_predictions(runs["true"], runs["false"])
+
+
+def test_resume_after_sigkill_in_the_one_pass(trained, survey, tmp_path):
+    out, _ = trained
+    config = write_config(tmp_path / "k.yaml", survey, tiling={"chunk_size": 3.5},
+                          data={"train": []})
+    killed = tmp_path / "killed"
+    command = [sys.executable, "-m", "workflows", "predict", str(config), "--model",
+               str(out / "model"), "--out", str(killed), "--quiet", "--in-process"]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and len(_apply_marks(killed)) < 3:
+        time.sleep(0.1)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    done_before = _apply_marks(killed)
+    layout = open_store(killed / "store.zarr", mode="r").attrs["layout"]
+    assert 3 <= len(done_before) < len(layout["scenes"]["test"]["chunks"]), \
+        "the kill did not land inside the one pass"
+    result = silva("predict", config, "--model", out / "model", "--out", killed, "--quiet")
+    assert result.exit_code == 0, result.output
+    after = _apply_marks(killed)
+    assert all(after[chunk] == mtime for chunk, mtime in done_before.items())
+    _same_test_tiles(out, killed)
+    assert np.isfinite(json.loads((killed / "metrics.json").read_text())["macro"]["f1"])
+
+
+def test_the_default_set_in_one_pass_over_many_chunks_equals_one_stored_chunk(survey,
+                                                                              tmp_path):
+    """The default set (several radii, height columns, voxels; the covariance set is a part
+    of it) reaches further than the paper's: in one pass over many chunks it gives the bits
+    of one chunk with stored features."""
+    features = {"set": "default", "voxel": "auto"}
+    runs = {}
+    for name, tiling, keep in (("one_pass", {"chunk_size": 4.0}, "false"),  # halos > 4 m
+                               ("stored", {"chunk_size": 100.0}, "true")):
+        config = write_config(tmp_path / f"{name}.yaml", survey, tiling=tiling,
+                              features={"r1": 0.5, **features})
+        runs[name] = tmp_path / name
+        result = silva("run", config, "--out", runs[name], "--quiet", "--in-process",
+                       "--set", f"output.keep_features={keep}")
+        assert result.exit_code == 0, result.output
+    layout = open_store(runs["one_pass"] / "store.zarr", mode="r").attrs["layout"]
+    assert len(layout["scenes"]["test"]["chunks"]) >= 4
+    assert_same_predictions(runs["one_pass"], runs["stored"])

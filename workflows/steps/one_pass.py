@@ -1,0 +1,91 @@
+"""Classify the scenes no forest trains on in one pass per chunk (:mod:`pipeline.cascade.one_pass`).
+
+Once the cascade's forests exist, a chunk whose halo reaches one context radius further per
+later stage computes its features and every stage itself: no barrier between stages, and
+no features or context in the store, only the last stage's probabilities of the core
+points, the earlier stages' labels (for the scores per stage) and which points have no
+features. The store of a classified survey is then a few times its
+LAZ input instead of some forty. Scenes that train the forests, and every scene with
+``output.keep_features`` or exported feature columns, go stage by stage over stored
+features instead (:mod:`workflows.steps.cascade`); both ways give the same bits.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.cascade import labels_from_proba, one_pass, one_pass_halo
+from pipeline.errors import InputError
+from pipeline.features.sets import FeatureParams, feature_set
+from pipeline.store import chunk_points, labels_array, proba_array, write_arrays
+from pipeline.tiling import layout_from_dict
+from workflows.engine import chunk_tasks
+from workflows.run import Run
+from workflows.steps.cascade import cached_forest
+from workflows.steps.features import sparse_points, warn_sparse
+
+#: The pack of a one-pass chunk's results.
+PACK = "predictions"
+
+
+@dataclass(frozen=True)
+class OnePassTask:
+    features: FeatureParams
+    context: str  # "hard" or "soft"
+    n_classes: int
+    tiles: tuple[int, ...]  # the tiles with points in this scene
+    grid: dict
+    forest_paths: tuple[str, ...]  # the fitted stages, in order
+
+
+def chunk_box(grid, name: str) -> np.ndarray:
+    """The XY box (xmin, ymin, xmax, ymax) of the chunk called ``name``."""
+    names = [grid.chunk_name(i) for i in range(grid.n_chunks)]
+    return grid.boxes()[names.index(name)]
+
+
+def chunk_one_pass(view, task: OnePassTask):
+    """Worker task: every stage's probabilities of one chunk's core points."""
+    core, halo = chunk_points(view.root, view.scene, view.chunk, task.tiles, view.group)
+    if not np.isfinite(core["xyz"]).all():
+        raise InputError(f"chunk {view.chunk} of scene '{view.scene}' holds non-finite "
+                         "coordinates")
+    xyz = np.concatenate([core["xyz"], halo["xyz"]])
+    ids = np.concatenate([core["gid"], halo["gid"]])
+    n_core = len(core["gid"])
+    params = task.features
+    compute = feature_set(params)
+    probas, undefined = one_pass(
+        xyz, ids, n_core, chunk_box(layout_from_dict(task.grid), view.chunk),
+        lambda rows: compute(xyz, rows, ids), [cached_forest(p) for p in task.forest_paths],
+        n_classes=task.n_classes, mode=task.context, r1=params.r1, r2=params.r2,
+        max_neighbors=params.context_max_neighbors)
+    last = len(probas) - 1  # what export and evaluate read: the earlier stages' labels
+    write_arrays(view.group, {"undefined": undefined, proba_array(last): probas[last],
+                              **{labels_array(t): labels_from_proba(p)
+                                 for t, p in enumerate(probas[:last])}}, pack=PACK)
+    return {"sparse": sparse_points(xyz, ids, np.arange(n_core, dtype=np.int64), params.r1)}
+
+
+def one_pass_scenes(run: Run, layout: dict, n_stages: int) -> set[str]:
+    """The scenes of ``layout`` classified in one pass: those no forest trains on, unless the
+    configuration keeps features (``output.keep_features``, exported feature columns) or
+    its halo is too narrow for ``n_stages``."""
+    if run.cfg.output.keep_features or run.cfg.feature_dim_columns:
+        return set()
+    if run.halo < one_pass_halo(run.features.halo, run.r1, n_stages):
+        return set()
+    return {scene for scene in layout["scenes"] if scene != "train"}
+
+
+def classify_in_one_pass(run: Run, engine, layout: dict, stages: list[dict],
+                         only: str | None = None) -> None:
+    """Classify every chunk of ``layout`` with the saved forests of ``stages``."""
+    forests = tuple(str(run.model_path / stage["file"]) for stage in stages)
+    fingerprint = "-".join([run.fingerprint("features"), *(s["fingerprint"] for s in stages)])
+    tasks = chunk_tasks(
+        run, layout, "apply", chunk_one_pass,
+        lambda info: OnePassTask(run.features, run.cfg.cascade.context, run.n_classes,
+                                 tuple(info["tiles"]), info["grid"], forests),
+        fingerprint, "predict", only=only)
+    warn_sparse(run, engine.map("apply", tasks).values())
