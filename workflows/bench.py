@@ -461,7 +461,8 @@ def _print_runs(runs: dict, result: dict) -> None:
     click.echo(f"{points:,} points, {result['chunks']} chunks ({result['chunks_one_chunk_run']} "
                "in the one-chunk run); seconds and points/s per step, cluster start excluded:")
     click.echo(f"{'step':<10}" + "".join(f"{label:>{width}}" for label in runs))
-    steps = list(dict.fromkeys(s for r in runs.values() for s in r["timings"]))
+    steps = list(dict.fromkeys(s for r in runs.values() for s in r["timings"]
+                               if r["timings"][s] >= 0.05))  # not a step done inside another
     for step in [*steps, "total"]:
         cells = [r["seconds"] if step == "total" else r["timings"].get(step)
                  for r in runs.values()]

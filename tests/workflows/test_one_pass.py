@@ -100,6 +100,8 @@ def test_predict_in_one_pass_over_many_chunks(trained, survey, tmp_path):
         result = silva("predict", config, "--model", out / "model", "--out", runs[keep],
                        "--quiet", "--set", f"output.keep_features={keep}")
         assert result.exit_code == 0, result.output
+        folded = "[2/6] features: computed with the stages, in one pass per chunk"
+        assert (folded in result.output) == (keep == "false")
     assert_same_predictions(runs["false"], runs["true"])
     _same_test_tiles(out, runs["false"])  # the run's own test scene, in one chunk
     assert "features" not in _members(runs["false"], "predict")
