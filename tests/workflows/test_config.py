@@ -100,7 +100,7 @@ def test_defaults():
                                      "local_directory": None}
     assert d["cluster"]["adapt"] is None
     assert d["output"] == {"format": "laz", "write_classification": False,
-                           "probabilities": True, "keep_store": True, "keep_features": False,
+                           "probabilities": True, "keep_store": True, "keep_features": "auto",
                            "feature_dims": [], "point_format": "auto"}
 
 

@@ -13,6 +13,9 @@ import numpy as np
 import pytest
 
 from pipeline.store import open_store
+from workflows.config import load_config
+from workflows.run import Run
+from workflows.steps.one_pass import MAX_BORDER_SHARE, border_share, one_pass_scenes
 from tests.workflows.conftest import (
     assert_same_predictions,
     read_predictions,
@@ -108,11 +111,11 @@ def test_predict_in_one_pass_over_many_chunks(trained, survey, tmp_path):
     layout = open_store(runs["false"] / "store.zarr", mode="r").attrs["layout"]
     chunks = layout["scenes"]["predict"]["chunks"]
     assert len(chunks) >= 4
-    result = silva("predict", config, "--model", out / "model", "--out", runs["false"],
-                   "--quiet", "--in-process", "--chunk", f"predict/{chunks[1]}")
+    again = ("predict", config, "--model", out / "model", "--out", runs["false"], "--quiet",
+             "--in-process", "--set", "output.keep_features=false")
+    result = silva(*again, "--chunk", f"predict/{chunks[1]}")
     assert result.exit_code == 0, result.output
-    result = silva("predict", config, "--model", out / "model", "--out", runs["false"],
-                   "--quiet", "--in-process")
+    result = silva(*again)
     assert result.exit_code == 0, result.output
     assert_same_predictions(runs["true"], runs["false"])
 
@@ -120,7 +123,7 @@ def test_predict_in_one_pass_over_many_chunks(trained, survey, tmp_path):
 def test_resume_after_sigkill_in_the_one_pass(trained, survey, tmp_path):
     out, _ = trained
     config = write_config(tmp_path / "k.yaml", survey, tiling={"chunk_size": 3.5},
-                          data={"train": []})
+                          data={"train": []}, output={"keep_features": False})
     killed = tmp_path / "killed"
     command = [sys.executable, "-m", "workflows", "predict", str(config), "--model",
                str(out / "model"), "--out", str(killed), "--quiet", "--in-process"]
@@ -160,3 +163,29 @@ def test_the_default_set_in_one_pass_over_many_chunks_equals_one_stored_chunk(su
     layout = open_store(runs["one_pass"] / "store.zarr", mode="r").attrs["layout"]
     assert len(layout["scenes"]["test"]["chunks"]) >= 4
     assert_same_predictions(runs["one_pass"], runs["stored"])
+
+
+def test_auto_leaves_scenes_of_small_chunks_to_the_stored_features(survey, tmp_path):
+    """keep_features auto: one pass unless the borders of a scene's chunks hold more than
+    a tenth of its points; false and true decide alone; the train scene never."""
+    def layout(size):
+        grid = {"x0": 0.0, "y0": 0.0, "size": size, "nx": 3, "ny": 3}
+        return {"scenes": {name: {"grid": grid} for name in ("train", "test", "predict")}}
+
+    def scenes(keep, size):
+        cfg = load_config(write_config(tmp_path / "c.yaml", survey,
+                                       output={"keep_features": keep}))
+        return one_pass_scenes(Run(cfg, tmp_path / "out", quiet=True), layout(size), 2)
+
+    assert scenes("auto", 100.0) == scenes(False, 3.0) == {"test", "predict"}
+    assert scenes("auto", 3.0) == scenes(True, 100.0) == set()
+    # the halo 1.01 m, the ring 0.5 m: squares of 30 m have 0.14 of their points beside
+    # them within the halo, half of that within the ring; squares of 15 m twice as many
+    share = {size: border_share(layout(size)["scenes"]["test"], 1.01, 0.5)
+             for size in (15.0, 30.0)}
+    assert share[30.0] == pytest.approx(((30 + 2.02) ** 2 - 30**2) / 30**2 * 0.5 / 1.01)
+    assert share[30.0] < MAX_BORDER_SHARE < share[15.0]
+    balanced = {"grid": {"kind": "balanced", "cuts": [[0, 10.0, -1, -2]], "cell": 0.25,
+                         "bounds": [0.0, 0.0, 20.0, 20.0]},
+                "estimate": {"core": [700, 771, 800], "window": [900, 956, 990]}}
+    assert border_share(balanced, 1.52, 1.0) == pytest.approx((956 / 771 - 1) / 1.52)

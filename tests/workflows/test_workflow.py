@@ -85,11 +85,14 @@ def test_outputs_of_a_complete_run(reference, survey):
 
 @pytest.fixture(scope="module")
 def many_chunks(survey, tmp_path_factory):
-    """3 m chunks on 2 workers: dozens of chunks whose halos the results must not see."""
+    """3 m chunks on 2 workers: dozens of chunks whose halos the results must not see, the
+    test scene's classified in one pass (which ``keep_features: auto`` would leave to the
+    stored features at this chunk size)."""
     root = tmp_path_factory.mktemp("many")
     config = write_config(
         root / "many.yaml", survey, tiling={"chunk_size": 3.0},
         cluster={"kind": "local", "n_workers": 2, "threads_per_worker": 1, "dashboard": False},
+        output={"keep_features": False},
     )
     result = silva("run", config, "--out", root / "out", "--quiet")
     assert result.exit_code == 0, result.output

@@ -83,6 +83,15 @@ ChunkSize = Annotated[Union[Literal["auto"], float], BeforeValidator(_chunk_size
 AutoLength = ChunkSize
 
 
+def _auto_or_bool(value: Any) -> Any:
+    if value == "auto" or isinstance(value, bool):
+        return value
+    raise field_error("must be 'auto', true or false")
+
+
+AutoBool = Annotated[Union[Literal["auto"], bool], BeforeValidator(_auto_or_bool)]
+
+
 def _max_features(value: Any) -> Any:
     ok = (
         value in ("sqrt", "log2")

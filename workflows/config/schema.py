@@ -20,6 +20,7 @@ from pipeline.features.sets import (
 )
 from pipeline.io.base import LAS_NAME_BYTES
 from workflows.config.fields import (
+    AutoBool,
     AutoLength,
     ChunkSize,
     Integer,
@@ -455,13 +456,15 @@ class OutputConfig(Section):
         "rerun of the same configuration then says the results are complete, any other "
         "recomputes from the input tiles.",
     )
-    keep_features: bool = Field(
-        False,
-        description="true: keep the features of every scene in store.zarr, so that a rerun "
-        "with other cascade settings, or another model applied to the same output, reuses "
-        "them (silva sweep sets it). false: the scenes no forest trains on (data.test, "
-        "data.predict, every scene of silva predict) are classified in one pass per chunk "
-        "and store no features: a store a few times the input instead of some forty. "
+    keep_features: AutoBool = Field(
+        "auto",
+        description="false: the scenes no forest trains on (data.test, data.predict, every "
+        "scene of silva predict) are classified in one pass per chunk and store no "
+        "features: a store a few times the input instead of some forty. true: keep the "
+        "features of every scene in store.zarr, so that a rerun with other cascade "
+        "settings, or another model applied to the same output, reuses them (silva sweep "
+        "sets it). auto: false, except for a scene whose chunks are so small that the one "
+        "pass would compute more than a tenth of its points twice (their borders). "
         "Exported feature columns (output.feature_dims) keep them too.",
     )
     feature_dims: FeatureDims = Field(

@@ -6,8 +6,10 @@ no features or context in the store, only the last stage's probabilities of the 
 points, the earlier stages' labels (for the scores per stage) and which points have no
 features. The store of a classified survey is then a few times its
 LAZ input instead of some forty. Scenes that train the forests, and every scene with
-``output.keep_features`` or exported feature columns, go stage by stage over stored
-features instead (:mod:`workflows.steps.cascade`); both ways give the same bits.
+``output.keep_features: true`` or exported feature columns (with ``auto``, also a scene cut
+into chunks so small that their borders would be computed twice too often), go stage by
+stage over stored features instead (:mod:`workflows.steps.cascade`); both ways give the
+same bits.
 """
 
 from dataclasses import dataclass
@@ -67,15 +69,41 @@ def chunk_one_pass(view, task: OnePassTask):
     return {"sparse": sparse_points(xyz, ids, np.arange(n_core, dtype=np.int64), params.r1)}
 
 
+#: With ``output.keep_features: auto``, a scene goes stage by stage instead when its chunks'
+#: one pass would compute more than this share of its points beside their cores: the
+#: features of those points cost more than writing and reading back every point's.
+MAX_BORDER_SHARE = 0.1
+
+
 def one_pass_scenes(run: Run, layout: dict, n_stages: int) -> set[str]:
     """The scenes of ``layout`` classified in one pass: those no forest trains on, unless the
-    configuration keeps features (``output.keep_features``, exported feature columns) or
-    its halo is too narrow for ``n_stages``."""
-    if run.cfg.output.keep_features or run.cfg.feature_dim_columns:
+    configuration keeps features (``output.keep_features``, exported feature columns), its
+    halo is too narrow for ``n_stages`` or (``keep_features: auto``) the scene's chunks are
+    small enough for their borders to cost more than the stored features."""
+    keep = run.cfg.output.keep_features
+    if keep is True or run.cfg.feature_dim_columns:
         return set()
     if run.halo < one_pass_halo(run.features.halo, run.r1, n_stages):
         return set()
-    return {scene for scene in layout["scenes"] if scene != "train"}
+    width = (n_stages - 1) * run.r1  # the widest ring of halo points a stage is computed for
+    return {scene for scene, info in layout["scenes"].items() if scene != "train" and (
+        keep is False or border_share(info, run.halo, width) <= MAX_BORDER_SHARE)}
+
+
+def border_share(info: dict, halo: float, width: float) -> float:
+    """Estimated share of a scene's points, beside its chunks' cores, that lie within
+    ``width`` of a core (as many again as the one pass computes twice), from its layout
+    entry: the counted points of its median balanced chunk, or a regular grid's squares at
+    uniform density; zero for a single chunk, whose outer sides are open."""
+    grid = layout_from_dict(info["grid"])
+    if grid.n_chunks == 1 or width <= 0:
+        return 0.0
+    if "estimate" in info:
+        core, window = info["estimate"]["core"][1], info["estimate"]["window"][1]
+        halo_share = window / max(core, 1) - 1
+    else:
+        halo_share = ((grid.size + 2 * halo) ** 2 - grid.size ** 2) / grid.size ** 2
+    return halo_share * min(width / halo, 1.0)
 
 
 def classify_in_one_pass(run: Run, engine, layout: dict, stages: list[dict],
