@@ -51,10 +51,12 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
         members = [t for t in tiles if t["scene"] == scene]
         points = sum(t["n_points"] for t in members)
         area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
+        way = "one pass" if scene in one_pass else "stage by stage"
         head = (f"scene {scene}: {counted(len(members), 'tile')}, "
-                f"{counted(points, 'point')}, {points / area:,.1f} points/m²; ")
+                f"{counted(points, 'point')}, {points / area:,.1f} points/m²; "
+                f"halo {info['halo']:g} m ({way}); ")
         if isinstance(grid, Grid):
-            window = (grid.size + 2 * run.halo) ** 2
+            window = (grid.size + 2 * info["halo"]) ** 2
             per_chunk = min(points, points / area * window)
             lines.append(f"{head}chunks of {grid.size:g} m, a {grid.nx} x {grid.ny} grid; "
                          f"about {counted(round(per_chunk), 'point')} in a chunk with its halo")

@@ -26,6 +26,7 @@ from pipeline.atomic import atomic_write_text, remove_parts
 from pipeline.cascade import CascadeParams
 from pipeline.errors import ConfigError, SilvaError
 from pipeline.features.sets import FeatureParams, feature_set
+from pipeline.model import read_description
 from pipeline.store import open_store
 from workflows.autoparams import resolve_auto
 from workflows.config import SilvaConfig, dump_config, fingerprint
@@ -110,6 +111,13 @@ class Run:
     @property
     def halo(self) -> float:
         return float(self.cfg.halo)
+
+    @property
+    def n_stages(self) -> int:
+        """The cascade stages the run computes: the applied model's, or cascade.stages."""
+        if self.model_dir is None:
+            return int(self.cfg.cascade.stages)
+        return len(read_description(self.model_path).get("stages", []))
 
     @property
     def classes(self) -> list[str]:

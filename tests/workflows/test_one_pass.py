@@ -15,6 +15,7 @@ import pytest
 from pipeline.store import open_store
 from workflows.config import load_config
 from workflows.run import Run
+from workflows.steps.ingest import plan_scenes, plan_tiles
 from workflows.steps.one_pass import MAX_BORDER_SHARE, border_share, one_pass_scenes
 from tests.workflows.conftest import (
     assert_same_predictions,
@@ -166,23 +167,30 @@ def test_the_default_set_in_one_pass_over_many_chunks_equals_one_stored_chunk(su
 
 
 def test_auto_leaves_scenes_of_small_chunks_to_the_stored_features(survey, tmp_path):
-    """keep_features auto: one pass unless the borders of a scene's chunks hold more than
-    a tenth of its points; false and true decide alone; the train scene never."""
-    def layout(size):
-        grid = {"x0": 0.0, "y0": 0.0, "size": size, "nx": 3, "ny": 3}
-        return {"scenes": {name: {"grid": grid} for name in ("train", "test", "predict")}}
-
-    def scenes(keep, size):
-        cfg = load_config(write_config(tmp_path / "c.yaml", survey,
+    """keep_features auto: a scene gets the halo of the one pass unless the borders of its
+    chunks hold more than a tenth of its points; false and true decide alone; the train
+    scene never gets it. The halo then decides which scenes go in one pass."""
+    def planned(keep, size):
+        cfg = load_config(write_config(tmp_path / "c.yaml", survey, tiling={"chunk_size": size},
                                        output={"keep_features": keep}))
-        return one_pass_scenes(Run(cfg, tmp_path / "out", quiet=True), layout(size), 2)
+        run = Run(cfg, tmp_path / "out", quiet=True)
+        scenes = plan_scenes(run, plan_tiles(run))
+        return ({scene: info["halo"] for scene, info in scenes.items()},
+                one_pass_scenes(run, {"scenes": scenes}, 2))
 
-    assert scenes("auto", 100.0) == scenes(False, 3.0) == {"test", "predict"}
-    assert scenes("auto", 3.0) == scenes(True, 100.0) == set()
+    reach, wide = 0.5, 1.01  # write_config's paper set at r1 0.5, and with 2 stages
+    assert planned("auto", 100.0) == planned(False, 3.0) == (
+        {"train": reach, "test": wide}, {"test"})
+    assert planned("auto", 3.0) == planned(True, 100.0) == (
+        {"train": reach, "test": reach}, set())
+    assert not (tmp_path / "out").exists()  # planning writes nothing
+
     # the halo 1.01 m, the ring 0.5 m: squares of 30 m have 0.14 of their points beside
     # them within the halo, half of that within the ring; squares of 15 m twice as many
-    share = {size: border_share(layout(size)["scenes"]["test"], 1.01, 0.5)
-             for size in (15.0, 30.0)}
+    def grid(size):
+        return {"grid": {"x0": 0.0, "y0": 0.0, "size": size, "nx": 3, "ny": 3}}
+
+    share = {size: border_share(grid(size), 1.01, 0.5) for size in (15.0, 30.0)}
     assert share[30.0] == pytest.approx(((30 + 2.02) ** 2 - 30**2) / 30**2 * 0.5 / 1.01)
     assert share[30.0] < MAX_BORDER_SHARE < share[15.0]
     balanced = {"grid": {"kind": "balanced", "cuts": [[0, 10.0, -1, -2]], "cell": 0.25,

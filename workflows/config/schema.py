@@ -363,7 +363,9 @@ class TilingConfig(Section):
         "minimum: the features' reach (their largest radius or height column); default: "
         "that plus one context radius (features.r1) and a centimetre per cascade stage "
         "after the first, with which a chunk that is only classified computes all its "
-        "stages in one pass and stores no features.",
+        "stages in one pass and stores no features. The scenes that go stage by stage "
+        "(those trained on, and those output.keep_features keeps) take only the features' "
+        "reach.",
     )
     read_batch: Integer = Field(
         1_000_000, ge=1, description="Points per read batch when streaming tiles."

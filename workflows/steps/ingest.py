@@ -41,6 +41,7 @@ from workflows.config import expand_inputs
 from workflows.engine import Task
 from workflows.progress import counted, say
 from workflows.run import SCENES, Run
+from workflows.steps.one_pass import MAX_BORDER_SHARE, border_share, wants_one_pass
 
 AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -118,7 +119,8 @@ def plan_tiles(run: Run) -> list[dict]:
 
 
 def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
-    """The chunk layout of each scene, covering all its tiles (under the key ``grid``).
+    """The chunk layout of each scene, covering all its tiles (under the key ``grid``), and
+    its halo (``halo``).
 
     With ``tiling.chunk_size: auto`` and ``tiling.layout: balanced`` (the default), a first
     pass counts each tile's points on a lattice (one task per tile on ``engine``, or in this
@@ -127,35 +129,56 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
     max counted points of the chunks' cores and of their cores with halos. Otherwise a
     regular grid: of ``chunk_size`` metres, or with ``layout: grid`` sized from the headers
     (see :func:`scene_chunk_size`).
+
+    A scene that may be classified in one pass (:func:`~workflows.steps.one_pass.
+    wants_one_pass`) gets the configured halo, unless (``output.keep_features: auto``) the
+    borders of its chunks would hold too many of its points; every other scene the
+    features' reach, all that the cascade stage by stage needs.
     """
-    tiling = run.cfg.tiling
     scenes = {}
     for scene in SCENES:
         members = [t for t in tiles if t["scene"] == scene]
         if not members:
             continue
-        info: dict = {"tiles": [t["index"] for t in members]}
-        n_points = sum(t["n_points"] for t in members)
-        mins = np.min([t["mins"] for t in members], axis=0)
-        maxs = np.max([t["maxs"] for t in members], axis=0)
-        if tiling.chunk_size == "auto" and tiling.layout == "balanced":
-            if n_points <= tiling.target_points:  # one chunk: the headers say so, no count
-                bounds = (*np.floor(mins[:2]), *np.ceil(maxs[:2]))
-                layout = BalancedLayout((), 1.0, tuple(float(v) for v in bounds))
-                estimates = ([n_points], [n_points])
-            else:
-                counts = scene_counts(run, scene, members, engine)
-                layout = BalancedLayout.build(counts, run.halo, int(tiling.target_points))
-                estimates = layout.estimate(counts, run.halo)
-            info["grid"] = layout.to_dict()
-            info["estimate"] = {name: [int(v) for v in np.percentile(values, [0, 50, 100],
-                                                                     method="lower")]
-                                for name, values in zip(("core", "window"), estimates)}
-        else:
-            size = scene_chunk_size(run, n_points, mins, maxs)
-            info["grid"] = Grid.covering(mins, maxs, size).to_dict()
-        scenes[scene] = info
+        counted_once = []  # the counting pass, made at most once per scene
+
+        def counts():
+            if not counted_once:
+                counted_once.append(scene_counts(run, scene, members, engine))
+            return counted_once[0]
+
+        reach = run.features.halo
+        halo = run.halo if wants_one_pass(run, scene) else reach
+        info = _cut_scene(run, members, halo, counts)
+        if halo > reach and run.cfg.output.keep_features == "auto" and border_share(
+                info, halo, (run.n_stages - 1) * run.r1) > MAX_BORDER_SHARE:
+            halo = reach  # the one pass would cost more than the stored features save
+            info = _cut_scene(run, members, halo, counts)
+        scenes[scene] = {"tiles": [t["index"] for t in members], **info, "halo": halo}
     return scenes
+
+
+def _cut_scene(run: Run, members: list[dict], halo: float, counts) -> dict:
+    """The ``grid`` (and ``estimate``) of a scene with ``halo``; ``counts()`` its counted
+    points."""
+    tiling = run.cfg.tiling
+    n_points = sum(t["n_points"] for t in members)
+    mins = np.min([t["mins"] for t in members], axis=0)
+    maxs = np.max([t["maxs"] for t in members], axis=0)
+    if tiling.chunk_size != "auto" or tiling.layout != "balanced":
+        size = scene_chunk_size(run, n_points, mins, maxs, halo)
+        return {"grid": Grid.covering(mins, maxs, size).to_dict()}
+    if n_points <= tiling.target_points:  # one chunk: the headers say so, no count
+        bounds = (*np.floor(mins[:2]), *np.ceil(maxs[:2]))
+        layout = BalancedLayout((), 1.0, tuple(float(v) for v in bounds))
+        estimates = ([n_points], [n_points])
+    else:
+        layout = BalancedLayout.build(counts(), halo, int(tiling.target_points))
+        estimates = layout.estimate(counts(), halo)
+    return {"grid": layout.to_dict(),
+            "estimate": {name: [int(v) for v in np.percentile(values, [0, 50, 100],
+                                                              method="lower")]
+                         for name, values in zip(("core", "window"), estimates)}}
 
 
 def count_tile(path, cell: float, read_batch: int) -> CellCounts:
@@ -195,13 +218,14 @@ def layout_text(grid: dict) -> str:
     return f"in {layout.n_chunks} chunks {layout.label}"
 
 
-def scene_chunk_size(run: Run, n_points: int, mins, maxs) -> float:
-    """The chunk side in metres for a scene of ``n_points`` in the XY box [mins, maxs]."""
+def scene_chunk_size(run: Run, n_points: int, mins, maxs, halo: float) -> float:
+    """The chunk side in metres for a scene of ``n_points`` in the XY box [mins, maxs]
+    with ``halo``."""
     tiling = run.cfg.tiling
     if tiling.chunk_size != "auto":
         return float(tiling.chunk_size)
     width, height = (max(0.0, float(maxs[i]) - float(mins[i])) for i in (0, 1))
-    return auto_chunk_size(n_points, width * height, run.halo, int(tiling.target_points),
+    return auto_chunk_size(n_points, width * height, halo, int(tiling.target_points),
                            extent=max(width, height))
 
 
@@ -370,7 +394,7 @@ def ingest(run: Run, engine) -> dict:
                     scene=scene,
                     tile=tile,
                     grid=scenes[scene]["grid"],
-                    halo=run.halo,
+                    halo=scenes[scene]["halo"],
                     label_field=run.cfg.data.label_field,
                     code_to_class=run.code_to_class,
                     split=run.cfg.data.split,

@@ -75,19 +75,25 @@ def chunk_one_pass(view, task: OnePassTask):
 MAX_BORDER_SHARE = 0.1
 
 
+def wants_one_pass(run: Run, scene: str) -> bool:
+    """Whether ``scene`` is classified in one pass when its halo allows: no forest trains on
+    it, the configuration keeps no features (``output.keep_features: true``, exported
+    feature columns) and the configured halo reaches across the stages the run applies."""
+    return (scene != "train" and run.cfg.output.keep_features is not True
+            and not run.cfg.feature_dim_columns
+            and run.halo >= one_pass_halo(run.features.halo, run.r1, run.n_stages))
+
+
 def one_pass_scenes(run: Run, layout: dict, n_stages: int) -> set[str]:
-    """The scenes of ``layout`` classified in one pass: those no forest trains on, unless the
-    configuration keeps features (``output.keep_features``, exported feature columns), its
-    halo is too narrow for ``n_stages`` or (``keep_features: auto``) the scene's chunks are
-    small enough for their borders to cost more than the stored features."""
-    keep = run.cfg.output.keep_features
-    if keep is True or run.cfg.feature_dim_columns:
+    """The scenes of ``layout`` classified in one pass with ``n_stages``: those no forest
+    trains on, unless the configuration keeps features, or the scene's halo (chosen when it
+    was planned, see :func:`workflows.steps.ingest.plan_scenes`) is too narrow."""
+    cfg = run.cfg
+    if cfg.output.keep_features is True or cfg.feature_dim_columns:
         return set()
-    if run.halo < one_pass_halo(run.features.halo, run.r1, n_stages):
-        return set()
-    width = (n_stages - 1) * run.r1  # the widest ring of halo points a stage is computed for
-    return {scene for scene, info in layout["scenes"].items() if scene != "train" and (
-        keep is False or border_share(info, run.halo, width) <= MAX_BORDER_SHARE)}
+    need = one_pass_halo(run.features.halo, run.r1, n_stages)
+    return {scene for scene, info in layout["scenes"].items()
+            if scene != "train" and info.get("halo", run.halo) >= need}
 
 
 def border_share(info: dict, halo: float, width: float) -> float:
