@@ -462,13 +462,13 @@ def _print_runs(runs: dict, result: dict) -> None:
                "in the one-chunk run); seconds and points/s per step, cluster start excluded:")
     click.echo(f"{'step':<10}" + "".join(f"{label:>{width}}" for label in runs))
     steps = list(dict.fromkeys(s for r in runs.values() for s in r["timings"]
-                               if r["timings"][s] >= 0.05))  # not a step done inside another
+                               if r["timings"][s] >= 0.05))
     for step in [*steps, "total"]:
         cells = [r["seconds"] if step == "total" else r["timings"].get(step)
                  for r in runs.values()]
         click.echo(f"{step:<10}" + "".join(
-            f"{'':>{width}}" if c is None
-            else f"{f'{c:.1f} s {points / max(c, 1e-9):,.0f}/s':>{width}}" for c in cells))
+            f"{'':>{width}}" if c is None or c < 0.05  # not run, or done inside another step
+            else f"{f'{c:.1f} s {points / c:,.0f}/s':>{width}}" for c in cells))
     click.echo(f"{result['workers']} workers: {result['points_per_s']:,.0f} points/s "
                f"({result['points_per_s_per_worker']:,.0f} per worker), "
                f"{result['speedup']:.2f}x one worker; chunk overhead "
