@@ -121,5 +121,5 @@ def classify_in_one_pass(run: Run, engine, layout: dict, stages: list[dict],
         run, layout, "apply", chunk_one_pass,
         lambda info: OnePassTask(run.features, run.cfg.cascade.context, run.n_classes,
                                  tuple(info["tiles"]), info["grid"], forests),
-        fingerprint, "predict", only=only)
+        fingerprint, "train" if run.model_dir is None else "predict", only=only)
     warn_sparse(run, engine.map("apply", tasks).values())
