@@ -39,7 +39,7 @@ from pipeline.cascade.stage import (
 __all__ = [
     "CascadeData", "CascadeParams", "CascadedForest", "CloudData", "FittedStage",
     "ForestParams", "chunk_proba", "feature_matrix", "fit_stage", "fit_stage_forest",
-    "fold_of", "id_hash", "labels_from_proba", "one_pass", "one_pass_halo", "predict_stage", "predict_stage_proba",
-    "resolve_seed", "run_cascade", "sampling_fractions", "stage_context", "stage_input",
-    "stage_seed", "training_mask", "training_rows",
+    "fold_of", "id_hash", "labels_from_proba", "one_pass", "one_pass_halo", "predict_stage",
+    "predict_stage_proba", "resolve_seed", "run_cascade", "sampling_fractions",
+    "stage_context", "stage_input", "stage_seed", "training_mask", "training_rows",
 ]

@@ -33,14 +33,20 @@ class FeatureTask:
     tiles: tuple[int, ...]  # the tiles with points in this scene
 
 
-def chunk_features(view, task: FeatureTask):
-    """Worker task: assemble one chunk and compute its features; return its class counts."""
-    core, halo = chunk_points(view.root, view.scene, view.chunk, task.tiles, view.group)
+def chunk_window(view, tiles) -> tuple[dict, np.ndarray, np.ndarray]:
+    """A chunk assembled from the parts of ``tiles``: its core arrays, and the xyz and ids
+    of its window, the core points first, then the halo's."""
+    core, halo = chunk_points(view.root, view.scene, view.chunk, tiles, view.group)
     if not np.isfinite(core["xyz"]).all():
         raise InputError(f"chunk {view.chunk} of scene '{view.scene}' holds non-finite "
                          "coordinates")
-    xyz = np.concatenate([core["xyz"], halo["xyz"]])
-    ids = np.concatenate([core["gid"], halo["gid"]])
+    return (core, np.concatenate([core["xyz"], halo["xyz"]]),
+            np.concatenate([core["gid"], halo["gid"]]))
+
+
+def chunk_features(view, task: FeatureTask):
+    """Worker task: assemble one chunk and compute its features; return its class counts."""
+    core, xyz, ids = chunk_window(view, task.tiles)
     query = np.arange(len(core["gid"]), dtype=np.int64)
     features = feature_set(task.features)(xyz, query, ids)
     view.write(features=features, undefined=np.isnan(features).any(axis=1))

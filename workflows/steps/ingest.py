@@ -8,6 +8,7 @@ they fall in. Memory is bounded by the read batch, not by the tile or survey siz
 import hashlib
 import json
 import os
+from functools import cache, partial
 from pathlib import Path
 
 import numpy as np
@@ -140,13 +141,8 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
         members = [t for t in tiles if t["scene"] == scene]
         if not members:
             continue
-        counted_once = []  # the counting pass, made at most once per scene
-
-        def counts():
-            if not counted_once:
-                counted_once.append(scene_counts(run, scene, members, engine))
-            return counted_once[0]
-
+        # the counting pass, made at most once per scene (and only if a layout needs it)
+        counts = cache(partial(scene_counts, run, scene, members, engine))
         reach = run.features.halo
         halo = run.halo if wants_one_pass(run, scene) else reach
         info = _cut_scene(run, members, halo, counts)

@@ -17,14 +17,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.cascade import labels_from_proba, one_pass, one_pass_halo
-from pipeline.errors import InputError
 from pipeline.features.sets import FeatureParams, feature_set
-from pipeline.store import chunk_points, labels_array, proba_array, write_arrays
+from pipeline.store import labels_array, proba_array, write_arrays
 from pipeline.tiling import layout_from_dict
 from workflows.engine import chunk_tasks
 from workflows.run import Run
 from workflows.steps.cascade import cached_forest
-from workflows.steps.features import sparse_points, warn_sparse
+from workflows.steps.features import chunk_window, sparse_points, warn_sparse
 
 #: The pack of a one-pass chunk's results.
 PACK = "predictions"
@@ -48,12 +47,7 @@ def chunk_box(grid, name: str) -> np.ndarray:
 
 def chunk_one_pass(view, task: OnePassTask):
     """Worker task: every stage's probabilities of one chunk's core points."""
-    core, halo = chunk_points(view.root, view.scene, view.chunk, task.tiles, view.group)
-    if not np.isfinite(core["xyz"]).all():
-        raise InputError(f"chunk {view.chunk} of scene '{view.scene}' holds non-finite "
-                         "coordinates")
-    xyz = np.concatenate([core["xyz"], halo["xyz"]])
-    ids = np.concatenate([core["gid"], halo["gid"]])
+    core, xyz, ids = chunk_window(view, task.tiles)
     n_core = len(core["gid"])
     params = task.features
     compute = feature_set(params)
@@ -75,25 +69,27 @@ def chunk_one_pass(view, task: OnePassTask):
 MAX_BORDER_SHARE = 0.1
 
 
-def wants_one_pass(run: Run, scene: str) -> bool:
-    """Whether ``scene`` is classified in one pass when its halo allows: no forest trains on
-    it, the configuration keeps no features (``output.keep_features: true``, exported
-    feature columns) and the configured halo reaches across the stages the run applies."""
+def _may_skip_features(run: Run, scene: str) -> bool:
+    """No forest trains on ``scene`` and the configuration keeps no features
+    (``output.keep_features: true``, exported feature columns)."""
     return (scene != "train" and run.cfg.output.keep_features is not True
-            and not run.cfg.feature_dim_columns
+            and not run.cfg.feature_dim_columns)
+
+
+def wants_one_pass(run: Run, scene: str) -> bool:
+    """Whether ``scene`` is classified in one pass when its halo allows: it may skip the
+    features, and the configured halo reaches across the stages the run applies."""
+    return (_may_skip_features(run, scene)
             and run.halo >= one_pass_halo(run.features.halo, run.r1, run.n_stages))
 
 
 def one_pass_scenes(run: Run, layout: dict, n_stages: int) -> set[str]:
-    """The scenes of ``layout`` classified in one pass with ``n_stages``: those no forest
-    trains on, unless the configuration keeps features, or the scene's halo (chosen when it
-    was planned, see :func:`workflows.steps.ingest.plan_scenes`) is too narrow."""
-    cfg = run.cfg
-    if cfg.output.keep_features is True or cfg.feature_dim_columns:
-        return set()
+    """The scenes of ``layout`` classified in one pass with ``n_stages``: those that may
+    skip the features and whose halo (chosen when they were planned, see
+    :func:`workflows.steps.ingest.plan_scenes`) is wide enough."""
     need = one_pass_halo(run.features.halo, run.r1, n_stages)
     return {scene for scene, info in layout["scenes"].items()
-            if scene != "train" and info.get("halo", run.halo) >= need}
+            if _may_skip_features(run, scene) and info.get("halo", run.halo) >= need}
 
 
 def border_share(info: dict, halo: float, width: float) -> float:
