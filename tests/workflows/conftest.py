@@ -1,5 +1,9 @@
 """Fixtures for workflow tests: small synthetic surveys and configs that run in seconds."""
 
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import laspy
@@ -63,6 +67,18 @@ def assert_same_predictions(a: Path, b: Path) -> None:
     for tile in pa:
         for dim in ("PredictedClassification", "Confidence", "Probability_tree"):
             assert np.array_equal(pa[tile][dim], pb[tile][dim]), (tile, dim)
+
+
+def sigkill_when(args, ready, timeout: float = 240) -> None:
+    """Run ``python -m workflows ARGS`` and SIGKILL it as soon as ``ready()`` holds (or
+    after ``timeout`` seconds)."""
+    command = [sys.executable, "-m", "workflows", *map(str, args)]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and not ready():
+        time.sleep(0.1)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
 
 
 # -- the CLI as a user meets it ------------------------------------------------------------

@@ -3,10 +3,6 @@ stage-by-stage cascade over stored features, a store without features, and a run
 in the middle of it resumes to the same result without redoing finished chunks."""
 
 import json
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +16,7 @@ from workflows.steps.one_pass import MAX_BORDER_SHARE, border_share, one_pass_sc
 from tests.workflows.conftest import (
     assert_same_predictions,
     read_predictions,
+    sigkill_when,
     silva,
     write_config,
 )
@@ -126,14 +123,8 @@ def test_resume_after_sigkill_in_the_one_pass(trained, survey, tmp_path):
     config = write_config(tmp_path / "k.yaml", survey, tiling={"chunk_size": 3.5},
                           data={"train": []}, output={"keep_features": False})
     killed = tmp_path / "killed"
-    command = [sys.executable, "-m", "workflows", "predict", str(config), "--model",
-               str(out / "model"), "--out", str(killed), "--quiet", "--in-process"]
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 240
-    while time.monotonic() < deadline and len(_apply_marks(killed)) < 3:
-        time.sleep(0.1)
-    process.send_signal(signal.SIGKILL)
-    process.wait()
+    sigkill_when(["predict", config, "--model", out / "model", "--out", killed, "--quiet",
+                  "--in-process"], lambda: len(_apply_marks(killed)) >= 3)
     done_before = _apply_marks(killed)
     layout = open_store(killed / "store.zarr", mode="r").attrs["layout"]
     assert 3 <= len(done_before) < len(layout["scenes"]["test"]["chunks"]), \

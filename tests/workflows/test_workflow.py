@@ -9,8 +9,6 @@ import json
 import os
 import shutil
 import signal
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -21,7 +19,12 @@ import pytest
 from click.testing import CliRunner
 
 from pipeline.io import write_las
-from tests.workflows.conftest import assert_same_predictions, read_predictions, write_config
+from tests.workflows.conftest import (
+    assert_same_predictions,
+    read_predictions,
+    sigkill_when,
+    write_config,
+)
 from pipeline.cascade import CascadedForest, labels_from_proba
 from pipeline.store import open_store, proba_array, read_array
 from workflows.cli import main
@@ -175,14 +178,8 @@ def _invariant_mtimes(out: Path) -> dict[str, float]:
 def test_resume_after_sigkill(reference, survey, tmp_path):
     config = write_config(tmp_path / "kill.yaml", survey, tiling={"chunk_size": 3.5})
     out = tmp_path / "out"
-    command = [sys.executable, "-m", "workflows", "run", str(config), "--out", str(out),
-               "--quiet", "--in-process"]
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 240
-    while time.monotonic() < deadline and len(_invariant_mtimes(out)) < 3:
-        time.sleep(0.2)
-    process.send_signal(signal.SIGKILL)
-    process.wait()
+    sigkill_when(["run", config, "--out", out, "--quiet", "--in-process"],
+                 lambda: len(_invariant_mtimes(out)) >= 3)
     done_before = _invariant_mtimes(out)
     assert done_before, "the run was killed before any chunk finished"
     assert not (out / "metrics.json").exists()
