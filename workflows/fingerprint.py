@@ -34,7 +34,8 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
                 data.classes, data.ignore, data.split, data.drop_unlisted,
                 data.exclude_codes and data.exclude_withheld (when set);
                 tiling.chunk_size, tiling.halo, tiling.target_points and tiling.layout
-                (only with chunk_size auto)
+                (only with chunk_size auto), output.keep_features (unless auto: it
+                chooses each scene's halo)
     features    + features.set, r1, max_neighbors, plane, scales, column, cell, voxel
     stage       + features.r2, features.context_max_neighbors, every cascade key except
                 cascade.stages (adding stages keeps the finished ones when tiling.halo
@@ -67,6 +68,9 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
             "halo": cfg.halo,
         },
     }
+    if cfg.output.keep_features != "auto":
+        # it chooses each scene's halo; only when set, so the default keeps its fingerprint
+        parts["ingest"]["keep_features"] = cfg.output.keep_features
     for key in ("exclude_codes", "exclude_withheld"):
         if data[key]:  # only when set: a config without filters keeps its fingerprint
             parts["ingest"][key] = sorted(set(data[key])) if key == "exclude_codes" else True

@@ -48,16 +48,22 @@ class CascadeData(Protocol):
 
 
 def run_cascade(data: CascadeData, params: CascadeParams, class_counts=None, *,
-                n_stages: int | None = None, predict_last: bool = True) -> list[FittedStage]:
+                n_stages: int | None = None, predict_last: bool = True,
+                fractions=None) -> list[FittedStage]:
     """Run the stages of the cascade over ``data``; return every stage's forests.
 
     ``class_counts`` (C,), the labelled training points per class, are given when training:
     stages that ``data`` has no forests for are fitted on a sample drawn from them. Without
-    them every stage must be fitted already (applying a model). ``predict_last`` False skips
-    the last stage's probabilities (nothing reads them while fitting in memory).
+    them every stage must be fitted already (applying a model). ``fractions`` (C,), the
+    sampling fractions a fitted model was trained with, apply it to part of its own training
+    data with the same out-of-fold answers (default: from ``class_counts``, else none).
+    ``predict_last`` False skips the last stage's probabilities (nothing reads them while
+    fitting in memory).
     """
     n_stages = int(params.stages if n_stages is None else n_stages)
-    if class_counts is None:
+    if fractions is not None:
+        fractions = np.asarray(fractions, dtype=np.float64)
+    elif class_counts is None:
         fractions = np.zeros(data.n_classes)  # no training points: no out-of-fold answers
     else:
         fractions = sampling_fractions(class_counts, params.max_train_points, params.balanced)

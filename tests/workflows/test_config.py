@@ -462,6 +462,9 @@ def changed_steps(**sections) -> set[str]:
     ({"output": {"format": "las"}}, {"export"}),
     ({"output": {"probabilities": False}}, {"export"}),
     ({"output": {"keep_store": False}}, set()),
+    ({"output": {"keep_features": "auto"}}, set()),  # the default
+    ({"output": {"keep_features": False}}, set(STEPS)),  # it chooses each scene's halo
+    ({"output": {"keep_features": True}}, set(STEPS)),
     ({"data": {"background": []}}, {"evaluate"}),
     ({"tiling": {"chunk_size": 20}}, set(STEPS)),
     ({"tiling": {"target_points": 2_000_000}}, set(STEPS)),  # BASE sizes chunks automatically

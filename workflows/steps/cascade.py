@@ -24,7 +24,7 @@ from pipeline.cascade import (
     stage_context,
     training_rows,
 )
-from pipeline.errors import ConfigError, ModelError, StoreError
+from pipeline.errors import ChunkError, ConfigError, ModelError, StoreError
 from pipeline.features.sets import FeatureParams
 from pipeline.model import (
     check_compatible,
@@ -234,6 +234,16 @@ class StoreCascade:
             return FittedStage(path, [], self.stages[stage].get("training_rows", 0))
         if not self.fit:
             raise ModelError(f"model file {path} is missing; retrain with 'silva train'")
+        if self.only is not None:
+            # one chunk cannot train a stage: draw its training rows, where a failure would
+            # show, and stop before any forest is fitted on them
+            self._map(f"sample-{stage + 1}", chunk_training_rows, StageTask(
+                stage, self.n_classes, self.fractions or (1.0,) * self.n_classes,
+                self.params.seed), stage, marks=False)
+            raise ChunkError(
+                f"--chunk {self.only}: stage {stage + 1} of the model is not trained yet and "
+                f"one chunk cannot train it; the chunk's steps up to its training sample ran "
+                f"without error. Train with 'silva train CONFIG --out {self.run.out}' first")
         return None
 
     def save(self, stage, fitted):
@@ -283,6 +293,10 @@ def cascade(run: Run, engine, layout: dict, train_counts: np.ndarray | None, *, 
     """Run every stage over every chunk (fitting the stages a model lacks when ``fit``);
     return the model's stage records."""
     data = StoreCascade(run, engine, layout, fit=fit, only=only)
+    if only is not None:  # one chunk applies the forests and sampling the whole run fitted
+        run_cascade(data, data.params, n_stages=data.params.stages if fit else len(data.stages),
+                    fractions=data.fractions or None)
+        return data.stages
     if fit:
         check_training_classes(run, train_counts)
         n_stages = data.params.stages
