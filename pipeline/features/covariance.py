@@ -133,7 +133,7 @@ def _ball_kernel(xyz, query, sxyz, sids, ukeys, ustart, origin, cell, dims, r2, 
     ny, nz = dims[1], dims[2]
     for b in range(query.shape[0]):
         xq, yq, zq, cx, cy, cz = _query_cell(xyz, query[b], origin, cell, dims)
-        n = 0
+        n = np.int64(0)  # not a literal: numba would compile _select for it too
         for gx in range(max(cx - 1, 0), min(cx + 2, dims[0])):
             for gy in range(max(cy - 1, 0), min(cy + 2, ny)):
                 base = (gx * ny + gy) * nz
@@ -154,7 +154,7 @@ def _ball_kernel(xyz, query, sxyz, sids, ukeys, ustart, origin, cell, dims, r2, 
                         cid[n] = sids[s]
                         crow[n] = s
                         n += 1
-        _select(cd2, cid, crow, n, n, r2, perm, bucket_end)
+        _select(cd2, cid, crow, n, n, r2, perm, bucket_end, ordered)  # ordered: its scratch
         for k in range(n):
             ordered[k] = crow[perm[k]]
         _features(sxyz, ordered[:n], xyz[query[b]], mean, a, v, out[b])

@@ -264,7 +264,7 @@ def _incircle_exact(ax, ay, bx, by, cx, cy, dx, dy):
     # alift * (bx cy - cx by) + blift * (cx ay - ax cy) + clift * (ax by - bx ay)
     terms = ((0, 1, 2, 3, 4, 5), (2, 3, 4, 5, 0, 1), (4, 5, 0, 1, 2, 3))
     lens = (lax, lay, lbx, lby, lcx, lcy)
-    n_total = 0
+    n_total = np.int64(0)  # not a literal: numba would compile the callees for it too
     for k in range(3):
         px, py, qx, qy, rx, ry = terms[k]
         # lift of p: px^2 + py^2
@@ -620,7 +620,7 @@ def _triangulate_core(xy, order, n, workspace):
     hull_tri[a] = 0
     hull_tri[b] = 0
     hull_tri[c] = 0
-    n_tri = 1
+    n_tri = np.int64(1)  # not a literal: numba would compile the callees for it too
     hx = (xy[a, 0] + xy[b, 0] + xy[c, 0]) / 3.0
     hy = (xy[a, 1] + xy[b, 1] + xy[c, 1]) / 3.0
     n_hash = hull_hash.shape[0]

@@ -145,7 +145,7 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, horizontal, out):
     ``horizontal``: triangulate in the XY plane instead of the principal plane.
     """
     n_query = query.shape[0]
-    max_n = 3
+    max_n = np.int64(3)  # not a literal: numba would compile the callees for it too
     for row in range(n_query):
         max_n = max(max_n, nbr_ptr[row + 1] - nbr_ptr[row])
     workspace = make_workspace(max_n)

@@ -129,12 +129,43 @@ def _before(d2, ids, rows, a, b):
 
 
 @_jit
-def _select(cd2, cid, crow, n, m, r2, perm, bucket_end):
+def _merge_sort(perm, lo, hi, scratch, d2, ids, rows):
+    """Sort perm[lo:hi] by (d2, id, row), bottom-up, through ``scratch`` (>= hi - lo).
+
+    The order is total (rows are unique), so any sort gives this one result."""
+    n = hi - lo
+    src = perm[lo:hi]
+    dst = scratch[:n]
+    width = 1
+    swapped = False
+    while width < n:
+        for left in range(0, n, 2 * width):
+            mid = min(left + width, n)
+            right = min(left + 2 * width, n)
+            i = left
+            j = mid
+            for k in range(left, right):
+                if i < mid and (j >= right or not _before(d2, ids, rows, src[j], src[i])):
+                    dst[k] = src[i]
+                    i += 1
+                else:
+                    dst[k] = src[j]
+                    j += 1
+        src, dst = dst, src
+        swapped = not swapped
+        width *= 2
+    if swapped:  # the last pass wrote to scratch
+        perm[lo:hi] = scratch[:n]
+
+
+@_jit
+def _select(cd2, cid, crow, n, m, r2, perm, bucket_end, scratch):
     """Sort the first min(n, m) of n candidates by (d2, id, row) into perm[:size].
 
     Counting sort into n buckets of d2 (monotone: d2 <= d2' gives bucket <= bucket'), then
-    an insertion sort of each bucket (merge sorts for a crowded one), stopping once m are
+    an insertion sort of each bucket (a merge sort for a crowded one), stopping once m are
     out: linear time in practice, no unpredictable heap branches. Returns min(n, m).
+    ``scratch`` (>= n) is the merge sort's work space.
     """
     scale = n / r2
     for k in range(n + 1):
@@ -148,18 +179,13 @@ def _select(cd2, cid, crow, n, m, r2, perm, bucket_end):
         perm[bucket_end[key]] = k
         bucket_end[key] += 1
     size = min(n, m)
-    lo = 0
+    lo = np.int64(0)  # not a literal: numba would compile _merge_sort for it too
     for key in range(n):
         if lo >= size:
             break
         hi = bucket_end[key]
-        if hi - lo > 32:
-            # many ties (duplicate points): stable merge sorts by row, id, then d2
-            items = perm[lo:hi].copy()
-            items = items[np.argsort(crow[items], kind="mergesort")]
-            items = items[np.argsort(cid[items], kind="mergesort")]
-            items = items[np.argsort(cd2[items], kind="mergesort")]
-            perm[lo:hi] = items
+        if hi - lo > 32:  # many ties (duplicate points)
+            _merge_sort(perm, lo, hi, scratch, cd2, cid, crow)
         else:
             for i in range(lo + 1, hi):
                 v = perm[i]
@@ -192,6 +218,7 @@ def _search_block(
     crow = np.empty(capacity, dtype=np.int64)
     perm = np.empty(capacity, dtype=np.int64)
     bucket_end = np.empty(capacity + 1, dtype=np.int64)
+    scratch = np.empty(capacity, dtype=np.int64)
     nx, ny, nz = dims[0], dims[1], dims[2]
     # a point outside the cells within Chebyshev distance k of the query's is at least k
     # sides away, up to the rounding of cell indices (see CELL_MARGIN): k * shell is a safe
@@ -203,7 +230,7 @@ def _search_block(
         while True:
             # the cells within Chebyshev distance `far`, points closer than `far` sides
             bound = r2 if far >= span else min(r2, (far * shell) ** 2)
-            n = 0
+            n = np.int64(0)  # not a literal: numba would compile _select for it too
             for gx in range(max(cx - far, 0), min(cx + far + 1, nx)):
                 for gy in range(max(cy - far, 0), min(cy + far + 1, ny)):
                     z0 = max(cz - far, 0)
@@ -222,6 +249,7 @@ def _search_block(
                         cd2, cid, crow = new_d2, new_id, new_row
                         perm = np.empty(capacity, dtype=np.int64)
                         bucket_end = np.empty(capacity + 1, dtype=np.int64)
+                        scratch = np.empty(capacity, dtype=np.int64)
                     for s in range(start, stop):
                         d2 = squared_distance(sxyz, s, xq, yq, zq)
                         if d2 <= bound:
@@ -232,7 +260,7 @@ def _search_block(
             if far >= span or n >= m:
                 break
             far += 1
-        size = _select(cd2, cid, crow, n, m, bound, perm, bucket_end)
+        size = _select(cd2, cid, crow, n, m, bound, perm, bucket_end, scratch)
         for k in range(size):
             out[b, k] = crow[perm[k]]
         counts[b] = size
