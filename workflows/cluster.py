@@ -22,6 +22,7 @@ import threading
 import weakref
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
+from multiprocessing import resource_tracker
 
 from pipeline.errors import ConfigError, SilvaError
 
@@ -118,7 +119,7 @@ def _local_cluster(cfg, quiet, local_directory):
     extra = {"local_directory": os.fspath(local_directory)} if local_directory else {}
     log.info("starting a local Dask cluster: %d workers x %d threads", n_workers,
              cfg.threads_per_worker)
-    with _workers_ignore_ctrl_c():
+    with ctrl_c_held() as release:
         cluster = LocalCluster(
             n_workers=n_workers,
             threads_per_worker=cfg.threads_per_worker,
@@ -132,23 +133,43 @@ def _local_cluster(cfg, quiet, local_directory):
             silence_logs=logging.ERROR,  # no worker or shutdown warnings on the terminal
             **extra,
         )
-    with cluster:
-        yield cluster
+        with cluster:
+            release()  # a Ctrl-C pressed while the cluster started interrupts here, closing it
+            yield cluster
 
 
 @contextmanager
-def _workers_ignore_ctrl_c():
-    """Worker processes started in the block ignore Ctrl-C (SIGINT, sent to the terminal's
-    whole process group): this process alone handles it and closes the cluster, so an
-    interrupted run ends with one line instead of a traceback from every worker."""
+def ctrl_c_held():
+    """Hold Ctrl-C (SIGINT, sent to the terminal's whole process group) back while a cluster
+    starts. The threads and processes started in the block inherit the blocked signal and
+    never see it (also a worker its nanny restarts later, from a thread started here), so
+    this process alone handles it and closes the cluster: an interrupted run ends with one
+    line instead of a traceback from every worker. A Ctrl-C pressed meanwhile is not lost:
+    ``release()`` (at the latest on leaving the block) raises it as KeyboardInterrupt."""
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield lambda: None
         return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # inherited by spawned workers
+    # started later by the thread that spawns the first worker, multiprocessing's resource
+    # tracker would unblock SIGINT in that thread (and so in every worker it spawns)
+    resource_tracker.ensure_running()
+    pressed = []
+    handler = signal.signal(signal.SIGINT, lambda signum, frame: pressed.append(signum))
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    released = []
+
+    def release():
+        if released:
+            return
+        released.append(True)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a held Ctrl-C arrives now
+        signal.signal(signal.SIGINT, handler)
+        if pressed:
+            raise KeyboardInterrupt
+
     try:
-        yield
+        yield release
     finally:
-        signal.signal(signal.SIGINT, previous)
+        release()
 
 
 def _connect(address: str, timeout: float):

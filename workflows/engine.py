@@ -47,15 +47,19 @@ def _run_task(fn, kwargs, where, reproduce):
 
 
 class _DropReportedFailures(logging.Filter):
-    """Drops a worker's "Compute Failed" traceback of a task that raised a ChunkError.
+    """Drops the worker tracebacks of what the run reports itself, in one line.
 
-    The step reports each such failure in its summary, with the command to reproduce it;
-    the worker's copy would only repeat it as a multi-line traceback in the run's log.
+    A task that raised a ChunkError ("Compute Failed"): the step reports each such failure
+    in its summary, with the command to reproduce it. A heartbeat that found the scheduler
+    gone: the run closed it before the workers, having ended or been interrupted (Ctrl-C
+    while a worker is busy); a scheduler lost otherwise shows where the run waits for it.
     """
 
     def filter(self, record: logging.LogRecord) -> bool:
-        return not (str(record.msg).startswith("Compute Failed")
-                    and "ChunkError(" in repr(record.args))
+        message = str(record.msg)
+        if message.startswith("Failed to communicate with scheduler during heartbeat"):
+            return False
+        return not (message.startswith("Compute Failed") and "ChunkError(" in repr(record.args))
 
 
 def _quieten_worker(dask_worker=None):

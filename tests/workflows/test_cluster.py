@@ -1,13 +1,18 @@
 """The Dask cluster factory: a real LocalCluster on loopback, SLURM job scripts, bad addresses."""
 
 import importlib.util
+import logging
+import os
+import signal
+import subprocess
 import sys
+import threading
 import time
 
 import pytest
 
 from pipeline.errors import ConfigError, SilvaError
-from workflows.cluster import dashboard_link, open_client, slurm_job_script
+from workflows.cluster import ctrl_c_held, dashboard_link, open_client, slurm_job_script
 from workflows.config import load_config
 
 
@@ -183,3 +188,46 @@ def test_slurm_without_dask_jobqueue(monkeypatch):
     with pytest.raises(SilvaError, match=r"install silva\[slurm\]"):
         with open_client(cfg):
             pytest.fail("started a SLURM cluster without dask-jobqueue")
+
+
+def _blocks_ctrl_c(status: str) -> bool:
+    """Whether a process's /proc/PID/status text shows SIGINT (signal 2) blocked."""
+    line = next(line for line in status.splitlines() if line.startswith("SigBlk:"))
+    return bool(int(line.split()[1], 16) & 1 << (signal.SIGINT - 1))
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_ctrl_c_while_the_cluster_starts_is_held_back_from_workers_then_interrupts():
+    statuses, steps = [], []
+
+    def start_a_worker():  # as a nanny's thread starts one
+        statuses.append(subprocess.run([sys.executable, "-c", "print(open('/proc/self/status')"
+                                        ".read())"], capture_output=True, text=True).stdout)
+
+    with pytest.raises(KeyboardInterrupt):
+        with ctrl_c_held() as release:
+            thread = threading.Thread(target=start_a_worker)
+            thread.start()
+            os.kill(os.getpid(), signal.SIGINT)  # pressed while the cluster starts
+            time.sleep(0.2)
+            thread.join()
+            steps.append("started")  # not interrupted meanwhile
+            release()
+            steps.append("after release")
+    assert steps == ["started"]
+    assert _blocks_ctrl_c(statuses[0])  # the worker never sees it
+    assert not _blocks_ctrl_c(open("/proc/self/status").read())
+
+
+def test_workers_drop_only_the_tracebacks_the_run_reports_itself():
+    from workflows.engine import _DropReportedFailures
+
+    def kept(msg, *args):
+        record = logging.LogRecord("distributed.worker", logging.ERROR, __file__, 1, msg, args,
+                                   None)
+        return _DropReportedFailures().filter(record)
+
+    assert not kept("Failed to communicate with scheduler during heartbeat.")
+    assert not kept("Compute Failed\nKey: %s\nException: %s", "k", "ChunkError('chunk 0_0')")
+    assert kept("Compute Failed\nKey: %s\nException: %s", "k", "ValueError('bad')")
+    assert kept("Worker stream died during communication")
