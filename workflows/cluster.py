@@ -146,7 +146,8 @@ def ctrl_c_held():
     this process alone handles it and closes the cluster: an interrupted run ends with one
     line instead of a traceback from every worker. A Ctrl-C pressed meanwhile is not lost:
     ``release()`` (at the latest on leaving the block) raises it as KeyboardInterrupt."""
-    if threading.current_thread() is not threading.main_thread():
+    if (threading.current_thread() is not threading.main_thread()
+            or not hasattr(signal, "pthread_sigmask")):  # POSIX only
         yield lambda: None
         return
     # started later by the thread that spawns the first worker, multiprocessing's resource
