@@ -23,9 +23,18 @@ def plots(tmp_path_factory):
     return config, root
 
 
-def _finished(config, out):
+@pytest.fixture(scope="module")
+def finished(plots):
+    """A complete run of ``plots`` (copy it before changing it)."""
+    config, root = plots
+    out = root / "finished"
     result = silva("run", config, "--out", out, "--in-process", "-q")
     assert result.exit_code == 0, result.output
+    return out
+
+
+def _copy(finished, out):
+    shutil.copytree(finished, out)
     return out
 
 
@@ -51,9 +60,9 @@ def _chunks(out, scene):
 
 
 @pytest.mark.parametrize("scene", ["train", "test"])
-def test_one_chunk_recomputes_every_stage_to_the_same_bits(plots, scene, tmp_path):
+def test_one_chunk_recomputes_every_stage_to_the_same_bits(plots, finished, scene, tmp_path):
     config, _ = plots
-    out = _finished(config, tmp_path / "out")
+    out = _copy(finished, tmp_path / "out")
     chunk = _chunks(out, scene)[1]
     before = _chunk_arrays(out, scene, chunk)
     assert {"features", "stage1_proba", "stage2_proba"} <= before.keys()
@@ -78,9 +87,9 @@ def test_one_chunk_never_trains_a_stage(plots, tmp_path):
     assert not list((out / "model").glob("*.skops"))  # no forest fitted on one chunk
 
 
-def test_keep_features_changed_on_a_finished_run_takes_effect(plots, tmp_path):
+def test_keep_features_changed_on_a_finished_run_takes_effect(plots, finished, tmp_path):
     config, _ = plots
-    out = _finished(config, tmp_path / "out")
+    out = _copy(finished, tmp_path / "out")
     shutil.copytree(out / "predictions", tmp_path / "auto" / "predictions")
     assert "features" in _chunk_arrays(out, "test", _chunks(out, "test")[0])
     result = silva("run", config, "--out", out, "--in-process", "-q",
