@@ -54,9 +54,10 @@ def run_cascade(data: CascadeData, params: CascadeParams, class_counts=None, *,
 
     ``class_counts`` (C,), the labelled training points per class, are given when training:
     stages that ``data`` has no forests for are fitted on a sample drawn from them. Without
-    them every stage must be fitted already (applying a model). ``fractions`` (C,), the
-    sampling fractions a fitted model was trained with, apply it to part of its own training
-    data with the same out-of-fold answers (default: from ``class_counts``, else none).
+    them every stage must be fitted already (applying a model). ``fractions`` (C,) are the
+    sampling fractions a fitted model was trained with: given, the model applied to part of
+    its own training data gives the same out-of-fold answers (default: drawn from
+    ``class_counts``, else none).
     ``predict_last`` False skips the last stage's probabilities (nothing reads them while
     fitting in memory).
     """
