@@ -26,6 +26,17 @@ def survey(tmp_path_factory) -> dict[str, Path]:
     return {"train": root / "train", "test": root / "test"}
 
 
+@pytest.fixture(scope="session")
+def survey_run(survey, tmp_path_factory):
+    """A complete run of ``survey`` with the defaults of :func:`write_config`, in this
+    process: its config and output directory (read it; copy it before changing it)."""
+    root = tmp_path_factory.mktemp("survey_run")
+    config = write_config(root / "c.yaml", survey)
+    result = silva("run", config, "--out", root / "out", "--in-process", "-q")
+    assert result.exit_code == 0, result.output
+    return config, root / "out"
+
+
 def write_config(path: Path, survey: dict, **sections) -> Path:
     """A quick config for ``survey``; keyword arguments update whole sections."""
     config = {

@@ -28,19 +28,9 @@ from workflows.status import run_status
 pytestmark = pytest.mark.slow
 
 
-@pytest.fixture(scope="module")
-def finished(survey, tmp_path_factory):
-    """A complete run (in this process) and its config."""
-    root = tmp_path_factory.mktemp("finished")
-    config = write_config(root / "c.yaml", survey)
-    result = silva("run", config, "--out", root / "out", "--in-process", "-q")
-    assert result.exit_code == 0, result.output
-    return config, root / "out"
-
-
 @pytest.fixture
-def run_copy(finished, tmp_path):
-    config, out = finished
+def run_copy(survey_run, tmp_path):
+    config, out = survey_run
     shutil.copytree(out, tmp_path / "out")
     return config, tmp_path / "out"
 
@@ -55,7 +45,7 @@ def _metrics(out: Path) -> dict:
 
 
 # -- 1: a damaged store ------------------------------------------------------------------
-def test_missing_chunk_file_stops_export_then_the_rerun_recomputes_it(finished, run_copy):
+def test_missing_chunk_file_stops_export_then_the_rerun_recomputes_it(survey_run, run_copy):
     config, out = run_copy
     _chunk_file(out, "test", "predictions").unlink()  # the one pass's results
     shutil.rmtree(out / "predictions")
@@ -65,18 +55,18 @@ def test_missing_chunk_file_stops_export_then_the_rerun_recomputes_it(finished, 
     assert not list((out / "predictions").glob("plot_s2_*.laz"))
     result = silva("run", config, "--out", out, "--in-process", "-q")
     assert result.exit_code == 0, result.output
-    assert_same_predictions(out, finished[1])
-    assert _metrics(out) == _metrics(finished[1])
+    assert_same_predictions(out, survey_run[1])
+    assert _metrics(out) == _metrics(survey_run[1])
 
 
-def test_missing_chunk_file_stops_evaluate_without_metrics(finished, run_copy):
+def test_missing_chunk_file_stops_evaluate_without_metrics(survey_run, run_copy):
     config, out = run_copy
     _chunk_file(out, "test", "predictions").unlink()
     assert "is damaged" in error_line(silva("evaluate", config, "--out", out, "--in-process",
                                             "-q"))
     assert not (out / "metrics.json").exists()
     assert silva("evaluate", config, "--out", out, "--in-process", "-q").exit_code == 0
-    assert _metrics(out) == _metrics(finished[1])
+    assert _metrics(out) == _metrics(survey_run[1])
 
 
 def test_corrupt_features_stop_a_retrain(run_copy):
@@ -91,7 +81,7 @@ def test_corrupt_features_stop_a_retrain(run_copy):
 
 
 # -- 3 and 10: a model from elsewhere ----------------------------------------------------
-def test_predict_into_the_directory_of_its_model_keeps_the_model(finished, run_copy):
+def test_predict_into_the_directory_of_its_model_keeps_the_model(survey_run, run_copy):
     config, out = run_copy
     model = out / "model"
     before = {p.name: p.read_bytes() for p in model.iterdir()}
@@ -99,7 +89,7 @@ def test_predict_into_the_directory_of_its_model_keeps_the_model(finished, run_c
                    "--in-process", "-q")
     assert result.exit_code == 0, result.output
     assert {p.name: p.read_bytes() for p in model.iterdir()} == before
-    assert_same_predictions(out, finished[1])
+    assert_same_predictions(out, survey_run[1])
 
 
 def test_swapped_stage_files_are_refused_before_any_work(run_copy, tmp_path):
@@ -116,7 +106,7 @@ def test_swapped_stage_files_are_refused_before_any_work(run_copy, tmp_path):
 
 
 # -- 8: a full disk while writing the report ---------------------------------------------
-def test_full_disk_while_writing_the_report(finished, run_copy, monkeypatch):
+def test_full_disk_while_writing_the_report(survey_run, run_copy, monkeypatch):
     import workflows.report
 
     config, out = run_copy
@@ -130,7 +120,7 @@ def test_full_disk_while_writing_the_report(finished, run_copy, monkeypatch):
     assert "No space left on device" in line and "report.html" in line
     assert not (out / "metrics.json").exists() and not (out / LOCK_NAME).exists()
     assert silva("report", config, "--out", out, "--in-process", "-q").exit_code == 0
-    assert _metrics(out) == _metrics(finished[1])
+    assert _metrics(out) == _metrics(survey_run[1])
 
 
 # -- 7: a run owns its outputs -----------------------------------------------------------

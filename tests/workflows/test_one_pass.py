@@ -26,16 +26,6 @@ pytestmark = pytest.mark.slow
 SMALL_CHUNKS = {"chunk_size": "auto", "target_points": 12_000}
 
 
-@pytest.fixture(scope="module")
-def trained(survey, tmp_path_factory):
-    """A run with the defaults (its test scene classified in one pass), and its config."""
-    root = tmp_path_factory.mktemp("one_pass")
-    config = write_config(root / "c.yaml", survey)
-    result = silva("run", config, "--out", root / "out", "--quiet", "--in-process")
-    assert result.exit_code == 0, result.output
-    return root / "out", config
-
-
 def _members(out: Path, scene: str) -> set[str]:
     """The array names stored in the chunks of a scene."""
     root = open_store(out / "store.zarr", mode="r")
@@ -67,8 +57,8 @@ def _same_test_tiles(a: Path, b: Path) -> None:
             assert np.array_equal(pa[tile][dim], pb[tile][dim]), (tile, dim)
 
 
-def test_the_same_bits_as_stored_features_and_a_store_without_them(trained, tmp_path):
-    out, config = trained
+def test_the_same_bits_as_stored_features_and_a_store_without_them(survey_run, tmp_path):
+    config, out = survey_run  # its test scene classified in one pass
     kept = tmp_path / "kept"
     result = silva("run", config, "--out", kept, "--quiet", "--in-process",
                    "--set", "output.keep_features=true")
@@ -86,11 +76,11 @@ def test_the_same_bits_as_stored_features_and_a_store_without_them(trained, tmp_
     assert size[out] * 2 < size[kept]
 
 
-def test_predict_in_one_pass_over_many_chunks(trained, survey, tmp_path):
+def test_predict_in_one_pass_over_many_chunks(survey_run, survey, tmp_path):
     """A saved model applied to balanced chunks in one pass, on two workers, gives what the
     stage-by-stage cascade gives with the features kept; one chunk recomputed alone
     (--chunk) gives its bits again."""
-    out, _ = trained
+    _, out = survey_run
     config = write_config(tmp_path / "p.yaml", survey, tiling=SMALL_CHUNKS,
                           data={"train": [], "test": [], "predict": [
                               str(survey["test"] / "*.laz")]},
@@ -118,8 +108,8 @@ def test_predict_in_one_pass_over_many_chunks(trained, survey, tmp_path):
     assert_same_predictions(runs["true"], runs["false"])
 
 
-def test_resume_after_sigkill_in_the_one_pass(trained, survey, tmp_path):
-    out, _ = trained
+def test_resume_after_sigkill_in_the_one_pass(survey_run, survey, tmp_path):
+    _, out = survey_run
     config = write_config(tmp_path / "k.yaml", survey, tiling={"chunk_size": 3.5},
                           data={"train": []}, output={"keep_features": False})
     killed = tmp_path / "killed"
