@@ -293,15 +293,12 @@ def cascade(run: Run, engine, layout: dict, train_counts: np.ndarray | None, *, 
     """Run every stage over every chunk (fitting the stages a model lacks when ``fit``);
     return the model's stage records."""
     data = StoreCascade(run, engine, layout, fit=fit, only=only)
+    n_stages = data.params.stages if fit else len(data.stages)
     if only is not None:  # one chunk applies the forests and sampling the whole run fitted
-        run_cascade(data, data.params, n_stages=data.params.stages if fit else len(data.stages),
-                    fractions=data.fractions or None)
+        run_cascade(data, data.params, n_stages=n_stages, fractions=data.fractions or None)
         return data.stages
     if fit:
         check_training_classes(run, train_counts)
-        n_stages = data.params.stages
-    else:
-        n_stages = len(data.stages)
     run_cascade(data, data.params, train_counts if fit else None, n_stages=n_stages)
     if fit:
         data.keep_stages(n_stages)

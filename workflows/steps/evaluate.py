@@ -73,7 +73,7 @@ def evaluate(run: Run, engine, layout: dict, n_stages: int) -> dict:
     fraction = min(1.0, PLOT_POINTS / max(total, 1))
     tasks = chunk_tasks(run, layout, "evaluate", chunk_evaluation,
                         EvaluationTask(n_stages, run.n_classes, fraction,
-                                       tuple(sorted(one_pass_scenes(run, layout, n_stages)))),
+                                       tuple(sorted(one_pass_scenes(run, layout)))),
                         run.fingerprint("evaluate"), "evaluate", marks=False)
     results = list(engine.map("evaluate", tasks).values())
     background = list(run.cfg.data.background)
