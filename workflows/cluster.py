@@ -153,15 +153,20 @@ def ctrl_c_held():
     # started later by the thread that spawns the first worker, multiprocessing's resource
     # tracker would unblock SIGINT in that thread (and so in every worker it spawns)
     resource_tracker.ensure_running()
-    pressed = []
-    handler = signal.signal(signal.SIGINT, lambda signum, frame: pressed.append(signum))
+    pressed = released = False
+
+    def hold(signum, frame):
+        nonlocal pressed
+        pressed = True
+
+    handler = signal.signal(signal.SIGINT, hold)
     mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    released = []
 
     def release():
+        nonlocal released
         if released:
             return
-        released.append(True)
+        released = True
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a held Ctrl-C arrives now
         signal.signal(signal.SIGINT, handler)
         if pressed:
