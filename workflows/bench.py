@@ -456,18 +456,23 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
     return result
 
 
+#: A step that took less is shown blank: it was done inside another step (the features of a
+#: one-pass scene, within apply).
+NO_TIME = 0.05
+
+
 def _print_runs(runs: dict, result: dict) -> None:
     points, width = result["points"], 34
     click.echo(f"{points:,} points, {result['chunks']} chunks ({result['chunks_one_chunk_run']} "
                "in the one-chunk run); seconds and points/s per step, cluster start excluded:")
     click.echo(f"{'step':<10}" + "".join(f"{label:>{width}}" for label in runs))
     steps = list(dict.fromkeys(s for r in runs.values() for s in r["timings"]
-                               if r["timings"][s] >= 0.05))
+                               if r["timings"][s] >= NO_TIME))
     for step in [*steps, "total"]:
         cells = [r["seconds"] if step == "total" else r["timings"].get(step)
                  for r in runs.values()]
         click.echo(f"{step:<10}" + "".join(
-            f"{'':>{width}}" if c is None or c < 0.05  # not run, or done inside another step
+            f"{'':>{width}}" if c is None or c < NO_TIME  # not run, or inside another step
             else f"{f'{c:.1f} s {points / c:,.0f}/s':>{width}}" for c in cells))
     click.echo(f"{result['workers']} workers: {result['points_per_s']:,.0f} points/s "
                f"({result['points_per_s_per_worker']:,.0f} per worker), "
