@@ -11,8 +11,12 @@ Layout::
           points/   pack: xyz, gid, label, role (core points sorted by global id),
                           halo_xyz, halo_gid (halo copies sorted by global id)
           features/ pack: features (n, d) f4, the feature set's columns
+          terrain/  pack: minima_keys (k, 2) i8, minima_z (k,) f8: the lowest core point
+                          of each terrain cell (pipeline.terrain.cell_minima)
           stage<t>_context (n, 2C) f4, stage<t>_proba (n, C) f4     (t = 1, 2, ...)
         attrs: done = {step: fingerprint}, results, assembled, arrays = {array: pack}
+      scenes/<scene>/terrain/        the scene's terrain model: dtm (ny, nx) f8, south row
+        first; attrs x0, y0, cell, interpolated, done = {"terrain": fingerprint}
 
 **Packs.** :func:`write_arrays` writes the arrays of one call as one zarr array, a *pack*:
 a (B, R) uint8 array whose B rows are byte planes of its members (R the longest member's
@@ -50,9 +54,11 @@ import zarr
 from zarr.codecs import ZstdCodec
 
 from pipeline.errors import StoreError
+from pipeline.terrain import Raster
 
-SCHEMA_VERSION = 4  # 3: packs of byte planes in one shard per write; parts removed once
-# assembled; 4: a flag per point whose features are undefined, chunks classified in one pass
+SCHEMA_VERSION = 5  # 3: packs of byte planes in one shard per write; parts removed once
+# assembled; 4: a flag per point whose features are undefined, chunks classified in one pass;
+# 5: a terrain model per scene
 CHECKSUM = "crc32"
 _COMPRESSOR = ZstdCodec(level=0, checksum=True)
 _ZSTD = numcodecs.Zstd(level=0)  # to choose a layout on a sample
@@ -350,6 +356,35 @@ def labels_array(stage: int) -> str:
 def context_array(stage: int) -> str:
     """Name of the context array that feeds cascade stage ``stage`` (0-based; named from 1)."""
     return f"stage{stage + 1}_context"
+
+
+def terrain_path(scene: str) -> str:
+    return f"scenes/{scene}/terrain"
+
+
+def write_terrain(root: zarr.Group, scene: str, dtm: Raster, interpolated: float,
+                  fingerprint: str) -> None:
+    """Store the terrain model of ``scene`` and mark it done with ``fingerprint``."""
+    group = root.require_group(terrain_path(scene))
+    write_arrays(group, {"dtm": np.asarray(dtm.values, dtype=np.float64)})
+    mark_done(group, "terrain", fingerprint, x0=float(dtm.x0), y0=float(dtm.y0),
+              cell=float(dtm.cell), interpolated=float(interpolated))
+
+
+def terrain_done(root: zarr.Group, scene: str) -> str | None:
+    """The fingerprint the stored terrain model of ``scene`` was made with (None: none)."""
+    path = terrain_path(scene)
+    return root[path].attrs.get("done", {}).get("terrain") if path in root else None
+
+
+def read_terrain(root: zarr.Group, scene: str) -> Raster:
+    """The stored terrain model of ``scene``."""
+    if terrain_done(root, scene) is None:
+        raise StoreError(f"the terrain model of scene '{scene}' is missing from the store; "
+                         "run the same command again (or start afresh with --overwrite)")
+    group = root[terrain_path(scene)]
+    attrs = group.attrs
+    return Raster(read_array(group, "dtm"), attrs["x0"], attrs["y0"], attrs["cell"])
 
 
 def chunk_path(scene: str, chunk_name: str) -> str:

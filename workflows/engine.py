@@ -13,8 +13,12 @@ import traceback
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from pipeline.errors import ChunkError, SilvaError
-from pipeline.store import chunk_path, is_done, mark_done, open_store, read_array, write_arrays
+import numpy as np
+
+from pipeline.errors import ChunkError, InputError, SilvaError
+from pipeline.store import (
+    chunk_path, chunk_points, is_done, mark_done, open_store, read_array, write_arrays,
+)
 from workflows.progress import StepProgress
 
 log = logging.getLogger(__name__)
@@ -162,8 +166,19 @@ class ChunkView:
         return ChunkView(self.store_path, self.scene, chunk)
 
 
+def chunk_window(view: ChunkView, tiles) -> tuple[dict, np.ndarray, np.ndarray]:
+    """A chunk assembled from the parts of ``tiles``: its core arrays, and the xyz and ids
+    of its window, the core points first, then the halo's."""
+    core, halo = chunk_points(view.root, view.scene, view.chunk, tiles, view.group)
+    if not np.isfinite(core["xyz"]).all():
+        raise InputError(f"chunk {view.chunk} of scene '{view.scene}' holds non-finite "
+                         "coordinates")
+    return (core, np.concatenate([core["xyz"], halo["xyz"]]),
+            np.concatenate([core["gid"], halo["gid"]]))
+
+
 #: The steps that assemble a chunk from ingest's parts, creating its group.
-ASSEMBLING = ("features", "apply")
+ASSEMBLING = ("terrain", "features", "apply")
 
 
 def _chunk_step(fn, store_path, scene, chunk, step, fingerprint, params):

@@ -19,8 +19,8 @@ if TYPE_CHECKING:
 #: The keys of the features section that change the features (r2 and the context cap change
 #: only the cascade's context).
 FEATURE_KEYS = ("set", "r1", "max_neighbors", "plane", "scales", "column", "cell", "voxel")
-STEPS = ("ingest", "features", "stage", "export", "evaluate")
-_FINGERPRINT_VERSION = "silva-config-1"  # bump when the meaning of a fingerprinted key changes
+STEPS = ("ingest", "terrain", "features", "stage", "export", "evaluate")
+_FINGERPRINT_VERSION = "silva-config-2"  # bump when the meaning of a fingerprinted key changes
 
 
 def fingerprint(cfg: SilvaConfig, step: str) -> str:
@@ -36,6 +36,7 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
                 tiling.chunk_size, tiling.halo, tiling.target_points and tiling.layout
                 (only with chunk_size auto), output.keep_features (unless auto: it
                 chooses each scene's halo)
+    terrain     + terrain.*
     features    + features.set, r1, max_neighbors, plane, scales, column, cell, voxel
     stage       + features.r2, features.context_max_neighbors, every cascade key except
                 cascade.stages (adding stages keeps the finished ones when tiling.halo
@@ -79,6 +80,8 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
         parts["ingest"]["target_points"] = cfg.tiling.target_points
         parts["ingest"]["layout"] = cfg.tiling.layout
     if step != "ingest":
+        parts["terrain"] = d["terrain"]
+    if step not in ("ingest", "terrain"):
         parts["features"] = {k: d["features"][k] for k in FEATURE_KEYS}
     if step in ("stage", "export", "evaluate"):
         parts["context"] = {"r2": cfg.features.radius2,

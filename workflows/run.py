@@ -19,7 +19,7 @@ import json
 import logging
 import os
 import shutil
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from pipeline.atomic import atomic_write_text, remove_parts
@@ -28,6 +28,7 @@ from pipeline.errors import ConfigError, SilvaError
 from pipeline.features.sets import FeatureParams, feature_set
 from pipeline.model import read_description
 from pipeline.store import open_store
+from pipeline.terrain import TerrainParams
 from workflows.autoparams import resolve_auto
 from workflows.config import SilvaConfig, dump_config, fingerprint
 from workflows.fingerprint import STEPS as FINGERPRINTED
@@ -93,8 +94,13 @@ class Run:
     # -- derived configuration ------------------------------------------------------------
     @property
     def features(self) -> FeatureParams:
-        """The resolved feature and context parameters."""
-        return self.cfg.features.params
+        """The resolved feature and context parameters (with the terrain model's)."""
+        return replace(self.cfg.features.params, terrain=self.terrain)
+
+    @property
+    def terrain(self) -> TerrainParams:
+        """The resolved parameters of each scene's terrain model."""
+        return self.cfg.terrain.params
 
     def cascade_params(self, n_jobs: int = 1) -> CascadeParams:
         """The resolved cascade parameters; ``n_jobs`` threads per forest fit."""
@@ -164,6 +170,7 @@ class Run:
             "features.cell": params.cell,
             "features.voxel": params.voxel,
             "cascade.context": self.cfg.cascade.context,
+            **{f"terrain.{k}": v for k, v in asdict(self.terrain).items()},
         }
 
     # -- housekeeping ---------------------------------------------------------------------

@@ -1,5 +1,5 @@
-"""The steps of a run, in order, each resumable: ingest, features, train (the cascade),
-export, evaluate, report.
+"""The steps of a run, in order, each resumable: ingest, terrain, features, train (the
+cascade), export, evaluate, report.
 
 The features and the stage-by-stage cascade cover the scenes the forests train on (and
 every scene with ``output.keep_features``); the other scenes are classified afterwards, in
@@ -31,6 +31,7 @@ from workflows.steps.export import check_point_formats, export
 from workflows.steps.features import features
 from workflows.steps.ingest import ingest
 from workflows.steps.one_pass import classify_in_one_pass, one_pass_scenes
+from workflows.steps.terrain import terrain
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +82,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
         check_chunk(layout, only)
     staged = scenes_of(layout, lambda s: s not in passes, only)
     one_pass = scenes_of(layout, lambda s: s in passes, only)
+    timed("terrain", terrain, run, engine, scenes_of(layout, lambda s: True, only))
     if one_pass["scenes"] and not staged["scenes"]:
         fold_step("features", "computed with the stages, in one pass per chunk")
     counts = timed("features", features, run, engine, staged, only)

@@ -10,8 +10,9 @@ and a saved model records the set's name and columns.
   order-preserving scale (:mod:`pipeline.features.conditioning`).
 - ``covariance``: eigenvalue features at the radii ``scales`` x r1 (voxel-subsampled
   neighbourhoods, :mod:`pipeline.features.covariance`) and the height features of a column
-  of radius ``column`` metres (:mod:`pipeline.features.height`): the usual features of the
-  field, the peer baseline inside Silva.
+  of radius ``column`` metres (:mod:`pipeline.features.height`), and the heights above the
+  scene's terrain model of the point and of its column's top (:mod:`pipeline.terrain`): the
+  usual features of the field, the peer baseline inside Silva.
 - ``default``: ``covariance`` plus the moment invariants, the size of S1 (log point count)
   and the log area of its triangulated surface — size cues the paper leaves out.
 
@@ -34,6 +35,7 @@ from pipeline.features.invariants import INVARIANT_NAMES
 from pipeline.features.local import PLANES, local_surface
 from pipeline.features.voxel import halo as voxel_halo
 from pipeline.features.voxel import representative_of
+from pipeline.terrain import TerrainParams, ground_elevation, terrain_model
 from pipeline.tiling import series_ceil
 
 SURFACE_SIZE_NAMES = ("log_neighbors", "log_area")
@@ -42,6 +44,10 @@ SURFACE_SIZE_NAMES = ("log_neighbors", "log_area")
 #: other, the extent alone cost 0.11 macro F1); the height above the lowest points and the
 #: relative height helped in both directions.
 HEIGHT_COLUMNS = ("height_above_lowest", "relative_height")
+#: Heights above the scene's terrain model (:mod:`pipeline.terrain`): the point's, and that
+#: of the highest point of its height column. Unlike the column's lowest points, the terrain
+#: model sees under roofs wider than the column and does not follow the point density.
+TERRAIN_COLUMNS = ("height_above_ground", "column_top_above_ground")
 #: ``r1: auto``: the paper's radius, unless S1 of a surface would hold fewer points than this
 AUTO_NEIGHBORS = 40
 PAPER_RADIUS = 0.5
@@ -71,7 +77,8 @@ class FeatureParams:
     ``plane`` is where S1 is triangulated (:data:`pipeline.features.local.PLANES`);
     ``scales`` the covariance radii as multiples of r1; ``column`` the radius in metres of
     the height column and ``cell`` the side in metres of its cells; ``voxel`` the side in
-    metres of the voxels of the surface features, or None for every point.
+    metres of the voxels of the surface features, or None for every point; ``terrain``
+    the ground filter of the terrain model when a set computes it from the cloud itself.
 
     The column does not grow with r1: the terrain under a point is a matter of metres at any
     density (a wider column on a slope reaches the next hillside's lowest points), and a
@@ -88,6 +95,7 @@ class FeatureParams:
     column: float = 3.0
     cell: float = 0.5
     voxel: float | None = None
+    terrain: TerrainParams = TerrainParams()
 
     def __post_init__(self):
         if self.set not in FEATURE_SETS:
@@ -128,13 +136,22 @@ class FeatureSet:
     columns: tuple[str, ...]
     reach: float  # no feature of a point depends on points farther than this
     compute: Callable[..., np.ndarray] = field(repr=False, compare=False)
+    uses_ground: bool = False  # whether some columns are heights above the terrain model
+    terrain: TerrainParams = TerrainParams()
 
-    def __call__(self, xyz, query=None, ids=None) -> np.ndarray:
-        """Features of the ``query`` rows of ``xyz`` (default all); NaN where undefined."""
+    def __call__(self, xyz, query=None, ids=None, ground=None) -> np.ndarray:
+        """Features of the ``query`` rows of ``xyz`` (default all); NaN where undefined.
+
+        ``ground`` (float64, one per row of ``xyz``) is the terrain model's elevation under
+        each point; None: the terrain model of ``xyz`` itself, a whole scene
+        (:func:`pipeline.terrain.terrain_model` with the set's terrain parameters).
+        """
         xyz = np.asarray(xyz, dtype=np.float64)
         query = np.arange(len(xyz), dtype=np.int64) if query is None else np.asarray(query)
         ids = np.arange(len(xyz), dtype=np.int64) if ids is None else np.asarray(ids)
-        out = np.asarray(self.compute(xyz, query, ids), dtype=np.float32)
+        if self.uses_ground and ground is None:
+            ground = scene_ground(xyz, self.terrain)
+        out = np.asarray(self.compute(xyz, query, ids, ground), dtype=np.float32)
         if out.shape != (len(query), len(self.columns)):
             raise AssertionError(f"feature set {self.name} gave shape {out.shape}")
         return out
@@ -145,7 +162,7 @@ def _surface(params: FeatureParams, with_size: bool):
     """Columns, reach and function of the surface features (invariants [+ size cues])."""
     columns = tuple(INVARIANT_NAMES) + (SURFACE_SIZE_NAMES if with_size else ())
 
-    def describe(xyz, query, ids):
+    def describe(xyz, query, ids, ground=None):
         surface = local_surface(xyz, params.r1, params.max_neighbors, query=query, ids=ids,
                                 plane=params.plane)
         parts = [condition_invariants(surface.invariants)]
@@ -158,7 +175,7 @@ def _surface(params: FeatureParams, with_size: bool):
     if params.voxel is None:
         return columns, params.r1, describe
 
-    def per_voxel(xyz, query, ids):
+    def per_voxel(xyz, query, ids, ground=None):
         # the representatives of the query points, described on the representatives alone
         rep_of = representative_of(xyz, ids, params.voxel)
         reps = np.unique(rep_of)
@@ -175,31 +192,43 @@ def _covariance(params: FeatureParams):
     radii = tuple(s * params.r1 for s in params.scales)
     column, cell = params.column, params.cell
     heights = [HEIGHT_NAMES.index(name) for name in HEIGHT_COLUMNS]
-    columns = multiscale_names(radii) + HEIGHT_COLUMNS
+    below_highest = HEIGHT_NAMES.index("height_below_highest")
+    columns = multiscale_names(radii) + HEIGHT_COLUMNS + TERRAIN_COLUMNS
     reach = max(multiscale_halo(radii), height_halo(column, cell))
 
-    def describe(xyz, query, ids):
-        return np.hstack([multiscale_covariance(xyz, ids, query, radii),
-                          height_features(xyz, ids, query, column, cell)[:, heights]])
+    def describe(xyz, query, ids, ground):
+        height = height_features(xyz, ids, query, column, cell)
+        above_ground = xyz[query, 2] - ground[query]
+        return np.hstack([multiscale_covariance(xyz, ids, query, radii), height[:, heights],
+                          above_ground[:, None],
+                          (above_ground + height[:, below_highest])[:, None]])
 
     return columns, reach, describe
 
 
-def _combine(name: str, *parts) -> FeatureSet:
+def _combine(name: str, params: FeatureParams, *parts, uses_ground: bool = False
+             ) -> FeatureSet:
     columns = tuple(c for cols, _, _ in parts for c in cols)
     reach = max(r for _, r, _ in parts)
 
-    def compute(xyz, query, ids):
-        return np.hstack([describe(xyz, query, ids) for _, _, describe in parts])
+    def compute(xyz, query, ids, ground):
+        return np.hstack([describe(xyz, query, ids, ground) for _, _, describe in parts])
 
-    return FeatureSet(name, columns, reach, compute)
+    return FeatureSet(name, columns, reach, compute, uses_ground, params.terrain)
+
+
+def scene_ground(xyz: np.ndarray, terrain: TerrainParams) -> np.ndarray:
+    """float64 (N,): the elevation under each point of the terrain model of ``xyz``, taken
+    as a whole scene."""
+    return ground_elevation(terrain_model(xyz, terrain).dtm, xyz[:, :2])
 
 
 #: name -> builder of the set from its parameters
 FEATURE_SETS: dict[str, Callable[[FeatureParams], FeatureSet]] = {
-    "paper": lambda p: _combine("paper", _surface(p, with_size=False)),
-    "covariance": lambda p: _combine("covariance", _covariance(p)),
-    "default": lambda p: _combine("default", _covariance(p), _surface(p, with_size=True)),
+    "paper": lambda p: _combine("paper", p, _surface(p, with_size=False)),
+    "covariance": lambda p: _combine("covariance", p, _covariance(p), uses_ground=True),
+    "default": lambda p: _combine("default", p, _covariance(p), _surface(p, with_size=True),
+                                  uses_ground=True),
 }
 #: name -> the numba kernel groups (:data:`pipeline.features.numba_cache.GROUPS`) its
 #: features call, compiled while a run ingests; every run also calls the neighbour search and

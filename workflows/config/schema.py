@@ -19,6 +19,7 @@ from pipeline.features.sets import (
     AUTO_NEIGHBORS, FEATURE_SETS, FeatureParams, feature_set,
 )
 from pipeline.io.base import LAS_NAME_BYTES
+from pipeline.terrain import TerrainParams
 from workflows.config.fields import (
     AutoBool,
     AutoLength,
@@ -33,6 +34,7 @@ from workflows.config.cluster import ClusterConfig
 from workflows.config.messages import fail, field_error, show
 
 _FEATURES, _CASCADE, _FOREST = FeatureParams(), CascadeParams(), ForestParams()
+_TERRAIN = TerrainParams()
 #: Export writes one extra dimension ``Probability_<class>`` per class; LAS names hold 32 bytes.
 PROBABILITY_PREFIX = "Probability_"
 MAX_CLASS_NAME_BYTES = LAS_NAME_BYTES - len(PROBABILITY_PREFIX)
@@ -373,6 +375,38 @@ class TilingConfig(Section):
 
 
 
+# -- terrain ---------------------------------------------------------------------------------
+class TerrainConfig(Section):
+    """The ground model of each scene: a progressive morphological filter with slope
+    tolerance (SMRF, Pingel et al. 2013, as PDAL's filters.smrf) on the raster of the
+    lowest point of each cell; the heights above it are features and an output dimension."""
+
+    cell: Number = Field(_TERRAIN.cell, gt=0,
+                         description="Side in metres of the cells of the terrain model.")
+    slope: Number = Field(_TERRAIN.slope, gt=0,
+                          description="Slope tolerance (rise over run) of the ground.")
+    window: Number = Field(
+        _TERRAIN.window, gt=0,
+        description="Largest opening radius in metres: objects (roofs) up to twice as wide "
+        "are taken off the ground.")
+    threshold: Number = Field(
+        _TERRAIN.threshold, gt=0,
+        description="Height in metres above the terrain model below which a cell's lowest "
+        "point is ground.")
+    scalar: Number = Field(
+        _TERRAIN.scalar, ge=0,
+        description="How much the threshold grows with the local slope (metres per unit slope).")
+
+    @property
+    def params(self) -> TerrainParams:
+        """The resolved parameters of the ground filter."""
+        try:
+            return TerrainParams(float(self.cell), float(self.slope), float(self.window),
+                                 float(self.threshold), float(self.scalar))
+        except ValueError as err:
+            raise fail(f"terrain: {err}") from None
+
+
 # -- cascade ---------------------------------------------------------------------------------
 class CascadeConfig(Section):
     """The cascade of random forests (auto-context)."""
@@ -419,7 +453,12 @@ class CascadeConfig(Section):
 
 # -- output ----------------------------------------------------------------------------------
 #: The dimensions export adds besides the probabilities and the feature columns.
-SILVA_DIMS = ("PredictedClassification", "Confidence", "Entropy", "NoFeatures", "Excluded")
+SILVA_DIMS = ("PredictedClassification", "Confidence", "Entropy", "NoFeatures", "Excluded",
+              "HeightAboveGround")
+#: ASPRS classification codes: ground, and low, medium and high vegetation.
+GROUND_CODE, VEGETATION_CODES = 2, (3, 4, 5)
+#: The rasters output.rasters may ask for.
+RASTERS = ("dtm", "dsm", "chm")
 
 
 def feature_dim_name(column: str) -> str:
@@ -484,6 +523,22 @@ class OutputConfig(Section):
         "codes 0..31 only, so write_classification then needs class codes <= 31).",
     )
 
+    rasters: list[Literal[RASTERS]] = Field(
+        default_factory=list,
+        description="GeoTIFF rasters written per input tile as rasters/<tile>_<name>.tif "
+        "(float32, the tile's CRS): dtm, the terrain model; dsm, the highest point of each "
+        "cell; chm, the canopy height, the highest height above ground of the points "
+        "predicted as output.canopy_classes (0 in cells with points but no canopy).",
+    )
+    raster_resolution: Number = Field(
+        1.0, gt=0, description="Side in metres of the cells of output.rasters.")
+    canopy_classes: list[str] | None = Field(
+        None,
+        description="The classes whose points make the canopy height (chm); default: the "
+        "classes whose first code is an ASPRS vegetation code (3, 4, 5), or else every "
+        "class but the ground's (code 2).",
+    )
+
     def feature_columns(self, columns, set_name: str) -> list[str]:
         """The columns of ``columns`` (feature set ``set_name``'s, in its order) that
         feature_dims names; a one-line error for a name or pattern that matches none."""
@@ -506,6 +561,7 @@ class SilvaConfig(Section):
     data: DataConfig = Field(default_factory=DataConfig)
     tiling: TilingConfig = Field(default_factory=TilingConfig)
     features: FeaturesConfig = Field(default_factory=FeaturesConfig)
+    terrain: TerrainConfig = Field(default_factory=TerrainConfig)
     cascade: CascadeConfig = Field(default_factory=CascadeConfig)
     cluster: ClusterConfig = Field(default_factory=ClusterConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
@@ -541,6 +597,24 @@ class SilvaConfig(Section):
                            f"'{column}' {why}; leave the column out of output.feature_dims")
             seen[name] = column
         return self
+
+    @model_validator(mode="after")
+    def _check_canopy_classes(self) -> "SilvaConfig":
+        for name in self.output.canopy_classes or ():
+            if name not in self.data.class_names:
+                raise fail(f"output.canopy_classes: '{name}' is not a class; classes: "
+                           + ", ".join(self.data.class_names))
+        return self
+
+    @property
+    def canopy_classes(self) -> list[int]:
+        """Indices of the classes whose points make the canopy height model (see
+        :attr:`OutputConfig.canopy_classes`)."""
+        names, codes = self.data.class_names, self.data.class_codes
+        if self.output.canopy_classes is not None:
+            return [names.index(name) for name in self.output.canopy_classes]
+        vegetation = [i for i, code in enumerate(codes) if code in VEGETATION_CODES]
+        return vegetation or [i for i, code in enumerate(codes) if code != GROUND_CODE]
 
     @property
     def feature_dim_columns(self) -> list[str]:

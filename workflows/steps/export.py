@@ -2,10 +2,11 @@
 
 Each task streams its input tile, finds each point's chunk from its coordinates (the same grid
 as ingest) and its row there by global id, and writes the original dimensions plus the
-predicted class, one probability per class, a confidence, an entropy and ``NoFeatures`` (1
+predicted class, one probability per class, a confidence, an entropy, ``NoFeatures`` (1
 where the point's features could not be computed: too few neighbours, or collinear ones; its
-prediction then rests on what the forests make of missing values). Files are written
-atomically.
+prediction then rests on what the forests make of missing values) and ``HeightAboveGround``
+(metres above the scene's terrain model). Files are written atomically. With
+``output.rasters`` the same pass writes the tile's DTM, DSM and canopy height as GeoTIFF.
 
 When ingest leaves points out (``data.exclude_codes``, ``data.exclude_withheld``,
 ``data.drop_unlisted``) a dimension ``Excluded`` is added: 1 for those points, which were in
@@ -16,6 +17,7 @@ PredictedClassification 0, Confidence, Entropy and probabilities 0 and NaN featu
 the features stored per chunk.
 """
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,9 +26,11 @@ from pipeline.atomic import remove_parts
 from pipeline.errors import ConfigError, StoreError
 from pipeline.features.sets import feature_set
 from pipeline.io import ExtraDim, export_with_extra_dims, read_info
+from pipeline.io.raster import cell_index, max_per_cell, tile_grid, write_geotiff
 from pipeline.store import (
-    chunk_path, is_done, mark_done, open_store, proba_array, read_array, rows_of,
+    chunk_path, is_done, mark_done, open_store, proba_array, read_array, read_terrain, rows_of,
 )
+from pipeline.terrain import Raster, ground_elevation
 from pipeline.tiling import global_ids, layout_from_dict
 from workflows.config.schema import feature_dim_name
 from workflows.engine import Task
@@ -35,6 +39,7 @@ from workflows.run import Run
 from workflows.steps.ingest import excluded_points
 
 PREDICTED = "PredictedClassification"
+HEIGHT_ABOVE_GROUND = "HeightAboveGround"
 CONFIDENCE = "Confidence"
 ENTROPY = "Entropy"
 NO_FEATURES = "NoFeatures"
@@ -66,6 +71,7 @@ def extra_dims(classes: list[str], codes: list[int], probabilities: bool,
         ExtraDim(CONFIDENCE, "float32", "Probability of predicted class"),
         ExtraDim(ENTROPY, "float32", "Entropy of class probabilities"),
         ExtraDim(NO_FEATURES, "uint8", "1: features undefined"),
+        ExtraDim(HEIGHT_ABOVE_GROUND, "float32", "Height above terrain model (m)"),
     ]
     if excluded:
         dims.append(ExtraDim(EXCLUDED, "uint8", "1: left out, not classified"))
@@ -74,6 +80,59 @@ def extra_dims(classes: list[str], codes: list[int], probabilities: bool,
                  for n in classes]
     dims += [ExtraDim(feature_dim_name(c), "float32", f"Feature {c}"[:32]) for c in features]
     return dims
+
+
+@dataclass(frozen=True)
+class RasterRequest:
+    """The rasters export writes per tile: ``names`` of :data:`RASTERS` into ``directory``,
+    cells of ``resolution`` metres, the canopy from the points predicted as the classes
+    ``canopy`` (indices)."""
+
+    names: tuple[str, ...]
+    resolution: float
+    canopy: tuple[int, ...]
+    directory: str
+
+    def path(self, tile_name: str, name: str) -> Path:
+        return Path(self.directory) / f"{tile_name}_{name}.tif"
+
+
+class _TileRasters:
+    """DSM and canopy height of one tile, accumulated batch by batch (maxima per cell)."""
+
+    def __init__(self, tile: dict, request: RasterRequest, dtm: Raster):
+        self.tile, self.request, self.dtm = tile, request, dtm
+        cell = request.resolution
+        self.x0, self.y0, nx, ny = tile_grid(tile["mins"], tile["maxs"], cell)
+        self.dsm = np.full((ny, nx), np.nan)
+        self.chm = np.full((ny, nx), np.nan)
+
+    def add(self, xyz, height, kept, canopy) -> None:
+        """``kept``: the points classified (not excluded); ``canopy``: those of them
+        predicted as a canopy class; ``height`` their heights above ground."""
+        flat = cell_index(xyz[kept, :2], self.x0, self.y0, self.request.resolution,
+                          self.dsm.shape)
+        max_per_cell(flat, xyz[kept, 2], self.dsm)
+        max_per_cell(flat[canopy[kept]], height[kept][canopy[kept]], self.chm)
+
+    def write(self) -> list[str]:
+        cell, (ny, nx) = self.request.resolution, self.dsm.shape
+        centres = np.stack(np.meshgrid(self.x0 + (np.arange(nx) + 0.5) * cell,
+                                       self.y0 + (np.arange(ny) + 0.5) * cell), axis=-1)
+        rasters = {
+            "dtm": ground_elevation(self.dtm, centres.reshape(-1, 2)).reshape(ny, nx),
+            "dsm": self.dsm,
+            # 0 where points but no canopy; heights below the terrain model are 0
+            "chm": np.where(np.isnan(self.dsm), np.nan,
+                            np.maximum(np.nan_to_num(self.chm, nan=0.0), 0.0)),
+        }
+        written = []
+        for name in self.request.names:
+            path = self.request.path(self.tile["name"], name)
+            write_geotiff(path, Raster(rasters[name], self.x0, self.y0, cell),
+                          self.tile.get("crs_wkt"))
+            written.append(str(path))
+        return written
 
 
 class _ChunkPredictions:
@@ -135,7 +194,8 @@ class _ChunkPredictions:
 def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilities,
                 write_classification, read_batch, fingerprint, allow_missing=False,
                 exclude_codes=(), exclude_withheld=False, mark_excluded=False,
-                feature_columns=(), feature_index=(), keep_point_format=False):
+                feature_columns=(), feature_index=(), keep_point_format=False,
+                rasters: RasterRequest | None = None):
     """Worker task: write the classified copy of one input tile; return its path and the
     number of its points without features and of its points excluded at ingest.
 
@@ -143,16 +203,26 @@ def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilitie
     not looked up in the store. ``mark_excluded`` adds the ``Excluded`` dimension.
     ``feature_columns`` are written from the columns ``feature_index`` of the stored
     features. ``keep_point_format`` keeps the input's LAS version and point format.
+    ``rasters`` also writes the tile's rasters. Every point gets its height above the
+    terrain model of its scene.
     """
     root = open_store(store_path)
     marker = root.require_group(f"exports/{tile['index']}")
-    if is_done(marker, "export", fingerprint) and Path(dst).is_file():
+    raster_paths = ([rasters.path(tile["name"], name) for name in rasters.names]
+                    if rasters is not None else [])
+    if (is_done(marker, "export", fingerprint) and Path(dst).is_file()
+            and all(p.is_file() for p in raster_paths)):
         return {"path": dst, "no_features": marker.attrs.get("no_features", 0),
                 "excluded": marker.attrs.get("excluded", 0)}
     predictions = _ChunkPredictions(root, tile["scene"], layout_from_dict(grid), stage,
                                     allow_missing, feature_index)
     codes_array = np.asarray(codes)
     n_undefined = n_excluded = 0
+    dtm = read_terrain(root, tile["scene"])
+    tile_rasters = _TileRasters(tile, rasters, dtm) if rasters is not None else None
+    canopy = np.zeros(len(classes), dtype=bool)
+    if rasters is not None:
+        canopy[list(rasters.canopy)] = True
 
     def compute(batch):
         nonlocal n_undefined, n_excluded
@@ -172,11 +242,15 @@ def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilitie
         n_excluded += int(np.count_nonzero(filtered))
         best = np.argmax(proba, axis=1)
         predicted = np.where(found, codes_array[best], 0)  # 0: never classified (LAS)
+        height = batch.xyz[:, 2] - ground_elevation(dtm, batch.xyz[:, :2])
+        if tile_rasters is not None:
+            tile_rasters.add(batch.xyz, height, found, canopy[best])
         values = {
             PREDICTED: predicted,
             CONFIDENCE: proba[np.arange(len(best)), best],
             ENTROPY: entropy(proba),
             NO_FEATURES: undefined.astype(np.uint8),
+            HEIGHT_ABOVE_GROUND: height.astype(np.float32),
         }
         if mark_excluded:
             values[EXCLUDED] = (~found).astype(np.uint8)
@@ -197,8 +271,10 @@ def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilitie
         compute, batch_size=read_batch, set_classification=write_classification,
         keep_point_format=keep_point_format,
     )
+    written = tile_rasters.write() if tile_rasters is not None else []
     mark_done(marker, "export", fingerprint, no_features=n_undefined, excluded=n_excluded)
-    return {"path": dst, "no_features": n_undefined, "excluded": n_excluded}
+    return {"path": dst, "no_features": n_undefined, "excluded": n_excluded,
+            "rasters": written}
 
 
 def check_point_formats(run: Run, tiles: list[dict]) -> None:
@@ -235,6 +311,14 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
     feature_columns = run.cfg.feature_dim_columns
     all_columns = list(feature_set(run.features).columns)
     feature_index = [all_columns.index(c) for c in feature_columns]
+    out = run.cfg.output
+    raster_dir = run.out / "rasters"
+    rasters = (RasterRequest(tuple(out.rasters), float(out.raster_resolution),
+                             tuple(run.cfg.canopy_classes), str(raster_dir))
+               if out.rasters else None)
+    if rasters is not None:
+        raster_dir.mkdir(parents=True, exist_ok=True)
+        remove_parts(raster_dir)
     tasks = []
     for tile in layout["tiles"]:
         dst = out_dir / f"{tile['name']}{suffix}"
@@ -254,6 +338,7 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
                 mark_excluded=run.cfg.data.excludes,
                 feature_columns=feature_columns, feature_index=feature_index,
                 keep_point_format=run.cfg.output.point_format == "keep",
+                rasters=rasters,
             ),
             where=f"export of tile {tile['path']}",
             reproduce=f"silva export CONFIG --out {run.out} --in-process",
@@ -261,6 +346,9 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
     results = list(engine.map("export", tasks).values())
     written = [r["path"] for r in results]
     remove_stale(out_dir, written)
+    if raster_dir.is_dir():  # rasters of tiles no longer in the run, or no longer asked for
+        remove_stale(raster_dir, [p for r in results for p in r.get("rasters", ())],
+                     suffixes=(".tif",))
     undefined = sum(r["no_features"] for r in results)
     if undefined:
         total = sum(t["n_points"] for t in layout["tiles"])
@@ -271,11 +359,12 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
     return written
 
 
-def remove_stale(out_dir: Path, keep: list[str]) -> list[Path]:
-    """Remove the point-cloud files of ``out_dir`` that are not in ``keep``; return them."""
+def remove_stale(out_dir: Path, keep: list[str], suffixes=(".las", ".laz")) -> list[Path]:
+    """Remove the files of ``out_dir`` with one of ``suffixes`` (point clouds) that are not
+    in ``keep``; return them."""
     kept = {Path(p).name for p in keep}
     stale = [p for p in out_dir.iterdir()
-             if p.suffix.lower() in (".las", ".laz") and p.name not in kept
+             if p.suffix.lower() in suffixes and p.name not in kept
              and (p.is_file() or p.is_symlink())]
     for path in stale:
         path.unlink(missing_ok=True)

@@ -12,13 +12,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.cascade import id_hash
-from pipeline.errors import InputError
 from pipeline.features.neighbors import RadiusIndex
 from pipeline.features.sets import FeatureParams, feature_set
-from pipeline.store import ROLE_TRAIN, chunk_points
-from workflows.engine import chunk_tasks
+from pipeline.store import ROLE_TRAIN
+from workflows.engine import chunk_tasks, chunk_window
 from workflows.progress import say
 from workflows.run import Run
+from workflows.steps.terrain import ground_under
 
 SPARSE_NEIGHBORS = 8  # fewer points in S1 than this make a poor surface
 SPARSE_SAMPLE = 0.02  # fraction of the points whose neighbourhood size is checked
@@ -33,22 +33,12 @@ class FeatureTask:
     tiles: tuple[int, ...]  # the tiles with points in this scene
 
 
-def chunk_window(view, tiles) -> tuple[dict, np.ndarray, np.ndarray]:
-    """A chunk assembled from the parts of ``tiles``: its core arrays, and the xyz and ids
-    of its window, the core points first, then the halo's."""
-    core, halo = chunk_points(view.root, view.scene, view.chunk, tiles, view.group)
-    if not np.isfinite(core["xyz"]).all():
-        raise InputError(f"chunk {view.chunk} of scene '{view.scene}' holds non-finite "
-                         "coordinates")
-    return (core, np.concatenate([core["xyz"], halo["xyz"]]),
-            np.concatenate([core["gid"], halo["gid"]]))
-
-
 def chunk_features(view, task: FeatureTask):
     """Worker task: assemble one chunk and compute its features; return its class counts."""
     core, xyz, ids = chunk_window(view, task.tiles)
     query = np.arange(len(core["gid"]), dtype=np.int64)
-    features = feature_set(task.features)(xyz, query, ids)
+    compute = feature_set(task.features)
+    features = compute(xyz, query, ids, ground_under(view, xyz) if compute.uses_ground else None)
     view.write(features=features, undefined=np.isnan(features).any(axis=1))
     trained = (core["role"] == ROLE_TRAIN) & (core["label"] >= 0)
     return {"train_counts": np.bincount(core["label"][trained],

@@ -20,10 +20,11 @@ from pipeline.cascade import labels_from_proba, one_pass, one_pass_halo
 from pipeline.features.sets import FeatureParams, feature_set
 from pipeline.store import labels_array, proba_array, write_arrays
 from pipeline.tiling import layout_from_dict
-from workflows.engine import chunk_tasks
+from workflows.engine import chunk_tasks, chunk_window
 from workflows.run import Run
 from workflows.steps.cascade import cached_forest
-from workflows.steps.features import chunk_window, sparse_points, warn_sparse
+from workflows.steps.features import sparse_points, warn_sparse
+from workflows.steps.terrain import ground_under
 
 #: The pack of a one-pass chunk's results.
 PACK = "predictions"
@@ -51,9 +52,10 @@ def chunk_one_pass(view, task: OnePassTask):
     n_core = len(core["gid"])
     params = task.features
     compute = feature_set(params)
+    ground = ground_under(view, xyz) if compute.uses_ground else None
     probas, undefined = one_pass(
         xyz, ids, n_core, chunk_box(layout_from_dict(task.grid), view.chunk),
-        lambda rows: compute(xyz, rows, ids), [cached_forest(p) for p in task.forest_paths],
+        lambda rows: compute(xyz, rows, ids, ground), [cached_forest(p) for p in task.forest_paths],
         n_classes=task.n_classes, mode=task.context, r1=params.r1, r2=params.r2,
         max_neighbors=params.context_max_neighbors)
     last = len(probas) - 1  # what export and evaluate read: the earlier stages' labels
