@@ -130,7 +130,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     write_report(run.out, metrics, pr_data=plots["pr_data"], topdown=plots["topdown"],
                  run_info=run_info, config_text=(run.out / "config.yaml").read_text(),
                  importances=[s.get("importances") for s in stages],
-                 no_features=_no_features(run, layout))
+                 no_features=_no_features(run, layout), terrain=plots["terrain"])
     # metrics.json last: its presence means the whole run completed.
     write_metrics(run, metrics)
     summary.update(metrics=str(run.metrics_path), report=str(run.report_path),

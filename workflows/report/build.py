@@ -10,6 +10,7 @@ from workflows.report.figures import (
     importance_figure,
     png_bytes,
     precision_recall_figure,
+    terrain_figure,
     topdown_figure,
 )
 from workflows.report.html import TOP_FEATURES, render_page
@@ -29,6 +30,7 @@ def write_report(
     config_text: str | None = None,
     importances: list | None = None,
     no_features: dict | None = None,
+    terrain: dict | None = None,
 ) -> Path:
     """Write ``out_dir/report.html`` and its plots as ``out_dir/plots/*.png``.
 
@@ -60,6 +62,9 @@ def write_report(
     no_features : dict, optional
         ``{"points": int, "total": int}``: the points whose features could not be computed
         (marked ``NoFeatures`` = 1 in the output) among all the points written.
+    terrain : dict, optional
+        ``{scene: {"dtm": Raster, "x", "y", "height"}}`` for the terrain figure (see
+        :func:`workflows.report.figures.terrain_figure`).
 
     Returns
     -------
@@ -89,6 +94,10 @@ def write_report(
         "topdown": _optional_figure(
             topdown, lambda: topdown_figure(topdown),
             "No point positions were passed to the report, so the map is omitted.",
+        ),
+        "terrain": _optional_figure(
+            terrain or None, lambda: terrain_figure(terrain),
+            "No terrain model was passed to the report, so this plot is omitted.",
         ),
     }
     images = {}

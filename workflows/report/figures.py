@@ -310,3 +310,45 @@ def _compact_count(count) -> str:
     if count < 1_000_000:
         return f"{count / 1e3:.1f}k" if count < 100_000 else f"{count / 1e3:.0f}k"
     return f"{count / 1e6:.2f}M" if count < 100_000_000 else f"{count / 1e6:.0f}M"
+
+
+def terrain_figure(terrain: dict) -> Figure:
+    """Per scene, the terrain model's hillshade and the canopy height of the sampled points.
+
+    ``terrain`` maps a scene name to ``{"dtm": Raster, "x", "y", "height"}``: the scene's
+    terrain model (:class:`pipeline.terrain.Raster`) and the map coordinates and heights
+    above it of the sampled points predicted as a canopy class.
+    """
+    from pipeline.io.raster import hillshade
+
+    scenes = list(terrain)
+    if not scenes:
+        raise InputError("terrain holds no scene: pass {scene: {dtm, x, y, height}}")
+    with matplotlib.rc_context(STYLE):
+        fig = Figure(figsize=(11.0, 4.6 * len(scenes)), dpi=DPI)
+        for row, scene in enumerate(scenes):
+            entry = terrain[scene]
+            dtm = entry["dtm"]
+            ny, nx = dtm.values.shape
+            extent = (dtm.x0, dtm.x0 + nx * dtm.cell, dtm.y0, dtm.y0 + ny * dtm.cell)
+            ax = fig.add_subplot(len(scenes), 2, 2 * row + 1)
+            ax.imshow(hillshade(dtm.values, dtm.cell), cmap="gray", origin="lower",
+                      extent=extent, vmin=0, vmax=1, interpolation="nearest")
+            low, high = np.nanmin(dtm.values), np.nanmax(dtm.values)
+            ax.set_title(f"{_mpl_text(scene)}: terrain model, {low:.1f}-{high:.1f} m "
+                         f"({dtm.cell:g} m cells)")
+            ax.ticklabel_format(useOffset=False, style="plain")
+            ax = fig.add_subplot(len(scenes), 2, 2 * row + 2)
+            x, y = np.asarray(entry["x"]), np.asarray(entry["y"])
+            height = np.asarray(entry["height"], dtype=np.float64)
+            order = np.argsort(height, kind="stable")  # the tallest drawn last, on top
+            dots = ax.scatter(x[order], y[order], c=height[order], s=1.0, marker="s",
+                              cmap="viridis", vmin=0, linewidths=0, rasterized=True)
+            ax.set_xlim(extent[0], extent[1])
+            ax.set_ylim(extent[2], extent[3])
+            ax.set_aspect("equal")
+            ax.ticklabel_format(useOffset=False, style="plain")
+            ax.set_title(f"canopy height above the terrain ({x.size:,} sampled points)")
+            fig.colorbar(dots, ax=ax, label="m above ground", shrink=0.8)
+        fig.tight_layout()
+    return fig

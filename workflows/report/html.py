@@ -7,7 +7,8 @@ import numpy as np
 
 from workflows.report.figures import class_colour, format_score, top_importances
 
-PLOT_NAMES = ("confusion", "precision_recall", "f1_per_stage", "importances", "topdown")
+PLOT_NAMES = ("confusion", "precision_recall", "f1_per_stage", "importances", "topdown",
+              "terrain")
 TOP_FEATURES = 10  # feature columns shown per stage
 SCORES = ("precision", "recall", "f1", "iou")
 SCORE_LABELS = {"precision": "Precision", "recall": "Recall", "f1": "F1", "iou": "IoU"}
@@ -78,6 +79,11 @@ CAPTIONS = {
         "columns take their class's colour, the point's own features are grey."
     ),
     "topdown": "Final predicted class of a sample of the points, seen from above.",
+    "terrain": (
+        "Left: the hillshade of each scene's terrain model (SMRF ground filter on the lowest "
+        "point of each cell). Right: the height above it of the sampled points predicted as "
+        "a canopy class (output.canopy_classes)."
+    ),
 }
 TITLES = {
     "confusion": "Confusion matrix",
@@ -85,6 +91,7 @@ TITLES = {
     "f1_per_stage": "F1 per stage",
     "importances": "Feature importances",
     "topdown": "Map of predicted classes",
+    "terrain": "Terrain model and canopy height",
 }
 
 

@@ -18,10 +18,11 @@ import numpy as np
 from pipeline.cascade import id_hash, labels_from_proba
 from pipeline.metrics import confusion_matrix, scores_from_confusion
 from pipeline.atomic import atomic_write_text
-from pipeline.store import ROLE_TEST, labels_array, proba_array
+from pipeline.store import ROLE_TEST, labels_array, proba_array, read_terrain
 from workflows.engine import chunk_tasks
 from workflows.run import Run
 from workflows.steps.one_pass import one_pass_scenes
+from workflows.steps.terrain import ground_under
 
 PLOT_POINTS = 200_000  # points drawn in the report's plots
 
@@ -32,6 +33,7 @@ class EvaluationTask:
     n_classes: int
     sample_fraction: float  # of the points drawn in the report's plots
     one_pass_scenes: tuple[str, ...] = ()  # scenes classified in one pass
+    canopy: tuple[int, ...] = ()  # the canopy classes (indices)
 
 
 def chunk_evaluation(view, task: EvaluationTask):
@@ -47,13 +49,19 @@ def chunk_evaluation(view, task: EvaluationTask):
                                        task.n_classes))
     picked = id_hash(gid, 7) < task.sample_fraction
     test_pick = picked & test
+    map_label = labels_from_proba(final[picked])
+    canopy = picked.copy()
+    canopy[picked] = np.isin(map_label, task.canopy)
     return {
         "confusions": confusions,
         "pr_true": label[test_pick],
         "pr_proba": final[test_pick],
         "map_x": xyz[picked, 0],
         "map_y": xyz[picked, 1],
-        "map_label": labels_from_proba(final[picked]),
+        "map_label": map_label,
+        "canopy_x": xyz[canopy, 0],
+        "canopy_y": xyz[canopy, 1],
+        "canopy_height": xyz[canopy, 2] - ground_under(view, xyz[canopy]),
         "n_points": len(gid),
         "no_features": int(np.count_nonzero(undefined & test)),
     }
@@ -73,9 +81,13 @@ def evaluate(run: Run, engine, layout: dict, n_stages: int) -> dict:
     fraction = min(1.0, PLOT_POINTS / max(total, 1))
     tasks = chunk_tasks(run, layout, "evaluate", chunk_evaluation,
                         EvaluationTask(n_stages, run.n_classes, fraction,
-                                       tuple(sorted(one_pass_scenes(run, layout)))),
+                                       tuple(sorted(one_pass_scenes(run, layout))),
+                                       tuple(run.cfg.canopy_classes)),
                         run.fingerprint("evaluate"), "evaluate", marks=False)
-    results = list(engine.map("evaluate", tasks).values())
+    done, by_scene = engine.map("evaluate", tasks), {}
+    for task in tasks:
+        by_scene.setdefault(task.kwargs["scene"], []).append(done[task.key])
+    results = [r for scene_results in by_scene.values() for r in scene_results]
     background = list(run.cfg.data.background)
     stages = []
     for stage in range(n_stages):
@@ -98,6 +110,12 @@ def evaluate(run: Run, engine, layout: dict, n_stages: int) -> dict:
             "y": np.concatenate([r["map_y"] for r in results]),
             "label": np.concatenate([r["map_label"] for r in results]),
             "class_names": run.classes,
+        },
+        "terrain": {
+            scene: {"dtm": read_terrain(run.store, scene),
+                    **{k: np.concatenate([r[f"canopy_{k}"] for r in scene_results])
+                       for k in ("x", "y", "height")}}
+            for scene, scene_results in by_scene.items()
         },
     }
     return metrics, plots
