@@ -1,0 +1,336 @@
+"""The raster of a scene's lowest points: cell minima, their exact merge, filling and sampling.
+
+Cells are squares of side ``cell`` anchored at 0: the point (x, y) falls in the cell
+(floor(x / cell), floor(y / cell)). The anchor does not move with the data, so every chunk of a
+cloud reduces its points to minima of the same cells, and a minimum is exact and associative:
+:func:`merge_minima` of any split of a cloud equals :func:`cell_minima` of the whole cloud,
+bit for bit.
+"""
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage, sparse
+
+from pipeline.errors import InputError
+
+logger = logging.getLogger(__name__)
+
+#: Largest cell key magnitude: keys and their differences stay exact in float64 and int64.
+MAX_KEY = 2**50
+#: Largest raster :func:`minima_raster` builds (float64 values: 1.6 GB).
+MAX_CELLS = 200_000_000
+
+
+@dataclass(frozen=True)
+class Raster:
+    """A north-up grid of square cells.
+
+    ``values`` float64 (ny, nx); row i covers y in [y0 + i*cell, y0 + (i+1)*cell) (row 0 is
+    the SOUTH edge), column j covers x in [x0 + j*cell, x0 + (j+1)*cell); NaN where there is
+    no value. The centre of cell (i, j) is (x0 + (j + 0.5) cell, y0 + (i + 0.5) cell).
+    """
+
+    values: np.ndarray
+    x0: float
+    y0: float
+    cell: float
+
+    def __post_init__(self):
+        values = np.asarray(self.values, dtype=np.float64)
+        if values.ndim != 2 or values.shape[0] < 1 or values.shape[1] < 1:
+            raise InputError(f"Raster values must be a non-empty 2-D array, got shape {values.shape}")
+        cell = float(self.cell)
+        if not (math.isfinite(cell) and cell > 0.0):
+            raise InputError(f"Raster cell must be a finite number > 0, got {self.cell!r}")
+        x0, y0 = float(self.x0), float(self.y0)
+        if not (math.isfinite(x0) and math.isfinite(y0)):
+            raise InputError(f"Raster origin must be finite, got ({self.x0!r}, {self.y0!r})")
+        object.__setattr__(self, "values", values)
+        object.__setattr__(self, "x0", x0)
+        object.__setattr__(self, "y0", y0)
+        object.__setattr__(self, "cell", cell)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(ny, nx)."""
+        return self.values.shape
+
+
+def _check_cell(cell) -> float:
+    value = float(cell)
+    if not (math.isfinite(value) and value > 0.0):
+        raise InputError(f"cell must be a finite number of metres > 0, got {cell!r}")
+    return value
+
+
+def _empty_minima() -> tuple[np.ndarray, np.ndarray]:
+    return np.empty((0, 2), dtype=np.int64), np.empty(0, dtype=np.float64)
+
+
+def _reduce_minima(keys: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The lowest z of each distinct key, keys sorted by kx then ky. Exact: a minimum does not
+    depend on the order of its operands."""
+    if keys.shape[0] == 0:
+        return _empty_minima()
+    order = np.lexsort((keys[:, 1], keys[:, 0]))
+    keys = keys[order]
+    z = z[order]
+    new = np.empty(keys.shape[0], dtype=bool)
+    new[0] = True
+    np.any(keys[1:] != keys[:-1], axis=1, out=new[1:])
+    starts = np.flatnonzero(new)
+    return np.ascontiguousarray(keys[starts]), np.minimum.reduceat(z, starts)
+
+
+def cell_minima(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """The lowest point of every occupied cell of a cloud.
+
+    Parameters
+    ----------
+    xyz : float (N, 3)
+        Point coordinates, finite. N may be 0.
+    cell : float
+        Cell side in metres, > 0.
+
+    Returns
+    -------
+    keys : int64 (M, 2)
+        (floor(x / cell), floor(y / cell)) of every occupied cell, each once, sorted by kx
+        then ky (``np.lexsort((ky, kx))`` order).
+    zmin : float64 (M,)
+        The lowest z of each cell.
+    """
+    cell = _check_cell(cell)
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise InputError(f"xyz must have shape (N, 3), got {xyz.shape}")
+    if xyz.shape[0] == 0:
+        return _empty_minima()
+    if not np.isfinite(xyz).all():
+        bad = int(np.flatnonzero(~np.isfinite(xyz).all(axis=1))[0])
+        raise InputError(
+            f"xyz holds NaN or infinite coordinates (first at row {bad}); "
+            "drop or repair those points before computing the terrain"
+        )
+    scaled = np.floor(xyz[:, :2] / cell)
+    if np.abs(scaled).max() > MAX_KEY:
+        raise InputError(
+            f"coordinates up to {np.abs(xyz[:, :2]).max():.6g} m make cell keys beyond "
+            f"{MAX_KEY} at cell {cell} m; recentre the coordinates or use a larger cell"
+        )
+    return _reduce_minima(scaled.astype(np.int64), xyz[:, 2].copy())
+
+
+def merge_minima(parts) -> tuple[np.ndarray, np.ndarray]:
+    """The union of several (keys, zmin) pairs of :func:`cell_minima` (e.g. one per spatial
+    chunk), with the minimum of each key.
+
+    Exact: the result does not depend on the order of the parts nor on how the cloud was
+    split, and equals :func:`cell_minima` of the whole cloud bit for bit. Parts may be empty
+    and keys may repeat across parts; no parts give empty arrays of shapes (0, 2) and (0,).
+    Output order and dtypes as :func:`cell_minima`.
+    """
+    all_keys, all_z = [], []
+    for n, (keys, zmin) in enumerate(parts):
+        keys = np.asarray(keys)
+        if keys.size == 0:
+            keys = keys.astype(np.int64).reshape(0, 2)
+        zmin = np.asarray(zmin, dtype=np.float64)
+        if keys.ndim != 2 or keys.shape[1] != 2 or zmin.shape != (keys.shape[0],):
+            raise InputError(
+                f"part {n} of the minima must be keys (M, 2) and zmin (M,), got shapes "
+                f"{keys.shape} and {zmin.shape}"
+            )
+        if not np.issubdtype(keys.dtype, np.integer):
+            raise InputError(f"part {n} of the minima has keys of dtype {keys.dtype}, expected integers")
+        all_keys.append(keys.astype(np.int64, copy=False))
+        all_z.append(zmin)
+    if not all_keys:
+        return _empty_minima()
+    return _reduce_minima(np.concatenate(all_keys), np.concatenate(all_z))
+
+
+def minima_raster(keys: np.ndarray, zmin: np.ndarray, cell: float) -> Raster:
+    """The raster of cell minima spanning the keys' bounding box.
+
+    ``x0 = kx_min * cell``, ``y0 = ky_min * cell``; cell (kx, ky) is at row ky - ky_min (row 0
+    south), column kx - kx_min; NaN in cells without a key. A key given twice keeps its lowest
+    z. Raises :class:`~pipeline.errors.InputError` (a ``ValueError``) for zero keys or a
+    raster of more than :data:`MAX_CELLS` cells.
+    """
+    cell = _check_cell(cell)
+    keys = np.asarray(keys)
+    zmin = np.asarray(zmin, dtype=np.float64)
+    if keys.ndim != 2 or keys.shape[1] != 2 or zmin.shape != (keys.shape[0],):
+        raise InputError(
+            f"minima must be keys (M, 2) and zmin (M,), got shapes {keys.shape} and {zmin.shape}"
+        )
+    if keys.shape[0] == 0:
+        raise InputError("no cell minima: the scene holds no points to build a terrain from")
+    if not np.isfinite(zmin).all():
+        raise InputError("cell minima hold NaN or infinite elevations; drop those points first")
+    keys = keys.astype(np.int64, copy=False)
+    low = keys.min(axis=0)
+    span = keys.max(axis=0) - low + 1
+    if int(span[0]) * int(span[1]) > MAX_CELLS:
+        raise InputError(
+            f"the terrain raster would have {int(span[1])} x {int(span[0])} cells of {cell} m "
+            f"(more than {MAX_CELLS}); use a larger cell or split the scene"
+        )
+    values = np.full((int(span[1]), int(span[0])), np.inf)
+    np.minimum.at(values, (keys[:, 1] - low[1], keys[:, 0] - low[0]), zmin)
+    values[np.isinf(values)] = np.nan
+    return Raster(values, float(low[0]) * cell, float(low[1]) * cell, cell)
+
+
+#: Unknown cells above which :func:`fill` starts its solver from a fill of the raster at
+#: half resolution (a coarse solution converges in a fraction of the iterations).
+COARSE_START = 4096
+#: Largest number of conjugate-gradient iterations of one :func:`fill` level.
+MAX_ITERATIONS = 20_000
+
+
+def fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """``values`` (float64 (ny, nx)) with every cell outside ``known`` (bool (ny, nx), at least
+    one True) replaced by a harmonic interpolation of the known cells.
+
+    The filled cells solve Laplace's equation (each is the mean of its 4 neighbours), the
+    known cells fixed, with no flow across the raster's edges: the smoothest surface through
+    the known cells, exact for a plane inside the known cells' span, and level where it
+    extrapolates beyond them to an edge. A single row or column is interpolated linearly along
+    it (constant beyond its ends).
+
+    The system is solved by conjugate gradients (Jacobi preconditioning) to a residual of
+    :math:`10^{-10}` times the elevation range, started from the nearest known cell, or when
+    more than :data:`COARSE_START` cells are unknown from the same fill at half resolution
+    (a large hole converges in a few hundred iterations instead of thousands). Every sum is
+    NumPy's pairwise sum, never a threaded BLAS reduction, so the same input gives the same
+    bits on any machine.
+    """
+    out = np.array(values, dtype=np.float64)
+    unknown = ~np.asarray(known, dtype=bool)
+    if not unknown.any():
+        return out
+    ny, nx = out.shape
+    if ny == 1 or nx == 1:
+        flat = out.reshape(-1)
+        mask = ~unknown.reshape(-1)
+        idx = np.arange(flat.size, dtype=np.float64)
+        flat[~mask] = np.interp(idx[~mask], idx[mask], flat[mask])
+        return flat.reshape(ny, nx)
+    ref = float(np.median(out[~unknown]))
+    out[~unknown] -= ref
+    if unknown.sum() > COARSE_START and ny >= 4 and nx >= 4:
+        start = _coarse_start(out, ~unknown)
+    else:
+        nearest = ndimage.distance_transform_edt(
+            unknown, return_distances=False, return_indices=True
+        )
+        start = out[nearest[0], nearest[1]]
+    out[unknown] = _harmonic(out, unknown, start[unknown])
+    out += ref
+    return out
+
+
+def _coarse_start(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """A fill at half resolution (2 x 2 blocks: the mean of their known cells), repeated back
+    to the full shape."""
+    ny, nx = values.shape
+    py, px = ny % 2, nx % 2
+    v = np.pad(np.where(known, values, 0.0), ((0, py), (0, px)))
+    k = np.pad(known, ((0, py), (0, px))).astype(np.float64)
+    sums = v.reshape(v.shape[0] // 2, 2, v.shape[1] // 2, 2).sum(axis=(1, 3))
+    counts = k.reshape(k.shape[0] // 2, 2, k.shape[1] // 2, 2).sum(axis=(1, 3))
+    coarse_known = counts > 0
+    coarse = np.divide(sums, counts, out=np.zeros_like(sums), where=coarse_known)
+    coarse = fill(coarse, coarse_known)
+    return np.repeat(np.repeat(coarse, 2, axis=0), 2, axis=1)[:ny, :nx]
+
+
+def _harmonic(values: np.ndarray, unknown: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """The values of the unknown cells (in ``np.nonzero(unknown)`` order) solving the discrete
+    Laplace equation with the other cells of ``values`` fixed; ``start`` is the first guess."""
+    ny, nx = values.shape
+    n = start.size
+    index = np.full((ny, nx), -1, dtype=np.int64)
+    index[unknown] = np.arange(n)
+    ui, uj = np.nonzero(unknown)
+    degree = np.zeros(n)
+    rhs = np.zeros(n)
+    rows, cols = [np.arange(n)], [np.arange(n)]
+    for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        vi, vj = ui + di, uj + dj
+        inside = (vi >= 0) & (vi < ny) & (vj >= 0) & (vj < nx)
+        me, vi, vj = np.flatnonzero(inside), vi[inside], vj[inside]
+        degree[me] += 1.0
+        other = index[vi, vj]
+        fixed = other < 0
+        rhs[me[fixed]] += values[vi[fixed], vj[fixed]]
+        rows.append(me[~fixed])
+        cols.append(other[~fixed])
+    off = sum(r.size for r in rows[1:])
+    data = np.concatenate((degree, -np.ones(off)))
+    matrix = sparse.csr_matrix((data, (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+    scale = max(float(np.ptp(values[~unknown])), 1.0)
+    x = np.array(start, dtype=np.float64)
+    r = rhs - matrix @ x
+    z = r / degree
+    p = z.copy()
+    rz = np.sum(r * z)
+    for _ in range(MAX_ITERATIONS):
+        if np.abs(r).max() <= 1e-10 * scale:
+            break
+        q = matrix @ p
+        alpha = rz / np.sum(p * q)
+        x += alpha * p
+        r -= alpha * q
+        z = r / degree
+        rz_next = np.sum(r * z)
+        p = z + (rz_next / rz) * p
+        rz = rz_next
+    else:
+        logger.warning("terrain fill stopped after %d iterations at residual %.3g m",
+                       MAX_ITERATIONS, float(np.abs(r).max()))
+    return x
+
+
+def ground_elevation(dtm: Raster, xy: np.ndarray) -> np.ndarray:
+    """The DTM bilinearly interpolated between cell centres.
+
+    Parameters
+    ----------
+    dtm : Raster
+        A raster without NaN (the ``dtm`` of a :class:`~pipeline.terrain.GroundModel`); NaN
+        cells give NaN at the points they influence.
+    xy : float (N, 2)
+        Query positions, finite.
+
+    Returns
+    -------
+    float64 (N,)
+        Elevations. Outside the span of the cell centres the position is clamped to it, so a
+        point beyond the raster gets the value of the edge cells. Each point's value depends
+        only on that point and the raster (the same point gives the same bits whatever else
+        is in the call); exact (up to rounding) where the DTM is a plane.
+    """
+    xy = np.asarray(xy, dtype=np.float64)
+    if xy.ndim != 2 or xy.shape[1] != 2:
+        raise InputError(f"xy must have shape (N, 2), got {xy.shape}")
+    if not np.isfinite(xy).all():
+        raise InputError("xy holds NaN or infinite coordinates; drop those points first")
+    v = dtm.values
+    ny, nx = v.shape
+    u = np.clip((xy[:, 0] - dtm.x0) / dtm.cell - 0.5, 0.0, nx - 1.0)
+    w = np.clip((xy[:, 1] - dtm.y0) / dtm.cell - 0.5, 0.0, ny - 1.0)
+    j = np.minimum(np.floor(u).astype(np.int64), max(nx - 2, 0))
+    i = np.minimum(np.floor(w).astype(np.int64), max(ny - 2, 0))
+    t = u - j
+    s = w - i
+    j1 = np.minimum(j + 1, nx - 1)
+    i1 = np.minimum(i + 1, ny - 1)
+    south = v[i, j] + t * (v[i, j1] - v[i, j])
+    north = v[i1, j] + t * (v[i1, j1] - v[i1, j])
+    return south + s * (north - south)
