@@ -12,7 +12,7 @@ import click
 
 from pipeline.errors import SilvaError
 from workflows.bench import bench
-from workflows.commands import COMMANDS
+from workflows.commands import COMMANDS, error_line
 from workflows.sweep import sweep  # it runs its runs through commands: registered here
 
 
@@ -22,21 +22,8 @@ def _usage_error(err: click.UsageError):
     sys.exit(1)
 
 
-def os_error_line(err: OSError) -> str:
-    """One line for an operating-system error: what failed where, and what to do."""
-    reason = err.strerror or str(err) or type(err).__name__
-    where = f" {err.filename}" if err.filename else ""
-    return (f"cannot write or read{where}: {reason}; fix it (free space, permissions) and run "
-            "the same command again: finished work is kept")
-
-
 def _interrupted(err: KeyboardInterrupt):
-    command = getattr(err, "command", None)
-    if command:
-        click.echo(f"silva: interrupted; run the same command again to resume: {command}",
-                   err=True)
-    else:
-        click.echo("silva: interrupted", err=True)
+    click.echo(error_line(err), err=True)
     sys.exit(130)
 
 
@@ -52,11 +39,8 @@ class SilvaGroup(click.Group):
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
-        except SilvaError as err:
-            click.echo(f"silva: error: {err}", err=True)
-            sys.exit(1)
-        except OSError as err:  # a full disk, a read-only or vanished output directory
-            click.echo(f"silva: error: {os_error_line(err)}", err=True)
+        except (SilvaError, OSError) as err:  # OSError: a full disk, a read-only directory
+            click.echo(error_line(err), err=True)
             sys.exit(1)
         except click.UsageError as err:  # a subcommand's missing argument or unknown option
             _usage_error(err)

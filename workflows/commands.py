@@ -16,7 +16,15 @@ from pathlib import Path
 
 import click
 
-from workflows.progress import counted, report_finished_step, run_logging, run_progress, say
+from workflows.progress import (
+    counted,
+    log_line,
+    report_finished_step,
+    run_logging,
+    run_progress,
+    say,
+    uncounted,
+)
 from workflows.templates import TEMPLATES, template_path, write_template
 
 log = logging.getLogger(__name__)
@@ -30,6 +38,40 @@ class Interrupted(KeyboardInterrupt):
     def __init__(self, command: str):
         super().__init__(command)
         self.command = command
+
+
+def resume_command(command: str) -> str:
+    """``command`` without ``--overwrite``: what resumes a run it started, instead of
+    emptying its output directory again."""
+    try:
+        words = shlex.split(command)
+    except ValueError:  # not a command line shlex wrote
+        return command
+    return shlex.join(word for word in words if word != "--overwrite")
+
+
+def os_error_line(err: OSError) -> str:
+    """One line for an operating-system error: what failed where, and what to do."""
+    reason = err.strerror or str(err) or type(err).__name__
+    where = f" {err.filename}" if err.filename else ""
+    return (f"cannot write or read{where}: {reason}; fix it (free space, permissions) and run "
+            "the same command again: finished work is kept")
+
+
+def error_line(err: BaseException) -> str | None:
+    """The one line the command line shows for ``err`` (a Silva error, an operating-system
+    error, Ctrl-C), or None for an error it does not explain."""
+    from pipeline.errors import SilvaError
+
+    if isinstance(err, SilvaError):
+        return f"silva: error: {err}"
+    if isinstance(err, OSError):  # a full disk, a read-only or vanished output directory
+        return f"silva: error: {os_error_line(err)}"
+    if isinstance(err, KeyboardInterrupt):
+        command = getattr(err, "command", None)
+        return (f"silva: interrupted; run the same command again to resume: {command}"
+                if command else "silva: interrupted")
+    return None
 
 
 def _command_line() -> str:
@@ -71,7 +113,9 @@ def _engine(cfg, *, quiet, in_process, debug):
         return
     from workflows.cluster import dashboard_link, open_client
 
-    with open_client(cfg.cluster, quiet=quiet) as client:
+    with contextlib.ExitStack() as stack:
+        with uncounted():  # once per run: not a rate of the steps' work
+            client = stack.enter_context(open_client(cfg.cluster, quiet=quiet))
         link = dashboard_link(client)
         if link:
             say(f"dask dashboard: {link}", quiet=quiet)
@@ -111,7 +155,7 @@ class Kernels:
         if not warming.done():
             report_finished_step()  # ingest's line first, then why the run stands still
             say("waiting for the feature kernels to finish compiling", quiet=self.quiet)
-        with warming:  # Ctrl-C while waiting stops it
+        with warming, uncounted():  # Ctrl-C while waiting stops it; no ETA counts the wait
             done = warming.wait()
         log.info("compiled the feature kernels (%s) in %.1f s", ", ".join(done) or "none",
                  warming.seconds)
@@ -157,11 +201,47 @@ def _kernels_of(run, steps, quiet: bool, kernels=None):
     return contextlib.nullcontext(None)
 
 
+def check_before_start(run, steps) -> None:
+    """Check everything a run of ``steps`` can check without workers, before its cluster
+    starts and its kernels compile, so that a mistake is refused in seconds: the input globs
+    and files and the tiles' headers (as ingest plans them: no file, an empty tile, the same
+    tile in train and test, two tiles of one name, mixed CRS), the output point format, and
+    the saved model a run applies. Raises the error the step would raise later."""
+    from workflows.steps.cascade import check_model
+    from workflows.steps.export import check_point_formats
+    from workflows.steps.ingest import plan_tiles
+
+    tiles = plan_tiles(run)
+    if "export" in steps:
+        check_point_formats(run, tiles)
+    if run.model_dir is not None:
+        check_model(run)
+
+
+@contextlib.contextmanager
+def _logged_error():
+    """Write the line the command line shows for an error leaving the block (see
+    :func:`error_line`) to the run's log too, as its last line."""
+    try:
+        yield
+    except BaseException as err:
+        line = error_line(err)
+        if line is not None:
+            log_line(line, logging.ERROR)
+        raise
+
+
 def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, target,
               *, model_dir=None, command=None, config_path=None, kernels=None):
     """Load the config, prepare the output directory and run the steps up to ``target``;
-    ``kernels``: the run's :class:`Kernels` when the caller already started them."""
+    ``kernels``: the run's :class:`Kernels` when the caller already started them.
+
+    What can be checked without workers is checked before the cluster starts and the
+    kernels compile (:func:`check_before_start`); an error or Ctrl-C also ends the run's log
+    with the line the command line shows. The resume hint never carries ``--overwrite``.
+    """
     from workflows.config import load_config
+    from workflows.durations import reset
     from workflows.run import Run, prepare_output, read_paths
     from workflows.workflow import STEPS, execute
 
@@ -171,16 +251,20 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
     # --overwrite never deletes what this command reads (its config, model or inputs)
     keep = read_paths(cfg, config_path or config, model_dir) if overwrite else ()
     lock = prepare_output(out, overwrite=overwrite, keep=keep, command=command)
+    if overwrite:
+        reset(out)  # the durations of the runs emptied start again
     steps = [("apply" if s == "train" and model_dir else s) for s in STEPS]
     steps = steps[: STEPS.index(target) + 1]
-    with run_logging(verbose, out / LOG_NAME), lock:
+    resume = resume_command(command)
+    with run_logging(verbose, out / LOG_NAME), lock, _logged_error():
         log.info("start: %s (steps %s)", command, ", ".join(steps))
-        run = Run(cfg, out, quiet=quiet, model_dir=model_dir)
-        text = run.save_config()
-        if verbose:
-            click.echo(f"# resolved configuration (saved to {out / 'config.yaml'})\n{text}",
-                       err=True)
         try:
+            run = Run(cfg, out, quiet=quiet, model_dir=model_dir)
+            text = run.save_config()
+            if verbose:
+                click.echo(f"# resolved configuration (saved to {out / 'config.yaml'})\n"
+                           f"{text}", err=True)
+            check_before_start(run, steps)  # before the cluster and the compiling start
             with run_progress(steps, quiet=quiet, stages=int(cfg.cascade.stages)) as progress, \
                     _kernels_of(run, steps, quiet, kernels) as ready:
                 with _engine(cfg, quiet=quiet, in_process=in_process,
@@ -190,8 +274,7 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
                 done = [*summary["timings"], *(["report"] if "report" in summary else [])]
                 progress.finish(summary["timings"], done)
         except KeyboardInterrupt:
-            log.info("interrupted; the same command resumes: %s", command)
-            raise Interrupted(command) from None
+            raise Interrupted(resume) from None
         log.info("done: %s", command)
     if summary.get("predictions"):
         click.echo(f"predictions: {run.predictions_path} "
@@ -325,7 +408,11 @@ def demo(out, quiet, in_process, overwrite, overrides, plot_size, verbose):
     from workflows.config import load_config
     from workflows.run import prepare_output
 
+    from workflows.durations import reset
+
     prepare_output(out, overwrite=overwrite)
+    if overwrite:
+        reset(out)
     data = out / "data"
     overrides = (
         f"data.train=[{(data / 'train').resolve()}/*.laz]",

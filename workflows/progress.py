@@ -43,6 +43,11 @@ def say(message: str, *, quiet: bool = False) -> None:
         click.echo(message, err=True)
 
 
+def log_line(message: str, level: int = logging.INFO) -> None:
+    """``message`` in the run's log only: the terminal shows it otherwise."""
+    log.log(level, "%s", message)
+
+
 def counted(n: int, noun: str) -> str:
     """'1 tile', '3 tiles', '1,200 points'."""
     return f"{n:,} {noun}{'' if n == 1 else 's'}"
@@ -72,6 +77,7 @@ class RunProgress:
         self.stages = max(int(stages), 1)
         self.weights = [float(weights.get(step, 0.1)) for step in self.steps]
         self.started = time.monotonic()
+        self.uncounted = 0.0  # seconds of no step's work (cluster start, compiling): no ETA
         self._index = -1  # the current step
         self._reported = -1  # the last step whose line is out
         self._fraction = 0.0  # of the current step
@@ -139,14 +145,18 @@ class RunProgress:
     def status(self, short: bool = False) -> str:
         """'step 2/6, 0:31 elapsed, ETA 1:10', or 'run 0:31, ETA 1:10' when ``short``.
 
-        The ETA of the whole run shows once 5% of the work is done (before, it is noise).
+        The ETA of the whole run shows once 5% of the work is done (before, it is noise). It
+        projects the time the steps' work took so far: the :attr:`uncounted` seconds (the
+        cluster starting, the run waiting for the kernels to compile) happen once, so they
+        are left out of the rate.
         """
         elapsed = time.monotonic() - self.started
         text = (f"run {clock(elapsed)}" if short
                 else f"step {self.step_label}, {clock(elapsed)} elapsed")
         fraction = self.fraction()
         if 0.05 <= fraction < 1:
-            text += f", ETA {clock(elapsed * (1 - fraction) / fraction)}"
+            worked = max(elapsed - self.uncounted, 0.0)
+            text += f", ETA {clock(worked * (1 - fraction) / fraction)}"
         return text
 
     def finish(self, timings: Mapping[str, float], done: Sequence[str]) -> None:
@@ -193,6 +203,18 @@ def report_finished_step() -> None:
     """:meth:`RunProgress.report_current` of the run in progress, if any."""
     if _RUN is not None:
         _RUN.report_current()
+
+
+@contextlib.contextmanager
+def uncounted() -> Iterator[None]:
+    """The block's time is no step's work (the cluster starting, the run waiting for the
+    kernels to compile): the ETA of the run in progress, if any, leaves it out."""
+    run, started = _RUN, time.monotonic()
+    try:
+        yield
+    finally:
+        if run is not None:
+            run.uncounted += time.monotonic() - started
 
 
 def fold_step(step: str, how: str) -> None:

@@ -100,10 +100,79 @@ def _recorded(folder: Path) -> list[str]:
 
 
 def kernels_cold(groups=None, folder: str | os.PathLike | None = None) -> bool:
-    """True unless :func:`warm_kernels` compiled every kernel group of ``groups`` (default
-    all of :data:`GROUPS`) for these sources into ``folder`` (default: numba's cache
-    directory, as :func:`use_source_keyed_cache` set it)."""
-    return not set(GROUPS if groups is None else groups) <= set(_recorded(_folder(folder)))
+    """True when using the kernel groups of ``groups`` (default all of :data:`GROUPS`) means
+    compiling some of them: unless :func:`warm_kernels` compiled them for these sources into
+    ``folder`` (default: numba's cache directory, as :func:`use_source_keyed_cache` set it)
+    or numba's cache there already holds every kernel of theirs (:func:`kernels_cached`)."""
+    folder = _folder(folder)
+    missing = set(GROUPS if groups is None else groups) - set(_recorded(folder))
+    return bool(missing) and not kernels_cached(missing, folder)
+
+
+#: kernel group -> the modules of this package whose kernels it compiles: every kernel they
+#: define that numba caches (not the inlined ones) is loaded or compiled with the group.
+GROUP_MODULES = {"surface": ("local", "moments"), "search": ("neighbors", "context"),
+                 "covariance": ("covariance", "height"), "voxel": ("voxel",)}
+
+
+def _cached_kernels(module: str) -> list:
+    """The kernels of ``pipeline.features.<module>`` that numba caches on disk."""
+    import importlib
+
+    from numba.core.dispatcher import Dispatcher
+
+    found = []
+    for kernel in vars(importlib.import_module(f"{__package__}.{module}")).values():
+        if (isinstance(kernel, Dispatcher) and kernel.__module__ == f"{__package__}.{module}"
+                and kernel.targetoptions.get("inline", "never") == "never"
+                and hasattr(getattr(kernel, "_cache", None), "_cache_file")):
+            found.append(kernel)
+    return found
+
+
+def _in_cache(kernel, folder: Path, machine) -> bool:
+    """Whether ``folder`` holds ``kernel`` as numba loads it instead of compiling it: its
+    index file written by this numba version for today's source file, with an entry for
+    this machine's CPU (numba's own test, applied to ``folder``)."""
+    import pickle
+
+    cache = kernel._cache
+    index = folder / Path(cache._cache_path).name / cache._cache_file._index_name
+    try:
+        with open(index, "rb") as f:
+            if pickle.load(f) != numba.__version__:
+                return False
+            stamp, overloads = pickle.loads(f.read())
+    except (OSError, EOFError, ValueError, pickle.UnpicklingError, AttributeError,
+            ImportError, TypeError):
+        return False
+    if stamp != cache._cache_file._source_stamp:
+        return False
+    return any(isinstance(key, tuple) and len(key) > 1 and key[1] == machine
+               for key in overloads)
+
+
+def kernels_cached(groups, folder: str | os.PathLike | None = None) -> bool:
+    """True when numba's cache in ``folder`` (default: numba's cache directory) holds every
+    kernel of the kernel ``groups`` for today's sources, numba version and CPU: a run then
+    loads them and compiles nothing, even when no :func:`warm_kernels` recorded them (the
+    workers compiled them, or a run stopped before recording). A group without known
+    modules counts as not cached."""
+    folder = _folder(folder)
+    if not folder.is_dir():
+        return False
+    try:
+        from numba.core.registry import cpu_target
+
+        machine = cpu_target.target_context.codegen().magic_tuple()
+        for group in groups:
+            kernels = [k for m in GROUP_MODULES.get(group, ()) for k in _cached_kernels(m)]
+            if not kernels or not all(_in_cache(k, folder, machine) for k in kernels):
+                return False
+    except Exception as err:  # noqa: BLE001 - numba's internals moved: assume compiling
+        log.debug("cannot read numba's cache index in %s: %s", folder, err)
+        return False
+    return True
 
 
 def mark_warm(groups=None, folder: str | os.PathLike | None = None) -> None:
