@@ -50,7 +50,7 @@ def max_per_cell(flat: np.ndarray, values: np.ndarray, out: np.ndarray) -> None:
 def write_geotiff(path, raster: Raster, crs_wkt: str | None, nodata: float = NODATA) -> None:
     """Write ``raster`` (south row first, NaN = no data) as a float32 north-up GeoTIFF."""
     import rasterio
-    from rasterio.transform import from_origin
+    from rasterio.transform import Affine
 
     values = np.asarray(raster.values, dtype=np.float64)[::-1]  # north row first
     data = np.where(np.isfinite(values), values, nodata).astype(np.float32)
@@ -58,7 +58,7 @@ def write_geotiff(path, raster: Raster, crs_wkt: str | None, nodata: float = NOD
     top = raster.y0 + ny * raster.cell
     profile = dict(driver="GTiff", width=nx, height=ny, count=1, dtype="float32",
                    nodata=nodata, compress="deflate", predictor=3,
-                   transform=from_origin(raster.x0, top, raster.cell, raster.cell),
+                   transform=Affine(raster.cell, 0.0, raster.x0, 0.0, -raster.cell, top),
                    crs=rasterio.crs.CRS.from_wkt(crs_wkt) if crs_wkt else None)
     with atomic_path(path) as tmp:
         with rasterio.open(tmp, "w", **profile) as dst:

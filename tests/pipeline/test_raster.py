@@ -1,0 +1,73 @@
+"""GeoTIFF rasters: write-then-read round trip, orientation, maxima per cell, hillshade."""
+
+import numpy as np
+import pytest
+
+from pipeline.io.raster import (
+    NODATA, cell_index, hillshade, max_per_cell, read_geotiff, tile_grid, write_geotiff,
+)
+from pipeline.terrain import Raster
+
+UTM32 = 'PROJCS["ETRS89 / UTM zone 32N",GEOGCS["ETRS89",DATUM["European_Terrestrial_Reference_System_1989",SPHEROID["GRS 1980",6378137,298.257222101]],PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],PROJECTION["Transverse_Mercator"],PARAMETER["latitude_of_origin",0],PARAMETER["central_meridian",9],PARAMETER["scale_factor",0.9996],PARAMETER["false_easting",500000],PARAMETER["false_northing",0],UNIT["metre",1],AUTHORITY["EPSG","25832"]]'
+
+
+def test_round_trip_keeps_values_orientation_crs_and_nodata(tmp_path):
+    values = np.arange(12, dtype=np.float64).reshape(3, 4)  # row 0 is the south
+    values[1, 2] = np.nan
+    raster = Raster(values, 500010.0, 5500020.0, 0.5)
+    write_geotiff(tmp_path / "r.tif", raster, UTM32)
+    back, wkt = read_geotiff(tmp_path / "r.tif")
+    assert np.array_equal(back.values, values.astype(np.float32), equal_nan=True)
+    assert (back.x0, back.y0, back.cell) == (500010.0, 5500020.0, 0.5)
+    assert "25832" in wkt
+    import rasterio
+
+    with rasterio.open(tmp_path / "r.tif") as src:
+        assert src.nodata == NODATA and src.dtypes == ("float32",)
+        # north-up: the first row read is the northern one, at the top of the bounds
+        assert src.read(1)[0, 0] == values[-1, 0]
+        assert src.bounds.top == 5500020.0 + 3 * 0.5
+        assert src.xy(2, 0) == (500010.25, 5500020.25)  # centre of the south-west cell
+
+
+def test_without_a_crs(tmp_path):
+    write_geotiff(tmp_path / "r.tif", Raster(np.ones((2, 2)), 0.0, 0.0, 1.0), None)
+    assert read_geotiff(tmp_path / "r.tif")[1] is None
+
+
+def test_tile_grid_is_anchored_at_multiples_of_the_cell():
+    assert tile_grid((10.2, 20.7), (12.0, 21.1), 1.0) == (10.0, 20.0, 3, 2)
+    assert tile_grid((-0.5, -0.5), (-0.5, -0.5), 2.0) == (-2.0, -2.0, 1, 1)
+
+
+def test_max_per_cell_in_batches_equals_the_whole():
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(0, 10, (500, 2))
+    z = rng.normal(size=500)
+    shape = (10, 10)
+    flat = cell_index(xy, 0.0, 0.0, 1.0, shape)
+    whole = np.full(shape, np.nan)
+    max_per_cell(flat, z, whole)
+    batched = np.full(shape, np.nan)
+    for part in np.array_split(rng.permutation(500), 7):
+        max_per_cell(flat[part], z[part], batched)
+    assert np.array_equal(whole, batched, equal_nan=True)
+    expected = np.full(100, np.nan)
+    for f, v in zip(flat, z):
+        expected[f] = v if np.isnan(expected[f]) else max(expected[f], v)
+    assert np.array_equal(whole.ravel(), expected, equal_nan=True)
+    # outside points are ignored, empty cells stay NaN
+    outside = cell_index(np.array([[-1.0, 5.0], [5.0, 10.0]]), 0.0, 0.0, 1.0, shape)
+    assert list(outside) == [-1, -1]
+
+
+@pytest.mark.parametrize("azimuth", [0.0, 90.0, 315.0])
+def test_hillshade_of_a_flat_dem_is_sin_altitude_and_slopes_face_the_light(azimuth):
+    flat = hillshade(np.full((5, 5), 10.0), 1.0, azimuth, 45.0)
+    assert np.allclose(flat, np.sin(np.radians(45.0)))
+    # a slope rising to the east faces west: lit from the west, dark from the east
+    ramp = np.tile(np.arange(6, dtype=float), (6, 1))
+    west, east = hillshade(ramp, 1.0, 270.0), hillshade(ramp, 1.0, 90.0)
+    assert west.mean() > flat.mean() > east.mean()
+    # rows go north: a slope rising to the north is lit from the south
+    assert hillshade(ramp.T, 1.0, 180.0).mean() > hillshade(ramp.T, 1.0, 0.0).mean()

@@ -1,0 +1,107 @@
+"""The terrain step in the workflow: one terrain model per scene whatever the chunking, heights
+above it as features and as an exported dimension, and the DTM, DSM and canopy rasters."""
+
+import laspy
+import numpy as np
+import pytest
+
+from pipeline.io import read_info
+from pipeline.io.raster import read_geotiff
+from pipeline.store import open_store, read_terrain
+from pipeline.terrain import TerrainParams, ground_elevation, terrain_model
+from tests.workflows.conftest import read_predictions, silva, write_config
+
+pytestmark = pytest.mark.slow
+
+FEATURES = {"set": "covariance", "r1": 0.5}
+RASTERS = {"rasters": ["dtm", "dsm", "chm"], "raster_resolution": 2.0}
+
+
+def run(tmp_path, survey, name, chunk_size):
+    config = write_config(tmp_path / f"{name}.yaml", survey, features=FEATURES,
+                          tiling={"chunk_size": chunk_size}, output=RASTERS)
+    out = tmp_path / name
+    result = silva("run", config, "--out", out, "--in-process", "-q")
+    assert result.exit_code == 0, result.output
+    return out
+
+
+@pytest.fixture(scope="module")
+def runs(survey, tmp_path_factory):
+    root = tmp_path_factory.mktemp("terrain")
+    return run(root, survey, "one", 100.0), run(root, survey, "many", 4.0)
+
+
+def test_terrain_model_does_not_depend_on_the_chunking(runs, survey):
+    one, many = (open_store(out / "store.zarr") for out in runs)
+    for scene in ("train", "test"):
+        a, b = read_terrain(one, scene), read_terrain(many, scene)
+        assert np.array_equal(a.values, b.values) and (a.x0, a.y0, a.cell) == (b.x0, b.y0, b.cell)
+        assert np.isfinite(a.values).all()
+        # the scene's model is that of the whole cloud in memory
+        xyz = np.concatenate([laspy.read(p).xyz for p in sorted(survey[scene].glob("*.laz"))])
+        whole = terrain_model(xyz, TerrainParams())
+        assert np.array_equal(whole.dtm.values, a.values)
+
+
+def test_height_above_ground_and_predictions_are_chunk_invariant(runs):
+    one, many = (read_predictions(out) for out in runs)
+    assert one.keys() == many.keys() and one
+    for tile in one:
+        for dim in ("HeightAboveGround", "PredictedClassification", "Probability_tree"):
+            assert np.array_equal(one[tile][dim], many[tile][dim]), (tile, dim)
+
+
+def test_heights_above_ground_separate_terrain_from_trees(runs):
+    dims = read_predictions(runs[0])
+    height = np.concatenate([d["HeightAboveGround"] for d in dims.values()])
+    code = np.concatenate([d["classification"] for d in dims.values()])
+    assert height.dtype == np.float32
+    assert np.median(np.abs(height[code == 2])) < 0.3
+    assert np.median(height[code == 5]) > 3.0
+    # the exported height is the point's z above the stored terrain model
+    store = open_store(runs[0] / "store.zarr")
+    tile = next(t for t in sorted(dims) if t.startswith("plot_s2"))
+    xyz = dims[tile]["xyz"]
+    expected = xyz[:, 2] - ground_elevation(read_terrain(store, "test"), xyz[:, :2])
+    assert np.allclose(dims[tile]["HeightAboveGround"], expected, atol=1e-4)
+
+
+def test_rasters_per_tile(runs, survey):
+    out = runs[0]
+    tiles = sorted(survey["test"].glob("*.laz")) + sorted(survey["train"].glob("*.laz"))
+    names = sorted(p.name for p in (out / "rasters").iterdir())
+    assert names == sorted(f"{t.stem}_{r}.tif" for t in tiles for r in ("chm", "dsm", "dtm"))
+    tile = tiles[0]
+    info = read_info(tile)
+    dtm, wkt = read_geotiff(out / "rasters" / f"{tile.stem}_dtm.tif")
+    dsm, _ = read_geotiff(out / "rasters" / f"{tile.stem}_dsm.tif")
+    chm, _ = read_geotiff(out / "rasters" / f"{tile.stem}_chm.tif")
+    assert wkt is not None and "25832" in wkt and info.crs_wkt is not None
+    assert dtm.cell == 2.0 and dtm.x0 <= info.mins[0] and dtm.y0 <= info.mins[1]
+    assert dtm.values.shape == dsm.values.shape == chm.values.shape
+    assert np.isfinite(dtm.values).all()
+    seen = np.isfinite(dsm.values)
+    assert seen.mean() > 0.9 and np.array_equal(seen, np.isfinite(chm.values))
+    assert (chm.values[seen] >= 0).all() and chm.values[seen].max() > 5.0
+    assert (dsm.values[seen] >= dtm.values[seen] - 1.0).all()
+    # the DSM holds the highest point of each cell
+    las = laspy.read(tile)
+    col = np.floor((las.x - dsm.x0) / 2.0).astype(int)
+    row = np.floor((las.y - dsm.y0) / 2.0).astype(int)
+    highest = np.full(dsm.values.shape, -np.inf)
+    np.maximum.at(highest, (row, col), np.asarray(las.z))
+    assert np.allclose(dsm.values[seen], highest[seen], atol=1e-3)
+
+
+def test_rasters_no_longer_asked_for_are_removed(runs, survey, tmp_path):
+    import shutil
+
+    out = tmp_path / "copy"
+    shutil.copytree(runs[0], out)
+    config = write_config(tmp_path / "c.yaml", survey, features=FEATURES,
+                          tiling={"chunk_size": 100.0}, output={"rasters": ["dtm"],
+                                                                "raster_resolution": 2.0})
+    result = silva("export", config, "--out", out, "--in-process", "-q")
+    assert result.exit_code == 0, result.output
+    assert {p.name.rsplit("_", 1)[1] for p in (out / "rasters").iterdir()} == {"dtm.tif"}
