@@ -4,9 +4,8 @@ Pingel, Clarke and McBride (2013), "An improved simple morphological filter for 
 classification of airborne LIDAR data", ISPRS J. 77:21-30; the parameters have the meaning
 and defaults of PDAL's ``filters.smrf``. On the raster of the lowest point of each cell:
 
-1. the empty cells are filled (:func:`~pipeline.terrain.grid.fill`); low outliers, cells more
-   than :data:`LOW_DEPTH` metres below the closing of their 3 x 3 neighbourhood (a stray
-   point under the ground), are emptied and filled again, so none digs a pit;
+1. low outliers (:func:`low_outliers`: a stray point far under the ground) are emptied, so
+   none digs a pit, and the empty cells are filled (:func:`~pipeline.terrain.grid.fill`);
 2. progressive morphological opening with disks of radius 1 .. ceil(window / cell) cells: a
    cell is an object when the previous surface minus the current opening exceeds
    slope * radius * cell (the opening removes anything narrower than the disk; terrain that
@@ -31,9 +30,10 @@ from pipeline.terrain.grid import Raster, cell_minima, fill, minima_raster
 
 logger = logging.getLogger(__name__)
 
-#: A cell whose minimum lies more than this many metres below the grey closing of its 3 x 3
-#: neighbourhood is a low outlier (multipath or noise under the ground).
+#: A cell whose minimum lies more than LOW_DEPTH metres below the third lowest cell of its
+#: LOW_WINDOW x LOW_WINDOW neighbourhood is a low outlier (multipath or noise under the ground).
 LOW_DEPTH = 1.0
+LOW_WINDOW = 5
 #: Rectangles whose union stands for a disk in the opening (see :func:`disk_rectangles`).
 MAX_RECTANGLES = 8
 
@@ -142,11 +142,20 @@ def object_mask(surface: np.ndarray, cell: float, slope: float, window: float) -
     return objects
 
 
-def low_outliers(surface: np.ndarray, data: np.ndarray) -> np.ndarray:
-    """bool (ny, nx): data cells more than :data:`LOW_DEPTH` below the 3 x 3 grey closing of
-    the filled ``surface`` (pits of one or two cells; wider hollows are terrain)."""
-    closed = ndimage.grey_closing(surface, size=(3, 3), mode="nearest")
-    return data & (closed - surface > LOW_DEPTH)
+def low_outliers(z: np.ndarray, data: np.ndarray) -> np.ndarray:
+    """bool (ny, nx): data cells more than :data:`LOW_DEPTH` below the third lowest data cell
+    of their :data:`LOW_WINDOW` x :data:`LOW_WINDOW` neighbourhood (themselves included).
+
+    One or two stray points under the ground are far below every other cell around them, so
+    they are caught; a ground cell seen through a gap in a canopy is not, as long as a few
+    other ground cells share its neighbourhood (a test against all the neighbours, e.g. a
+    grey closing, takes such cells for pits and empties the ground of a sparse forest). Cells
+    with fewer than three data cells around are never low outliers.
+    """
+    lows = ndimage.rank_filter(np.where(data, z, np.inf), 2, size=LOW_WINDOW, mode="constant",
+                               cval=np.inf)
+    with np.errstate(invalid="ignore"):
+        return data & np.isfinite(lows) & (lows - z > LOW_DEPTH)
 
 
 def local_slope(surface: np.ndarray, cell: float) -> np.ndarray:
@@ -178,10 +187,8 @@ def ground_model(minima: Raster, params: TerrainParams) -> GroundModel:
         raise InputError("the minima raster has no cell with a value: no terrain to model")
     cell = minima.cell
 
-    surface = fill(z, data)
-    low = low_outliers(surface, data)
-    if low.any():
-        surface = fill(z, data & ~low)
+    low = low_outliers(z, data)
+    surface = fill(z, data & ~low)
     objects = object_mask(surface, cell, params.slope, params.window)
     keep = data & ~low & ~objects
     if not keep.any():

@@ -1,0 +1,268 @@
+"""The ground model: exact chunk-invariant cell minima, raster layout, sampling, SMRF."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import pipeline.terrain.smrf as smrf
+from pipeline.errors import ConfigError, InputError
+from pipeline.terrain import (
+    GroundModel,
+    Raster,
+    TerrainParams,
+    cell_minima,
+    fill,
+    ground_elevation,
+    ground_model,
+    merge_minima,
+    minima_raster,
+    terrain_model,
+)
+
+ALS = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "als"
+
+
+def _cloud(seed, n=2000):
+    rng = np.random.default_rng(seed)
+    xyz = rng.uniform([-30.0, 10.0, 100.0], [40.0, 55.0, 120.0], size=(n, 3))
+    xyz[: n // 10, :2] = np.round(xyz[: n // 10, :2])  # points on cell borders
+    return xyz
+
+
+# --- cell minima ---------------------------------------------------------------------------
+
+def test_cell_minima_against_a_loop():
+    xyz = _cloud(0, 500)
+    keys, zmin = cell_minima(xyz, 2.5)
+    expected = {}
+    for x, y, z in xyz:
+        k = (math.floor(x / 2.5), math.floor(y / 2.5))
+        expected[k] = min(expected.get(k, np.inf), z)
+    assert keys.dtype == np.int64 and zmin.dtype == np.float64
+    assert [tuple(k) for k in keys] == sorted(expected)  # by kx, then ky
+    assert zmin.tolist() == [expected[tuple(k)] for k in keys]
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**16), parts=st.integers(1, 6), spatial=st.booleans())
+def test_merged_minima_of_any_split_equal_the_whole(seed, parts, spatial):
+    xyz = _cloud(seed)
+    rng = np.random.default_rng(seed + 1)
+    if spatial:  # chunks of a grid, as the pipeline's spatial chunks
+        label = np.floor(xyz[:, 0] / rng.uniform(3.0, 30.0)).astype(int) % parts
+    else:
+        label = rng.integers(0, parts, len(xyz))
+    whole = cell_minima(xyz, 1.0)
+    split = [cell_minima(xyz[label == p], 1.0) for p in range(parts)]
+    for order in (split, split[::-1]):
+        keys, zmin = merge_minima(order)
+        assert np.array_equal(keys, whole[0]) and np.array_equal(zmin, whole[1])
+
+
+def test_merge_of_nothing_and_empty_parts():
+    keys, zmin = merge_minima([])
+    assert keys.shape == (0, 2) and keys.dtype == np.int64 and zmin.shape == (0,)
+    whole = cell_minima(_cloud(3), 1.0)
+    keys, zmin = merge_minima([cell_minima(np.empty((0, 3)), 1.0), whole, (np.empty(0), [])])
+    assert np.array_equal(keys, whole[0]) and np.array_equal(zmin, whole[1])
+
+
+def test_minima_raster_layout_row_zero_is_south():
+    xyz = np.array([[10.2, -3.7, 5.0], [12.9, -3.1, 7.0], [10.5, -1.5, 6.0], [10.1, -3.9, 4.0]])
+    r = minima_raster(*cell_minima(xyz, 1.0), 1.0)
+    assert (r.x0, r.y0, r.cell) == (10.0, -4.0, 1.0)
+    assert r.values.shape == (3, 3)  # y in [-4, -1), x in [10, 13)
+    assert r.values[0, 0] == 4.0  # south-west cell: both points of (10, -4), the lower
+    assert r.values[0, 2] == 7.0
+    assert r.values[2, 0] == 6.0  # the northern point is in the last row
+    assert np.isnan(r.values).sum() == 6
+
+
+def test_minima_raster_refuses_no_keys():
+    with pytest.raises(ValueError, match="no cell minima"):
+        minima_raster(np.empty((0, 2), dtype=np.int64), np.empty(0), 1.0)
+
+
+# --- sampling and filling -----------------------------------------------------------------
+
+def _plane_raster(shape=(7, 9), x0=100.0, y0=-20.0, cell=2.0):
+    i, j = np.mgrid[: shape[0], : shape[1]]
+    cx, cy = x0 + (j + 0.5) * cell, y0 + (i + 0.5) * cell
+    return Raster(3.0 + 0.25 * cx - 0.5 * cy, x0, y0, cell)
+
+
+def test_ground_elevation_is_exact_on_a_plane_and_clamped_outside():
+    dtm = _plane_raster()
+    rng = np.random.default_rng(4)
+    inside = rng.uniform([101.0, -19.0], [117.0, -7.0], size=(200, 2))  # the centres' span
+    np.testing.assert_allclose(ground_elevation(dtm, inside),
+                               3.0 + 0.25 * inside[:, 0] - 0.5 * inside[:, 1], rtol=0, atol=1e-12)
+    outside = np.array([[50.0, -10.0], [500.0, -13.0], [105.0, -1000.0], [0.0, 1000.0]])
+    clamped = np.column_stack((np.clip(outside[:, 0], 101, 117), np.clip(outside[:, 1], -19, -7)))
+    np.testing.assert_allclose(ground_elevation(dtm, outside),
+                               3.0 + 0.25 * clamped[:, 0] - 0.5 * clamped[:, 1], atol=1e-12)
+
+
+def test_ground_elevation_is_per_point():
+    dtm = _plane_raster()
+    xy = np.random.default_rng(5).uniform([90.0, -30.0], [130.0, 0.0], size=(300, 2))
+    whole = ground_elevation(dtm, xy)
+    assert all(ground_elevation(dtm, xy[k : k + 1])[0] == whole[k] for k in range(0, 300, 7))
+    assert np.array_equal(ground_elevation(dtm, xy[::-1]), whole[::-1])
+
+
+def test_ground_elevation_of_a_single_cell():
+    dtm = Raster(np.array([[4.5]]), 0.0, 0.0, 1.0)
+    assert ground_elevation(dtm, np.array([[0.3, 0.9], [-7.0, 9.0]])).tolist() == [4.5, 4.5]
+
+
+def test_fill_is_exact_on_a_plane_inside_a_hole_and_keeps_known_cells():
+    i, j = np.mgrid[:60, :80]
+    plane = 500.0 + 0.1 * j - 0.3 * i
+    known = np.ones(plane.shape, dtype=bool)
+    known[10:45, 20:70] = False
+    known[np.random.default_rng(6).random(plane.shape) < 0.3] = False
+    known[[0, -1], :] = True
+    known[:, [0, -1]] = True
+    filled = fill(np.where(known, plane, np.nan), known)
+    assert np.array_equal(filled[known], plane[known])
+    np.testing.assert_allclose(filled, plane, atol=1e-6)
+
+
+# --- the ground model -----------------------------------------------------------------------
+
+def _terrain(x, y):
+    return 200.0 + 0.1 * x + 0.6 * np.sin(x / 9.0) * np.cos(y / 13.0)
+
+
+def _scene(seed=7):
+    """120 m x 120 m at 4 pts/m²: a 10 % slope with gentle waves, 40 trees, and a flat roof
+    30 m x 30 m, 8 m above the terrain at its centre."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0.0, 120.0, size=(4 * 120 * 120, 2))
+    building = (np.abs(xy[:, 0] - 60.0) < 15.0) & (np.abs(xy[:, 1] - 60.0) < 15.0)
+    roof_z = _terrain(60.0, 60.0) + 8.0
+    z = np.where(building, roof_z, _terrain(xy[:, 0], xy[:, 1]))
+    parts, kinds = [np.column_stack((xy, z))], [np.where(building, 2, 0)]
+    centres = rng.uniform(5.0, 115.0, size=(60, 2))
+    centres = centres[(np.abs(centres - 60.0) > 22.0).any(axis=1)][:40]
+    for cx, cy in centres:
+        n = 300
+        r = 3.0 * np.sqrt(rng.random(n))
+        a = rng.uniform(0, 2 * np.pi, n)
+        h = rng.uniform(4.0, 14.0, n)
+        tx, ty = cx + r * np.cos(a), cy + r * np.sin(a)
+        parts.append(np.column_stack((tx, ty, _terrain(tx, ty) + h)))
+        kinds.append(np.ones(n, dtype=int))
+    return np.concatenate(parts), np.concatenate(kinds)
+
+
+def test_sloped_terrain_with_trees_and_a_building():
+    xyz, kind = _scene()
+    model = terrain_model(xyz)
+    assert isinstance(model, GroundModel)
+    assert np.isfinite(model.dtm.values).all()
+    height = xyz[:, 2] - ground_elevation(model.dtm, xyz[:, :2])
+    assert np.sqrt(np.mean(height[kind == 0] ** 2)) < 0.2
+    assert height[kind == 2].min() > 5.0  # the whole roof stays above the ground
+    assert np.mean(height[kind == 1] < 1.0) < 0.03
+    assert 0.0 < model.interpolated < 1.0
+    assert model.ground.shape == model.dtm.values.shape and model.ground.dtype == bool
+
+
+def test_the_same_cloud_gives_the_same_bits():
+    xyz, _ = _scene(8)
+    a, b = terrain_model(xyz), terrain_model(xyz[::-1].copy())
+    assert np.array_equal(a.dtm.values, b.dtm.values)
+    assert np.array_equal(a.ground, b.ground) and a.interpolated == b.interpolated
+
+
+def test_a_low_outlier_digs_no_pit():
+    rng = np.random.default_rng(9)
+    xy = rng.uniform(0.0, 50.0, size=(10_000, 2))
+    xyz = np.column_stack((xy, 10.0 + 0.05 * xy[:, 0]))
+    for depth, at in ((3.0, (20.3, 30.6)), (25.0, (35.5, 12.5)), (4.0, (20.7, 31.4))):
+        xyz = np.vstack((xyz, [[at[0], at[1], 10.0 + 0.05 * at[0] - depth]]))
+    model = terrain_model(xyz)
+    where = np.array([[20.3, 30.6], [35.5, 12.5], [20.7, 31.4]])
+    error = ground_elevation(model.dtm, where) - (10.0 + 0.05 * where[:, 0])
+    assert np.abs(error).max() < 0.1
+
+
+@pytest.mark.parametrize("xyz", [
+    np.array([[3.2, -7.9, 12.0]]),
+    np.column_stack((np.linspace(0, 50, 80), np.full(80, 0.5), np.linspace(5, 9, 80))),
+    np.column_stack((np.full(30, 0.5), np.linspace(0, 50, 30), np.linspace(5, 9, 30))),
+])
+def test_degenerate_clouds_give_finite_dtms(xyz):
+    model = terrain_model(xyz)
+    assert np.isfinite(model.dtm.values).all()
+    assert np.isfinite(ground_elevation(model.dtm, xyz[:, :2])).all()
+    assert 0.0 <= model.interpolated <= 1.0
+
+
+def test_a_raster_of_one_value():
+    values = np.full((6, 5), np.nan)
+    values[4, 1] = 17.0
+    model = ground_model(Raster(values, 0.0, 0.0, 1.0), TerrainParams())
+    assert (model.dtm.values == 17.0).all()
+    assert model.ground.sum() == 1 and model.interpolated == pytest.approx(29 / 30)
+
+
+def test_no_cell_passing_falls_back_to_the_lowest_surface(monkeypatch):
+    monkeypatch.setattr(smrf, "object_mask", lambda surface, *a: np.ones(surface.shape, bool))
+    xyz, _ = _scene(10)
+    model = terrain_model(xyz)
+    assert model.interpolated == 1.0 and not model.ground.any()
+    assert np.isfinite(model.dtm.values).all()
+    keys, zmin = cell_minima(xyz, 1.0)
+    lowest = minima_raster(keys, zmin, 1.0).values
+    assert np.array_equal(model.dtm.values[np.isfinite(lowest)], lowest[np.isfinite(lowest)])
+
+
+def test_empty_raster_and_bad_inputs_are_refused():
+    with pytest.raises(InputError, match="no cell with a value"):
+        ground_model(Raster(np.full((3, 3), np.nan), 0.0, 0.0, 1.0), TerrainParams())
+    with pytest.raises(InputError, match="NaN or infinite"):
+        terrain_model(np.array([[0.0, np.nan, 1.0]]))
+    with pytest.raises(InputError, match=r"\(N, 3\)"):
+        cell_minima(np.zeros((4, 2)), 1.0)
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    ({"cell": 0}, ["cell", "0"]),
+    ({"slope": -0.1}, ["slope", "-0.1"]),
+    ({"threshold": float("nan")}, ["threshold", "nan"]),
+    ({"window": "wide"}, ["window", "'wide'"]),
+    ({"scalar": -1}, ["scalar", "-1", "use 0"]),
+    ({"cell": 2.0, "window": 1.0}, ["window", "1.0", "cell", "2.0"]),
+])
+def test_parameter_validation_names_parameter_value_and_fix(kwargs, words):
+    with pytest.raises(ConfigError) as err:
+        TerrainParams(**kwargs)
+    assert isinstance(err.value, ValueError)
+    assert all(w in str(err.value) for w in words)
+
+
+def test_parameters_are_cast_to_float():
+    params = TerrainParams(cell=2, window=20, scalar=0)
+    assert isinstance(params.cell, float) and params.scalar == 0.0
+
+
+@pytest.mark.data
+def test_topography_tile_ground_rmse():
+    path = ALS / "Topography.laz"
+    if not path.is_file():
+        pytest.skip(f"real airborne tile not found at {path}")
+    import laspy
+
+    las = laspy.read(path)
+    xyz = np.column_stack((las.x, las.y, las.z)).astype(np.float64)
+    model = terrain_model(xyz)
+    ground = np.asarray(las.classification) == 2
+    error = xyz[ground, 2] - ground_elevation(model.dtm, xyz[ground, :2])
+    assert np.sqrt(np.mean(error**2)) <= 0.2  # 0.14 m measured with the defaults
