@@ -63,18 +63,18 @@ class TerrainParams:
             if name == "scalar":
                 if not (math.isfinite(value) and value >= 0.0):
                     raise ConfigError(
-                        f"terrain scalar must be a finite number >= 0, got {raw!r}; "
+                        f"terrain.scalar must be a finite number >= 0, got {raw!r}; "
                         "use 0 for a threshold that does not grow with the slope"
                     )
             elif not (math.isfinite(value) and value > 0.0):
                 raise ConfigError(
-                    f"terrain {name} must be a finite number > 0, got {raw!r}; "
+                    f"terrain.{name} must be a finite number > 0, got {raw!r}; "
                     f"the default is {getattr(TerrainParams, name)}"
                 )
             object.__setattr__(self, name, value)
         if self.window < self.cell:
             raise ConfigError(
-                f"terrain window ({self.window} m) must be at least the cell ({self.cell} m); "
+                f"terrain.window ({self.window} m) must be at least terrain.cell ({self.cell} m); "
                 "raise window to the half-width of the largest building or lower cell"
             )
 

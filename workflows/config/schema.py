@@ -397,6 +397,11 @@ class TerrainConfig(Section):
         _TERRAIN.scalar, ge=0,
         description="How much the threshold grows with the local slope (metres per unit slope).")
 
+    @model_validator(mode="after")
+    def _check_params(self) -> "TerrainConfig":
+        self.params  # noqa: B018 -- the filter's own checks (window >= cell), at load time
+        return self
+
     @property
     def params(self) -> TerrainParams:
         """The resolved parameters of the ground filter."""
@@ -404,7 +409,7 @@ class TerrainConfig(Section):
             return TerrainParams(float(self.cell), float(self.slope), float(self.window),
                                  float(self.threshold), float(self.scalar))
         except ValueError as err:
-            raise fail(f"terrain: {err}") from None
+            raise fail(str(err)) from None
 
 
 # -- cascade ---------------------------------------------------------------------------------
