@@ -3,10 +3,14 @@
 The lock file holds the process id, host, start time and command of the run that holds it.
 A second command on the same directory refuses at once and names the first. A lock left by
 a run that was killed (its process no longer exists on this host) is taken over; one from
-another host cannot be checked from here, so the message says how to remove it by hand.
+another host cannot be checked from here, so the message says how to remove it by hand. A
+lock file Silva did not write (not JSON, or a field of the wrong kind) holds nothing: it is
+taken over with a warning.
 """
 
 import json
+import logging
+import math
 import os
 import socket
 import time
@@ -16,6 +20,12 @@ from pathlib import Path
 from pipeline.errors import SilvaError
 
 LOCK_NAME = "silva.lock"
+#: Process ids are positive and below this (Linux allows at most 2**22).
+MAX_PID = 2**31
+#: The latest start time a lock may record (year 3000): later is no time at all.
+MAX_STARTED = 32_503_680_000.0
+
+log = logging.getLogger(__name__)
 
 
 class LockedError(SilvaError, RuntimeError):
@@ -40,9 +50,27 @@ def read_lock(out: Path) -> dict | None:
 def _read(path: Path) -> dict | None:
     try:
         holder = json.loads(Path(path).read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return None
-    return holder if isinstance(holder, dict) else None
+    return holder if odd_field(holder) is None else None
+
+
+def odd_field(holder) -> str | None:
+    """What makes ``holder`` something other than a lock record Silva writes (None: a
+    record with a pid, a host, a start time and a command of the right kinds)."""
+    if not isinstance(holder, dict):
+        return "it is not a JSON object"
+    pid, started = holder.get("pid"), holder.get("started")
+    if type(pid) is not int or not 0 < pid < MAX_PID:
+        return "its 'pid' is not a process id"
+    if not isinstance(holder.get("host"), str) or not holder["host"]:
+        return "its 'host' is not a host name"
+    if type(started) not in (int, float) or not math.isfinite(started) \
+            or not 0 <= started <= MAX_STARTED:
+        return "its 'started' is not a time"
+    if not isinstance(holder.get("command"), str):
+        return "its 'command' is not text"
+    return None
 
 
 def held_by_other(holder: dict | None) -> bool:
@@ -111,6 +139,8 @@ def acquire(out: Path, command: str) -> OutputLock:
         except FileExistsError:
             holder = read_lock(out)
             check_free(out)
+            if holder is None:
+                _warn_foreign(lock)
             _take_over(lock, holder)
             continue
         with os.fdopen(fd, "w") as f:
@@ -121,6 +151,16 @@ def acquire(out: Path, command: str) -> OutputLock:
                       "run one Silva command per output directory")
 
 
+def _warn_foreign(lock: Path) -> None:
+    """Log why the lock file about to be taken over holds no run."""
+    try:
+        why = odd_field(json.loads(lock.read_text()))
+    except (OSError, ValueError, RecursionError):
+        why = "it is not JSON"
+    if why:  # None: it became a valid lock meanwhile (the take-over checks it again)
+        log.warning("%s was not written by Silva (%s): taking it over", lock, why)
+
+
 def _take_over(lock: Path, holder: dict | None) -> None:
     """Move a stale lock aside, unless another process replaced it in the meantime."""
     aside = lock.with_name(f".{LOCK_NAME}.{uuid.uuid4().hex[:8]}.stale")
@@ -129,7 +169,7 @@ def _take_over(lock: Path, holder: dict | None) -> None:
     except FileNotFoundError:
         return  # someone else took it over first
     moved = _read(aside)
-    if holder is not None and moved != holder and held_by_other(moved):
+    if moved != holder and held_by_other(moved):
         os.replace(aside, lock)  # a fresh lock of a live run: put it back
         return
     aside.unlink(missing_ok=True)

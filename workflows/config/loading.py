@@ -20,12 +20,22 @@ from workflows.inputs import SCENES
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
-    """A safe YAML loader that refuses a key given twice in one mapping (YAML keeps the last)."""
+    """A safe YAML loader that refuses a key given twice in one mapping (YAML keeps the last)
+    and a key that is a list or a mapping (Python cannot hash it)."""
+
+
+class _KeyError(yaml.constructor.ConstructorError):
+    """A mapping key that is a list or a mapping."""
 
 
 def _construct_unique_mapping(loader, node, deep=False):
     seen = set()
     for key_node, _ in node.value:
+        if isinstance(key_node, (yaml.SequenceNode, yaml.MappingNode)):
+            kind = "a list" if isinstance(key_node, yaml.SequenceNode) else "a mapping"
+            key = show(loader.construct_object(key_node, deep=True))
+            raise _KeyError(None, None, f"the key {key} is {kind}; a key must be a name such "
+                            "as chunk_size", key_node.start_mark)
         key = loader.construct_object(key_node, deep=deep)
         if key in seen:
             raise yaml.constructor.ConstructorError(
@@ -52,6 +62,9 @@ def _read_yaml(path: Path) -> dict:
         line = f" line {mark.line + 1}" if mark is not None else ""
         problem = " ".join(str(exc.problem or exc.context or "invalid YAML").split())
         raise ConfigError(f"config error: {path}{line}: {problem}") from None
+    except RecursionError:
+        raise ConfigError(f"config error: {path} nests lists or mappings too deeply to read; "
+                          "a Silva config needs at most a few levels (see silva init)") from None
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise ConfigError(f"config error: {path} is not valid YAML: "
                           f"{' '.join(str(exc).split())}") from None
@@ -99,6 +112,13 @@ def _parse_override(text: str) -> tuple[list[str], Any]:
     parts = [part.strip() for part in parts]
     try:
         parsed = yaml.load(value, Loader=_UniqueKeyLoader) if value.strip() else None
+    except RecursionError:
+        raise ConfigError(
+            f"config error: the value of --set {key}=... nests lists or mappings too deeply "
+            f"to read; give a plain value, a list or a mapping, e.g. {key}=['a/*.laz']"
+        ) from None
+    except _KeyError as exc:
+        raise ConfigError(f"config error: --set '{text}': {exc.problem}") from None
     except yaml.YAMLError as exc:
         problem = getattr(exc, "problem", None) or "invalid YAML"
         raise ConfigError(
@@ -194,11 +214,34 @@ def load_config(
     return validate_config(raw)
 
 
+#: How deep lists and mappings may nest in a config; Silva's own keys need at most 4 levels
+#: (data.classes.tree[0]), and a deeper value would only be refused later, less clearly.
+MAX_DEPTH = 16
+
+
+def _check_depth(raw: Any) -> None:
+    """ConfigError naming the key (at most three parts) whose value nests deeper than
+    :data:`MAX_DEPTH`; iterative, so no depth exhausts Python's recursion limit."""
+    todo = [(raw, [], 0)]
+    while todo:
+        value, where, depth = todo.pop()
+        if depth > MAX_DEPTH:
+            raise ConfigError(f"config error: {'.'.join(where) or 'the config'} nests lists "
+                              f"or mappings more than {MAX_DEPTH} levels deep; give a plain "
+                              "value, a list or a mapping, as silva init writes them")
+        if isinstance(value, dict):  # the key named: its first three parts, outside lists
+            todo += [(v, where if len(where) != depth or depth >= 3 else [*where, str(k)],
+                      depth + 1) for k, v in value.items()]
+        elif isinstance(value, list):
+            todo += [(v, where, depth + 1) for v in value]
+
+
 def validate_config(raw: Any) -> SilvaConfig:
     """Validate a raw mapping (as read from YAML) into a :class:`SilvaConfig`.
 
     Paths are taken as they are. Raises :class:`ConfigError` with one line naming the key.
     """
+    _check_depth(raw)
     try:
         return SilvaConfig.model_validate(raw)
     except ValidationError as exc:
