@@ -226,13 +226,13 @@ def _logged_error():
         yield
     except BaseException as err:
         line = error_line(err)
-        if line is not None:
-            log_line(line, logging.ERROR)
+        if line is not None:  # Ctrl-C is the user's choice, not an error of the run
+            log_line(line, logging.INFO if isinstance(err, KeyboardInterrupt) else logging.ERROR)
         raise
 
 
 def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, target,
-              *, model_dir=None, command=None, config_path=None, kernels=None):
+              *, model_dir=None, command=None, config_path=None, kernels=None, inputs=()):
     """Load the config, prepare the output directory and run the steps up to ``target``;
     ``kernels``: the run's :class:`Kernels` when the caller already started them.
 
