@@ -243,6 +243,10 @@ def prepare_output(out: Path, *, overwrite: bool, keep=(), command: str = "silva
     try:
         if out.exists() and not out.is_dir():
             raise OutputError(f"--out {out} is a file, not a directory; choose another --out")
+        for path in (out, *out.parents):  # mkdir would only say "File exists"
+            if path.is_symlink() and not path.exists():
+                raise OutputError(f"--out {out}: {path} is a broken symbolic link (to "
+                                  f"{os.readlink(path)}); remove it or choose another --out")
         for parent in out.parents:
             if parent.exists():
                 if not parent.is_dir():
