@@ -1,6 +1,12 @@
 """The values a configuration leaves to the data ('auto') or to the model it applies,
 resolved once as a run starts.
 
+A run that applies a saved model takes from it every value that decides its predictions
+(:func:`adopt_model`): the feature, context and terrain parameters the model records, its
+stage count and its classes. A configuration may leave them out (``silva predict`` then
+needs none); one that sets them otherwise is refused before any work, naming the key and the
+model's value.
+
 ``features.r1: auto`` comes from the point density of the training tiles' headers (or, when
 a saved model is applied, from the model: its forests know only the radius they were
 trained with); ``features.voxel: auto`` from r1 and ``features.max_neighbors``. The run
@@ -8,13 +14,18 @@ then holds an ordinary, fully resolved configuration: saved in OUT/config.yaml, 
 fingerprints, shown by the report.
 """
 
+import copy
 import logging
+import math
+from pathlib import Path
 
+from pipeline.errors import ConfigError
 from pipeline.features.sets import auto_radius, auto_voxel
 from pipeline.io import read_info
 from pipeline.model import read_description
 from pipeline.tiling import tile_area
 from workflows.config import SilvaConfig, validate_config
+from workflows.config.loading import load_raw
 from workflows.inputs import expand_inputs
 
 log = logging.getLogger(__name__)
@@ -33,27 +44,81 @@ def header_density(cfg: SilvaConfig) -> float:
     return points / area if area else 0.0
 
 
-def resolve_auto(cfg: SilvaConfig, model_dir=None) -> SilvaConfig:
-    """``cfg`` with ``features.r1`` and ``features.voxel`` as numbers, and, when a model is
-    applied and ``data.classes`` is empty, the model's classes (each with its output code)."""
+def resolve_auto(cfg: SilvaConfig) -> SilvaConfig:
+    """``cfg`` with ``features.r1`` and ``features.voxel`` as numbers (a model applied has
+    set them already: :func:`adopt_model`)."""
     features = cfg.features
-    takes_classes = model_dir is not None and not cfg.data.classes
-    if features.resolved and not takes_classes:
+    if features.resolved:
         return cfg
-    trained = read_description(model_dir) if model_dir is not None else {}
     raw = cfg.model_dump(mode="json")
-    if takes_classes:
-        raw["data"]["classes"] = {c["name"]: [c["code"]] for c in trained["classes"]}
     r1 = features.r1
     if r1 == "auto":
-        if "features.r1" in trained:
-            r1 = trained["features.r1"]
-        else:
-            density = header_density(cfg)
-            r1 = auto_radius(density) if density > 0 else 0.5
-            log.info("features.r1 auto: %.3g points/m² in the headers -> r1 = %g m", density, r1)
+        density = header_density(cfg)
+        r1 = auto_radius(density) if density > 0 else 0.5
+        log.info("features.r1 auto: %.3g points/m² in the headers -> r1 = %g m", density, r1)
     voxel = features.voxel
     if voxel == "auto":
-        voxel = trained.get("features.voxel") or auto_voxel(float(r1), int(features.max_neighbors))
+        voxel = auto_voxel(float(r1), int(features.max_neighbors))
     raw["features"].update(r1=r1, voxel=voxel)
     return validate_config(raw)
+
+
+def run_config(config, overrides=(), model_dir=None, inputs=()) -> SilvaConfig:
+    """The configuration of a run: the file ``config`` (None: every default) with
+    ``overrides``, ``inputs`` (paths or globs: the only tiles, to classify) in data.predict,
+    the values of the model it applies (:func:`adopt_model`) and its 'auto' values resolved.
+    The one place a run's configuration is resolved."""
+    raw = load_raw(config, overrides)
+    if inputs:
+        data = raw.get("data") if isinstance(raw.get("data"), dict) else {}
+        raw["data"] = {**data, "train": [], "test": [], "split": None,
+                       "predict": [str(Path(p).expanduser().absolute()) for p in inputs]}
+    if model_dir is not None:
+        raw = adopt_model(raw, read_description(model_dir), model_dir)
+    return resolve_auto(validate_config(raw))
+
+
+#: The sections whose recorded keys (model.json's "section.key") a run applying a model takes.
+MODEL_SECTIONS = ("features", "cascade", "terrain")
+#: Recorded keys that are derived, not set: the feature set's column names.
+DERIVED_KEYS = ("features.columns",)
+
+
+def _same(a, b) -> bool:
+    """Equal as configuration values: numbers by value (1 and 1.0), lists element-wise."""
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    numbers = (int, float)
+    if isinstance(a, numbers) and isinstance(b, numbers) and not isinstance(a, bool):
+        return math.isclose(float(a), float(b), rel_tol=0.0, abs_tol=0.0)
+    return a == b
+
+
+def adopt_model(raw: dict, description: dict, model_path) -> dict:
+    """``raw`` (a configuration as written, before validation) with the values the model
+    ``description`` (model.json) records for its predictions: its feature, context and
+    terrain keys, ``cascade.stages`` (its stage count, whatever ``raw`` trains with) and
+    ``data.classes`` (each name with its output code) when ``raw`` names none. ConfigError,
+    naming the key, the configured and the model's value, for a recorded key ``raw`` sets
+    otherwise ('auto' leaves it to the model)."""
+    raw = copy.deepcopy(raw)
+    recorded = {k: v for k, v in description.items()
+                if k.partition(".")[0] in MODEL_SECTIONS and k not in DERIVED_KEYS}
+    for key, value in recorded.items():
+        section, _, name = key.partition(".")
+        given = (raw.get(section) or {}).get(name, "auto")
+        if given != "auto" and not (given is None and name == "r2") and not _same(given, value):
+            raise ConfigError(
+                f"config error: {key} is {given!r} in the configuration, but the model "
+                f"{model_path} was trained with {value!r}; remove {key} from the configuration "
+                "(a run applying a model takes it from the model) or retrain")
+        if not isinstance(raw.get(section), dict):
+            raw[section] = {}
+        raw[section][name] = value
+    # a training setting: the run applies every stage the model has
+    raw["cascade"] = {**(raw.get("cascade") or {}), "stages": len(description.get("stages") or ())}
+    data = raw.get("data") if isinstance(raw.get("data"), dict) else {}
+    if not data.get("classes") and description.get("classes"):
+        data["classes"] = {c["name"]: [c["code"]] for c in description["classes"]}
+        raw["data"] = data
+    return raw

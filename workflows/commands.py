@@ -240,19 +240,23 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
     kernels compile (:func:`check_before_start`); an error or Ctrl-C also ends the run's log
     with the line the command line shows. The resume hint never carries ``--overwrite``.
     """
-    from workflows.config import load_config
+    from workflows.autoparams import run_config
     from workflows.durations import reset
-    from workflows.run import Run, prepare_output, read_paths
+    from workflows.run import Run, applied_model, prepare_output, read_paths, record_applied_model
     from workflows.workflow import STEPS, execute
 
-    cfg = load_config(config_path or config, overrides)
-    out = out or Path(f"silva-{Path(config).stem}")
+    out = out or Path(f"silva-{Path(config).stem if config else 'predict'}")
+    if model_dir is None and not overwrite:
+        model_dir = applied_model(out)  # a later step of a 'silva predict' output
+    cfg = run_config(config_path or config, overrides, model_dir, inputs)
     command = command or _command_line()
     # --overwrite never deletes what this command reads (its config, model or inputs)
     keep = read_paths(cfg, config_path or config, model_dir) if overwrite else ()
     lock = prepare_output(out, overwrite=overwrite, keep=keep, command=command)
     if overwrite:
         reset(out)  # the durations of the runs emptied start again
+    if model_dir is not None:
+        record_applied_model(out, model_dir)
     steps = [("apply" if s == "train" and model_dir else s) for s in STEPS]
     steps = steps[: STEPS.index(target) + 1]
     resume = resume_command(command)
@@ -328,19 +332,50 @@ STEP_COMMANDS = {
 
 
 @click.command("predict")
-@run_options
-@click.option("--model", "model_dir", required=True,
-              type=click.Path(file_okay=False, exists=True, path_type=Path),
-              help="A model directory written by 'silva train' or 'silva run' (OUT/model).")
-def predict(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, model_dir):
-    """Classify the data of CONFIG with a saved model; evaluate when it has test labels.
+@click.argument("inputs", nargs=-1, metavar="[CONFIG] [TILE_OR_GLOB]...")
+@click.option("--model", "model_dir", required=True, metavar="MODEL",
+              help="A model directory written by 'silva train' or 'silva run' (OUT/model), "
+              "or the name of a model installed with Silva (see 'silva models').")
+@click.option("--out", "-o", type=click.Path(file_okay=False, path_type=Path),
+              help="Output directory [default: ./silva-<config name>, or ./silva-predict].")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+              help="Override a config value with a YAML value, e.g. tiling.chunk_size=20.")
+@click.option("--overwrite", is_flag=True, help="Start from an empty output directory.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bars: a line per step.")
+@click.option("--in-process", is_flag=True,
+              help="Run every task in this process, without a Dask cluster.")
+@click.option("--chunk", metavar="SCENE/CHUNK",
+              help="Rerun one chunk in this process, showing the full error.")
+@click.option("-v", "--verbose", count=True,
+              help="Show the resolved configuration and info logs (-vv: debug).")
+def predict(inputs, model_dir, out, overrides, overwrite, quiet, in_process, chunk, verbose):
+    """Classify tiles with a saved model; evaluate when a CONFIG gives labelled test tiles.
+
+    The model decides everything its predictions depend on (features, context, terrain,
+    stages, classes): no configuration is needed. A CONFIG (a .yaml file) may set the rest
+    (data, tiling, cluster, output); a key it sets otherwise than the model is refused
+    before any work. TILE_OR_GLOB arguments are the tiles to classify (they replace the
+    configuration's data.train, data.test and data.predict).
 
     \b
     Examples:
+      silva predict --model results/model --out classified/ "survey/*.laz"
+      silva predict --model als-ground-vegetation-building --out classified/ tile.laz
       silva predict new-tiles.yaml --model results/model --out new-results/
     """
+    from workflows.models import model_path
+
+    configs = [Path(p) for p in inputs if Path(p).suffix.lower() in (".yaml", ".yml")]
+    tiles = [p for p in inputs if Path(p).suffix.lower() not in (".yaml", ".yml")]
+    if len(configs) > 1:
+        raise click.UsageError(f"one configuration at most, got {', '.join(map(str, configs))}")
+    if not configs and not tiles:
+        raise click.UsageError("give the tiles to classify (TILE_OR_GLOB...) or a CONFIG")
+    config = configs[0] if configs else None
+    if config is not None and not config.is_file():
+        raise click.UsageError(f"configuration {config} does not exist")
     start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, "report",
-              model_dir=model_dir)
+              model_dir=model_path(model_dir), inputs=tuple(tiles))
 
 
 @click.command("plan")

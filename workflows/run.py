@@ -26,7 +26,6 @@ from pipeline.atomic import atomic_write_text, remove_parts
 from pipeline.cascade import CascadeParams
 from pipeline.errors import ConfigError, SilvaError
 from pipeline.features.sets import FeatureParams, feature_set
-from pipeline.model import read_description
 from pipeline.store import open_store
 from pipeline.terrain import TerrainParams
 from workflows.autoparams import resolve_auto
@@ -57,7 +56,7 @@ class Run:
     _store: object = field(default=None, repr=False)
 
     def __post_init__(self):
-        self.cfg = resolve_auto(self.cfg, self.model_dir)  # 'auto' radii, once
+        self.cfg = resolve_auto(self.cfg)  # 'auto' radii, once (see workflows.autoparams)
 
     # -- layout ---------------------------------------------------------------------------
     @property
@@ -120,10 +119,9 @@ class Run:
 
     @property
     def n_stages(self) -> int:
-        """The cascade stages the run computes: the applied model's, or cascade.stages."""
-        if self.model_dir is None:
-            return int(self.cfg.cascade.stages)
-        return len(read_description(self.model_path).get("stages", []))
+        """The cascade stages the run computes (an applied model's: see
+        :func:`workflows.autoparams.adopt_model`)."""
+        return self.cfg.cascade.stages
 
     @property
     def classes(self) -> list[str]:
@@ -303,10 +301,28 @@ def _empty(directory: Path, keep) -> None:
             entry.unlink()
 
 
+#: The model a 'silva predict' output directory applies: later commands on it (silva report,
+#: export, status) apply it too.
+APPLIED_MODEL = Path("work") / "applied-model.txt"
+
+
+def record_applied_model(out: Path, model_dir: Path) -> None:
+    atomic_write_text(out / APPLIED_MODEL, str(Path(model_dir).resolve()))
+
+
+def applied_model(out: Path) -> Path | None:
+    """The model the output directory ``out`` applies (None: it trains its own)."""
+    try:
+        return Path((out / APPLIED_MODEL).read_text().strip())
+    except OSError:
+        return None
+
+
 def read_paths(cfg: SilvaConfig, config_path, model_dir) -> list[Path]:
     """Every file or directory a command with ``cfg`` reads: its config file, the model it
     applies and the input tiles. Raises the errors of :func:`expand_inputs`."""
-    paths = [Path(config_path)] + ([Path(model_dir)] if model_dir is not None else [])
+    paths = ([Path(config_path)] if config_path is not None else []) + (
+        [Path(model_dir)] if model_dir is not None else [])
     for scene in SCENES:
         patterns = list(getattr(cfg.data, scene))
         if patterns:

@@ -156,13 +156,13 @@ def _apply_override(raw: dict, parts: list[str], value: Any, text: str) -> None:
     node[parts[-1]] = value
 
 
-def load_config(
+def load_raw(
     path: str | Path | None,
     overrides: Sequence[str] = (),
     *,
     base_dir: str | Path | None = None,
-) -> SilvaConfig:
-    """Read, override and validate a configuration.
+) -> dict:
+    """Read and override a configuration: the mapping as written, not yet validated.
 
     Parameters
     ----------
@@ -211,7 +211,17 @@ def load_config(
         elif parts == ["data"]:
             value = _resolve_data_section(value, cwd)
         _apply_override(raw, parts, value, text)
-    return validate_config(raw)
+    return raw
+
+
+def load_config(
+    path: str | Path | None,
+    overrides: Sequence[str] = (),
+    *,
+    base_dir: str | Path | None = None,
+) -> SilvaConfig:
+    """:func:`load_raw` validated into a :class:`SilvaConfig` (ConfigError naming the key)."""
+    return validate_config(load_raw(path, overrides, base_dir=base_dir))
 
 
 #: How deep lists and mappings may nest in a config; Silva's own keys need at most 4 levels

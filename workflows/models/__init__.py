@@ -1,0 +1,46 @@
+"""The models installed with Silva: one directory each beside this file, as 'silva train'
+writes them (model.json and one forest per stage), with a model card in model.json's
+``card``. ``--model NAME`` takes one wherever a model directory is accepted."""
+
+import json
+from pathlib import Path
+
+from pipeline.errors import ModelError
+
+HERE = Path(__file__).resolve().parent
+
+
+def installed_models() -> dict[str, Path]:
+    """Name -> directory of every model installed with Silva, by name."""
+    return {p.name: p for p in sorted(HERE.iterdir()) if (p / "model.json").is_file()}
+
+
+def model_path(name_or_dir) -> Path:
+    """The model directory ``name_or_dir`` names: a directory, or an installed model's name.
+    ModelError (one line, with the installed names) for neither."""
+    path = Path(name_or_dir).expanduser()
+    if path.is_dir():
+        return path
+    installed = installed_models()
+    if str(name_or_dir) in installed:
+        return installed[str(name_or_dir)]
+    known = ", ".join(installed) or "none"
+    raise ModelError(f"--model {name_or_dir}: no such model directory, nor a model installed "
+                     f"with Silva (installed: {known}; 'silva models' lists them)")
+
+
+def model_summary(name: str, directory: Path) -> dict:
+    """What 'silva models --json' says of one installed model: its name, kind, classes (with
+    their output codes), and its card (training data, licences, density range, scores)."""
+    description = json.loads((directory / "model.json").read_text())
+    card = description.get("card", {})
+    return {
+        "name": name,
+        "kind": card.get("kind", "unknown"),
+        "classes": {c["name"]: c["code"] for c in description.get("classes", ())},
+        "feature_set": description.get("features.set"),
+        "stages": len(description.get("stages", ())),
+        "size_bytes": sum(p.stat().st_size for p in directory.iterdir() if p.is_file()),
+        "path": str(directory),
+        **{k: v for k, v in card.items() if k != "kind"},
+    }
