@@ -22,6 +22,7 @@ from datetime import datetime, timezone
 from pipeline import __version__
 from pipeline.errors import StoreError
 from pipeline.store import forget_removed, remove_chunks, removed_record
+from workflows.durations import accumulate, totals
 from workflows.engine import check_chunk
 from workflows.progress import fold_step, say
 from workflows.run import Run, has_test_points
@@ -31,6 +32,7 @@ from workflows.steps.export import check_point_formats, export
 from workflows.steps.features import features
 from workflows.steps.ingest import ingest
 from workflows.steps.one_pass import classify_in_one_pass, one_pass_scenes
+from workflows.steps.survey import canopy_samples, survey
 from workflows.steps.terrain import terrain
 
 log = logging.getLogger(__name__)
@@ -61,6 +63,8 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
         except StoreError:
             run.drop_results()  # a damaged store certifies no metrics made from it
             raise
+        finally:  # what the result cost, a stopped or failed run's share too
+            accumulate(run.out, {step: time.monotonic() - started})
         timings[step] = round(timings.get(step, 0) + time.monotonic() - started, 2)
         return result
 
@@ -106,6 +110,14 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     if not has_test_points(layout, run.cfg.data.split):
         say("evaluate: no labelled test points (data.test or data.split): no metrics",
             quiet=run.quiet)
+        if last >= 5:  # the report of what was predicted, without scores
+            from workflows.report.survey import write_survey_report
+
+            found = timed("report", survey, run, engine, layout, n_stages - 1)
+            write_survey_report(run.out, found, terrain=canopy_samples(run, found),
+                                run_info=_run_info(run, summary, command),
+                                config_text=(run.out / "config.yaml").read_text())
+            summary["report"] = str(run.report_path)
         _finish(run, target, only, summary, stamp)
         return summary
     metrics, plots = timed("evaluate", evaluate, run, engine, layout, n_stages)
@@ -115,17 +127,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
         return summary
     from workflows.report import write_report
 
-    run_info = {
-        "command": command,
-        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "software": f"silva {__version__}, Python {platform.python_version()}",
-        "input points": summary["points"],
-        "chunks": summary["chunks"],
-        "chunk size (m)": summary["chunk size (m)"],
-        **({"excluded points": summary["excluded points"]} if summary["excluded points"]
-           else {}),
-        "durations (s)": ", ".join(f"{k} {v}" for k, v in timings.items()),
-    }
+    run_info = _run_info(run, summary, command)
     run.metrics_path.unlink(missing_ok=True)  # until the new report is written in full
     write_report(run.out, metrics, pr_data=plots["pr_data"], topdown=plots["topdown"],
                  run_info=run_info, config_text=(run.out / "config.yaml").read_text(),
@@ -137,6 +139,23 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
                    macro_f1=metrics["macro"]["f1"])
     _finish(run, target, only, summary, stamp)
     return summary
+
+
+def _run_info(run: Run, summary: dict, command: str) -> dict:
+    """The report's table of the run: command, date, software, counts, and the seconds
+    of each step summed over every run of this output directory (resumes too)."""
+    spent = totals(run.out)
+    return {
+        "command": command,
+        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "software": f"silva {__version__}, Python {platform.python_version()}",
+        "input points": summary["points"],
+        "chunks": summary["chunks"],
+        "chunk size (m)": summary["chunk size (m)"],
+        **({"excluded points": summary["excluded points"]} if summary["excluded points"]
+           else {}),
+        "durations (s)": ", ".join(f"{k} {v:.2f}" for k, v in spent.items()),
+    }
 
 
 def scenes_of(layout: dict, keep, only: str | None = None) -> dict:

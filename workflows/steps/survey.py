@@ -1,0 +1,140 @@
+"""Survey: what a run predicted, for the report of every run, labelled or not.
+
+Every chunk counts its core points per tile and predicted class, bins their confidence and
+entropy, keeps the highest core point of each terrain cell with its class (the class seen
+from above), and samples points by a hash of their global id: for the class map, a side
+view through the middle of the scene and the low-confidence points. Counts, histograms and
+cell maxima are exact and independent of the chunking (the coordinator merges the cells'
+highest points); only the samples are samples.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.cascade import id_hash, labels_from_proba
+from pipeline.store import proba_array, read_terrain
+from pipeline.tiling import split_global_ids
+from workflows.engine import chunk_tasks
+from workflows.run import Run
+from workflows.steps.export import entropy
+from workflows.steps.terrain import ground_under
+
+BINS = 20  # of the confidence and entropy histograms
+MAP_POINTS = 200_000  # points drawn in the maps
+PROFILE_POINTS = 60_000  # points drawn in the side views
+LOW_CONFIDENCE = 0.5  # points whose predicted class has a lower probability are 'uncertain'
+
+
+@dataclass(frozen=True)
+class SurveyTask:
+    final_stage: int
+    n_classes: int
+    n_tiles: int
+    cell: float  # of the class seen from above (the terrain model's cell)
+    map_fraction: float
+    profile: tuple  # per scene: (axis along which the view looks, centre, half width)
+    profile_fraction: float
+
+
+def chunk_survey(view, task: SurveyTask):
+    """Worker task: counts, histograms, highest point per cell and samples of one chunk."""
+    xyz, gid = view.read("xyz", "gid")
+    proba = view.read(proba_array(task.final_stage))
+    label = labels_from_proba(proba)
+    confidence = proba[np.arange(len(label)), label] if len(label) else np.empty(0, np.float32)
+    tile, _ = split_global_ids(gid)
+    counts = np.zeros((task.n_tiles, task.n_classes), dtype=np.int64)
+    np.add.at(counts, (tile, label), 1)
+    keys = np.floor(xyz[:, :2] / task.cell).astype(np.int64)
+    order = np.lexsort((-xyz[:, 2], keys[:, 1], keys[:, 0]))  # per cell, highest first
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = (np.diff(keys[order], axis=0) != 0).any(axis=1)
+    top = order[first]
+    picked = id_hash(gid, 5) < task.map_fraction
+    axis, centre, half = dict(task.profile)[view.scene]
+    across = 1 - axis  # the coordinate the band is thin in
+    band = (np.abs(xyz[:, across] - centre) <= half) & (id_hash(gid, 9) < task.profile_fraction)
+    height = xyz[:, 2] - ground_under(view, xyz)
+    return {
+        "counts": counts,
+        "confidence": np.histogram(confidence, BINS, (0.0, 1.0))[0],
+        "entropy": np.histogram(entropy(proba), BINS, (0.0, max(np.log(task.n_classes), 1e-9)))[0],
+        "top_keys": keys[top], "top_z": xyz[top, 2], "top_label": label[top],
+        "map": (xyz[picked, 0], xyz[picked, 1], label[picked], confidence[picked],
+                height[picked]),
+        "profile": (xyz[band, axis], height[band], label[band]),
+    }
+
+
+def _profiles(layout: dict) -> dict:
+    """Per scene, the side view (axis, centre, half width, share of the scene's width):
+    along its longer side, through the middle, 2 % of the shorter side wide (at least a
+    metre)."""
+    views = {}
+    for scene in layout["scenes"]:
+        tiles = [t for t in layout["tiles"] if t["scene"] == scene]
+        lo = np.min([t["mins"][:2] for t in tiles], axis=0)
+        hi = np.max([t["maxs"][:2] for t in tiles], axis=0)
+        axis = int(np.argmax(hi - lo))
+        width = max(float(hi[1 - axis] - lo[1 - axis]), 1e-9)
+        half = max(0.5, 0.01 * width)
+        views[scene] = (axis, float((lo[1 - axis] + hi[1 - axis]) / 2), half,
+                        min(1.0, 2 * half / width))
+    return views
+
+
+def survey(run: Run, engine, layout: dict, final_stage: int) -> dict:
+    """What the run predicted, per scene and tile (see the module docstring)."""
+    total = sum(t["n_points"] for t in layout["tiles"])
+    profiles = _profiles(layout)
+    band_points = sum(t["n_points"] * profiles[t["scene"]][3] for t in layout["tiles"])
+    task = SurveyTask(final_stage, run.n_classes, len(layout["tiles"]), run.terrain.cell,
+                      min(1.0, MAP_POINTS / max(total, 1)),
+                      tuple((s, v[:3]) for s, v in profiles.items()),
+                      min(1.0, PROFILE_POINTS / max(band_points, 1.0)))
+    tasks = chunk_tasks(run, layout, "survey", chunk_survey, task, run.fingerprint("export"),
+                        "report", marks=False)
+    done = engine.map("survey", tasks)
+    by_scene = {}
+    for t in tasks:
+        by_scene.setdefault(t.kwargs["scene"], []).append(done[t.key])
+    counts = sum(r["counts"] for rs in by_scene.values() for r in rs)
+    scenes = {}
+    for scene, results in by_scene.items():
+        keys = np.concatenate([r["top_keys"] for r in results])
+        z = np.concatenate([r["top_z"] for r in results])
+        label = np.concatenate([r["top_label"] for r in results])
+        order = np.lexsort((-z, keys[:, 1], keys[:, 0]))
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = (np.diff(keys[order], axis=0) != 0).any(axis=1)
+        scenes[scene] = {
+            "area_cells": np.bincount(label[order[first]], minlength=run.n_classes),
+            "map": [np.concatenate([r["map"][i] for r in results]) for i in range(5)],
+            "profile": [np.concatenate([r["profile"][i] for r in results]) for i in range(3)],
+            "profile_axis": "xy"[profiles[scene][0]],
+        }
+    return {
+        "classes": run.classes,
+        "codes": run.class_codes,
+        "cell": run.terrain.cell,
+        "tiles": [{"name": t["name"], "scene": t["scene"], "counts": counts[t["index"]]}
+                  for t in layout["tiles"]],
+        "confidence": sum(r["confidence"] for rs in by_scene.values() for r in rs),
+        "entropy": sum(r["entropy"] for rs in by_scene.values() for r in rs),
+        "low_confidence": LOW_CONFIDENCE,
+        "scenes": scenes,
+    }
+
+
+def canopy_samples(run: Run, found: dict) -> dict:
+    """The terrain figure's data of each scene: its terrain model, and the map samples of
+    ``found`` (:func:`survey`) predicted as a canopy class, with their heights."""
+    canopy = list(run.cfg.canopy_classes)
+    samples = {}
+    for scene, data in found["scenes"].items():
+        x, y, label, _, height = data["map"]
+        keep = np.isin(label, canopy)
+        samples[scene] = {"dtm": read_terrain(run.store, scene), "x": x[keep], "y": y[keep],
+                          "height": height[keep]}
+    return samples
