@@ -106,11 +106,43 @@ def open_las(path, selection: laspy.DecompressionSelection | None = None
     except Exception as exc:  # laspy and lazrs raise many types for a bad file
         raise unreadable(path, exc) from exc
     try:
+        check_header_transform(path, reader.header)
         _check_size(path, reader.header)
         _check_point_count(path, reader)
         yield reader
     finally:
         reader.close()
+
+
+def check_header_transform(path, header: laspy.LasHeader) -> None:
+    """Refuse a header whose scale, offset or bounds of an axis give no real coordinates.
+
+    A coordinate is ``integer * scale + offset``: a scale of 0 puts every point of the axis
+    on one value, a NaN or infinite scale or offset makes every coordinate NaN or infinite,
+    and a scale so large that the integers overflow does too. NaN or infinite bounds
+    (``mins``/``maxs``) would place the tile in no chunk. The InputError names the file and
+    the header field.
+    """
+    fields = (("scale", header.scales), ("offset", header.offsets),
+              ("min", header.mins), ("max", header.maxs))
+    for field, values in fields:
+        for axis, value in zip("xyz", np.asarray(values, dtype=np.float64)):
+            if not np.isfinite(value) or (field == "scale" and value == 0):
+                if field in ("min", "max"):
+                    why = ("the tile cannot be placed on the chunk grid: repair its bounds "
+                           f"(LAStools: lasinfo -i {path} -repair_bb) or re-export the tile")
+                else:
+                    why = (f"its {axis} coordinates cannot be computed: re-export the tile, or "
+                           f"write the {field} it was made with into its header")
+                raise InputError(f"{path}: header {axis} {field} is {value:g}; {why}")
+    with np.errstate(over="ignore"):  # an overflow to inf is what is looked for
+        largest = np.abs(np.asarray(header.offsets, dtype=np.float64)) + np.abs(
+            np.asarray(header.scales, dtype=np.float64)) * 2.0**31
+    for axis, value, scale in zip("xyz", largest, header.scales):
+        if not np.isfinite(value):
+            raise InputError(f"{path}: header {axis} scale is {float(scale):g}, too large for "
+                             "32-bit integer coordinates to stay finite; re-export the tile, "
+                             "or write the scale it was made with into its header")
 
 
 def _check_size(path: Path, header: laspy.LasHeader) -> None:

@@ -95,3 +95,22 @@ def test_run_with_a_broken_link_as_out(tmp_path, survey):
     (tmp_path / "out").symlink_to(tmp_path / "nowhere")
     line = error_line(silva("run", config, "--out", tmp_path / "out", "--in-process", "-q"))
     assert "is a broken symbolic link" in line and "remove it or choose another --out" in line
+
+
+# -- a header that gives no real coordinates -------------------------------------------
+@pytest.mark.parametrize("command", ["plan", "ingest"])
+def test_a_nan_scale_is_refused_before_any_chunk(tmp_path, survey, command):
+    import struct
+
+    tile = sorted(survey["train"].glob("*.laz"))[0]
+    data = bytearray(tile.read_bytes())
+    data[139:147] = struct.pack("<d", float("nan"))  # the header's y scale
+    bad = tmp_path / "bad.laz"
+    bad.write_bytes(bytes(data))
+    config = write_config(tmp_path / "c.yaml", survey)
+    out = ["--out", tmp_path / "out", "--in-process", "-q"] if command == "ingest" else []
+    result = silva(command, config, "--set", f"data.train=[{bad}]", *out)
+    line = error_line(result)
+    assert f"{bad}: header y scale is nan;" in line
+    assert "chunk" not in result.output and "RuntimeWarning" not in result.output
+    assert not (tmp_path / "out" / "store.zarr").exists()
