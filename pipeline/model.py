@@ -8,13 +8,17 @@
       ...
 
 Loading refuses a model whose feature description differs from what the caller computes, so
-features and forests can never be mixed up silently. model.json records the SHA-256 of each
-stage file; a forest file that does not match it (replaced, swapped with another stage,
-damaged) is refused.
+features and forests can never be mixed up silently. The whole bundle is under one digest:
+model.json records the SHA-256 of each stage file, and its ``digest`` is the SHA-256 of the
+rest of model.json (canonical JSON: sorted keys, no spaces), stage digests included. An
+edited model.json (its classes, r1, its stages) or a forest file that does not match its
+digest (replaced, swapped with another stage, damaged) is refused. A model.json without a
+digest (saved before digests were written) still loads, with a warning.
 """
 
 import hashlib
 import json
+import logging
 from pathlib import Path
 
 import skops.io as sio
@@ -24,8 +28,13 @@ from pipeline.atomic import atomic_path, atomic_write_text
 from pipeline.errors import ModelError
 
 MODEL_FILE = "model.json"
+#: The key of model.json that holds the digest of the rest of it.
+DIGEST_KEY = "digest"
 # The only non-builtin types a Silva forest file may contain.
 TRUSTED_TYPES = ["sklearn.tree._tree.Tree"]
+
+log = logging.getLogger(__name__)
+_warned_undigested: set[str] = set()
 
 
 def file_digest(path: str | Path) -> str:
@@ -37,8 +46,17 @@ def file_digest(path: str | Path) -> str:
     return digest.hexdigest()
 
 
+def description_digest(description: dict) -> str:
+    """SHA-256 (hexadecimal) of a model description without its own ``digest``: of its
+    canonical JSON (sorted keys, no spaces, ASCII), so it does not depend on the layout."""
+    body = {key: value for key, value in description.items() if key != DIGEST_KEY}
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(text.encode("ascii")).hexdigest()
+
+
 def read_description(model_dir: str | Path) -> dict:
-    """The model's JSON description; ModelError when the directory holds no complete model.
+    """The model's JSON description; ModelError when the directory holds no complete model
+    or when model.json does not match the digest it records (it was edited).
 
     A complete description lists its classes (name and code) and at least one stage (file,
     fingerprint and the SHA-256 of the file).
@@ -48,12 +66,40 @@ def read_description(model_dir: str | Path) -> dict:
         raise ModelError(f"no model at {model_dir} ({MODEL_FILE} missing); train one with 'silva train'")
     try:
         description = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise ModelError(f"model description {path} is not valid JSON: {err}") from err
+    except (ValueError, UnicodeDecodeError) as err:  # JSONDecodeError is a ValueError
+        reason = " ".join(str(err).split()) or type(err).__name__
+        raise _unusable(path, f"is not valid JSON: {reason}") from None
+    except RecursionError:
+        raise _unusable(path, "nests lists or objects too deeply to read") from None
     except OSError as err:
         raise ModelError(f"cannot read model description {path}: {err.strerror}") from None
     _check_description(description, path)
+    _check_digest(description, path)
     return description
+
+
+def _unusable(path: Path, reason: str) -> ModelError:
+    return ModelError(f"model description {path} {reason}; restore the model's own "
+                      f"{MODEL_FILE} or retrain the model with 'silva train'")
+
+
+def _check_digest(description: dict, path: Path) -> None:
+    recorded = description.get(DIGEST_KEY)
+    if recorded is None:
+        if str(path) not in _warned_undigested:
+            _warned_undigested.add(str(path))
+            log.warning("%s records no digest (it was saved before model digests): an edit "
+                        "of it cannot be detected; retrain the model to add one", path)
+        return
+    try:
+        actual = description_digest(description)
+    except (RecursionError, ValueError):
+        raise _unusable(path, "nests lists or objects too deeply to read") from None
+    if recorded != actual:
+        raise ModelError(
+            f"model description {path} was changed after the model was saved (it does not "
+            "match the digest it records): a model's classes, radii and stages cannot be "
+            "edited; restore the model's own model.json or retrain it with 'silva train'")
 
 
 _ENTRIES = {"classes": {"name": str, "code": int},
@@ -102,14 +148,16 @@ def check_versions(description: dict, model_dir) -> None:
 
 
 def write_description(model_dir: str | Path, description: dict) -> None:
-    """Write model.json (atomically), adding the software version and the SHA-256 of every
-    stage file (``stages[i]["file"]``, which must exist)."""
+    """Write model.json (atomically), adding the software version, the SHA-256 of every
+    stage file (``stages[i]["file"]``, which must exist) and the digest of it all
+    (:func:`description_digest`)."""
     model_dir = Path(model_dir)
     model_dir.mkdir(parents=True, exist_ok=True)
     stages = [{**stage, "sha256": file_digest(model_dir / stage["file"])}
               for stage in description.get("stages", [])]
     description = {**description, "stages": stages, "software": f"silva {__version__}",
                    "versions": software_versions()}
+    description[DIGEST_KEY] = description_digest(description)
     atomic_write_text(model_dir / MODEL_FILE, json.dumps(description, indent=2))
 
 
