@@ -10,5 +10,5 @@ setup(
     package_dir={"workflows.configs": "configs"},
     package_data={"workflows.configs": ["*.yaml"],
                   # the models installed with Silva: model.json and forests per model
-                  "workflows.models": ["*/model.json", "*/*.skops"]},
+                  "workflows.models": ["*/model.json", "*/card.json", "*/*.skops"]},
 )

@@ -9,6 +9,7 @@ so ``silva --help`` and ``silva init`` answer at once.
 """
 
 import contextlib
+import json
 import logging
 import shlex
 import sys
@@ -360,7 +361,7 @@ def predict(inputs, model_dir, out, overrides, overwrite, quiet, in_process, chu
     \b
     Examples:
       silva predict --model results/model --out classified/ "survey/*.laz"
-      silva predict --model als-ground-vegetation-building --out classified/ tile.laz
+      silva predict --model als-ground-vegetation-building --out als/ t.laz
       silva predict new-tiles.yaml --model results/model --out new-results/
     """
     from workflows.models import model_path
@@ -513,7 +514,36 @@ def init(path, template, force):
                f"{shlex.quote(str(path))} --out results/")
 
 
+@click.command("models")
+@click.option("--json", "as_json", is_flag=True, help="A JSON list of objects instead.")
+def models(as_json):
+    """List the models installed with Silva: name, kind, classes, training data, licences and
+    scores. Use one with --model NAME wherever a model directory is accepted.
+
+    \b
+    Examples:
+      silva models
+      silva models --json
+    """
+    from workflows.models import installed_models, model_summary
+
+    found = [model_summary(name, path) for name, path in installed_models().items()]
+    if as_json:
+        click.echo(json.dumps(found, indent=2))
+        return
+    if not found:
+        click.echo("no models are installed with this Silva")
+    for model in found:
+        classes = ", ".join(f"{name} ({code})" for name, code in model["classes"].items())
+        click.echo(f"{model['name']}  [{model['kind']}]  {classes}")
+        for key in ("description", "training_data", "licences", "density", "scores"):
+            if key in model:
+                value = model[key]
+                text = value if isinstance(value, str) else json.dumps(value)
+                click.echo(f"    {key.replace('_', ' ')}: {text}")
+
+
 COMMANDS = [
     *(_step_command(name, target, doc) for name, (target, doc) in STEP_COMMANDS.items()),
-    predict, plan, status, demo, synth, init,
+    predict, plan, status, demo, synth, init, models,
 ]

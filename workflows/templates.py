@@ -1,4 +1,5 @@
-"""The ready configurations shipped with Silva: the demo, the forest template and Oakland.
+"""The ready configurations shipped with Silva: the demo, the forest and urban templates and
+Oakland.
 
 They are the YAML files of the repository's ``configs/`` folder, installed as the package
 ``workflows.configs`` (see setup.py) and read with :mod:`importlib.resources`, so they are
@@ -16,6 +17,7 @@ from pipeline.errors import ConfigError
 #: Template name -> what it is for.
 TEMPLATES = {
     "forest": "survey tiles of a forest",
+    "urban": "urban scans: ground, vegetation, building, wire, pole",
     "demo": "the synthetic plots of silva demo",
     "oakland": "the Oakland urban benchmark of the paper",
 }

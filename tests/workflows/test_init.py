@@ -34,7 +34,7 @@ def test_the_demo_template_loads():
     assert cfg.data.class_names == ["terrain", "tree", "dead_wood", "misc"]
 
 
-@pytest.mark.parametrize("template", [None, "forest", "demo", "oakland"])
+@pytest.mark.parametrize("template", [None, "forest", "demo", "oakland", "urban"])
 def test_init_writes_the_template(tmp_path, template):
     target = tmp_path / "my-survey.yaml"
     args = ["init", target] if template is None else ["init", "--template", template, target]
@@ -70,3 +70,12 @@ def test_init_into_a_directory_names_a_file_to_give(tmp_path):
     result = silva("init", tmp_path)
     assert result.exit_code == 1
     assert f"{tmp_path} is a directory" in _error_line(result)
+
+
+def test_the_urban_template_loads_with_the_best_documented_setting():
+    with template_path("urban") as path:
+        cfg = load_config(path)
+    assert cfg.features.set == "default" and cfg.features.r1 == 0.6
+    assert cfg.cascade.context == "soft" and cfg.cascade.out_of_fold
+    assert (cfg.cascade.n_estimators, cfg.cascade.min_samples_leaf) == (100, 1)
+    assert cfg.data.class_codes == [2, 5, 6, 14, 15, 1]

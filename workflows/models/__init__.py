@@ -1,6 +1,7 @@
 """The models installed with Silva: one directory each beside this file, as 'silva train'
-writes them (model.json and one forest per stage), with a model card in model.json's
-``card``. ``--model NAME`` takes one wherever a model directory is accepted."""
+writes them (model.json and one forest per stage), with its model card in ``card.json``
+(kind, training data and licences, density range, scores; nothing that changes a
+prediction). ``--model NAME`` takes one wherever a model directory is accepted."""
 
 import json
 from pathlib import Path
@@ -33,7 +34,8 @@ def model_summary(name: str, directory: Path) -> dict:
     """What 'silva models --json' says of one installed model: its name, kind, classes (with
     their output codes), and its card (training data, licences, density range, scores)."""
     description = json.loads((directory / "model.json").read_text())
-    card = description.get("card", {})
+    card_path = directory / "card.json"
+    card = json.loads(card_path.read_text()) if card_path.is_file() else {}
     return {
         "name": name,
         "kind": card.get("kind", "unknown"),
