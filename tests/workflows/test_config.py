@@ -101,7 +101,10 @@ def test_defaults():
     assert d["cluster"]["adapt"] is None
     assert d["output"] == {"format": "laz", "write_classification": False,
                            "probabilities": True, "keep_store": True, "keep_features": "auto",
-                           "feature_dims": [], "point_format": "auto"}
+                           "feature_dims": [], "point_format": "auto", "rasters": [],
+                           "raster_resolution": 1.0, "canopy_classes": None}
+    assert d["terrain"] == {"cell": 1.0, "slope": 0.15, "window": 18.0, "threshold": 0.5,
+                            "scalar": 1.25}
 
 
 def test_derived_radii_and_halo():

@@ -93,7 +93,7 @@ def test_the_reserved_names_are_the_exported_ones():
     from workflows.steps import export
 
     names = (export.PREDICTED, export.CONFIDENCE, export.ENTROPY, export.NO_FEATURES,
-             export.EXCLUDED)
+             export.HEIGHT_ABOVE_GROUND, export.EXCLUDED)
     assert set(SILVA_DIMS) == set(names)
     dims = export.extra_dims(["tree"], [5], True, excluded=True, features=("linearity_r0.5",))
     assert [d.name for d in dims] == [*names, "Probability_tree", "linearity_r0_5"]

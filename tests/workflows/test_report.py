@@ -46,6 +46,17 @@ def fake_run(names=NAMES, exclude=("misc",), n=3000, n_stages=3, seed=0):
     return metrics, pr_data, topdown
 
 
+def fake_terrain(seed=0):
+    """One scene's terrain model (a tilted, wavy surface) and canopy samples above it."""
+    from pipeline.terrain import Raster
+
+    rng = np.random.default_rng(seed)
+    rows, cols = np.mgrid[0:20, 0:40]
+    dtm = Raster(100 + 0.1 * cols + np.sin(rows / 3.0), 0.0, 0.0, 1.0)
+    x, y = rng.uniform(0, 40, 500), rng.uniform(0, 20, 500)
+    return {"plot": {"dtm": dtm, "x": x, "y": y, "height": rng.uniform(2, 25, 500)}}
+
+
 FEATURES = ["I2_22", "I2_222", "I3_33", "I3_11", "I23_3_2", "I23_31_2", "I23_1_2", "I3_3333",
             "I3_3131", "I3_3331", "I3_3111"]
 
@@ -91,7 +102,7 @@ def full_report(tmp_path_factory):
         out, metrics, pr_data=pr_data, topdown=topdown, title="Forest plot 7",
         run_info={"command": "silva run forest.yaml", "input points": 1234567},
         config_text="features:\n  r1: 0.5\n", importances=fake_importances(),
-        no_features={"points": 1234, "total": 1234567},
+        no_features={"points": 1234, "total": 1234567}, terrain=fake_terrain(),
     )
     return out, path, metrics
 
@@ -198,7 +209,7 @@ def test_text_is_escaped(tmp_path):
         tmp_path, metrics, pr_data=pr_data, topdown=topdown, title="<b>t</b>",
         run_info={"<i>key</i>": "<script>x</script>"},
         config_text="note: </pre><script>evil()</script>",
-        importances=fake_importances(names=names),
+        importances=fake_importances(names=names), terrain=fake_terrain(),
     ).read_text(encoding="utf-8")
     assert "<script" not in page
     assert "&lt;script&gt;alert(1)&lt;/script&gt;" in page
