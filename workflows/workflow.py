@@ -78,6 +78,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     check_point_formats(run, layout["tiles"])  # output.point_format: keep, before any work
     if last < 1:
         return summary
+    timed("terrain", terrain, run, engine, scenes_of(layout, lambda s: True, only))
     if kernels is not None:
         kernels.wait()  # started with the run; the workers need the kernels from here on
     fit = model_stages is None
@@ -86,7 +87,6 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
         check_chunk(layout, only)
     staged = scenes_of(layout, lambda s: s not in passes, only)
     one_pass = scenes_of(layout, lambda s: s in passes, only)
-    timed("terrain", terrain, run, engine, scenes_of(layout, lambda s: True, only))
     if one_pass["scenes"] and not staged["scenes"]:
         fold_step("features", "computed with the stages, in one pass per chunk")
     counts = timed("features", features, run, engine, staged, only)

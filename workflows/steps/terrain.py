@@ -56,7 +56,7 @@ def terrain(run: Run, engine, layout: dict) -> None:
     tasks = chunk_tasks(run, {**layout, "scenes": todo}, "terrain", chunk_minima,
                         lambda info: TerrainTask(params.cell, tuple(info["tiles"])),
                         fingerprint, "features")
-    engine.map("features (terrain)", tasks)  # reported as part of the features step
+    engine.map("ingest (terrain)", tasks)  # the end of ingest in the run's progress
     for scene, info in todo.items():
         groups = [root[chunk_path(scene, chunk)] for chunk in info["chunks"]]
         keys, zmin = merge_minima((read_array(g, "minima_keys"), read_array(g, "minima_z"))
