@@ -1,14 +1,13 @@
 """features.r1 and features.voxel 'auto': resolved once from the tiles' headers or the model."""
 
-import json
-
 import numpy as np
 import pytest
 
 from pipeline.cascade import one_pass_halo
 from pipeline.features.sets import AUTO_NEIGHBORS, auto_radius, auto_voxel
 from pipeline.io import write_las
-from workflows.autoparams import header_density, resolve_auto
+from pipeline.errors import ConfigError
+from workflows.autoparams import adopt_model, header_density, resolve_auto
 from workflows.config import validate_config
 
 
@@ -41,13 +40,38 @@ def test_voxel_auto_and_a_model_decide_for_an_applied_run(tmp_path):
     tile = _tile(tmp_path / "t.laz", 2.0)
     resolved = resolve_auto(_config(tile, voxel="auto"))
     assert resolved.features.voxel == pytest.approx(auto_voxel(resolved.features.r1, 64))
-    model = tmp_path / "model"
-    model.mkdir()
-    (model / "model.json").write_text(json.dumps({
-        "features.r1": 1.5, "features.voxel": 0.2, "classes": [{"name": "a", "code": 1}],
-        "stages": [{"index": 1, "file": "stage1.skops", "fingerprint": "f", "sha256": "0"}]}))
-    applied = resolve_auto(_config(tile, voxel="auto"), model)
+    raw = {"data": {"train": [str(tile)], "classes": {"a": [1], "b": [2]}},
+           "features": {"r1": "auto", "voxel": "auto"}, "cascade": {"stages": 3}}
+    applied = validate_config(adopt_model(raw, MODEL, "m"))
     assert (applied.features.r1, applied.features.voxel) == (1.5, 0.2)
+    assert applied.cascade.stages == 1  # the model's, whatever the configuration trains with
+    assert applied.halo == one_pass_halo(applied.features.params.halo, 1.5, 1)
+    assert raw["features"]["r1"] == "auto"  # the configuration itself is left as it was
+
+
+MODEL = {"features.r1": 1.5, "features.voxel": 0.2, "features.columns": ["I2_22"],
+         "cascade.context": "hard",
+         "classes": [{"name": "ground", "code": 2}, {"name": "other", "code": 1}],
+         "stages": [{"index": 1, "file": "stage1.skops", "fingerprint": "f", "sha256": "0"}]}
+
+
+@pytest.mark.parametrize("features, cascade, key", [
+    ({"r1": 0.7}, {}, "features.r1"),
+    ({"voxel": 0.3}, {}, "features.voxel"),
+    ({}, {"context": "soft"}, "cascade.context"),
+])
+def test_a_configured_value_other_than_the_models_is_refused(features, cascade, key):
+    raw = {"features": features, "cascade": cascade}
+    with pytest.raises(ConfigError) as err:
+        adopt_model(raw, MODEL, "m")
+    assert key in str(err.value) and "trained with" in str(err.value)
+
+
+def test_the_same_values_written_otherwise_are_accepted():
+    raw = {"features": {"r1": 1.5, "voxel": 0.2}, "cascade": {"context": "hard"}}
+    assert validate_config(adopt_model(raw, MODEL, "m")).features.r1 == 1.5
+    raw = {"features": {"r1": 3 / 2}}
+    assert adopt_model(raw, MODEL, "m")["features"]["r1"] == 1.5
 
 
 def test_a_resolved_config_is_left_alone(tmp_path):
@@ -57,15 +81,9 @@ def test_a_resolved_config_is_left_alone(tmp_path):
 
 def test_an_applied_model_gives_its_classes_to_a_config_without_them(tmp_path):
     tile = _tile(tmp_path / "t.laz", 2.0)
-    model = tmp_path / "model"
-    model.mkdir()
-    (model / "model.json").write_text(json.dumps({
-        "features.r1": 1.5, "classes": [{"name": "ground", "code": 2}, {"name": "other", "code": 1}],
-        "stages": [{"index": 1, "file": "stage1.skops", "fingerprint": "f", "sha256": "0"}]}))
-    cfg = validate_config({"data": {"predict": [str(tile)]}, "features": {"r1": 1.5}})
-    applied = resolve_auto(cfg, model)
+    applied = validate_config(adopt_model({"data": {"predict": [str(tile)]}}, MODEL, "m"))
     assert applied.data.class_names == ["ground", "other"]
     assert applied.data.class_codes == [2, 1]
-    listed = validate_config({"data": {"predict": [str(tile)], "classes": {"a": [5], "b": [6]}},
-                              "features": {"r1": 1.5}})
-    assert resolve_auto(listed, model) is listed  # listed classes are checked, not replaced
+    listed = {"data": {"predict": [str(tile)], "classes": {"a": [5], "b": [6]}}}
+    # listed classes are checked against the model's when the run starts, not replaced
+    assert adopt_model(listed, MODEL, "m")["data"]["classes"] == {"a": [5], "b": [6]}
