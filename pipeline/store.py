@@ -16,7 +16,8 @@ Layout::
           stage<t>_context (n, 2C) f4, stage<t>_proba (n, C) f4     (t = 1, 2, ...)
         attrs: done = {step: fingerprint}, results, assembled, arrays = {array: pack}
       scenes/<scene>/terrain/        the scene's terrain model: dtm (ny, nx) f8, south row
-        first; attrs x0, y0, cell, interpolated, done = {"terrain": fingerprint}
+        first; attrs x0, y0, cell, done = {"terrain": fingerprint}, interpolated (the share of
+        the cells with points where no ground was seen)
 
 **Packs.** :func:`write_arrays` writes the arrays of one call as one zarr array, a *pack*:
 a (B, R) uint8 array whose B rows are byte planes of its members (R the longest member's

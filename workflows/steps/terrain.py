@@ -61,13 +61,16 @@ def terrain(run: Run, engine, layout: dict) -> None:
         groups = [root[chunk_path(scene, chunk)] for chunk in info["chunks"]]
         keys, zmin = merge_minima((read_array(g, "minima_keys"), read_array(g, "minima_z"))
                                   for g in groups)
-        model = ground_model(minima_raster(keys, zmin, params.cell), params)
-        write_terrain(root, scene, model.dtm, model.interpolated, fingerprint)
-        if model.interpolated > INTERPOLATED_WARNING:
-            say(f"warning: scene '{scene}': {model.interpolated:.0%} of its terrain model "
-                f"({params.cell:g} m cells) is interpolated, not seen as ground (dense "
-                "canopy, roofs or no ground in the scan); heights above ground are less "
-                "certain there")
+        minima = minima_raster(keys, zmin, params.cell)
+        model = ground_model(minima, params)
+        # of the cells with points (not the empty space between tiles): those without ground
+        occupied = ~np.isnan(minima.values)
+        unseen = np.count_nonzero(occupied & ~model.ground) / max(np.count_nonzero(occupied), 1)
+        write_terrain(root, scene, model.dtm, unseen, fingerprint)
+        if unseen > INTERPOLATED_WARNING:
+            say(f"warning: scene '{scene}': under {unseen:.0%} of its points' {params.cell:g} m "
+                "cells no ground was seen (dense canopy, roofs, or no ground in the scan); "
+                "the terrain model is interpolated there and heights above it are less certain")
 
 
 @lru_cache(maxsize=4)
