@@ -46,6 +46,9 @@ class CascadeData(Protocol):
     def predict(self, stage: int, fitted: FittedStage, fractions, seed: int) -> None:
         """Compute and keep the stage's probabilities of every point."""
 
+    # optional: ``fitting(stage, n_stages, forest, n_forests, trees_done, n_trees)`` follows
+    # the forests' fits (the workflow's progress lines while a stage trains)
+
 
 def run_cascade(data: CascadeData, params: CascadeParams, class_counts=None, *,
                 n_stages: int | None = None, predict_last: bool = True,
@@ -77,9 +80,12 @@ def run_cascade(data: CascadeData, params: CascadeParams, class_counts=None, *,
             if class_counts is None:
                 raise ValueError(f"stage {stage + 1} has no fitted forest to apply")
             x, y, ids = data.training_rows(stage, fractions, params.seed)
+            fitting = getattr(data, "fitting", None)  # optional: who follows the fits
             forest, folds = fit_stage(
                 x, y, ids, params=params.forest, seed=params.seed, stage=stage,
                 out_of_fold=params.out_of_fold, folds=params.folds,
+                progress=None if fitting is None else (
+                    lambda *done, stage=stage: fitting(stage, n_stages, *done)),
             )
             fitted = FittedStage(forest, folds, len(ids))
             data.save(stage, fitted)

@@ -27,9 +27,15 @@ def stage_input(features: np.ndarray, context: np.ndarray | None, n_classes: int
 
 
 def fit_stage_forest(
-    features: np.ndarray, labels: np.ndarray, params: ForestParams, random_state: int
+    features: np.ndarray, labels: np.ndarray, params: ForestParams, random_state: int,
+    progress=None,
 ) -> RandomForestClassifier:
-    """A new forest for one stage; rows must already be in canonical (global id) order."""
+    """A new forest for one stage; rows must already be in canonical (global id) order.
+
+    ``progress(trees_done, n_trees)``, when given, is called as the trees grow: the forest
+    then grows in about ten rounds (scikit-learn's ``warm_start`` draws each new tree's seed
+    as one fit would, so the forest is the same, bit for bit).
+    """
     forest = RandomForestClassifier(
         n_estimators=params.n_estimators,
         min_samples_leaf=params.min_samples_leaf,
@@ -38,7 +44,18 @@ def fit_stage_forest(
         n_jobs=params.n_jobs,
         random_state=random_state,
     )
-    return forest.fit(features, labels)
+    if progress is None:
+        return forest.fit(features, labels)
+    total = params.n_estimators
+    jobs = max(int(params.n_jobs or 1), 1)
+    step = max(jobs, -(-total // 10) // jobs * jobs)  # whole rounds of the threads
+    grown = 0
+    while grown < total:
+        grown = min(grown + step, total)
+        forest.set_params(n_estimators=grown, warm_start=grown > step)
+        forest.fit(features, labels)
+        progress(grown, total)
+    return forest.set_params(warm_start=False)
 
 
 def predict_stage_proba(forest: RandomForestClassifier, features: np.ndarray, n_classes: int):
@@ -90,8 +107,11 @@ def fit_stage(
     stage: int,
     out_of_fold: bool = False,
     folds: int = 5,
+    progress=None,
 ) -> tuple[RandomForestClassifier, list[RandomForestClassifier]]:
     """Fit one stage on the sampled training rows: the stage forest and its fold forests.
+
+    ``progress(forest, n_forests, trees_done, n_trees)``, when given, follows the fits.
 
     Rows are sorted by global id first, so the forests do not depend on where the rows came
     from. With ``out_of_fold``, forest k is fitted without fold k; it predicts the context of
@@ -99,15 +119,20 @@ def fit_stage(
     """
     order = np.argsort(ids, kind="stable")
     features, labels, ids = features[order], labels[order], ids[order]
-    forest = fit_stage_forest(features, labels, params, stage_seed(seed, stage))
+    n_forests = 1 + (folds if out_of_fold else 0)
+
+    def report(k):  # forest k of the stage's n_forests (the stage forest, then the folds')
+        return None if progress is None else (lambda done, total: progress(k, n_forests,
+                                                                           done, total))
+
+    forest = fit_stage_forest(features, labels, params, stage_seed(seed, stage), report(0))
     fold_forests = []
     if out_of_fold:
         fold = fold_of(ids, seed, folds)
         for k in range(folds):
             rows = fold != k
-            fold_forests.append(
-                fit_stage_forest(features[rows], labels[rows], params, stage_seed(seed, stage, k))
-            )
+            fold_forests.append(fit_stage_forest(
+                features[rows], labels[rows], params, stage_seed(seed, stage, k), report(k + 1)))
     return forest, fold_forests
 
 

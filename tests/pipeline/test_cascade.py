@@ -143,3 +143,36 @@ def test_unfitted_and_bad_parameters():
         CascadedForest(context="fuzzy").fit(np.zeros((3, 3)), [0, 1, 0])
     with pytest.raises(ValueError, match="at least 2 classes"):
         CascadedForest().fit(np.zeros((3, 3)), [0, 0, 0])
+
+
+def test_a_forest_grown_in_rounds_is_the_forest_grown_at_once():
+    from pipeline.cascade.params import ForestParams
+    from pipeline.cascade.stage import fit_stage, fit_stage_forest
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(600, 5)).astype(np.float32)
+    y = (x[:, 0] + 0.3 * rng.normal(size=600) > 0).astype(np.int64)
+    params = ForestParams(n_estimators=13, min_samples_leaf=2, n_jobs=2)
+    seen = []
+    rounds = fit_stage_forest(x, y, params, 7, progress=lambda done, total: seen.append(
+        (done, total)))
+    once = fit_stage_forest(x, y, params, 7)
+    for forest in (rounds, once):
+        forest.set_params(n_jobs=1)  # threads would sum the trees in any order
+    assert np.array_equal(rounds.predict_proba(x), once.predict_proba(x))
+    for a, b in zip(rounds.estimators_, once.estimators_):
+        assert np.array_equal(a.tree_.threshold, b.tree_.threshold)
+    assert [t.random_state for t in rounds.estimators_] == [
+        t.random_state for t in once.estimators_]
+    assert seen[-1] == (13, 13) and [d for d, _ in seen] == sorted({d for d, _ in seen})
+    assert not rounds.warm_start and rounds.n_estimators == 13
+    calls = []
+    forest, folds = fit_stage(x, y, np.arange(600), params=params, seed=1, stage=0,
+                              out_of_fold=True, folds=3,
+                              progress=lambda *args: calls.append(args))
+    assert {c[:2] for c in calls} == {(0, 4), (1, 4), (2, 4), (3, 4)}
+    plain, plain_folds = fit_stage(x, y, np.arange(600), params=params, seed=1, stage=0,
+                                   out_of_fold=True, folds=3)
+    for a, b in zip([forest, *folds], [plain, *plain_folds]):
+        a.set_params(n_jobs=1), b.set_params(n_jobs=1)
+        assert np.array_equal(a.predict_proba(x), b.predict_proba(x))

@@ -11,6 +11,7 @@ depend on the chunking or the number of workers.
 
 import logging
 import os
+import time
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -39,9 +40,11 @@ from pipeline.model import (
 from pipeline.store import ROLE_TRAIN, context_array, proba_array, rows_of
 from pipeline.tiling import layout_from_dict
 from workflows.engine import chunk_tasks
+from workflows.progress import say
 from workflows.run import Run
 
 log = logging.getLogger(__name__)
+FIT_LINE_SECONDS = 60  # with --quiet, a line at most this often while the forests grow
 
 
 # -- worker side ----------------------------------------------------------------------------
@@ -174,6 +177,7 @@ class StoreCascade:
         self.n_classes = run.n_classes
         self.params = run.cascade_params(n_jobs=os.cpu_count() or 1)
         self.fractions = ()
+        self._said = time.monotonic()  # the last line while fitting
         if fit:
             try:
                 previous = read_description(run.model_path)
@@ -245,6 +249,19 @@ class StoreCascade:
                 f"one chunk cannot train it; the chunk's steps up to its training sample ran "
                 f"without error. Train with 'silva train CONFIG --out {self.run.out}' first")
         return None
+
+    def fitting(self, stage, n_stages, forest, n_forests, trees, n_trees):
+        """With --quiet, a line a minute while the forests grow (a long training is not
+        silence; the progress bars show the time otherwise); every round in the log."""
+        which = ("its forest" if forest == 0
+                 else f"out-of-fold forest {forest} of {n_forests - 1}")
+        line = f"train: stage {stage + 1} of {n_stages}, {which}: {trees} of {n_trees} trees"
+        now = time.monotonic()
+        if self.run.quiet and now - self._said >= FIT_LINE_SECONDS:
+            self._said = now
+            say(line)
+        else:
+            log.info("%s", line)
 
     def save(self, stage, fitted):
         for forest in (fitted.forest, *fitted.fold_forests):
