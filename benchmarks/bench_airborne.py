@@ -3,6 +3,7 @@
     python benchmarks/bench_airborne.py [--tiles NAME ...] [--no-halves] [--no-cross]
                                         [--trees N] [--max-train N] [--csf-resolution M]
                                         [--skip-cascade] [--skip-csf]
+    python benchmarks/bench_airborne.py --density [--sparse D ...] [--density-r1 M]
 
 Tiles and classes (noise, code 7, is dropped everywhere):
 
@@ -31,6 +32,20 @@ Methods:
 r1 of the 'default' set is ``auto_radius`` of the training cloud's density (points per m² of
 its XY bounding box). A second table gives the DTM's RMSE at the scored cloud's reference
 ground points and the share of its vegetation and building points less than 1 m above it.
+
+``--density`` runs another protocol instead: does a model trained at one point density
+classify a survey of another? StBarth is split at the median x and each half is thinned to
+each of ``--sparse`` points per m² by keeping the points whose index hashes below the wanted
+share (deterministic, and the points kept at 2 pts/m² are among those kept at 5). The west
+half trains and the east half is scored: dense -> dense, dense -> sparse, sparse -> dense and
+sparse -> sparse. Every cloud's features are computed on that cloud alone (its own terrain
+model included) with the 'default' set, a voxel of ``auto_voxel(r1, 64)`` and a plain random
+forest, with r1:
+
+- fixed at ``--density-r1`` for every cloud, with and without the two terrain columns;
+- ``auto_radius`` of each cloud's own density, so train and test radii differ when the
+  densities do (what ``r1: auto`` gives when a model is applied to another survey);
+- ``auto_radius`` of the training cloud's density for both (the model carries its r1).
 """
 
 import argparse
@@ -48,7 +63,8 @@ from sklearn.metrics import f1_score
 
 from pipeline.cascade import CascadedForest
 from pipeline.features.covariance import multiscale_covariance
-from pipeline.features.sets import TERRAIN_COLUMNS, FeatureParams, auto_radius, feature_set
+from pipeline.features.sets import (TERRAIN_COLUMNS, FeatureParams, auto_radius, auto_voxel,
+                                    feature_set)
 from pipeline.terrain import TerrainParams, ground_elevation, terrain_model
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "als"
@@ -59,6 +75,7 @@ PEER_RADII = (1.0, 2.0, 4.0)
 PEER_WINDOWS = (5.0, 10.0)
 PEER_CELL = 0.5
 GROUND_BAND = 0.5  # metres from the DTM within which the unsupervised filter calls ground
+MAX_NEIGHBORS = 64  # FeatureParams' default: the voxel of the density protocol follows it
 
 
 @dataclass(frozen=True)
@@ -159,12 +176,15 @@ def subsample(n: int, cap: int, seed: int) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n, cap, replace=False))
 
 
-def forest_predict(X_train, y_train, X_test, args) -> np.ndarray:
+def fit_forest(X_train, y_train, args) -> RandomForestClassifier:
     rows = subsample(len(y_train), args.max_train, args.seed)
     forest = RandomForestClassifier(n_estimators=args.trees, n_jobs=args.jobs,
                                     random_state=args.seed)
-    forest.fit(X_train[rows], y_train[rows])
-    return forest.predict(X_test)
+    return forest.fit(X_train[rows], y_train[rows])
+
+
+def forest_predict(X_train, y_train, X_test, args) -> np.ndarray:
+    return fit_forest(X_train, y_train, args).predict(X_test)
 
 
 def scores(y_true, y_pred, scored) -> tuple[float, dict]:
@@ -275,6 +295,96 @@ def run_protocol(label, train, test, scored, args, cache, results, dtm_rows):
     dtm_rows.append((label, dtm))
 
 
+def index_hash(n: int) -> np.ndarray:
+    """uint64 (n,): the splitmix64 finaliser of the indices 0 .. n - 1."""
+    z = np.arange(n, dtype=np.uint64) + np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def thinned(n: int, share: float) -> np.ndarray:
+    """bool (n,): the points whose index (in the loaded cloud) hashes into the lowest ``share``
+    of the range; the points kept at a share are among those kept at any larger share."""
+    return (index_hash(n) >> np.uint64(11)).astype(np.float64) / 2.0**53 < share
+
+
+#: the density protocol's methods: label, r1 of the training cloud, r1 of the scored cloud
+#: (each from the fixed r1 and the two clouds' own auto radii), terrain columns kept
+DENSITY_METHODS = (
+    ("default, r1 fixed", lambda fixed, a, b: (fixed, fixed), True),
+    ("default - terrain, r1 fixed", lambda fixed, a, b: (fixed, fixed), False),
+    ("default, r1 auto of each cloud", lambda fixed, a, b: (a, b), True),
+    ("default, r1 auto of the training cloud", lambda fixed, a, b: (a, a), True),
+)
+
+
+def density_protocol(args) -> int:
+    """Train on StBarth's west half at one density, score its east half at another."""
+    tile = TILES["stbarth"]
+    if not (DATA / tile.file).is_file():
+        print(f"missing in {DATA}: {tile.file}", file=sys.stderr)
+        return 0
+    xyz, y = load(tile)
+    full = density(xyz)
+    east = xyz[:, 0] > np.median(xyz[:, 0])
+    clouds = {}  # name -> (xyz, y, density, auto r1)
+    levels = [("dense", None)] + [(f"{d:g} pts/m²", d) for d in args.sparse]
+    for level, target in levels:
+        keep = np.ones(len(xyz), bool) if target is None else thinned(len(xyz), target / full)
+        for half, rows in (("west", keep & ~east), ("east", keep & east)):
+            d = density(xyz[rows])
+            clouds[(half, level)] = (xyz[rows], y[rows], d, auto_radius(d))
+            print(f"StBarth {half} {level}: {rows.sum():,} points, {d:.2f} pts/m², "
+                  f"r1 auto {auto_radius(d):g} m", flush=True)
+    cache = Features()
+
+    def matrix(cloud, r1, terrain):
+        pts = clouds[cloud][0]
+
+        def compute():
+            fs = feature_set(FeatureParams(set="default", r1=r1,
+                                           voxel=auto_voxel(r1, MAX_NEIGHBORS)))
+            return fs(pts), [i for i, c in enumerate(fs.columns) if c not in TERRAIN_COLUMNS]
+
+        values, keep = cache.get((" ".join(cloud), "default", r1), compute)
+        return values if terrain else values[:, keep]
+
+    sparse = [level for level, target in levels if target is not None]
+    pairs = [("dense", "dense")] + [p for s in sparse for p in
+                                    (("dense", s), (s, "dense"), (s, s))]
+    results = []
+    for train_level in dict.fromkeys(a for a, _ in pairs):
+        train = ("west", train_level)
+        _, y_train, d_train, auto_train = clouds[train]
+        tests = [("east", b) for a, b in pairs if a == train_level]
+        fitted = {}
+        for m, (method, radii, terrain) in enumerate(DENSITY_METHODS):
+            for test in tests:
+                _, y_test, d_test, auto_test = clouds[test]
+                r_train, r_test = radii(args.density_r1, auto_train, auto_test)
+                start = time.perf_counter()
+                if (r_train, terrain) not in fitted:
+                    fitted[(r_train, terrain)] = fit_forest(matrix(train, r_train, terrain),
+                                                            y_train, args)
+                pred = fitted[(r_train, terrain)].predict(matrix(test, r_test, terrain))
+                macro, per_class = scores(y_test, pred, tile.scored)
+                label = f"{d_train:.1f} -> {d_test:.1f}"
+                row = (label, f"{method} ({r_train:g} -> {r_test:g} m)", macro, per_class,
+                       time.perf_counter() - start)
+                results.append(((pairs.index((train_level, test[1])), m), row))
+                print(f"  {label:12} {row[1]:52} macro {macro:.3f}  "
+                      + "  ".join(f"{NAMES[c]} {v:.3f}" for c, v in per_class.items()),
+                      flush=True)
+    results = [row for _, row in sorted(results, key=lambda r: r[0])]
+    print(f"\nStBarth, west half trains, east half scored (pts/m² of the XY bounding box); "
+          f"forests of {args.trees} trees on at most {args.max_train:,} rows")
+    print_tables(results, [])
+    print("\nfeature matrices: " + ", ".join(f"{k[0]} r1 {k[2]:g} {s:.0f} s"
+                                            for k, s in cache.seconds.items()))
+    return 0
+
+
 def print_tables(results, dtm_rows):
     cols = (GROUND, VEGETATION, BUILDING, OTHER)
     print("\n| protocol | method | macro F1 | " + " | ".join(NAMES[c] for c in cols)
@@ -284,6 +394,8 @@ def print_tables(results, dtm_rows):
         cells = [f"{per_class[c]:.3f}" if c in per_class else "" for c in cols]
         shown = "" if np.isnan(macro) else f"{macro:.3f}"
         print(f"| {label} | {method} | {shown} | " + " | ".join(cells) + f" | {seconds:.0f} |")
+    if not dtm_rows:
+        return
     print("\n| scored cloud | DTM RMSE at ground m | vegetation < 1 m % | building < 1 m % |")
     print("|---|---|---|---|")
     for label, dtm in dtm_rows:
@@ -303,10 +415,18 @@ def main(argv=None) -> int:
     parser.add_argument("--skip-csf", action="store_true")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--density", action="store_true",
+                        help="only the density protocol (StBarth, dense and thinned halves)")
+    parser.add_argument("--sparse", nargs="+", type=float, default=[2.0, 5.0],
+                        help="densities of the thinned copies, points per m²")
+    parser.add_argument("--density-r1", type=float, default=1.5,
+                        help="the fixed r1 of the density protocol, metres")
     args = parser.parse_args(argv)
     if not DATA.is_dir():
         print(f"no airborne tiles at {DATA}: nothing to measure", file=sys.stderr)
         return 0
+    if args.density:
+        return density_protocol(args)
     missing = [TILES[k].file for k in args.tiles if not (DATA / TILES[k].file).is_file()]
     if missing:
         print(f"missing in {DATA}: {', '.join(missing)}", file=sys.stderr)
