@@ -15,6 +15,7 @@ fingerprints, shown by the report.
 """
 
 import copy
+import json
 import logging
 import math
 from pathlib import Path
@@ -64,15 +65,25 @@ def resolve_auto(cfg: SilvaConfig) -> SilvaConfig:
 
 
 def run_config(config, overrides=(), model_dir=None, inputs=()) -> SilvaConfig:
-    """The configuration of a run: the file ``config`` (None: every default) with
-    ``overrides``, ``inputs`` (paths or globs: the only tiles, to classify) in data.predict,
-    the values of the model it applies (:func:`adopt_model`) and its 'auto' values resolved.
-    The one place a run's configuration is resolved."""
+    """The configuration of a run (:func:`read_run`, then :func:`resolve_run`)."""
+    return resolve_run(read_run(config, overrides, inputs), model_dir)
+
+
+def read_run(config, overrides=(), inputs=()) -> dict:
+    """A run's configuration as written: the file ``config`` (None: every default) with
+    ``overrides``, and ``inputs`` (paths or globs: the only tiles, to classify) in
+    data.predict."""
     raw = load_raw(config, overrides)
     if inputs:
         data = raw.get("data") if isinstance(raw.get("data"), dict) else {}
         raw["data"] = {**data, "train": [], "test": [], "split": None,
                        "predict": [str(Path(p).expanduser().absolute()) for p in inputs]}
+    return raw
+
+
+def resolve_run(raw: dict, model_dir=None) -> SilvaConfig:
+    """``raw`` with the values of the model it applies (:func:`adopt_model`) and its 'auto'
+    values resolved: the one place a run's configuration is resolved."""
     if model_dir is not None:
         raw = adopt_model(raw, read_description(model_dir), model_dir)
     return resolve_auto(validate_config(raw))
@@ -109,9 +120,10 @@ def adopt_model(raw: dict, description: dict, model_path) -> dict:
         given = (raw.get(section) or {}).get(name, "auto")
         if given != "auto" and not (given is None and name == "r2") and not _same(given, value):
             raise ConfigError(
-                f"config error: {key} is {given!r} in the configuration, but the model "
-                f"{model_path} was trained with {value!r}; remove {key} from the configuration "
-                "(a run applying a model takes it from the model) or retrain")
+                f"config error: {key} is {json.dumps(given)} in the configuration, but the "
+                f"model {model_path} was trained with {key}={json.dumps(value)}; remove {key} "
+                "from the configuration (a run applying a model takes it from the model) or "
+                "retrain")
         if not isinstance(raw.get(section), dict):
             raw[section] = {}
         raw[section][name] = value

@@ -365,12 +365,12 @@ def prime_worker(groups) -> None:
 def one_run(config: Path, overrides, out: Path, model: Path | None, client) -> dict:
     """One ``silva run`` (``predict`` with ``model``) of ``config`` on ``client`` into
     ``out``: the run's summary plus ``seconds`` (its steps, the cluster already running)."""
-    from workflows.config import load_config
+    from workflows.autoparams import run_config
     from workflows.engine import Engine
     from workflows.run import Run
     from workflows.workflow import execute
 
-    run = Run(load_config(config, overrides), out, quiet=True, model_dir=model)
+    run = Run(run_config(config, overrides, model), out, quiet=True, model_dir=model)
     run.save_config()
     started = time.perf_counter()
     summary = execute(run, Engine(client, quiet=True), "report")

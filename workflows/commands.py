@@ -241,7 +241,8 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
     kernels compile (:func:`check_before_start`); an error or Ctrl-C also ends the run's log
     with the line the command line shows. The resume hint never carries ``--overwrite``.
     """
-    from workflows.autoparams import run_config
+    from workflows.autoparams import read_run, resolve_run
+    from workflows.config import validate_config
     from workflows.durations import reset
     from workflows.run import Run, applied_model, prepare_output, read_paths, record_applied_model
     from workflows.workflow import STEPS, execute
@@ -249,21 +250,23 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
     out = out or Path(f"silva-{Path(config).stem if config else 'predict'}")
     if model_dir is None and not overwrite:
         model_dir = applied_model(out)  # a later step of a 'silva predict' output
-    cfg = run_config(config_path or config, overrides, model_dir, inputs)
+    raw = read_run(config_path or config, overrides, inputs)
     command = command or _command_line()
     # --overwrite never deletes what this command reads (its config, model or inputs)
-    keep = read_paths(cfg, config_path or config, model_dir) if overwrite else ()
+    keep = (read_paths(validate_config(raw), config_path or config, model_dir) if overwrite
+            else ())
     lock = prepare_output(out, overwrite=overwrite, keep=keep, command=command)
     if overwrite:
         reset(out)  # the durations of the runs emptied start again
-    if model_dir is not None:
-        record_applied_model(out, model_dir)
     steps = [("apply" if s == "train" and model_dir else s) for s in STEPS]
     steps = steps[: STEPS.index(target) + 1]
     resume = resume_command(command)
     with run_logging(verbose, out / LOG_NAME), lock, _logged_error():
         log.info("start: %s (steps %s)", command, ", ".join(steps))
         try:
+            cfg = resolve_run(raw, model_dir)  # the model's values: a bad model is logged
+            if model_dir is not None:
+                record_applied_model(out, model_dir)
             run = Run(cfg, out, quiet=quiet, model_dir=model_dir)
             text = run.save_config()
             if verbose:

@@ -48,7 +48,8 @@ def test_overwrite_resets_the_sums(tmp_path, survey):
     assert first.exit_code == 0, first.output
     accumulate(out, {"ingest": 100.0})
     again = silva("ingest", config, "--out", out, "--in-process", "-q")
-    assert again.exit_code == 0 and totals(out) == {"ingest": 100.0}  # a resume keeps them
+    assert again.exit_code == 0  # a resume keeps the sums and adds what it cost itself
+    assert set(totals(out)) == {"ingest"} and 100.0 <= totals(out)["ingest"] < 160.0
     fresh = silva("ingest", config, "--out", out, "--in-process", "-q", "--overwrite")
     assert fresh.exit_code == 0, fresh.output
-    assert totals(out) == {}
+    assert totals(out).get("ingest", 0.0) < 60.0  # this run's own cost, not the 100 before

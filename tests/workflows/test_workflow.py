@@ -254,8 +254,9 @@ def test_predict_with_a_saved_model(reference, survey, tmp_path):
                    "--quiet", "--in-process", "--set", "data.train=[]",
                    "--set", "features.context_max_neighbors=32")
     assert result.exit_code == 1
-    assert ("was trained with features.context_max_neighbors=null but the configuration has "
-            "32; set features.context_max_neighbors=null") in result.output
+    assert ("features.context_max_neighbors is 32 in the configuration, but the model "
+            in result.output and "was trained with features.context_max_neighbors=null; "
+            "remove features.context_max_neighbors from the configuration" in result.output)
 
 
 def test_predict_unlabelled_data_reports_predictions_and_no_metrics(reference, survey, tmp_path):
