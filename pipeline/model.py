@@ -224,6 +224,13 @@ def check_compatible(description: dict, expected: dict, model_dir) -> None:
             raise ModelError(f"model {model_dir} does not record {key}: it was written by "
                              "another version of Silva; retrain it")
         trained = description[key]
+        if trained != value and key == "features.columns":
+            # derived from the other keys, not a key to set: another version's columns
+            raise ModelError(
+                f"model {model_dir} was trained on the feature columns "
+                f"{', '.join(map(str, trained))}, which this version of Silva does not compute "
+                f"for features.set {description.get('features.set')!r} (it computes "
+                f"{', '.join(map(str, value))}); retrain the model with this version")
         if trained != value:
             raise ModelError(
                 f"model {model_dir} was trained with {key}={json.dumps(trained)} but the "

@@ -94,3 +94,15 @@ def test_a_model_records_versions_and_refuses_another_scikit_learn(tmp_path):
     saved["versions"]["scikit-learn"] = "0.9.1"
     with pytest.raises(ModelError, match=r"scikit-learn 0\.9\.1.*retrain"):
         check_versions(saved, tmp_path)
+
+
+def test_other_feature_columns_are_refused_with_advice_that_works():
+    from pipeline.errors import ModelError
+    from pipeline.model import check_compatible
+
+    trained = {"features.set": "default", "features.columns": ["a", "b"]}
+    with pytest.raises(ModelError) as err:
+        check_compatible(trained, {"features.columns": ["a", "b", "c"]}, "m")
+    message = str(err.value)
+    assert "retrain the model with this version" in message
+    assert "set features.columns" not in message  # not a key anyone can set

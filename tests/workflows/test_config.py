@@ -423,7 +423,7 @@ def test_auto_chunk_size_round_trips(tmp_path):
 @settings(max_examples=30, deadline=None)
 @given(
     r1=st.floats(1e-3, 10.0), extra_halo=st.floats(0.0, 5.0),
-    chunk=st.one_of(st.just("auto"), st.floats(1e-2, 1e4)), stages=st.integers(1, 9),
+    chunk=st.one_of(st.just("auto"), st.floats(15.0, 1e4)), stages=st.integers(1, 9),
     fraction=st.floats(1e-6, 1.0), seed=st.integers(0, 2**32 - 1),
 )
 def test_dump_load_round_trip_property(r1, extra_halo, chunk, stages, fraction, seed):
@@ -552,3 +552,11 @@ def test_expand_inputs_refuses_what_matches_nothing(tmp_path):
         expand_inputs([str(tmp_path / "missing.laz")], key="data.test")
     with pytest.raises(InputError, match="is a directory"):
         expand_inputs([str(tmp_path)])
+
+
+@pytest.mark.parametrize("chunk, halo", [(0.001, None), (0.5, None), (1.0, 3.0)])
+def test_a_chunk_smaller_than_its_halo_is_refused(chunk, halo):
+    tiling = {"chunk_size": chunk, **({"halo": halo} if halo else {})}
+    with pytest.raises(ConfigError) as err:
+        validate_config({"features": {"r1": 0.5}, "tiling": tiling})
+    assert f"tiling.chunk_size {chunk} m is less than half the halo of" in str(err.value)

@@ -577,6 +577,15 @@ class SilvaConfig(Section):
             return self  # the run resolves r1 or voxel from the data, then validates again
         largest = self.features.largest_radius
         halo = self.tiling.halo
+        size = self.tiling.chunk_size
+        reach = float(halo) if halo is not None else self.halo
+        if size != "auto" and size < reach / 2:
+            # every point is copied into the halos of ((2 halo / size) + 1)^2 chunks: a
+            # chunk far narrower than its halo makes ingest and the store grow without bound
+            raise fail(f"tiling.chunk_size {show(size)} m is less than half the halo of "
+                       f"{show(reach)} m, so each point would be copied into the halos of "
+                       f"about {int((2 * reach / size + 1) ** 2):,} chunks; use a chunk_size "
+                       f"of at least {show(reach)} m (better ten times that) or auto")
         if halo is None:
             object.__setattr__(self, "tiling", self.tiling.model_copy(update={"halo": self.halo}))
         elif halo < largest:
