@@ -107,9 +107,18 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     )
     if last < 4:
         return summary
-    if not has_test_points(layout, run.cfg.data.split):
-        say("evaluate: no labelled test points (data.test or data.split): no metrics",
-            quiet=run.quiet)
+    metrics = plots = None
+    if has_test_points(layout, run.cfg.data.split):
+        metrics, plots = timed("evaluate", evaluate, run, engine, layout, n_stages)
+        if metrics["n_test_points"] == 0:  # no score over no points: say so, report what is
+            say(f"warning: the test points carry none of the codes of data.classes in their "
+                f"'{run.cfg.data.label_field}' field: no metrics; check data.label_field and "
+                "data.classes (the report shows what was predicted)")
+            metrics = None
+    if metrics is None:
+        if not has_test_points(layout, run.cfg.data.split):
+            say("evaluate: no labelled test points (data.test or data.split): no metrics",
+                quiet=run.quiet)
         if last >= 5:  # the report of what was predicted, without scores
             from workflows.report.survey import write_survey_report
 
@@ -120,7 +129,6 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
             summary["report"] = str(run.report_path)
         _finish(run, target, only, summary, stamp)
         return summary
-    metrics, plots = timed("evaluate", evaluate, run, engine, layout, n_stages)
     if last < 5:
         write_metrics(run, metrics)
         summary["metrics"] = str(run.metrics_path)

@@ -105,3 +105,23 @@ def test_an_unknown_model_name_is_one_line(tmp_path):
     line = error_line(silva("predict", "--model", "no-such-model", "--out", tmp_path / "p",
                             "x.laz"))
     assert "no-such-model" in line and "silva models" in line
+
+
+def test_a_test_scene_without_a_single_label_is_no_score_of_zero(survey, tmp_path):
+    import laspy
+
+    unlabelled = tmp_path / "unlabelled"
+    unlabelled.mkdir()
+    for tile in sorted(survey["test"].glob("*.laz")):
+        las = laspy.read(tile)
+        las.classification = np.zeros(len(las.points), dtype=np.uint8)  # no class's code
+        las.write(unlabelled / tile.name)
+    config = write_config(tmp_path / "c.yaml", survey, cascade={"stages": 1},
+                          data={"test": [str(unlabelled / "*.laz")]})
+    out = tmp_path / "out"
+    result = silva("run", config, "--out", out, "--in-process", "-q")
+    assert result.exit_code == 0, result.output
+    assert "the test points carry none of the codes of data.classes" in result.output
+    assert "macro F1" not in result.output
+    assert not (out / "metrics.json").exists()
+    assert "Predicted classes" in (out / "report.html").read_text()
