@@ -1,5 +1,6 @@
 """Shared test fixtures."""
 
+import json
 from pathlib import Path
 
 import pytest
@@ -14,6 +15,14 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real LiDAR data not found at {SHARED_DATA}")
     return SHARED_DATA
+
+
+def edit_model_json(model: Path, change) -> None:
+    """Edit a saved model's model.json by hand, as a user might: ``change(description)``."""
+    path = model / "model.json"
+    description = json.loads(path.read_text())
+    change(description)
+    path.write_text(json.dumps(description, indent=2))
 
 
 # The suite is deterministic: each property test draws the same examples on every run, so a

@@ -4,7 +4,6 @@ import json
 
 import numpy as np
 import pytest
-from sklearn.ensemble import RandomForestClassifier
 
 from pipeline.errors import ModelError
 from pipeline.model import (
@@ -16,18 +15,13 @@ from pipeline.model import (
     verify_stage_files,
     write_description,
 )
-
-
-def _forest(seed):
-    rng = np.random.default_rng(seed)
-    x, y = rng.normal(size=(60, 3)), rng.integers(0, 2, 60)
-    return RandomForestClassifier(n_estimators=2, random_state=seed).fit(x, y)
+from tests.pipeline.conftest import small_forest
 
 
 @pytest.fixture
 def model(tmp_path):
     for stage in range(2):
-        save_forest(stage_file(tmp_path, stage), _forest(stage))
+        save_forest(stage_file(tmp_path, stage), small_forest(stage, 2))
     write_description(tmp_path, {
         "classes": [{"name": "a", "code": 1}, {"name": "b", "code": 2}],
         "stages": [{"index": k + 1, "fingerprint": f"f{k}", "file": stage_file(tmp_path, k).name}

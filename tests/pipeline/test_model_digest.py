@@ -7,7 +7,6 @@ import logging
 
 import numpy as np
 import pytest
-from sklearn.ensemble import RandomForestClassifier
 
 from pipeline.errors import ModelError
 from pipeline.model import (
@@ -20,18 +19,14 @@ from pipeline.model import (
     verify_stage_files,
     write_description,
 )
-
-
-def _forest(seed):
-    rng = np.random.default_rng(seed)
-    x, y = rng.normal(size=(60, 3)), rng.integers(0, 3, 60)
-    return RandomForestClassifier(n_estimators=2, random_state=seed).fit(x, y)
+from tests.conftest import edit_model_json
+from tests.pipeline.conftest import small_forest
 
 
 @pytest.fixture
 def model(tmp_path):
     for stage in range(2):
-        save_forest(stage_file(tmp_path, stage), _forest(stage))
+        save_forest(stage_file(tmp_path, stage), small_forest(stage, 3))
     write_description(tmp_path, {
         "features.set": "paper", "features.r1": 0.5,
         "classes": [{"name": "terrain", "code": 2}, {"name": "tree", "code": 5},
@@ -41,13 +36,6 @@ def model(tmp_path):
                    for k in range(2)],
     })
     return tmp_path
-
-
-def _edit(model, change):
-    path = model / MODEL_FILE
-    description = json.loads(path.read_text())
-    change(description)
-    path.write_text(json.dumps(description, indent=2))
 
 
 def test_a_saved_model_records_its_digest_and_loads(model):
@@ -74,7 +62,7 @@ EDITS = {
 
 @pytest.mark.parametrize("name", sorted(EDITS))
 def test_an_edited_description_is_refused(model, name):
-    _edit(model, EDITS[name])
+    edit_model_json(model, EDITS[name])
     for read in (read_description, lambda m: load_forest(stage_file(m, 0))):
         with pytest.raises(ModelError) as caught:
             read(model)
@@ -85,14 +73,14 @@ def test_an_edited_description_is_refused(model, name):
 
 
 def test_a_replaced_forest_with_its_digest_edited_in_is_refused(model):
-    save_forest(stage_file(model, 1), _forest(7))
-    _edit(model, lambda d: d["stages"][1].update(sha256=file_digest(stage_file(model, 1))))
+    save_forest(stage_file(model, 1), small_forest(7, 3))
+    edit_model_json(model, lambda d: d["stages"][1].update(sha256=file_digest(stage_file(model, 1))))
     with pytest.raises(ModelError, match="was changed after the model was saved"):
         load_forest(stage_file(model, 1))
 
 
 def test_a_replaced_forest_is_refused_naming_the_file(model):
-    save_forest(stage_file(model, 1), _forest(7))
+    save_forest(stage_file(model, 1), small_forest(7, 3))
     with pytest.raises(ModelError, match=r"stage2\.skops does not match the digest .* "
                                          "restore the model's own files or retrain"):
         load_forest(stage_file(model, 1))
@@ -112,7 +100,7 @@ def test_rewriting_a_description_gives_it_a_fresh_digest(model):
 
 
 def test_a_description_saved_without_a_digest_still_loads(model, caplog):
-    _edit(model, lambda d: d.pop("digest"))
+    edit_model_json(model, lambda d: d.pop("digest"))
     with caplog.at_level(logging.WARNING, logger="pipeline.model"):
         assert len(read_description(model)["stages"]) == 2
     assert "records no digest" in caplog.text

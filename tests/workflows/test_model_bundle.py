@@ -1,12 +1,12 @@
 """A saved model is applied only as it was saved: an edited model.json (its class order, r1,
 its stages) or an unparsable one stops 'silva predict' in one line before any work."""
 
-import json
 import shutil
 
 import pytest
 
 from pipeline.model import MODEL_FILE
+from tests.conftest import edit_model_json
 from tests.workflows.conftest import error_line, silva, write_config
 
 pytestmark = pytest.mark.slow
@@ -29,12 +29,6 @@ def _copy(trained, tmp_path):
     return model
 
 
-def _edited(model, change):
-    path = model / MODEL_FILE
-    description = json.loads(path.read_text())
-    change(description)
-    path.write_text(json.dumps(description, indent=2))
-
 
 EDITS = {
     "class order": lambda d: d.update(classes=d["classes"][::-1]),
@@ -48,7 +42,7 @@ EDITS = {
 @pytest.mark.parametrize("name", sorted(EDITS))
 def test_an_edited_model_is_refused_before_any_work(trained, survey, tmp_path, name):
     model = _copy(trained, tmp_path)
-    _edited(model, EDITS[name])
+    edit_model_json(model, EDITS[name])
     out = tmp_path / "p"
     line = error_line(silva("predict", "--model", model, "--out", out,
                             str(survey["test"] / "*.laz"), "--in-process", "-q"))
@@ -68,7 +62,7 @@ def test_a_model_json_nested_too_deep_is_one_line(trained, survey, tmp_path):
 def test_status_names_an_edited_model_unusable(trained, tmp_path):
     out = tmp_path / "out"
     shutil.copytree(trained.parent, out)
-    _edited(out / "model", EDITS["class order"])
+    edit_model_json(out / "model", EDITS["class order"])
     result = silva("status", out)
     assert "Traceback" not in result.output
     assert "model: unusable" in result.output and "was changed after" in result.output
