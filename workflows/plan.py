@@ -8,6 +8,7 @@ and the run's duration. The estimates come from rates measured on the
 minute.
 """
 
+import math
 import os
 from pathlib import Path
 
@@ -33,6 +34,41 @@ ONE_PASS_BYTES_PER_POINT = 22
 #: (ingest, context and prediction of every stage, export).
 FEATURE_RATES = {"paper": 44_000, "covariance": 50_000, "default": 28_000}
 OTHER_RATE = 25_000
+#: Seconds one core takes to grow a tree, per row x log2(rows) x features tried per split:
+#: random forests of 10 trees on 50,000-100,000 rows of 30-61 columns, leaves of 1-20,
+#: measured 7.5e-8 to 9.5e-8 on the 2-core reference machine.
+TREE_SECONDS = 8.5e-8
+
+
+def features_tried(max_features, columns: int) -> int:
+    """Features a split of a scikit-learn forest tries, for its ``max_features``."""
+    if max_features in (None, 1.0) and not isinstance(max_features, int):
+        return columns
+    if max_features == "sqrt":
+        return max(1, int(math.sqrt(columns)))
+    if max_features == "log2":
+        return max(1, int(math.log2(columns)))
+    if isinstance(max_features, int):
+        return min(max_features, columns)
+    return max(1, int(max_features * columns))
+
+
+def training_seconds(run: Run, train_points: int, cores: int) -> float:
+    """The forests' training of ``run`` with ``train_points`` labelled training points, on
+    ``cores`` threads: every stage fits its forest on up to cascade.max_train_points rows and,
+    out of fold, one forest per fold on the other folds' rows."""
+    params = run.cascade_params()
+    if run.model_dir is not None or train_points == 0:
+        return 0.0
+    rows = min(train_points, params.max_train_points)
+    columns = len(feature_set(run.features).columns) + 2 * run.n_classes
+    tried = features_tried(params.forest.max_features, columns)
+    fits = [rows] + ([rows * (params.folds - 1) / params.folds] * params.folds
+                     if params.out_of_fold else [])
+    per_stage = sum(n * math.log2(max(n, 2)) for n in fits)
+    trees = params.forest.n_estimators
+    return (params.stages * trees * per_stage * tried * TREE_SECONDS
+            / max(1, min(cores, trees)))
 
 
 def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
@@ -73,13 +109,17 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
                           else STORE_BYTES_PER_POINT + 4 * columns)
     memory = largest * WORKER_BYTES_PER_POINT
     seconds = total / workers * (1 / FEATURE_RATES[params.set] + 1 / OTHER_RATE)
+    train_points = sum(t["n_points"] for t in tiles if t["scene"] == "train")
+    training = training_seconds(run, train_points, os.cpu_count() or 1)
     lines += [
         f"memory: about {memory / 2**30:.2f} GiB per worker in the largest chunk" + (
             " at the mean density (dense parts of a chunk hold more; tiling.target_points "
             "bounds it)" if any("estimate" not in info for info in scenes.values()) else ""),
         f"disk: about {disk / 2**30:.2f} GiB for store.zarr",
-        f"time: about {clock(seconds)} on {counted(workers, 'worker')} for the features, "
-        "context and predictions, plus the forests' training",
+        f"time: about {clock(seconds + training)} on {counted(workers, 'worker')}: "
+        f"{clock(seconds)} for the features, context and predictions, {clock(training)} "
+        "for the forests' training" + (" (from the training tiles' points: labelled ones "
+                                        "are fewer)" if training else ""),
     ]
     if picture is not None:
         _draw(scenes, tiles, picture)

@@ -1,5 +1,6 @@
 """``silva plan``: the run's tiles, grid and estimates from the headers, before any work."""
 
+import pytest
 from click.testing import CliRunner
 
 from tests.workflows.conftest import write_config
@@ -33,3 +34,29 @@ def test_plan_names_a_bad_key_in_one_line(tmp_path, survey):
     result = CliRunner().invoke(main, ["plan", str(config), "--set", "features.r1=-2"])
     assert result.exit_code == 1
     assert "features.r1" in result.output and "Traceback" not in result.output
+
+
+def test_the_forests_training_is_counted_from_rows_trees_folds_and_stages():
+    from workflows.config import validate_config
+    from workflows.plan import features_tried, training_seconds
+    from workflows.run import Run
+
+    assert features_tried("sqrt", 69) == 8 and features_tried("log2", 69) == 6
+    assert features_tried(0.5, 10) == 5 and features_tried(3, 10) == 3
+    assert features_tried(1.0, 10) == 10
+
+    def seconds(**cascade):
+        cfg = validate_config({"features": {"r1": 0.5}, "cascade": cascade,
+                               "data": {"classes": {"a": [1], "b": [2]}}})
+        return training_seconds(Run(cfg, "."), 500_000, cores=2)
+
+    base = seconds(stages=2, n_estimators=50, max_train_points=200_000, out_of_fold=False)
+    assert seconds(stages=4, n_estimators=50, max_train_points=200_000,
+                   out_of_fold=False) == pytest.approx(2 * base)
+    assert seconds(stages=2, n_estimators=100, max_train_points=200_000,
+                   out_of_fold=False) == pytest.approx(2 * base)
+    folds = seconds(stages=2, n_estimators=50, max_train_points=200_000, out_of_fold=True,
+                    folds=3)
+    assert 2.5 * base < folds < 3.2 * base  # three more forests on two thirds of the rows
+    assert seconds(stages=2, n_estimators=50, max_train_points=100_000,
+                   out_of_fold=False) < base / 1.9
