@@ -202,7 +202,7 @@ def _kernels_of(run, steps, quiet: bool, kernels=None):
     return contextlib.nullcontext(None)
 
 
-def check_before_start(run, steps) -> None:
+def check_before_start(run, steps) -> list[dict]:
     """Check everything a run of ``steps`` can check without workers, before its cluster
     starts and its kernels compile, so that a mistake is refused in seconds: the input globs
     and files and the tiles' headers (as ingest plans them: no file, an empty tile, the same
@@ -217,6 +217,7 @@ def check_before_start(run, steps) -> None:
         check_point_formats(run, tiles)
     if run.model_dir is not None:
         check_model(run)
+    return tiles
 
 
 @contextlib.contextmanager
@@ -242,6 +243,7 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
     with the line the command line shows. The resume hint never carries ``--overwrite``.
     """
     from workflows.autoparams import read_run, resolve_run
+    from workflows.plan import plan_workers, step_weights
     from workflows.config import validate_config
     from workflows.durations import reset
     from workflows.run import Run, applied_model, prepare_output, read_paths, record_applied_model
@@ -272,8 +274,10 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
             if verbose:
                 click.echo(f"# resolved configuration (saved to {out / 'config.yaml'})\n"
                            f"{text}", err=True)
-            check_before_start(run, steps)  # before the cluster and the compiling start
-            with run_progress(steps, quiet=quiet, stages=int(cfg.cascade.stages)) as progress, \
+            tiles = check_before_start(run, steps)  # before the cluster and the compiling
+            weights = step_weights(run, tiles, plan_workers(run))  # the ETA counts training
+            with run_progress(steps, quiet=quiet, stages=run.n_stages,
+                              weights=weights) as progress, \
                     _kernels_of(run, steps, quiet, kernels) as ready:
                 with _engine(cfg, quiet=quiet, in_process=in_process,
                              debug=chunk is not None) as engine:

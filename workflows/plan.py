@@ -127,6 +127,19 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
     return lines
 
 
+def step_weights(run: Run, tiles: list[dict], workers: int) -> dict[str, float]:
+    """Each step's estimated seconds in a run of ``tiles`` (:func:`plan_tiles`): how the
+    run's progress weighs the steps for its ETA, the forests' training included."""
+    points = sum(t["n_points"] for t in tiles)
+    train_points = sum(t["n_points"] for t in tiles if t["scene"] == "train")
+    features = points / workers / FEATURE_RATES[run.features.set]
+    other = points / workers / OTHER_RATE  # ingest, context and predictions, export
+    training = training_seconds(run, train_points, os.cpu_count() or 1)
+    return {"ingest": 0.3 * other, "features": features, "train": training + 0.4 * other,
+            "apply": 0.4 * other, "export": 0.2 * other, "evaluate": 0.05 * other,
+            "report": 0.05 * other}
+
+
 def _draw(scenes: dict, tiles: list[dict], path: Path) -> None:
     import matplotlib
 

@@ -224,10 +224,13 @@ def fold_step(step: str, how: str) -> None:
 
 
 @contextlib.contextmanager
-def run_progress(steps: Sequence[str], *, quiet: bool, stages: int = 1) -> Iterator[RunProgress]:
-    """Count every step's progress towards the run of ``steps`` while the block runs."""
+def run_progress(steps: Sequence[str], *, quiet: bool, stages: int = 1,
+                 weights: Mapping[str, float] | None = None) -> Iterator[RunProgress]:
+    """Count every step's progress towards the run of ``steps`` while the block runs;
+    ``weights``: each step's share of the run (default :data:`STEP_WEIGHTS`)."""
     global _RUN
-    previous, _RUN = _RUN, RunProgress(steps, quiet=quiet, stages=stages)
+    previous, _RUN = _RUN, RunProgress(steps, quiet=quiet, stages=stages,
+                                       weights=weights or STEP_WEIGHTS)
     try:
         yield _RUN
     finally:

@@ -60,3 +60,20 @@ def test_the_forests_training_is_counted_from_rows_trees_folds_and_stages():
     assert 2.5 * base < folds < 3.2 * base  # three more forests on two thirds of the rows
     assert seconds(stages=2, n_estimators=50, max_train_points=100_000,
                    out_of_fold=False) < base / 1.9
+
+
+def test_the_run_weighs_its_steps_by_their_estimated_seconds(survey, tmp_path):
+    from workflows.config import load_config
+    from workflows.plan import step_weights
+    from workflows.run import Run
+    from workflows.steps.ingest import plan_tiles
+
+    def weights(trees):
+        config = write_config(tmp_path / f"c{trees}.yaml", survey,
+                              cascade={"n_estimators": trees})
+        run = Run(load_config(config), tmp_path)
+        return step_weights(run, plan_tiles(run), workers=2)
+
+    few, many = weights(5), weights(200)
+    assert many["features"] == few["features"] and many["train"] > 10 * few["train"]
+    assert set(few) >= {"ingest", "features", "train", "apply", "export"}
