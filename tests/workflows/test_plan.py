@@ -75,5 +75,5 @@ def test_the_run_weighs_its_steps_by_their_estimated_seconds(survey, tmp_path):
         return step_weights(run, plan_tiles(run), workers=2)
 
     few, many = weights(5), weights(200)
-    assert many["features"] == few["features"] and many["train"] > 10 * few["train"]
+    assert many["features"] == few["features"] and many["train"] > 3 * few["train"]
     assert set(few) >= {"ingest", "features", "train", "apply", "export"}
