@@ -209,12 +209,13 @@ def check_before_start(run, steps) -> list[dict]:
     tile in train and test, two tiles of one name, mixed CRS), the output point format, and
     the saved model a run applies. Raises the error the step would raise later."""
     from workflows.steps.cascade import check_model
-    from workflows.steps.export import check_point_formats
+    from workflows.steps.export import check_output_names, check_point_formats
     from workflows.steps.ingest import plan_tiles
 
     tiles = plan_tiles(run)
     if "export" in steps:
         check_point_formats(run, tiles)
+        check_output_names(run, tiles)
     if run.model_dir is not None:
         check_model(run)
     return tiles

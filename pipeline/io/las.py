@@ -217,6 +217,13 @@ def _check_point_count(path: Path, reader: laspy.LasReader) -> None:
     )
 
 
+def extra_dimension_types(path) -> dict[str, str]:
+    """Name -> numpy dtype name of each extra dimension in the header of a LAS/LAZ file."""
+    with open_las(path) as reader:
+        return {d.name: np.dtype(d.dtype).name if d.dtype is not None else "bytes"
+                for d in reader.header.point_format.extra_dimensions}
+
+
 def read_las_info(path) -> TileInfo:
     """Header-only description of a LAS/LAZ tile (no point is read)."""
     with open_las(path) as reader:

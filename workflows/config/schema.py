@@ -528,6 +528,12 @@ class OutputConfig(Section):
         "codes 0..31 only, so write_classification then needs class codes <= 31).",
     )
 
+    dim_prefix: str = Field(
+        "",
+        description="Prefix of the names of the dimensions Silva adds (e.g. silva_ gives "
+        "silva_PredictedClassification, silva_Probability_tree, ...): for inputs that "
+        "already carry dimensions of those names with other types.",
+    )
     rasters: list[Literal[RASTERS]] = Field(
         default_factory=list,
         description="GeoTIFF rasters written per input tile as rasters/<tile>_<name>.tif "
@@ -610,6 +616,25 @@ class SilvaConfig(Section):
                 raise fail(f"output.feature_dims: the dimension '{name}' of feature column "
                            f"'{column}' {why}; leave the column out of output.feature_dims")
             seen[name] = column
+        return self
+
+    @field_validator("output")
+    @classmethod
+    def _check_dim_prefix(cls, output):
+        if output.dim_prefix and not re.fullmatch(r"[A-Za-z0-9_]+", output.dim_prefix):
+            raise field_error("dim_prefix may hold letters, digits and _ only, got "
+                              f"{output.dim_prefix!r}")
+        return output
+
+    @model_validator(mode="after")
+    def _check_prefixed_names(self) -> "SilvaConfig":
+        prefix = self.output.dim_prefix
+        names = [*SILVA_DIMS, *(PROBABILITY_PREFIX + n for n in self.data.class_names)]
+        for name in names:
+            if len((prefix + name).encode()) > LAS_NAME_BYTES:
+                raise fail(f"output.dim_prefix '{prefix}' makes the dimension "
+                           f"'{prefix + name}' longer than the {LAS_NAME_BYTES}-byte LAS "
+                           "limit; use a shorter prefix")
         return self
 
     @model_validator(mode="after")

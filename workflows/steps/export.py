@@ -17,7 +17,7 @@ PredictedClassification 0, Confidence, Entropy and probabilities 0 and NaN featu
 the features stored per chunk.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +26,7 @@ from pipeline.atomic import remove_parts
 from pipeline.errors import ConfigError, StoreError
 from pipeline.features.sets import feature_set
 from pipeline.io import ExtraDim, export_with_extra_dims, read_info
+from pipeline.io.las import extra_dimension_types
 from pipeline.io.raster import cell_index, max_per_cell, tile_grid, write_geotiff
 from pipeline.store import (
     chunk_path, is_done, mark_done, open_store, proba_array, read_array, read_terrain, rows_of,
@@ -135,6 +136,36 @@ class _TileRasters:
         return written
 
 
+def prefixed(dims: list[ExtraDim], prefix: str) -> list[ExtraDim]:
+    """``dims`` with ``prefix`` before each name (output.dim_prefix)."""
+    return [replace(d, name=prefix + d.name) for d in dims]
+
+
+def run_dims(run: Run) -> list[ExtraDim]:
+    """Every dimension the export of ``run`` may add, under its written name."""
+    dims = extra_dims(run.classes, run.class_codes, bool(run.cfg.output.probabilities),
+                      excluded=True, features=tuple(run.cfg.feature_dim_columns))
+    return prefixed(dims, run.cfg.output.dim_prefix)
+
+
+def check_output_names(run: Run, tiles: list[dict]) -> None:
+    """Refuse, before any work, an input tile that already has a dimension of a name Silva
+    adds with another type (it could not be written); the same type is replaced, as a rerun
+    on Silva's own output does."""
+    wanted = {d.name: d.numpy_dtype.name for d in run_dims(run)}
+    for tile in tiles:
+        if tile.get("format") not in ("las", "laz"):
+            continue
+        for name, dtype in extra_dimension_types(tile["path"]).items():
+            if name in wanted and dtype != wanted[name]:
+                raise ConfigError(
+                    f"config error: {tile['path']} already has a dimension '{name}' of type "
+                    f"{dtype}, and Silva writes one of that name as {wanted[name]}; set "
+                    f"output.dim_prefix (e.g. --set output.dim_prefix=silva_, which writes "
+                    f"silva_{name[len(run.cfg.output.dim_prefix):]}) or remove the dimension "
+                    "from the input")
+
+
 class _ChunkPredictions:
     """Final probabilities (and chosen feature columns) of the chunks a tile touches,
     loaded once each."""
@@ -195,7 +226,7 @@ def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilitie
                 write_classification, read_batch, fingerprint, allow_missing=False,
                 exclude_codes=(), exclude_withheld=False, mark_excluded=False,
                 feature_columns=(), feature_index=(), keep_point_format=False,
-                rasters: RasterRequest | None = None):
+                rasters: RasterRequest | None = None, prefix: str = ""):
     """Worker task: write the classified copy of one input tile; return its path and the
     number of its points without features and of its points excluded at ingest.
 
@@ -204,7 +235,7 @@ def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilitie
     ``feature_columns`` are written from the columns ``feature_index`` of the stored
     features. ``keep_point_format`` keeps the input's LAS version and point format.
     ``rasters`` also writes the tile's rasters. Every point gets its height above the
-    terrain model of its scene.
+    terrain model of its scene. ``prefix`` starts the name of every dimension Silva adds.
     """
     root = open_store(store_path)
     marker = root.require_group(f"exports/{tile['index']}")
@@ -265,10 +296,15 @@ def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilitie
                                         else np.where(found, predicted, original))
         return values
 
+    def named(batch):  # the added dimensions under their prefixed names
+        return {(name if name == "classification" else prefix + name): values
+                for name, values in compute(batch).items()}
+
     export_with_extra_dims(
         tile["path"], dst,
-        extra_dims(classes, codes, probabilities, mark_excluded, tuple(feature_columns)),
-        compute, batch_size=read_batch, set_classification=write_classification,
+        prefixed(extra_dims(classes, codes, probabilities, mark_excluded,
+                            tuple(feature_columns)), prefix),
+        named, batch_size=read_batch, set_classification=write_classification,
         keep_point_format=keep_point_format,
     )
     written = tile_rasters.write() if tile_rasters is not None else []
@@ -338,7 +374,7 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
                 mark_excluded=run.cfg.data.excludes,
                 feature_columns=feature_columns, feature_index=feature_index,
                 keep_point_format=run.cfg.output.point_format == "keep",
-                rasters=rasters,
+                rasters=rasters, prefix=run.cfg.output.dim_prefix,
             ),
             where=f"export of tile {tile['path']}",
             reproduce=f"silva export CONFIG --out {run.out} --in-process",
