@@ -81,7 +81,7 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
              f"halo {run.halo:g} m" + (f", voxels of {params.voxel:.3g} m" if params.voxel
                                        else "")]
     total, largest, disk = 0, 0.0, 0.0
-    one_pass = one_pass_scenes(run, {"scenes": scenes})
+    one_pass = one_pass_scenes({"scenes": scenes})
     for scene, info in scenes.items():
         grid = layout_from_dict(info["grid"])
         members = [t for t in tiles if t["scene"] == scene]

@@ -82,7 +82,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     if kernels is not None:
         kernels.wait()  # started with the run; the workers need the kernels from here on
     fit = model_stages is None
-    passes = one_pass_scenes(run, layout) if last >= 2 else set()
+    passes = one_pass_scenes(layout) if last >= 2 else set()
     if only is not None:  # one chunk alone: the steps of its scene only
         check_chunk(layout, only)
     staged = scenes_of(layout, lambda s: s not in passes, only)

@@ -159,7 +159,7 @@ def test_auto_leaves_scenes_of_small_chunks_to_the_stored_features(survey, tmp_p
         run = Run(cfg, tmp_path / "out", quiet=True)
         scenes = plan_scenes(run, plan_tiles(run))
         return ({scene: info["halo"] for scene, info in scenes.items()},
-                one_pass_scenes(run, {"scenes": scenes}))
+                one_pass_scenes({"scenes": scenes}))
 
     reach, wide = 0.5, 1.01  # write_config's paper set at r1 0.5, and with 2 stages
     assert planned("auto", 100.0) == planned(False, 3.0) == (

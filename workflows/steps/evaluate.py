@@ -81,7 +81,7 @@ def evaluate(run: Run, engine, layout: dict, n_stages: int) -> dict:
     fraction = min(1.0, PLOT_POINTS / max(total, 1))
     tasks = chunk_tasks(run, layout, "evaluate", chunk_evaluation,
                         EvaluationTask(n_stages, run.n_classes, fraction,
-                                       tuple(sorted(one_pass_scenes(run, layout))),
+                                       tuple(sorted(one_pass_scenes(layout))),
                                        tuple(run.cfg.canopy_classes)),
                         run.fingerprint("evaluate"), "evaluate", marks=False)
     done, by_scene = engine.map("evaluate", tasks), {}

@@ -134,7 +134,8 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
     A scene that may be classified in one pass (:func:`~workflows.steps.one_pass.
     wants_one_pass`) gets the configured halo, unless (``output.keep_features: auto``) the
     borders of its chunks would hold too many of its points; every other scene the
-    features' reach, all that the cascade stage by stage needs.
+    features' reach, all that the cascade stage by stage needs. Each scene's entry records
+    the decision (``one_pass``): every step reads it there.
     """
     scenes = {}
     for scene in SCENES:
@@ -144,13 +145,16 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
         # the counting pass, made at most once per scene (and only if a layout needs it)
         counts = cache(partial(scene_counts, run, scene, members, engine))
         reach = run.features.halo
-        halo = run.halo if wants_one_pass(run, scene) else reach
+        one_pass = wants_one_pass(run, scene)
+        halo = run.halo if one_pass else reach
         info = _cut_scene(run, members, halo, counts)
-        if halo > reach and run.cfg.output.keep_features == "auto" and border_share(
+        if one_pass and run.cfg.output.keep_features == "auto" and border_share(
                 info, halo, (run.n_stages - 1) * run.r1) > MAX_BORDER_SHARE:
-            halo = reach  # the one pass would cost more than the stored features save
+            # the one pass would cost more than the stored features save
+            one_pass, halo = False, reach
             info = _cut_scene(run, members, halo, counts)
-        scenes[scene] = {"tiles": [t["index"] for t in members], **info, "halo": halo}
+        scenes[scene] = {"tiles": [t["index"] for t in members], **info, "halo": halo,
+                         "one_pass": one_pass}
     return scenes
 
 

@@ -85,13 +85,10 @@ def wants_one_pass(run: Run, scene: str) -> bool:
             and run.halo >= one_pass_halo(run.features.halo, run.r1, run.n_stages))
 
 
-def one_pass_scenes(run: Run, layout: dict) -> set[str]:
-    """The scenes of ``layout`` classified in one pass: those that may skip the features and
-    whose halo (chosen when they were planned, see :func:`workflows.steps.ingest.
-    plan_scenes`) is wide enough for the stages the run applies."""
-    need = one_pass_halo(run.features.halo, run.r1, run.n_stages)
-    return {scene for scene, info in layout["scenes"].items()
-            if _may_skip_features(run, scene) and info.get("halo", run.halo) >= need}
+def one_pass_scenes(layout: dict) -> set[str]:
+    """The scenes of ``layout`` classified in one pass, as they were planned
+    (:func:`workflows.steps.ingest.plan_scenes`)."""
+    return {scene for scene, info in layout["scenes"].items() if info.get("one_pass")}
 
 
 def border_share(info: dict, halo: float, width: float) -> float:
