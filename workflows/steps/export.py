@@ -17,7 +17,7 @@ PredictedClassification 0, Confidence, Entropy and probabilities 0 and NaN featu
 the features stored per chunk.
 """
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -222,21 +222,40 @@ class _ChunkPredictions:
         return proba, found, undefined, columns
 
 
-def export_tile(store_path, tile, grid, stage, classes, codes, dst, probabilities,
-                write_classification, read_batch, fingerprint, allow_missing=False,
-                exclude_codes=(), exclude_withheld=False, mark_excluded=False,
-                feature_columns=(), feature_index=(), keep_point_format=False,
-                rasters: RasterRequest | None = None, prefix: str = ""):
-    """Worker task: write the classified copy of one input tile; return its path and the
-    number of its points without features and of its points excluded at ingest.
+@dataclass(frozen=True)
+class ExportTask:
+    """What the export of one input tile needs (see :func:`export_tile`)."""
 
-    ``exclude_codes`` / ``exclude_withheld``: the ingest filters; the points they match are
-    not looked up in the store. ``mark_excluded`` adds the ``Excluded`` dimension.
-    ``feature_columns`` are written from the columns ``feature_index`` of the stored
-    features. ``keep_point_format`` keeps the input's LAS version and point format.
-    ``rasters`` also writes the tile's rasters. Every point gets its height above the
-    terrain model of its scene. ``prefix`` starts the name of every dimension Silva adds.
-    """
+    store_path: str
+    tile: dict
+    grid: dict
+    stage: int  # the final stage, whose probabilities are written
+    classes: tuple[str, ...]
+    codes: tuple[int, ...]
+    dst: str
+    probabilities: bool
+    write_classification: bool
+    read_batch: int
+    fingerprint: str
+    allow_missing: bool = False  # points left out at ingest (data.drop_unlisted)
+    exclude_codes: tuple[int, ...] = ()  # the ingest filters: their points are not looked up
+    exclude_withheld: bool = False
+    mark_excluded: bool = False  # add the Excluded dimension
+    feature_columns: tuple[str, ...] = ()  # written from the stored features' columns
+    feature_index: tuple[int, ...] = ()  # ... at these indices
+    keep_point_format: bool = False  # the input's LAS version and point format
+    rasters: RasterRequest | None = None  # also the tile's rasters
+    prefix: str = ""  # starts the name of every dimension Silva adds
+
+
+def export_tile(task: ExportTask):
+    """Worker task: write the classified copy of one input tile; return its path and the
+    number of its points without features and of its points excluded at ingest. Every point
+    gets its height above the terrain model of its scene."""
+    (store_path, tile, grid, stage, classes, codes, dst, probabilities, write_classification,
+     read_batch, fingerprint, allow_missing, exclude_codes, exclude_withheld, mark_excluded,
+     feature_columns, feature_index, keep_point_format, rasters, prefix) = (
+        getattr(task, f.name) for f in fields(task))
     root = open_store(store_path)
     marker = root.require_group(f"exports/{tile['index']}")
     raster_paths = ([rasters.path(tile["name"], name) for name in rasters.names]
@@ -361,21 +380,21 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
         tasks.append(Task(
             key=f"export-{tile['index']}-{fingerprint[:8]}",
             fn=export_tile,
-            kwargs=dict(
+            kwargs={"task": ExportTask(
                 store_path=str(run.store_path), tile=tile,
                 grid=layout["scenes"][tile["scene"]]["grid"], stage=final_stage,
-                classes=run.classes, codes=run.class_codes, dst=str(dst),
-                probabilities=bool(run.cfg.output.probabilities),
-                write_classification=bool(run.cfg.output.write_classification),
-                read_batch=int(run.cfg.tiling.read_batch), fingerprint=fingerprint,
-                allow_missing=bool(run.cfg.data.drop_unlisted) and tile["scene"] != "predict",
-                exclude_codes=list(run.cfg.data.exclude_codes),
-                exclude_withheld=bool(run.cfg.data.exclude_withheld),
+                classes=tuple(run.classes), codes=tuple(run.class_codes), dst=str(dst),
+                probabilities=out.probabilities,
+                write_classification=out.write_classification,
+                read_batch=run.cfg.tiling.read_batch, fingerprint=fingerprint,
+                allow_missing=run.cfg.data.drop_unlisted and tile["scene"] != "predict",
+                exclude_codes=tuple(run.cfg.data.exclude_codes),
+                exclude_withheld=run.cfg.data.exclude_withheld,
                 mark_excluded=run.cfg.data.excludes,
-                feature_columns=feature_columns, feature_index=feature_index,
-                keep_point_format=run.cfg.output.point_format == "keep",
-                rasters=rasters, prefix=run.cfg.output.dim_prefix,
-            ),
+                feature_columns=tuple(feature_columns), feature_index=tuple(feature_index),
+                keep_point_format=out.point_format == "keep",
+                rasters=rasters, prefix=out.dim_prefix,
+            )},
             where=f"export of tile {tile['path']}",
             reproduce=f"silva export CONFIG --out {run.out} --in-process",
         ))
