@@ -115,7 +115,7 @@ class Run:
 
     @property
     def halo(self) -> float:
-        return float(self.cfg.halo)
+        return self.cfg.halo
 
     @property
     def n_stages(self) -> int:

@@ -105,8 +105,8 @@ def plan_sweep(config: Path, key: str, values: str, seeds: int, out: Path,
                 read_paths(cfg, config, None)  # every input exists
             features = fingerprint(cfg, "features")
             groups.setdefault(features, out / name / "run")
-            plan.append(SweepRun(text, value, int(cfg.cascade.seed), cfg, groups[features],
-                                 out / name / f"seed{int(cfg.cascade.seed)}"))
+            plan.append(SweepRun(text, value, cfg.cascade.seed, cfg, groups[features],
+                                 out / name / f"seed{cfg.cascade.seed}"))
     if len(groups) == 1:  # the features never change: one run directory for all
         plan = [SweepRun(r.text, r.value, r.seed, r.cfg, out / "run", r.result) for r in plan]
     return plan

@@ -1,4 +1,5 @@
-"""A wheel install (not editable) carries the configs: ``silva init`` and the demo config work.
+"""A wheel install (not editable) carries the configs and the models: ``silva init``, the demo
+config and ``silva models`` work.
 
 Builds the wheel from a copy of the source tree (offline: no build isolation), installs it
 with ``--no-deps`` into a fresh venv that sees this environment's packages, and runs the
@@ -45,7 +46,7 @@ def venv(tmp_path_factory) -> Path:
 
 
 def test_wheel_ships_the_configs_and_init_writes_them(venv, tmp_path):
-    for name in ("forest", "demo", "oakland"):
+    for name in ("forest", "demo", "oakland", "urban"):
         target = tmp_path / f"{name}.yaml"
         run(venv / "silva", "init", "--template", name, target, cwd=tmp_path)
         assert target.read_text() == (REPO / "configs" / f"{name}.yaml").read_text()
@@ -66,3 +67,20 @@ def test_wheel_loads_its_packaged_demo_config(venv, tmp_path):
     site = str(venv.parent)
     assert module.startswith(site) and path.startswith(site), (module, path)  # not the checkout
     assert values == "15.0 terrain,tree,dead_wood,misc"
+
+
+def test_wheel_ships_the_models_whole(venv, tmp_path):
+    import json
+
+    listed = json.loads(run(venv / "silva", "models", "--json", cwd=tmp_path))
+    names = sorted(p.name for p in (REPO / "workflows" / "models").iterdir()
+                   if (p / "model.json").is_file())
+    assert sorted(m["name"] for m in listed) == names and len(names) >= 2
+    site = str(venv.parent)
+    code = ("from workflows.models import installed_models\n"
+            "from pipeline.model import read_description, verify_stage_files\n"
+            "for name, path in installed_models().items():\n"
+            "    verify_stage_files(path, read_description(path))\n"
+            "    print(path)\n")
+    paths = run(venv / "python", "-c", code, cwd=tmp_path).split()
+    assert len(paths) == len(names) and all(p.startswith(site) for p in paths)

@@ -667,9 +667,9 @@ class SilvaConfig(Section):
     def halo(self) -> float:
         """The halo in metres (resolved: see :attr:`TilingConfig.halo`)."""
         if self.tiling.halo is not None:
-            return float(self.tiling.halo)
+            return self.tiling.halo
         return one_pass_halo(self.features.largest_radius, self.features.params.r1,
-                             int(self.cascade.stages))
+                             self.cascade.stages)
 
     @property
     def class_names(self) -> list[str]:

@@ -143,7 +143,7 @@ def prefixed(dims: list[ExtraDim], prefix: str) -> list[ExtraDim]:
 
 def run_dims(run: Run) -> list[ExtraDim]:
     """Every dimension the export of ``run`` may add, under its written name."""
-    dims = extra_dims(run.classes, run.class_codes, bool(run.cfg.output.probabilities),
+    dims = extra_dims(run.classes, run.class_codes, run.cfg.output.probabilities,
                       excluded=True, features=tuple(run.cfg.feature_dim_columns))
     return prefixed(dims, run.cfg.output.dim_prefix)
 

@@ -83,7 +83,7 @@ def plan_tiles(run: Run) -> list[dict]:
     tiles, seen = [], {}
     files = {scene: expand_inputs(list(getattr(run.cfg.data, scene)), key=f"data.{scene}")
              for scene in SCENES if getattr(run.cfg.data, scene)}
-    check_overlap(files, bool(run.cfg.data.allow_overlap))
+    check_overlap(files, run.cfg.data.allow_overlap)
     for scene, paths in files.items():
         for path in paths:
             info = read_info(path)
@@ -193,7 +193,7 @@ def scene_counts(run: Run, scene: str, members: list[dict], engine=None) -> Cell
     """The points of a scene's tiles counted on one lattice (the balanced layout's first
     pass: XY only, streamed in read batches)."""
     cell = count_cell_size(run.halo, sum(tile_area(t["mins"], t["maxs"]) for t in members))
-    batch = int(run.cfg.tiling.read_batch)
+    batch = run.cfg.tiling.read_batch
     if engine is None:
         parts = [count_tile(t["path"], cell, batch) for t in members]
     else:
@@ -398,12 +398,12 @@ def ingest(run: Run, engine) -> dict:
                     label_field=run.cfg.data.label_field,
                     code_to_class=run.code_to_class,
                     split=run.cfg.data.split,
-                    read_batch=int(run.cfg.tiling.read_batch),
+                    read_batch=run.cfg.tiling.read_batch,
                     fingerprint=fingerprint,
                     keep_codes=(run.cfg.data.listed_codes if run.cfg.data.drop_unlisted
                                 else None),
                     exclude_codes=list(run.cfg.data.exclude_codes),
-                    exclude_withheld=bool(run.cfg.data.exclude_withheld),
+                    exclude_withheld=run.cfg.data.exclude_withheld,
                 ),
                 where=f"tile {tile['path']} (scene '{scene}')",
                 reproduce=f"silva ingest CONFIG --out {run.out} --in-process",
