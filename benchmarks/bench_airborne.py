@@ -4,6 +4,7 @@
                                         [--trees N] [--max-train N] [--csf-resolution M]
                                         [--skip-cascade] [--skip-csf]
     python benchmarks/bench_airborne.py --density [--sparse D ...] [--density-r1 M]
+                                        [--ignore-other] [--fixed-r1-only]
 
 Tiles and classes (noise, code 7, is dropped everywhere):
 
@@ -46,6 +47,11 @@ forest, with r1:
 - ``auto_radius`` of each cloud's own density, so train and test radii differ when the
   densities do (what ``r1: auto`` gives when a model is applied to another survey);
 - ``auto_radius`` of the training cloud's density for both (the model carries its r1).
+
+``--fixed-r1-only`` keeps the first two (r1 fixed). With ``--ignore-other`` StBarth's class 1
+is unlabelled rather than a class 'other': its points stay in every cloud (neighbours of the
+features and points of the terrain model) but are not trained on and not scored, so the
+forest learns ground, vegetation and building only, as the installed airborne model does.
 """
 
 import argparse
@@ -70,6 +76,7 @@ from pipeline.terrain import TerrainParams, ground_elevation, terrain_model
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "als"
 NOISE = 7
 GROUND, OTHER, VEGETATION, BUILDING = 2, 1, 5, 6
+UNLABELLED = -1  # in the cloud, neither trained on nor scored
 NAMES = {GROUND: "ground", VEGETATION: "vegetation", BUILDING: "building", OTHER: "other"}
 PEER_RADII = (1.0, 2.0, 4.0)
 PEER_WINDOWS = (5.0, 10.0)
@@ -177,7 +184,9 @@ def subsample(n: int, cap: int, seed: int) -> np.ndarray:
 
 
 def fit_forest(X_train, y_train, args) -> RandomForestClassifier:
-    rows = subsample(len(y_train), args.max_train, args.seed)
+    """A plain forest on at most ``args.max_train`` of the labelled rows."""
+    labelled = np.flatnonzero(y_train != UNLABELLED)
+    rows = labelled[subsample(len(labelled), args.max_train, args.seed)]
     forest = RandomForestClassifier(n_estimators=args.trees, n_jobs=args.jobs,
                                     random_state=args.seed)
     return forest.fit(X_train[rows], y_train[rows])
@@ -188,6 +197,9 @@ def forest_predict(X_train, y_train, X_test, args) -> np.ndarray:
 
 
 def scores(y_true, y_pred, scored) -> tuple[float, dict]:
+    """Macro and per-class F1 over ``scored``; unlabelled points are left out."""
+    labelled = y_true != UNLABELLED
+    y_true, y_pred = y_true[labelled], y_pred[labelled]
     per_class = f1_score(y_true, y_pred, labels=list(scored), average=None, zero_division=0)
     return float(np.mean(per_class)), dict(zip(scored, per_class))
 
@@ -326,6 +338,8 @@ def density_protocol(args) -> int:
         print(f"missing in {DATA}: {tile.file}", file=sys.stderr)
         return 0
     xyz, y = load(tile)
+    if args.ignore_other:
+        y = np.where(y == OTHER, UNLABELLED, y)
     full = density(xyz)
     east = xyz[:, 0] > np.median(xyz[:, 0])
     clouds = {}  # name -> (xyz, y, density, auto r1)
@@ -359,7 +373,8 @@ def density_protocol(args) -> int:
         _, y_train, d_train, auto_train = clouds[train]
         tests = [("east", b) for a, b in pairs if a == train_level]
         fitted = {}
-        for m, (method, radii, terrain) in enumerate(DENSITY_METHODS):
+        methods = DENSITY_METHODS[:2] if args.fixed_r1_only else DENSITY_METHODS
+        for m, (method, radii, terrain) in enumerate(methods):
             for test in tests:
                 _, y_test, d_test, auto_test = clouds[test]
                 r_train, r_test = radii(args.density_r1, auto_train, auto_test)
@@ -376,9 +391,16 @@ def density_protocol(args) -> int:
                 print(f"  {label:12} {row[1]:52} macro {macro:.3f}  "
                       + "  ".join(f"{NAMES[c]} {v:.3f}" for c, v in per_class.items()),
                       flush=True)
+                if args.ignore_other:
+                    called = pred[y_test == UNLABELLED]
+                    print(f"  {'':12} {'class 1 points called':52} " + "  ".join(
+                        f"{NAMES[c]} {100 * np.mean(called == c):.0f} %" for c in tile.scored),
+                        flush=True)
     results = [row for _, row in sorted(results, key=lambda r: r[0])]
     print(f"\nStBarth, west half trains, east half scored (pts/m² of the XY bounding box); "
-          f"forests of {args.trees} trees on at most {args.max_train:,} rows")
+          f"forests of {args.trees} trees on at most {args.max_train:,} rows; class 1 "
+          + ("unlabelled (not trained on, not scored)" if args.ignore_other
+             else "trained on as 'other'"))
     print_tables(results, [])
     print("\nfeature matrices: " + ", ".join(f"{k[0]} r1 {k[2]:g} {s:.0f} s"
                                             for k, s in cache.seconds.items()))
@@ -421,6 +443,11 @@ def main(argv=None) -> int:
                         help="densities of the thinned copies, points per m²")
     parser.add_argument("--density-r1", type=float, default=1.5,
                         help="the fixed r1 of the density protocol, metres")
+    parser.add_argument("--ignore-other", action="store_true",
+                        help="density protocol: class 1 unlabelled (neighbours only) rather "
+                             "than a class 'other'")
+    parser.add_argument("--fixed-r1-only", action="store_true",
+                        help="density protocol: only the fixed-r1 variants")
     args = parser.parse_args(argv)
     if not DATA.is_dir():
         print(f"no airborne tiles at {DATA}: nothing to measure", file=sys.stderr)
