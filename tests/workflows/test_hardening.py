@@ -136,7 +136,7 @@ def test_lock_of_another_host_is_refused_with_how_to_remove_it(tmp_path):
 
 
 def test_ingest_checks_the_points_read_against_the_header(tmp_path, survey):
-    from workflows.steps.ingest import ingest_tile
+    from workflows.steps.ingest import IngestTask, ingest_tile
 
     cfg = load_config(write_config(tmp_path / "c.yaml", survey), [])
     run = Run(cfg, tmp_path / "out")
@@ -148,8 +148,8 @@ def test_ingest_checks_the_points_read_against_the_header(tmp_path, survey):
     run.store  # creates it
     with pytest.raises(InputError, match=rf"announces {tile['n_points']} points but "
                                          rf"{tile['n_points'] - 5} were read"):
-        ingest_tile(str(run.store_path), tile["scene"], tile, grid, run.halo, "classification",
-                    run.code_to_class, None, 100_000, "fp")
+        ingest_tile(IngestTask(str(run.store_path), tile["scene"], tile, grid, run.halo,
+                               "classification", run.code_to_class, None, 100_000, "fp"))
 
 
 # -- 4: an address that is not a Dask scheduler ------------------------------------------

@@ -8,7 +8,7 @@ import numpy as np
 from pipeline.io import read_info, write_las
 from pipeline.store import open_store
 from pipeline.tiling import Grid
-from workflows.steps.ingest import ingest_tile
+from workflows.steps.ingest import IngestTask, ingest_tile
 
 
 def _peak_ingest(tmp_path, tile_path, n_points, read_batch):
@@ -18,8 +18,8 @@ def _peak_ingest(tmp_path, tile_path, n_points, read_batch):
             "n_points": n_points}
     grid = Grid(0.0, 0.0, 100.0, 1, 1)
     tracemalloc.start()
-    ingest_tile(str(store), "train", tile, grid.to_dict(), 0.5, "classification", {2: 0},
-                None, read_batch, "fp")
+    ingest_tile(IngestTask(str(store), "train", tile, grid.to_dict(), 0.5, "classification",
+                           {2: 0}, None, read_batch, "fp"))
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     return peak

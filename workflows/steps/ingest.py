@@ -8,6 +8,7 @@ they fall in. Memory is bounded by the read batch, not by the tile or survey siz
 import hashlib
 import json
 import os
+from dataclasses import dataclass
 from functools import cache, partial
 from pathlib import Path
 
@@ -263,10 +264,26 @@ def filter_fields(label_field, labelled: bool, exclude_codes, exclude_withheld) 
     return tuple(dict.fromkeys(fields))
 
 
-def ingest_tile(
-    store_path, scene, tile, grid, halo, label_field, code_to_class, split, read_batch, fingerprint,
-    keep_codes=None, exclude_codes=(), exclude_withheld=False,
-):
+@dataclass(frozen=True)
+class IngestTask:
+    """What the ingest of one input tile needs (see :func:`ingest_tile`)."""
+
+    store_path: str
+    scene: str
+    tile: dict
+    grid: dict
+    halo: float
+    label_field: str
+    code_to_class: dict
+    split: object  # data.split, or None
+    read_batch: int
+    fingerprint: str
+    keep_codes: object = None  # data.drop_unlisted: the listed codes, else None
+    exclude_codes: tuple[int, ...] = ()
+    exclude_withheld: bool = False
+
+
+def ingest_tile(task: IngestTask):
     """Worker task: append one tile's points to the chunk parts of its scene.
 
     With ``keep_codes`` (data.drop_unlisted), labelled points with other codes are left out.
@@ -275,6 +292,11 @@ def ingest_tile(
     neighbourhood, no training sample and no metric. Their number is recorded in the tile's
     marker (``excluded``).
     """
+    store_path, scene, tile, grid = task.store_path, task.scene, task.tile, task.grid
+    halo, label_field, code_to_class, split = (task.halo, task.label_field,
+                                               task.code_to_class, task.split)
+    read_batch, fingerprint, keep_codes = task.read_batch, task.fingerprint, task.keep_codes
+    exclude_codes, exclude_withheld = task.exclude_codes, task.exclude_withheld
     root = open_store(store_path)
     marker = root.require_group(f"scenes/{scene}/parts/{tile['index']}")
     if is_done(marker, "ingest", fingerprint):
@@ -389,7 +411,7 @@ def ingest(run: Run, engine) -> dict:
             Task(
                 key=f"ingest-{scene}-{tile['index']}-{fingerprint[:8]}",
                 fn=ingest_tile,
-                kwargs=dict(
+                kwargs={"task": IngestTask(
                     store_path=str(run.store_path),
                     scene=scene,
                     tile=tile,
@@ -402,9 +424,9 @@ def ingest(run: Run, engine) -> dict:
                     fingerprint=fingerprint,
                     keep_codes=(run.cfg.data.listed_codes if run.cfg.data.drop_unlisted
                                 else None),
-                    exclude_codes=list(run.cfg.data.exclude_codes),
+                    exclude_codes=tuple(run.cfg.data.exclude_codes),
                     exclude_withheld=run.cfg.data.exclude_withheld,
-                ),
+                )},
                 where=f"tile {tile['path']} (scene '{scene}')",
                 reproduce=f"silva ingest CONFIG --out {run.out} --in-process",
             )
@@ -413,7 +435,7 @@ def ingest(run: Run, engine) -> dict:
     for scene, info in scenes.items():
         names = set()
         for task in tasks:
-            if task.kwargs["scene"] == scene:
+            if task.kwargs["task"].scene == scene:
                 names.update(results[task.key])
         info["chunks"] = sorted(names)
     for tile in tiles:  # points the ingest filters left out (data.exclude_*)
