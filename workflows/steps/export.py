@@ -17,7 +17,7 @@ PredictedClassification 0, Confidence, Entropy and probabilities 0 and NaN featu
 the features stored per chunk.
 """
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -252,10 +252,14 @@ def export_tile(task: ExportTask):
     """Worker task: write the classified copy of one input tile; return its path and the
     number of its points without features and of its points excluded at ingest. Every point
     gets its height above the terrain model of its scene."""
-    (store_path, tile, grid, stage, classes, codes, dst, probabilities, write_classification,
-     read_batch, fingerprint, allow_missing, exclude_codes, exclude_withheld, mark_excluded,
-     feature_columns, feature_index, keep_point_format, rasters, prefix) = (
-        getattr(task, f.name) for f in fields(task))
+    store_path, tile, grid, stage = task.store_path, task.tile, task.grid, task.stage
+    classes, codes, dst, prefix = task.classes, task.codes, task.dst, task.prefix
+    probabilities, write_classification = task.probabilities, task.write_classification
+    read_batch, fingerprint, allow_missing = task.read_batch, task.fingerprint, task.allow_missing
+    exclude_codes, exclude_withheld = task.exclude_codes, task.exclude_withheld
+    mark_excluded, keep_point_format = task.mark_excluded, task.keep_point_format
+    feature_columns, feature_index, rasters = (task.feature_columns, task.feature_index,
+                                               task.rasters)
     root = open_store(store_path)
     marker = root.require_group(f"exports/{tile['index']}")
     raster_paths = ([rasters.path(tile["name"], name) for name in rasters.names]
