@@ -105,3 +105,16 @@ def test_rasters_no_longer_asked_for_are_removed(runs, survey, tmp_path):
     result = silva("export", config, "--out", out, "--in-process", "-q")
     assert result.exit_code == 0, result.output
     assert {p.name.rsplit("_", 1)[1] for p in (out / "rasters").iterdir()} == {"dtm.tif"}
+
+
+def test_an_export_done_already_keeps_its_rasters(runs, survey, tmp_path):
+    import shutil
+
+    out = tmp_path / "copy"
+    shutil.copytree(runs[0], out)
+    before = sorted(p.name for p in (out / "rasters").iterdir())
+    config = write_config(tmp_path / "c.yaml", survey, features=FEATURES,
+                          tiling={"chunk_size": 100.0}, output=RASTERS)
+    result = silva("export", config, "--out", out, "--in-process", "-q")
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in (out / "rasters").iterdir()) == before

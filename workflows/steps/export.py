@@ -267,7 +267,8 @@ def export_tile(task: ExportTask):
     if (is_done(marker, "export", fingerprint) and Path(dst).is_file()
             and all(p.is_file() for p in raster_paths)):
         return {"path": dst, "no_features": marker.attrs.get("no_features", 0),
-                "excluded": marker.attrs.get("excluded", 0)}
+                "excluded": marker.attrs.get("excluded", 0),
+                "rasters": [str(p) for p in raster_paths]}
     predictions = _ChunkPredictions(root, tile["scene"], layout_from_dict(grid), stage,
                                     allow_missing, feature_index)
     codes_array = np.asarray(codes)
@@ -372,7 +373,7 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
     feature_index = [all_columns.index(c) for c in feature_columns]
     out = run.cfg.output
     raster_dir = run.out / "rasters"
-    rasters = (RasterRequest(tuple(out.rasters), float(out.raster_resolution),
+    rasters = (RasterRequest(tuple(out.rasters), out.raster_resolution,
                              tuple(run.cfg.canopy_classes), str(raster_dir))
                if out.rasters else None)
     if rasters is not None:
