@@ -226,6 +226,14 @@ def chunk_tasks(run, layout: dict, step: str, fn, params, fingerprint: str, verb
     return tasks
 
 
+def results_by_scene(tasks: list[Task], results: dict) -> dict[str, list]:
+    """The results of chunk ``tasks`` (:func:`chunk_tasks`), grouped by scene in task order."""
+    grouped: dict[str, list] = {}
+    for task in tasks:
+        grouped.setdefault(task.kwargs["scene"], []).append(results[task.key])
+    return grouped
+
+
 def check_chunk(layout: dict, only: str) -> None:
     """Raise :class:`ChunkError` unless ``only`` ("scene/chunk") is a chunk of ``layout``."""
     known = [f"{s}/{c}" for s, info in layout["scenes"].items() for c in info["chunks"]]

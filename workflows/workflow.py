@@ -123,7 +123,8 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
             from workflows.report.survey import write_survey_report
 
             found = timed("report", survey, run, engine, layout, n_stages - 1)
-            write_survey_report(run.out, found, terrain=canopy_samples(run, found),
+            maps = {scene: data["map"] for scene, data in found["scenes"].items()}
+            write_survey_report(run.out, found, terrain=canopy_samples(run, maps),
                                 run_info=_run_info(run, summary, command),
                                 config_text=(run.out / "config.yaml").read_text())
             summary["report"] = str(run.report_path)

@@ -60,7 +60,7 @@ def uncertain_figure(survey: dict) -> Figure:
         fig = Figure(figsize=(7.0, 6.0 * len(scenes)), dpi=DPI)
         for row, (scene, data) in enumerate(scenes.items()):
             ax = fig.add_subplot(len(scenes), 1, row + 1)
-            x, y, _, confidence, _ = data["map"]
+            x, y, _, _, confidence = data["map"]
             uncertain = confidence < low
             ax.scatter(x[~uncertain], y[~uncertain], c="#D0D4D8", s=0.6, linewidths=0,
                        rasterized=True)

@@ -18,10 +18,11 @@ import numpy as np
 from pipeline.cascade import id_hash, labels_from_proba
 from pipeline.metrics import confusion_matrix, scores_from_confusion
 from pipeline.atomic import atomic_write_text
-from pipeline.store import ROLE_TEST, labels_array, proba_array, read_terrain
-from workflows.engine import chunk_tasks
+from pipeline.store import ROLE_TEST, labels_array, proba_array
+from workflows.engine import chunk_tasks, results_by_scene
 from workflows.run import Run
 from workflows.steps.one_pass import one_pass_scenes
+from workflows.steps.survey import canopy_samples
 from workflows.steps.terrain import ground_under
 
 PLOT_POINTS = 200_000  # points drawn in the report's plots
@@ -33,7 +34,6 @@ class EvaluationTask:
     n_classes: int
     sample_fraction: float  # of the points drawn in the report's plots
     one_pass_scenes: tuple[str, ...] = ()  # scenes classified in one pass
-    canopy: tuple[int, ...] = ()  # the canopy classes (indices)
 
 
 def chunk_evaluation(view, task: EvaluationTask):
@@ -49,19 +49,14 @@ def chunk_evaluation(view, task: EvaluationTask):
                                        task.n_classes))
     picked = id_hash(gid, 7) < task.sample_fraction
     test_pick = picked & test
-    map_label = labels_from_proba(final[picked])
-    canopy = picked.copy()
-    canopy[picked] = np.isin(map_label, task.canopy)
     return {
         "confusions": confusions,
         "pr_true": label[test_pick],
         "pr_proba": final[test_pick],
         "map_x": xyz[picked, 0],
         "map_y": xyz[picked, 1],
-        "map_label": map_label,
-        "canopy_x": xyz[canopy, 0],
-        "canopy_y": xyz[canopy, 1],
-        "canopy_height": xyz[canopy, 2] - ground_under(view, xyz[canopy]),
+        "map_label": labels_from_proba(final[picked]),
+        "map_height": xyz[picked, 2] - ground_under(view, xyz[picked]),
         "n_points": len(gid),
         "no_features": int(np.count_nonzero(undefined & test)),
     }
@@ -81,12 +76,9 @@ def evaluate(run: Run, engine, layout: dict, n_stages: int) -> dict:
     fraction = min(1.0, PLOT_POINTS / max(total, 1))
     tasks = chunk_tasks(run, layout, "evaluate", chunk_evaluation,
                         EvaluationTask(n_stages, run.n_classes, fraction,
-                                       tuple(sorted(one_pass_scenes(layout))),
-                                       tuple(run.cfg.canopy_classes)),
+                                       tuple(sorted(one_pass_scenes(layout)))),
                         run.fingerprint("evaluate"), "evaluate", marks=False)
-    done, by_scene = engine.map("evaluate", tasks), {}
-    for task in tasks:
-        by_scene.setdefault(task.kwargs["scene"], []).append(done[task.key])
+    by_scene = results_by_scene(tasks, engine.map("evaluate", tasks))
     results = [r for scene_results in by_scene.values() for r in scene_results]
     background = list(run.cfg.data.background)
     stages = []
@@ -111,12 +103,10 @@ def evaluate(run: Run, engine, layout: dict, n_stages: int) -> dict:
             "label": np.concatenate([r["map_label"] for r in results]),
             "class_names": run.classes,
         },
-        "terrain": {
-            scene: {"dtm": read_terrain(run.store, scene),
-                    **{k: np.concatenate([r[f"canopy_{k}"] for r in scene_results])
-                       for k in ("x", "y", "height")}}
-            for scene, scene_results in by_scene.items()
-        },
+        "terrain": canopy_samples(run, {
+            scene: [np.concatenate([r[f"map_{k}"] for r in scene_results])
+                    for k in ("x", "y", "label", "height")]
+            for scene, scene_results in by_scene.items()}),
     }
     return metrics, plots
 

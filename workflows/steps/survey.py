@@ -15,7 +15,7 @@ import numpy as np
 from pipeline.cascade import id_hash, labels_from_proba
 from pipeline.store import proba_array, read_terrain
 from pipeline.tiling import split_global_ids
-from workflows.engine import chunk_tasks
+from workflows.engine import chunk_tasks, results_by_scene
 from workflows.run import Run
 from workflows.steps.export import entropy
 from workflows.steps.terrain import ground_under
@@ -47,24 +47,31 @@ def chunk_survey(view, task: SurveyTask):
     counts = np.zeros((task.n_tiles, task.n_classes), dtype=np.int64)
     np.add.at(counts, (tile, label), 1)
     keys = np.floor(xyz[:, :2] / task.cell).astype(np.int64)
-    order = np.lexsort((-xyz[:, 2], keys[:, 1], keys[:, 0]))  # per cell, highest first
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = (np.diff(keys[order], axis=0) != 0).any(axis=1)
-    top = order[first]
+    top = highest_per_cell(keys, xyz[:, 2])
     picked = id_hash(gid, 5) < task.map_fraction
     axis, centre, half = dict(task.profile)[view.scene]
     across = 1 - axis  # the coordinate the band is thin in
     band = (np.abs(xyz[:, across] - centre) <= half) & (id_hash(gid, 9) < task.profile_fraction)
-    height = xyz[:, 2] - ground_under(view, xyz)
+    height = np.full(len(xyz), np.nan)  # above the terrain model, of the points drawn only
+    drawn = picked | band
+    height[drawn] = xyz[drawn, 2] - ground_under(view, xyz[drawn])
     return {
         "counts": counts,
         "confidence": np.histogram(confidence, BINS, (0.0, 1.0))[0],
         "entropy": np.histogram(entropy(proba), BINS, (0.0, max(np.log(task.n_classes), 1e-9)))[0],
         "top_keys": keys[top], "top_z": xyz[top, 2], "top_label": label[top],
-        "map": (xyz[picked, 0], xyz[picked, 1], label[picked], confidence[picked],
-                height[picked]),
+        "map": (xyz[picked, 0], xyz[picked, 1], label[picked], height[picked],
+                confidence[picked]),
         "profile": (xyz[band, axis], height[band], label[band]),
     }
+
+
+def highest_per_cell(keys: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Rows of the highest point of each cell of ``keys`` (int64 (N, 2)); ties by row."""
+    order = np.lexsort((-z, keys[:, 1], keys[:, 0]))  # per cell, highest first
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = (np.diff(keys[order], axis=0) != 0).any(axis=1)
+    return order[first]
 
 
 def _profiles(layout: dict) -> dict:
@@ -95,21 +102,16 @@ def survey(run: Run, engine, layout: dict, final_stage: int) -> dict:
                       min(1.0, PROFILE_POINTS / max(band_points, 1.0)))
     tasks = chunk_tasks(run, layout, "survey", chunk_survey, task, run.fingerprint("export"),
                         "report", marks=False)
-    done = engine.map("survey", tasks)
-    by_scene = {}
-    for t in tasks:
-        by_scene.setdefault(t.kwargs["scene"], []).append(done[t.key])
+    by_scene = results_by_scene(tasks, engine.map("survey", tasks))
     counts = sum(r["counts"] for rs in by_scene.values() for r in rs)
     scenes = {}
     for scene, results in by_scene.items():
         keys = np.concatenate([r["top_keys"] for r in results])
         z = np.concatenate([r["top_z"] for r in results])
         label = np.concatenate([r["top_label"] for r in results])
-        order = np.lexsort((-z, keys[:, 1], keys[:, 0]))
-        first = np.ones(len(order), dtype=bool)
-        first[1:] = (np.diff(keys[order], axis=0) != 0).any(axis=1)
         scenes[scene] = {
-            "area_cells": np.bincount(label[order[first]], minlength=run.n_classes),
+            "area_cells": np.bincount(label[highest_per_cell(keys, z)],
+                                      minlength=run.n_classes),
             "map": [np.concatenate([r["map"][i] for r in results]) for i in range(5)],
             "profile": [np.concatenate([r["profile"][i] for r in results]) for i in range(3)],
             "profile_axis": "xy"[profiles[scene][0]],
@@ -127,13 +129,13 @@ def survey(run: Run, engine, layout: dict, final_stage: int) -> dict:
     }
 
 
-def canopy_samples(run: Run, found: dict) -> dict:
-    """The terrain figure's data of each scene: its terrain model, and the map samples of
-    ``found`` (:func:`survey`) predicted as a canopy class, with their heights."""
+def canopy_samples(run: Run, maps: dict) -> dict:
+    """The terrain figure's data of each scene: its terrain model, and those of its map
+    samples ``maps[scene]`` = (x, y, label, height above ground, ...) predicted as a canopy
+    class."""
     canopy = list(run.cfg.canopy_classes)
     samples = {}
-    for scene, data in found["scenes"].items():
-        x, y, label, _, height = data["map"]
+    for scene, (x, y, label, height, *_) in maps.items():
         keep = np.isin(label, canopy)
         samples[scene] = {"dtm": read_terrain(run.store, scene), "x": x[keep], "y": y[keep],
                           "height": height[keep]}
