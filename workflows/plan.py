@@ -80,7 +80,7 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
     lines = [f"features: set {params.set} ({columns} columns), r1 {params.r1:g} m, "
              f"halo {run.halo:g} m" + (f", voxels of {params.voxel:.3g} m" if params.voxel
                                        else "")]
-    total, largest, disk = 0, 0.0, 0.0
+    largest, disk = 0.0, 0.0
     one_pass = one_pass_scenes({"scenes": scenes})
     for scene, info in scenes.items():
         grid = layout_from_dict(info["grid"])
@@ -104,13 +104,11 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
                          f"{' / '.join(f'{v:,}' for v in core)}, with its halo "
                          f"{' / '.join(f'{v:,}' for v in window)}")
         largest = max(largest, per_chunk)
-        total += points
         disk += points * (ONE_PASS_BYTES_PER_POINT if scene in one_pass
                           else STORE_BYTES_PER_POINT + 4 * columns)
     memory = largest * WORKER_BYTES_PER_POINT
-    seconds = total / workers * (1 / FEATURE_RATES[params.set] + 1 / OTHER_RATE)
-    train_points = sum(t["n_points"] for t in tiles if t["scene"] == "train")
-    training = training_seconds(run, train_points, os.cpu_count() or 1)
+    spent = estimated_seconds(run, tiles, workers)
+    seconds, training = spent["features"] + spent["other"], spent["training"]
     lines += [
         f"memory: about {memory / 2**30:.2f} GiB per worker in the largest chunk" + (
             " at the mean density (dense parts of a chunk hold more; tiling.target_points "
@@ -127,17 +125,25 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
     return lines
 
 
-def step_weights(run: Run, tiles: list[dict], workers: int) -> dict[str, float]:
-    """Each step's estimated seconds in a run of ``tiles`` (:func:`plan_tiles`): how the
-    run's progress weighs the steps for its ETA, the forests' training included."""
+def estimated_seconds(run: Run, tiles: list[dict], workers: int) -> dict[str, float]:
+    """The seconds a run of ``tiles`` (:func:`plan_tiles`) spends on ``workers``: on the
+    features, on the rest of the chunk work (ingest, context and predictions, export) and on
+    the forests' training."""
     points = sum(t["n_points"] for t in tiles)
     train_points = sum(t["n_points"] for t in tiles if t["scene"] == "train")
-    features = points / workers / FEATURE_RATES[run.features.set]
-    other = points / workers / OTHER_RATE  # ingest, context and predictions, export
-    training = training_seconds(run, train_points, os.cpu_count() or 1)
-    return {"ingest": 0.3 * other, "features": features, "train": training + 0.4 * other,
-            "apply": 0.4 * other, "export": 0.2 * other, "evaluate": 0.05 * other,
-            "report": 0.05 * other}
+    return {"features": points / workers / FEATURE_RATES[run.features.set],
+            "other": points / workers / OTHER_RATE,
+            "training": training_seconds(run, train_points, os.cpu_count() or 1)}
+
+
+def step_weights(run: Run, tiles: list[dict], workers: int) -> dict[str, float]:
+    """Each step's estimated seconds (:func:`estimated_seconds`): how the run's progress
+    weighs the steps for its ETA, the forests' training included."""
+    spent = estimated_seconds(run, tiles, workers)
+    other = spent["other"]
+    return {"ingest": 0.3 * other, "features": spent["features"],
+            "train": spent["training"] + 0.4 * other, "apply": 0.4 * other,
+            "export": 0.2 * other, "evaluate": 0.05 * other, "report": 0.05 * other}
 
 
 def _draw(scenes: dict, tiles: list[dict], path: Path) -> None:
