@@ -108,7 +108,8 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     if last < 4:
         return summary
     metrics = plots = None
-    if has_test_points(layout, run.cfg.data.split):
+    labelled = has_test_points(layout, run.cfg.data.split)
+    if labelled:
         metrics, plots = timed("evaluate", evaluate, run, engine, layout, n_stages)
         if metrics["n_test_points"] == 0:  # no score over no points: say so, report what is
             say(f"warning: the test points carry none of the codes of data.classes in their "
@@ -116,7 +117,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
                 "data.classes (the report shows what was predicted)")
             metrics = None
     if metrics is None:
-        if not has_test_points(layout, run.cfg.data.split):
+        if not labelled:
             say("evaluate: no labelled test points (data.test or data.split): no metrics",
                 quiet=run.quiet)
         if last >= 5:  # the report of what was predicted, without scores
