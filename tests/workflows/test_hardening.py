@@ -245,33 +245,7 @@ def test_os_error_in_a_step_is_one_line(tmp_path, monkeypatch):
 
 
 # -- 6: workers that cannot run ----------------------------------------------------------
-class _FakeClient:
-    def __init__(self):
-        self.workers = {}
-
-    def scheduler_info(self, n_workers=-1):
-        return {"workers": self.workers}
-
-
-def test_watch_counts_restarts_without_progress(monkeypatch):
-    import workflows.watch as watch
-
-    monkeypatch.setattr(watch, "CHECK_EVERY", 0.0)
-    client = _FakeClient()
-    w = watch.WorkerWatch(client, "features")
-    for name in ("a", "b"):  # late joiners (queued batch jobs) are no restarts
-        client.workers[name] = {"memory_limit": 2**27}
-        w.check()
-    del client.workers["a"]
-    w.check()
-    w.progress()  # a task finished: the count starts again
-    for restart in range(watch.MAX_RESTARTS - 1):
-        client.workers = {f"r{restart}": {"memory_limit": 2**27}}
-        w.check()
-    client.workers = {}
-    with pytest.raises(watch.NoWorkerCanRun, match=r"features: workers were restarted 3 times.*"
-                                                    r"cluster.memory_limit \(128.00 MiB"):
-        w.check()
+# (the restart count and its diagnosis: tests/workflows/test_watch.py)
 
 
 @pytest.mark.slow
