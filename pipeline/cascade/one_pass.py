@@ -3,9 +3,10 @@ chunks.
 
 Stage t of a point needs the stage t-1 probabilities of its neighbours within r1, which
 need their own features, and so on back to the first stage. A chunk whose halo covers all
-of that, the features' reach plus one context radius per later stage, can compute every
-stage itself: stage 1 for its core and the halo points within (stages - 1) context radii
-of it, stage 2 for one radius less, and the last stage for its core alone. Nothing has to
+of that, the features' reach plus one context reach per later stage (r1 and the voxels
+that decide which points count, :func:`pipeline.features.density.capped_halo`), can compute
+every stage itself: stage 1 for its core and the halo points within (stages - 1) context
+reaches of it, stage 2 for one reach less, and the last stage for its core alone. Nothing has to
 be read back from neighbouring chunks, and the features never leave the worker.
 
 The results equal those of the stage-by-stage cascade bit for bit: every point's features
@@ -18,6 +19,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from pipeline.cascade.stage import predict_stage_proba, stage_context, stage_input
+from pipeline.features.density import capped_halo
 
 #: Metres added to every context radius: distances computed in floating point may exceed
 #: the exact ones by far less than this, so a ring never misses a neighbour it needs.
@@ -29,7 +31,7 @@ def one_pass_halo(feature_reach: float, r1: float, stages: int) -> float:
     to micrometres, far inside the slack, so that configurations show it plainly)."""
     if stages <= 1:
         return feature_reach
-    return round(feature_reach + (stages - 1) * (r1 + 2 * SLACK), 6)
+    return round(feature_reach + (stages - 1) * (capped_halo(r1) + 2 * SLACK), 6)
 
 
 def box_distance(xy: np.ndarray, box) -> np.ndarray:
@@ -44,12 +46,12 @@ def box_distance(xy: np.ndarray, box) -> np.ndarray:
 
 def stage_rows(xy: np.ndarray, n_core: int, box, r1: float, stages: int) -> list[np.ndarray]:
     """Rows of a chunk's window (core first, then halo) that each stage is computed for:
-    the core and the halo points within (stages - 1 - t) x (r1 + slack) of the box for
-    stage t. Ascending and nested, the last stage's rows are the core."""
+    the core and the halo points within (stages - 1 - t) context reaches (plus slack) of
+    the box for stage t. Ascending and nested, the last stage's rows are the core."""
     distance = box_distance(xy[n_core:], box)
     core = np.arange(n_core, dtype=np.int64)
     return [np.concatenate([core, n_core + np.flatnonzero(
-        distance <= (stages - 1 - t) * (r1 + SLACK))]) if t < stages - 1 else core
+        distance <= (stages - 1 - t) * (capped_halo(r1) + SLACK))]) if t < stages - 1 else core
         for t in range(stages)]
 
 

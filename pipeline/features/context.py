@@ -9,7 +9,8 @@ keeps the same length through the whole cascade.
 The class sums are integers (soft context rounds each probability to a multiple of 2^-40
 first), so they are exact in any order and a chunk gives the same values as the whole cloud.
 By default every point within r1 counts, as in the paper. Counting without a cap is also the
-fast way on dense scans: no neighbour list is built or sorted.
+fast way on dense scans: no neighbour list is built or sorted. Where points pile up, only
+a bounded number per small voxel count (:mod:`pipeline.features.density`).
 
 With ``max_neighbors`` S1 is instead the ``max_neighbors`` nearest points (ties broken by
 global id, see :func:`pipeline.features.neighbors.radius_neighbors`) and S2 the part of that
@@ -20,6 +21,7 @@ r1 = 0.5 m the 256th nearest point is a median 0.19 m away, inside r2.
 import numba
 import numpy as np
 
+from pipeline.features.density import neighbourhood_members
 from pipeline.features.neighbors import RadiusIndex, squared_distance
 
 QUERY_BLOCK = 100_000  # query points per neighbour search
@@ -169,7 +171,8 @@ def context_features(
     if labels is None and proba is None:
         return uniform_context(len(query), n_classes)
     int_labels, weights = _class_rows(labels, proba, len(xyz), n_classes)
-    index = RadiusIndex(xyz, r1, ids)  # built once, searched block by block
+    # built once, searched block by block
+    index = RadiusIndex(xyz, r1, ids, neighbourhood_members(xyz, ids, r1))
     if max_neighbors is None:
         if labels is not None:
             sums = index.sphere_sums(query, r2, labels=int_labels, n_classes=n_classes)

@@ -3,7 +3,8 @@
 For each query point q:
 
 1. its neighbourhood S1: the at most ``max_neighbors`` nearest points within r1, q included
-   (:func:`pipeline.features.neighbors.radius_neighbors`, ordered by distance then global id);
+   (:func:`pipeline.features.neighbors.radius_neighbors`, ordered by distance then global id),
+   drawn from the points that a pile-up leaves in (:mod:`pipeline.features.density`);
 2. the neighbours relative to q, p_j - p_q (never absolute coordinates, so UTM magnitudes
    cost no precision);
 3. the plane of their two largest principal components (eigenvectors of their covariance,
@@ -30,6 +31,7 @@ import numba
 import numpy as np
 
 from pipeline.features.delaunay import TRIANGLES, make_workspace, triangulate_into
+from pipeline.features.density import neighbourhood_members
 from pipeline.features.eigen import jacobi3
 from pipeline.features.invariants import INVARIANT_NAMES, moment_invariants
 from pipeline.features.moments import N_MOMENTS, add_mesh_moments
@@ -252,7 +254,7 @@ def local_surface(xyz, r1, max_neighbors=64, *, query=None, ids=None, normalise=
     if plane not in PLANES:
         raise ValueError(f"plane must be one of {PLANES}, got {plane!r}")
     query = _check_query(query, len(xyz))
-    index = RadiusIndex(xyz, r1, ids)
+    index = RadiusIndex(xyz, r1, ids, neighbourhood_members(xyz, ids, r1))
     out = np.empty((len(query), len(INVARIANT_NAMES)))
     area = np.empty(len(query))
     counts = np.empty(len(query), dtype=np.int64)

@@ -23,8 +23,8 @@ the cells are ``span`` times smaller and the search grows ring by ring until the
 (see :meth:`RadiusIndex.span_for`); the result is the same. Queries are processed in cell order
 (random order is several times slower) and the rows put back in the caller's order.
 
-The uncapped class counts (:meth:`RadiusIndex.sphere_sums` with labels) settle whole cells at
-once where a cell's bounding box lies entirely inside or outside a sphere, the box's d2 being
+The uncapped sums (:meth:`RadiusIndex.sphere_sums`, of labels or of weights) settle whole cells
+at once where a cell's bounding box lies entirely inside or outside a sphere, the box's d2 being
 rounded like its points' d2, and test the other cells' points class by class: the same counts
 as a test of every point.
 """
@@ -286,13 +286,26 @@ def _count_block(xyz, qrows, sxyz, ukeys, ustart, origin, cell, dims, span, r2, 
 
 
 @_jit
+def _cell_sums(sweights, ustart):
+    """int64 (cells, C): the sum of the ``sweights`` rows of each cell's points."""
+    n_cells = ustart.shape[0] - 1
+    sums = np.zeros((n_cells, sweights.shape[1]), dtype=np.int64)
+    for k in range(n_cells):
+        for s in range(ustart[k], ustart[k + 1]):
+            for c in range(sweights.shape[1]):
+                sums[k, c] += sweights[s, c]
+    return sums
+
+
+@_jit
 def _sphere_sums_block(
-    xyz, qrows, sxyz, sweights, ukeys, ustart, origin, cell, dims, span, r2, r2_inner,
-    n_classes, out,
+    xyz, qrows, sxyz, sweights, cell_sums, box, ukeys, ustart, origin, cell, dims, span, r2,
+    r2_inner, n_classes, out,
 ):  # fmt: skip
     """Sums of the int64 ``sweights`` rows over every point within the radius of each
     xyz[qrows[b]] (columns 0..C-1) and within the inner radius (C..2C-1). Integer sums:
-    exact in any order."""
+    exact in any order. A cell whose bounding box settles both spheres adds its sums whole,
+    as in :func:`_class_counts_block`; the others test their points."""
     nx, ny, nz = dims[0], dims[1], dims[2]
     for b in range(qrows.shape[0]):
         xq, yq, zq, cx, cy, cz = _query_cell(xyz, qrows[b], origin, cell, dims)
@@ -301,18 +314,34 @@ def _sphere_sums_block(
         for gx in range(max(cx - span, 0), min(cx + span + 1, nx)):
             for gy in range(max(cy - span, 0), min(cy + span + 1, ny)):
                 base = (gx * ny + gy) * nz
-                start, stop = _column_run(ukeys, ustart, base + z0, base + z1)
-                for s in range(start, stop):
-                    d2 = squared_distance(sxyz, s, xq, yq, zq)
-                    if d2 > r2:
+                first, end = _cell_run(ukeys, base + z0, base + z1)
+                for k in range(first, end):
+                    f0, n0 = _far_near(box[k, 0], box[k, 1], xq)
+                    f1, n1 = _far_near(box[k, 2], box[k, 3], yq)
+                    f2, n2 = _far_near(box[k, 4], box[k, 5], zq)
+                    if n0 * n0 + n1 * n1 + n2 * n2 > r2:
                         continue
-                    # the accumulation of context._neighbor_sums_kernel; a shared inlined
-                    # helper makes this loop five times slower in numba
-                    inner = d2 <= r2_inner
-                    for c in range(n_classes):
-                        out[b, c] += sweights[s, c]
-                        if inner:
-                            out[b, n_classes + c] += sweights[s, c]
+                    far = f0 * f0 + f1 * f1 + f2 * f2
+                    if far <= r2_inner:
+                        for c in range(n_classes):
+                            out[b, c] += cell_sums[k, c]
+                            out[b, n_classes + c] += cell_sums[k, c]
+                        continue
+                    if far <= r2 and n0 * n0 + n1 * n1 + n2 * n2 > r2_inner:
+                        for c in range(n_classes):
+                            out[b, c] += cell_sums[k, c]
+                        continue
+                    for s in range(ustart[k], ustart[k + 1]):
+                        d2 = squared_distance(sxyz, s, xq, yq, zq)
+                        if d2 > r2:
+                            continue
+                        # the accumulation of context._neighbor_sums_kernel; a shared inlined
+                        # helper makes this loop five times slower in numba
+                        inner = d2 <= r2_inner
+                        for c in range(n_classes):
+                            out[b, c] += sweights[s, c]
+                            if inner:
+                                out[b, n_classes + c] += sweights[s, c]
 
 
 @_jit
@@ -517,17 +546,20 @@ def _check_ids(ids, n_points: int) -> np.ndarray:
 class _Grid:
     """The cloud sorted by cubic cells of one side, with the start of each non-empty cell."""
 
-    def __init__(self, xyz, ids, origin, extent, cell):
+    def __init__(self, xyz, ids, origin, extent, cell, members=None):
         # Coarser cells when the grid would overflow int64 keys or when cell indices would
         # carry more rounding than CELL_MARGIN covers: still exact, only slower.
         cell = max(cell, float(extent.max()) / MAX_CELLS_PER_AXIS)
         while math.prod(int(e // cell) + 1 for e in extent) >= 2**62:
             cell *= 2.0
-        n = len(xyz)
         self.cell = cell
         self.dims = np.array([int(e // cell) + 1 for e in extent], dtype=np.int64)
+        #: the cell of every point, members or not (queries are sorted by it)
         self.keys = _cell_keys(xyz, origin, cell, self.dims)
-        order = np.argsort(self.keys, kind="stable")
+        # the grid holds the members only (every point without ``members``)
+        rows = np.arange(len(xyz)) if members is None else np.flatnonzero(members)
+        order = rows[np.argsort(self.keys[rows], kind="stable")]
+        n = len(order)
         sorted_keys = self.keys[order]
         self.rows = order.astype(np.int64)
         self.xyz = np.ascontiguousarray(xyz[order])
@@ -552,6 +584,9 @@ class RadiusIndex:
     ids : int64 (N,), optional
         Global ids that break ties between equal distances (default: row numbers). Keep them
         unique: they define the neighbour order across chunks.
+    members : bool (N,), optional
+        The points that may be neighbours (default all); every point may still be a query
+        (see :mod:`pipeline.features.density`).
 
     The grid has cells of side ``radius`` (27 cells hold every neighbour). On dense clouds,
     where a capped query needs far fewer points than those 27 cells hold, a second grid of
@@ -559,10 +594,14 @@ class RadiusIndex:
     small cells usually settle the query.
     """
 
-    def __init__(self, xyz, radius, ids=None):
+    def __init__(self, xyz, radius, ids=None, members=None):
         self.xyz = _check_cloud(xyz)
         self.radius = _check_radius(radius)
         self.ids = _check_ids(ids, len(self.xyz))
+        if members is not None and np.shape(members) != (len(self.xyz),):
+            raise InputError(f"members must be one bool per point ({len(self.xyz)}), got "
+                             f"shape {np.shape(members)}")
+        self.members = None if members is None else np.asarray(members, dtype=bool)
         self.r2 = self.radius * self.radius
         if len(self.xyz):
             self.origin = self.xyz.min(axis=0)
@@ -571,12 +610,12 @@ class RadiusIndex:
             self.origin = np.zeros(3)
             self.extent = np.zeros(3)
         coarse = _Grid(self.xyz, self.ids, self.origin, self.extent,
-                       self.radius * (1.0 + CELL_MARGIN))  # fmt: skip
+                       self.radius * (1.0 + CELL_MARGIN), self.members)  # fmt: skip
         self._grids = {1: coarse}
         self.keys = coarse.keys
         populations = np.diff(coarse.ustart).astype(np.float64)
         #: mean number of points in the radius-sized cell of a point (its local density)
-        self.cell_population = float((populations**2).sum() / max(len(self.xyz), 1))
+        self.cell_population = float((populations**2).sum() / max(len(coarse.rows), 1))
 
     def span_for(self, max_neighbors: int | None) -> int:
         """Cells per radius for a query capped at ``max_neighbors``: 1 on sparse clouds.
@@ -593,7 +632,7 @@ class RadiusIndex:
     def _grid(self, span: int) -> _Grid:
         if span not in self._grids:
             self._grids[span] = _Grid(self.xyz, self.ids, self.origin, self.extent,
-                                      self._grids[1].cell / span)  # fmt: skip
+                                      self._grids[1].cell / span, self.members)  # fmt: skip
         return self._grids[span]
 
     def spatial_order(self, query: np.ndarray) -> np.ndarray:
@@ -717,10 +756,13 @@ class RadiusIndex:
                 grid.cell, grid.dims, span, self.r2, inner * inner, n_classes, sorted_out,
             )  # fmt: skip
         else:
+            sweights = np.ascontiguousarray(weights2d[grid.rows])
+            box = _cell_boxes(*(np.ascontiguousarray(grid.xyz[:, k]) for k in range(3)),
+                              grid.ustart)  # fmt: skip
             _sphere_sums_block(
-                self.xyz, query[order], grid.xyz, weights2d[grid.rows], grid.ukeys,
-                grid.ustart, self.origin, grid.cell, grid.dims, span, self.r2, inner * inner,
-                n_classes, sorted_out,
+                self.xyz, query[order], grid.xyz, sweights, _cell_sums(sweights, grid.ustart),
+                box, grid.ukeys, grid.ustart, self.origin, grid.cell, grid.dims, span,
+                self.r2, inner * inner, n_classes, sorted_out,
             )  # fmt: skip
         out[order] = sorted_out
         return out

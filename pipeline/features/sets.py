@@ -30,6 +30,7 @@ import numpy as np
 
 from pipeline.features.conditioning import condition_invariants
 from pipeline.features.covariance import multiscale_covariance, multiscale_halo, multiscale_names
+from pipeline.features.density import capped_halo
 from pipeline.features.height import HEIGHT_NAMES, height_features, height_halo
 from pipeline.features.invariants import INVARIANT_NAMES
 from pipeline.features.local import PLANES, local_surface
@@ -125,7 +126,7 @@ class FeatureParams:
     @property
     def halo(self) -> float:
         """The smallest halo that keeps every feature and the context chunk-invariant."""
-        return max(feature_set(self).reach, self.r1)
+        return max(feature_set(self).reach, capped_halo(self.r1))  # the context's reach
 
 
 @dataclass(frozen=True)
@@ -173,7 +174,7 @@ def _surface(params: FeatureParams, with_size: bool):
         return np.hstack(parts).astype(np.float32)
 
     if params.voxel is None:
-        return columns, params.r1, describe
+        return columns, capped_halo(params.r1), describe
 
     def per_voxel(xyz, query, ids, ground=None):
         # the representatives of the query points, described on the representatives alone
@@ -185,7 +186,8 @@ def _surface(params: FeatureParams, with_size: bool):
 
     # a representative lies within one voxel diagonal of its points, and so do the
     # representatives of the voxels its neighbourhood reaches
-    return columns, voxel_halo(params.r1, params.voxel) + params.voxel * math.sqrt(3), per_voxel
+    reach = voxel_halo(capped_halo(params.r1), params.voxel) + params.voxel * math.sqrt(3)
+    return columns, reach, per_voxel
 
 
 def _covariance(params: FeatureParams):

@@ -10,6 +10,7 @@ from sklearn.ensemble import RandomForestClassifier
 from pipeline.cascade import one_pass, one_pass_halo, predict_stage_proba, stage_context
 from pipeline.cascade.one_pass import box_distance, stage_rows
 from pipeline.cascade.stage import stage_input
+from pipeline.features.density import capped_halo
 
 R1, R2, REACH, N_CLASSES = 0.6, 0.3, 0.9, 3
 
@@ -97,7 +98,8 @@ def test_a_narrower_halo_changes_the_last_stage(cloud):
 
 
 def test_stage_rows_nest_and_hold_every_context_neighbour(cloud):
-    """Each stage's rows hold the neighbours within r1 of the next stage's rows; the last
+    """Each stage's rows hold the neighbours within r1 of the next stage's rows, and every
+    point of their density voxels (which decide whether a piled-up point counts); the last
     stage is the core alone (halo points on the box's edge included in no core)."""
     xyz, *_ = cloud
     box = (3.0, 4.0, 7.5, 8.0)
@@ -108,7 +110,7 @@ def test_stage_rows_nest_and_hold_every_context_neighbour(cloud):
     tree = cKDTree(window)
     for outer, inner in zip(rows, rows[1:]):
         assert set(inner) <= set(outer) and np.all(np.diff(outer) > 0)
-        needed = {j for i in inner for j in tree.query_ball_point(window[i], R1)}
+        needed = {j for i in inner for j in tree.query_ball_point(window[i], capped_halo(R1))}
         assert needed <= set(outer)
 
 
@@ -120,7 +122,8 @@ def test_box_distance_is_the_halo_measure():
     assert box_distance(xy, open_box).tolist() == [0.0, 0.0, 2.0, 2.0, 0.0]
 
 
-def test_one_pass_halo_adds_a_context_radius_per_later_stage():
+def test_one_pass_halo_adds_a_context_reach_per_later_stage():
+    reach = capped_halo(0.5)  # r1 and the voxels that decide which points count
     assert one_pass_halo(REACH, R1, 1) == REACH
-    assert one_pass_halo(3.5, 0.5, 2) == pytest.approx(4.01)
-    assert one_pass_halo(3.5, 0.5, 3) == pytest.approx(4.52)
+    assert one_pass_halo(3.5, 0.5, 2) == pytest.approx(3.5 + reach + 0.01)
+    assert one_pass_halo(3.5, 0.5, 3) == pytest.approx(3.5 + 2 * (reach + 0.01))

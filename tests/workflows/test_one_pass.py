@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pipeline.features.density import capped_halo
 from pipeline.store import open_store
 from workflows.config import load_config
 from workflows.run import Run
@@ -161,7 +162,9 @@ def test_auto_leaves_scenes_of_small_chunks_to_the_stored_features(survey, tmp_p
         return ({scene: info["halo"] for scene, info in scenes.items()},
                 one_pass_scenes({"scenes": scenes}))
 
-    reach, wide = 0.5, 1.01  # write_config's paper set at r1 0.5, and with 2 stages
+    # write_config's paper set at r1 0.5, and with 2 stages
+    reach = capped_halo(0.5)
+    wide = round(2 * reach + 0.01, 6)
     assert planned("auto", 100.0) == planned(False, 3.0) == (
         {"train": reach, "test": wide}, {"test"})
     assert planned("auto", 3.0) == planned(True, 100.0) == (

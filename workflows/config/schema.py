@@ -363,8 +363,8 @@ class TilingConfig(Section):
         None, gt=0,
         description="Width in metres of the copies of neighbouring points around a chunk; "
         "minimum: the features' reach (their largest radius or height column); default: "
-        "that plus one context radius (features.r1) and a centimetre per cascade stage "
-        "after the first, with which a chunk that is only classified computes all its "
+        "that plus one context reach (features.r1 and a tenth more for the voxels that bound a "
+        "pile-up of points) and a centimetre per cascade stage after the first, with which a chunk that is only classified computes all its "
         "stages in one pass and stores no features. The scenes that go stage by stage "
         "(those trained on, and those output.keep_features keeps) take only the features' "
         "reach.",

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.cascade import id_hash
+from pipeline.features.density import VOXEL_CAP, cap_voxel, left_out, neighbourhood_members
 from pipeline.features.neighbors import RadiusIndex
 from pipeline.features.sets import FeatureParams, feature_set
 from pipeline.store import ROLE_TRAIN
@@ -43,17 +44,24 @@ def chunk_features(view, task: FeatureTask):
     trained = (core["role"] == ROLE_TRAIN) & (core["label"] >= 0)
     return {"train_counts": np.bincount(core["label"][trained],
                                         minlength=task.n_classes).tolist(),
-            "sparse": sparse_points(xyz, ids, query, task.features.r1)}
+            **neighbourhood_checks(xyz, ids, query, task.features.r1)}
 
 
-def sparse_points(xyz, ids, query, r1) -> list[int]:
-    """[sampled, sparse]: core points sampled by id, and those of them with fewer than
-    :data:`SPARSE_NEIGHBORS` points within r1, too few for a local surface."""
+def neighbourhood_checks(xyz, ids, query, r1) -> dict:
+    """What :func:`warn_neighbourhoods` needs of a chunk's ``query`` (core) points:
+
+    ``sparse``, [sampled, sparse]: core points sampled by id, and those of them with fewer
+    than :data:`SPARSE_NEIGHBORS` points within r1, too few for a local surface;
+    ``checked`` and ``piled``: the core points, and those of them that a pile-up leaves out
+    of their neighbours' neighbourhoods (:mod:`pipeline.features.density`).
+    """
+    members = neighbourhood_members(xyz, ids, r1)
+    checks = {"checked": len(query), "piled": left_out(members, query), "sparse": [0, 0]}
     sample = query[id_hash(ids[query], 11) < SPARSE_SAMPLE]
-    if len(sample) == 0:
-        return [0, 0]
-    _, ptr = RadiusIndex(xyz, r1, ids).query(sample, SPARSE_NEIGHBORS)
-    return [len(sample), int(np.count_nonzero(np.diff(ptr) < SPARSE_NEIGHBORS))]
+    if len(sample):
+        _, ptr = RadiusIndex(xyz, r1, ids, members).query(sample, SPARSE_NEIGHBORS)
+        checks["sparse"] = [len(sample), int(np.count_nonzero(np.diff(ptr) < SPARSE_NEIGHBORS))]
+    return checks
 
 
 def features(run: Run, engine, layout: dict, only: str | None = None) -> np.ndarray:
@@ -67,15 +75,26 @@ def features(run: Run, engine, layout: dict, only: str | None = None) -> np.ndar
     counts = np.zeros(run.n_classes, dtype=np.int64)
     for value in results:
         counts += np.asarray(value["train_counts"], dtype=np.int64)
-    warn_sparse(run, results)
+    warn_neighbourhoods(run, results)
     return counts
 
 
-def warn_sparse(run: Run, results) -> None:
-    """Warn when most sampled points (the tasks' ``sparse`` counts) have too few neighbours."""
+def warn_neighbourhoods(run: Run, results) -> None:
+    """Warn when most sampled points have too few neighbours, and when points pile up (the
+    tasks' :func:`neighbourhood_checks`)."""
+    results = list(results)
     sampled = sum(value["sparse"][0] for value in results)
     sparse = sum(value["sparse"][1] for value in results)
     if sampled and sparse > sampled / 2:
         say(f"warning: {100 * sparse / sampled:.0f}% of the points have fewer than "
              f"{SPARSE_NEIGHBORS} neighbours within r1 = {run.r1:g} m, too few for a local "
              "surface: set features.r1 larger, or to auto (from the point density)")
+    # .get: results stored by a version without these counts
+    checked = sum(value.get("checked", 0) for value in results)
+    piled = sum(value.get("piled", 0) for value in results)
+    if piled:
+        say(f"warning: {piled:,} points ({100 * piled / checked:.2g}%) are left out of their "
+            f"neighbours' features, where more than {VOXEL_CAP} points share a voxel of "
+            f"{100 * cap_voxel(run.r1):.2g} cm (a parked scanner, a strip flown twice?); they "
+            "are still classified. If the pile-up is an artefact, thin the input (e.g. "
+            "PDAL's filters.sample)")

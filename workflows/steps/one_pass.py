@@ -23,7 +23,7 @@ from pipeline.tiling import layout_from_dict
 from workflows.engine import chunk_tasks, chunk_window
 from workflows.run import Run
 from workflows.steps.cascade import cached_forest
-from workflows.steps.features import sparse_points, warn_sparse
+from workflows.steps.features import neighbourhood_checks, warn_neighbourhoods
 from workflows.steps.terrain import ground_under
 
 #: The pack of a one-pass chunk's results.
@@ -62,7 +62,7 @@ def chunk_one_pass(view, task: OnePassTask):
     write_arrays(view.group, {"undefined": undefined, proba_array(last): probas[last],
                               **{labels_array(t): labels_from_proba(p)
                                  for t, p in enumerate(probas[:last])}}, pack=PACK)
-    return {"sparse": sparse_points(xyz, ids, np.arange(n_core, dtype=np.int64), params.r1)}
+    return neighbourhood_checks(xyz, ids, np.arange(n_core, dtype=np.int64), params.r1)
 
 
 #: With ``output.keep_features: auto``, a scene goes stage by stage instead when its chunks'
@@ -117,4 +117,4 @@ def classify_in_one_pass(run: Run, engine, layout: dict, stages: list[dict],
         lambda info: OnePassTask(run.features, run.cfg.cascade.context, run.n_classes,
                                  tuple(info["tiles"]), info["grid"], forests),
         fingerprint, "train" if run.model_dir is None else "predict", only=only)
-    warn_sparse(run, engine.map("apply", tasks).values())
+    warn_neighbourhoods(run, engine.map("apply", tasks).values())

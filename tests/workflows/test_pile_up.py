@@ -1,0 +1,35 @@
+"""A tile where a parked scanner piled points up: classified in full, with one warning."""
+
+import laspy
+import numpy as np
+
+from pipeline.features.density import VOXEL_CAP
+from pipeline.synth import write_synthetic_plot
+from tests.workflows.conftest import silva
+
+
+def test_a_pile_up_is_classified_with_a_warning(tmp_path):
+    (tile,) = write_synthetic_plot(tmp_path / "in", seed=4, size=6.0, tile_size=6.0)
+    las = laspy.read(tile)
+    n, pile = len(las.points), 5000
+    piled = laspy.LasData(las.header)
+    rows = np.concatenate([np.arange(n), np.full(pile, n // 2)])
+    piled.points = las.points[rows]
+    # the parked scanner: 5,000 returns within a few millimetres of one point
+    rng = np.random.default_rng(0)
+    for axis in ("X", "Y", "Z"):
+        values = np.asarray(piled[axis]).copy()
+        values[n:] += rng.integers(-3, 4, pile)  # integer units of the 1 mm scale
+        piled[axis] = values
+    piled.write(tile)
+    out = tmp_path / "out"
+    result = silva("predict", "--model", "forest-tls-synthetic", "--out", out,
+                   str(tile), "--in-process", "-q")
+    assert result.exit_code == 0, result.output
+    warning = [line for line in result.output.splitlines() if "share a voxel" in line]
+    assert len(warning) == 1, result.output
+    assert f"more than {VOXEL_CAP} points" in warning[0] and "filters.sample" in warning[0]
+    (written,) = (out / "predictions").glob("*.la[sz]")
+    result_las = laspy.read(written)
+    assert len(result_las.points) == n + pile
+    assert (np.asarray(result_las["PredictedClassification"]) > 0).all()
