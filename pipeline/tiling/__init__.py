@@ -13,6 +13,8 @@ every sphere of radius <= halo around a core point).
   chunk with its halo holds at most a target number of points. Dense parts get small chunks,
   sparse parts large ones, empty space none.
 
+:func:`group_tiles` groups the small tiles of a chunk, so that one task reads them all.
+
 :func:`layout_from_dict` reads either back from its :meth:`to_dict` form.
 """
 
@@ -24,6 +26,7 @@ from pipeline.tiling.balanced import (
     CellCounts,
     count_cell_size,
 )
+from pipeline.tiling.groups import GROUP_SHARE, group_tiles
 from pipeline.tiling.grid import (
     SIZE_SERIES,
     TILE_SHIFT,
@@ -36,9 +39,10 @@ from pipeline.tiling.grid import (
 )
 
 __all__ = [
-    "CUT_TRIALS", "MAX_COUNT_CELLS", "MIN_CORE_SHARE", "SIZE_SERIES", "TILE_SHIFT",
-    "BalancedLayout", "CellCounts", "Grid", "auto_chunk_size", "count_cell_size",
-    "global_ids", "layout_from_dict", "series_ceil", "split_global_ids", "tile_area",
+    "CUT_TRIALS", "GROUP_SHARE", "MAX_COUNT_CELLS", "MIN_CORE_SHARE", "SIZE_SERIES",
+    "TILE_SHIFT", "BalancedLayout", "CellCounts", "Grid", "auto_chunk_size",
+    "count_cell_size", "global_ids", "group_tiles", "layout_from_dict", "series_ceil",
+    "split_global_ids", "tile_area",
 ]
 
 
