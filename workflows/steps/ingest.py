@@ -2,7 +2,10 @@
 
 The grid of a scene comes from the tiles' headers (no point read); then one task per tile
 streams it in batches and appends each batch's points to the parts of the chunks (and halos)
-they fall in. Memory is bounded by the read batch, not by the tile or survey size.
+they fall in. Small tiles of one chunk are read by one task, up to a share of a chunk's
+points (:func:`~pipeline.tiling.group_tiles`), and stored as one part per chunk: the cost
+follows the points, not the number of files. Memory is bounded by the read batch, not by the
+tile or survey size.
 """
 
 import hashlib
@@ -30,12 +33,14 @@ from pipeline.store import (
     part_path,
 )
 from pipeline.tiling import (
+    GROUP_SHARE,
     BalancedLayout,
     CellCounts,
     Grid,
     auto_chunk_size,
     count_cell_size,
     global_ids,
+    group_tiles,
     layout_from_dict,
     tile_area,
 )
@@ -121,14 +126,16 @@ def plan_tiles(run: Run) -> list[dict]:
 
 
 def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
-    """The chunk layout of each scene, covering all its tiles (under the key ``grid``), and
-    its halo (``halo``).
+    """The chunk layout of each scene, covering all its tiles (under the key ``grid``), its
+    halo (``halo``) and the tiles each ingest task reads (``groups``, lists of tile indices,
+    see :func:`ingest_groups`); ``tiles`` lists the first tile of each group, under whose
+    index the group's points are stored (every tile, when none are grouped).
 
     With ``tiling.chunk_size: auto`` and ``tiling.layout: balanced`` (the default), a first
-    pass counts each tile's points on a lattice (one task per tile on ``engine``, or in this
-    process) and the scene is cut into chunks balanced by point count
-    (:class:`~pipeline.tiling.BalancedLayout`); ``estimate`` then holds the min, median and
-    max counted points of the chunks' cores and of their cores with halos. Otherwise a
+    pass counts each tile's points on a lattice (one task per tile, or per group of small
+    tiles, on ``engine``, or in this process) and the scene is cut into chunks balanced by
+    point count (:class:`~pipeline.tiling.BalancedLayout`); ``estimate`` then holds the min,
+    median and max counted points of the chunks' cores and of their cores with halos. Otherwise a
     regular grid: of ``chunk_size`` metres, or with ``layout: grid`` sized from the headers
     (see :func:`scene_chunk_size`).
 
@@ -154,9 +161,32 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
             # the one pass would cost more than the stored features save
             one_pass, halo = False, reach
             info = _cut_scene(run, members, halo, counts)
-        scenes[scene] = {"tiles": [t["index"] for t in members], **info, "halo": halo,
-                         "one_pass": one_pass}
+        groups = ingest_groups(run, members, info["grid"])
+        scenes[scene] = {"tiles": [group[0] for group in groups], "groups": groups, **info,
+                         "halo": halo, "one_pass": one_pass}
     return scenes
+
+
+def group_budget(run: Run) -> int:
+    """Points a group of small tiles holds at most: a share of a chunk's target points."""
+    return max(1, int(run.cfg.tiling.target_points * GROUP_SHARE))
+
+
+def ingest_groups(run: Run, members: list[dict], grid: dict) -> list[list[int]]:
+    """The tile indices each ingest task of a scene reads: tiles below
+    :func:`group_budget` points whose XY centres lie in one chunk of ``grid`` are read
+    together, the others one by one."""
+    centres = np.array([[(t["mins"][i] + t["maxs"][i]) / 2 for i in (0, 1)] for t in members],
+                       dtype=np.float64).reshape(-1, 2)
+    keys = layout_from_dict(grid).chunk_of(centres)
+    groups = group_tiles([t["n_points"] for t in members], keys, group_budget(run))
+    return [[members[i]["index"] for i in group] for group in groups]
+
+
+def scene_groups(info: dict) -> list[list[int]]:
+    """The ``groups`` of a scene's layout entry (one tile each in a layout planned before
+    tiles were grouped)."""
+    return info.get("groups") or [[index] for index in info["tiles"]]
 
 
 def _cut_scene(run: Run, members: list[dict], halo: float, counts) -> dict:
@@ -183,10 +213,18 @@ def _cut_scene(run: Run, members: list[dict], halo: float, counts) -> dict:
 
 
 def count_tile(path, cell: float, read_batch: int) -> CellCounts:
-    """Worker task: the points of one tile counted on the lattice of ``cell`` metres."""
+    """The points of one tile counted on the lattice of ``cell`` metres."""
     counts = CellCounts.empty(cell)
     for batch in iter_points(path, batch_size=read_batch, fields=()):
         counts = counts + CellCounts.of(batch.xyz, cell)
+    return counts
+
+
+def count_tiles(paths, cell: float, read_batch: int) -> CellCounts:
+    """Worker task: the points of some tiles counted on the lattice of ``cell`` metres."""
+    counts = CellCounts.empty(cell)
+    for path in paths:
+        counts = counts + count_tile(path, cell, read_batch)
     return counts
 
 
@@ -195,20 +233,32 @@ def scene_counts(run: Run, scene: str, members: list[dict], engine=None) -> Cell
     pass: XY only, streamed in read batches)."""
     cell = count_cell_size(run.halo, sum(tile_area(t["mins"], t["maxs"]) for t in members))
     batch = run.cfg.tiling.read_batch
+    # small tiles counted together (the layout that groups them by chunk is not known yet)
+    groups = [[members[i] for i in group] for group in
+              group_tiles([t["n_points"] for t in members], np.zeros(len(members), np.int64),
+                          group_budget(run))]
     if engine is None:
-        parts = [count_tile(t["path"], cell, batch) for t in members]
+        parts = [count_tiles([t["path"] for t in group], cell, batch) for group in groups]
     else:
-        tasks = [Task(key=f"count-{scene}-{t['index']}-{cell:g}", fn=count_tile,
-                      kwargs=dict(path=t["path"], cell=cell, read_batch=batch),
-                      where=f"tile {t['path']} (scene '{scene}')",
-                      reproduce=f"silva plan CONFIG (reads tile {t['path']})")
-                 for t in members]
+        tasks = [Task(key=f"count-{scene}-{group[0]['index']}-{cell:g}", fn=count_tiles,
+                      kwargs=dict(paths=[t["path"] for t in group], cell=cell,
+                                  read_batch=batch),
+                      where=f"{tiles_text(group)} (scene '{scene}')",
+                      reproduce=f"silva plan CONFIG (reads {tiles_text(group)})")
+                 for group in groups]
         results = engine.map("ingest (count)", tasks)
         parts = [results[task.key] for task in tasks]
     total = CellCounts.empty(cell)
     for part in parts:
         total = total + part
     return total
+
+
+def tiles_text(tiles: list[dict]) -> str:
+    """The tiles of a task, for messages: "tile a.laz", "3 tiles a.laz ... c.laz"."""
+    if len(tiles) == 1:
+        return f"tile {tiles[0]['path']}"
+    return f"{len(tiles)} tiles {tiles[0]['path']} ... {tiles[-1]['path']}"
 
 
 def layout_text(grid: dict) -> str:
@@ -266,11 +316,12 @@ def filter_fields(label_field, labelled: bool, exclude_codes, exclude_withheld) 
 
 @dataclass(frozen=True)
 class IngestTask:
-    """What the ingest of one input tile needs (see :func:`ingest_tile`)."""
+    """What the ingest of one input tile, or of a group of small tiles, needs (see
+    :func:`ingest_tile`)."""
 
     store_path: str
     scene: str
-    tile: dict
+    tiles: tuple  # the tile dicts read, in order (one dict: that tile alone)
     grid: dict
     halo: float
     label_field: str
@@ -282,93 +333,138 @@ class IngestTask:
     exclude_codes: tuple[int, ...] = ()
     exclude_withheld: bool = False
 
+    def __post_init__(self):
+        if isinstance(self.tiles, dict):
+            object.__setattr__(self, "tiles", (self.tiles,))
 
-def ingest_tile(task: IngestTask):
-    """Worker task: append one tile's points to the chunk parts of its scene.
+
+def ingest_tile(task: IngestTask) -> dict:
+    """Worker task: append the points of one tile, or of a group of tiles, to the chunk
+    parts of its scene; return the core points written per chunk (``core_counts``) and the
+    points left out per tile index (``excluded``).
+
+    A group's points are stored together, under its first tile's index: one part per chunk
+    they fall in, appended once per read batch of points (of however many tiles), so a group
+    of small tiles costs about what one tile of all their points costs.
 
     With ``keep_codes`` (data.drop_unlisted), labelled points with other codes are left out.
     Points with a classification in ``exclude_codes``, or with the withheld flag when
     ``exclude_withheld``, are left out of every scene (cores and halos): they are in no
-    neighbourhood, no training sample and no metric. Their number is recorded in the tile's
-    marker (``excluded``).
+    neighbourhood, no training sample and no metric. Their number per tile is recorded in
+    the group's marker (``excluded``).
     """
-    store_path, scene, tile, grid = task.store_path, task.scene, task.tile, task.grid
-    halo, label_field, code_to_class, split = (task.halo, task.label_field,
-                                               task.code_to_class, task.split)
+    store_path, scene, tiles, grid = task.store_path, task.scene, task.tiles, task.grid
+    label_field, code_to_class, split = task.label_field, task.code_to_class, task.split
     read_batch, fingerprint, keep_codes = task.read_batch, task.fingerprint, task.keep_codes
     exclude_codes, exclude_withheld = task.exclude_codes, task.exclude_withheld
     root = open_store(store_path)
-    marker = root.require_group(f"scenes/{scene}/parts/{tile['index']}")
+    marker = root.require_group(f"scenes/{scene}/parts/{tiles[0]['index']}")
     if is_done(marker, "ingest", fingerprint):
-        return marker.attrs["core_counts"]
+        return {"core_counts": marker.attrs["core_counts"],
+                "excluded": _excluded(marker.attrs, tiles)}
     for name in list(marker.group_keys()):  # a half-written or damaged earlier attempt
         if chunk_path(scene, name) in root:  # chunks built from it are built again
             forget_done(root[chunk_path(scene, name)])
         del marker[name]
-    appender = Appender()
-    n_read = 0
-    grid = layout_from_dict(grid)
+    writer = _PartWriter(root, scene, tiles[0]["index"], layout_from_dict(grid), task.halo)
     labelled = scene != "predict"
-    counts: dict[str, int] = {}
-    n_excluded = 0
+    excluded: dict[str, int] = {}
     fields = filter_fields(label_field, labelled, exclude_codes, exclude_withheld)
-    for batch in iter_points(tile["path"], batch_size=read_batch, fields=fields):
-        xyz = batch.xyz
-        n_read += len(xyz)
-        gid = global_ids(tile["index"], batch.start, len(xyz))
-        label = np.full(len(xyz), -1, dtype=np.int16)
-        kept = np.ones(len(xyz), dtype=bool)
-        excluded = excluded_points(batch.fields, exclude_codes, exclude_withheld)
-        if excluded is not None:
-            n_excluded += int(np.count_nonzero(excluded))
-            kept &= ~excluded
-        if labelled:
-            raw = np.asarray(batch.fields[label_field]).astype(np.int64)
-            label = labels_from_codes(raw, code_to_class)
-            if keep_codes is not None:
-                kept &= np.isin(raw, keep_codes)
-        if not kept.all():
-            xyz, gid, label = xyz[kept], gid[kept], label[kept]
-            if len(xyz) == 0:
-                continue
-        role = point_roles(scene, xyz, split)
-        chunk = grid.chunk_of(xyz)
+    pending, held = [], 0  # points read and not yet written: less than a read batch
+    for tile in tiles:
+        n_read = n_excluded = 0
+        for batch in iter_points(tile["path"], batch_size=read_batch, fields=fields):
+            xyz = batch.xyz
+            n_read += len(xyz)
+            gid = global_ids(tile["index"], batch.start, len(xyz))
+            label = np.full(len(xyz), -1, dtype=np.int16)
+            kept = np.ones(len(xyz), dtype=bool)
+            dropped = excluded_points(batch.fields, exclude_codes, exclude_withheld)
+            if dropped is not None:
+                n_excluded += int(np.count_nonzero(dropped))
+                kept &= ~dropped
+            if labelled:
+                raw = np.asarray(batch.fields[label_field]).astype(np.int64)
+                label = labels_from_codes(raw, code_to_class)
+                if keep_codes is not None:
+                    kept &= np.isin(raw, keep_codes)
+            if not kept.all():
+                xyz, gid, label = xyz[kept], gid[kept], label[kept]
+                if len(xyz) == 0:
+                    continue
+            pending.append((xyz, gid, label, point_roles(scene, xyz, split)))
+            held += len(xyz)
+            if held >= read_batch:
+                writer.write(*(np.concatenate(column) for column in zip(*pending)))
+                pending, held = [], 0
+        if n_read != tile["n_points"]:
+            raise InputError(f"tile {tile['path']}: its header announces {tile['n_points']} "
+                             f"points but {n_read} were read; the file is truncated or its "
+                             "header is wrong: repair or re-export it")
+        excluded[str(tile["index"])] = n_excluded
+    if pending:
+        writer.write(*(np.concatenate(column) for column in zip(*pending)))
+    parts = writer.seal()
+    mark_done(marker, "ingest", fingerprint, core_counts=writer.counts, excluded=excluded,
+              parts=parts)
+    return {"core_counts": writer.counts, "excluded": excluded}
+
+
+class _PartWriter:
+    """Appends points to the parts (per chunk, core and halo) stored under one index."""
+
+    def __init__(self, root, scene: str, index: int, grid, halo: float):
+        self.root, self.scene, self.index, self.grid, self.halo = root, scene, index, grid, halo
+        self.appender = Appender()
+        self.groups: dict[str, object] = {}  # chunk name -> its part group
+        self.counts: dict[str, int] = {}  # chunk name -> core points written
+
+    def _part(self, chunk: int):
+        name = self.grid.chunk_name(chunk)
+        if name not in self.groups:
+            self.groups[name] = self.root.require_group(part_path(self.scene, self.index, name))
+        return self.groups[name]
+
+    def write(self, xyz, gid, label, role) -> None:
+        """Append points (xyz (n, 3) f8, gid (n,) i8, label (n,) i2, role (n,) i1) to the
+        cores of their chunks and to the halos they fall in."""
+        chunk = self.grid.chunk_of(xyz)
         order = np.argsort(chunk, kind="stable")
         bounds = np.flatnonzero(np.diff(chunk[order])) + 1
         for rows in np.split(order, bounds):
-            name = grid.chunk_name(int(chunk[rows[0]]))
-            part = root.require_group(part_path(scene, tile["index"], name))
-            appender.append(
-                part,
-                {
-                    "core_xyz": xyz[rows],
-                    "core_gid": gid[rows],
-                    "core_label": label[rows],
-                    "core_role": role[rows],
-                },
-            )
-            counts[name] = counts.get(name, 0) + len(rows)
-        for target, rows in grid.halo_members(xyz, halo):
-            part = root.require_group(part_path(scene, tile["index"], grid.chunk_name(target)))
-            appender.append(part, {"halo_xyz": xyz[rows], "halo_gid": gid[rows]})
-    if n_read != tile["n_points"]:
-        raise InputError(f"tile {tile['path']}: its header announces {tile['n_points']} points "
-                         f"but {n_read} were read; the file is truncated or its header is "
-                         "wrong: repair or re-export it")
-    parts: dict[str, set] = {}  # chunk -> the kinds of points ("core", "halo") written
-    for (group, name), (appended, stored) in appender.seal().items():
-        if appended != stored:
-            raise StoreError(f"store group '{group}' holds {stored} rows of '{name}' where "
-                             f"{appended} were written: another process writes to this store; "
-                             "run one Silva command per output directory and rerun")
-        parts.setdefault(group.rsplit("/", 1)[1], set()).add(name.split("_")[0])
-    mark_done(marker, "ingest", fingerprint, core_counts=counts, excluded=n_excluded,
-              parts={chunk: sorted(kinds) for chunk, kinds in parts.items()})
-    return counts
+            target = int(chunk[rows[0]])
+            self.appender.append(self._part(target), {
+                "core_xyz": xyz[rows], "core_gid": gid[rows], "core_label": label[rows],
+                "core_role": role[rows]})
+            name = self.grid.chunk_name(target)
+            self.counts[name] = self.counts.get(name, 0) + len(rows)
+        for target, rows in self.grid.halo_members(xyz, self.halo):
+            self.appender.append(self._part(target), {"halo_xyz": xyz[rows],
+                                                      "halo_gid": gid[rows]})
+
+    def seal(self) -> dict[str, list[str]]:
+        """Record the checksums; return the kinds of points ("core", "halo") written per
+        chunk."""
+        parts: dict[str, set] = {}
+        for (group, name), (appended, stored) in self.appender.seal().items():
+            if appended != stored:
+                raise StoreError(f"store group '{group}' holds {stored} rows of '{name}' where "
+                                 f"{appended} were written: another process writes to this "
+                                 "store; run one Silva command per output directory and rerun")
+            parts.setdefault(group.rsplit("/", 1)[1], set()).add(name.split("_")[0])
+        return {chunk: sorted(kinds) for chunk, kinds in parts.items()}
 
 
-def _ingested(root, tile: dict, fingerprint: str) -> bool:
-    path = f"scenes/{tile['scene']}/parts/{tile['index']}"
+def _excluded(attrs, tiles) -> dict[str, int]:
+    """The points left out per tile index, from a group's marker (a number: one tile)."""
+    excluded = attrs.get("excluded", 0)
+    if not isinstance(excluded, dict):
+        excluded = {str(tiles[0]["index"]): int(excluded)}
+    return {str(t["index"]): int(excluded.get(str(t["index"]), 0)) for t in tiles}
+
+
+def _ingested(root, scene: str, index: int, fingerprint: str) -> bool:
+    path = f"scenes/{scene}/parts/{index}"
     return path in root and is_done(root[path], "ingest", fingerprint)
 
 
@@ -387,7 +483,8 @@ def ingest(run: Run, engine) -> dict:
     root = run.store
     layout = root.attrs.get("layout")
     if layout is not None and layout.get("fingerprint") == fingerprint:
-        if all(_ingested(root, tile, fingerprint) for tile in layout["tiles"]):
+        if all(_ingested(root, scene, group[0], fingerprint)
+               for scene, info in layout["scenes"].items() for group in scene_groups(info)):
             return layout
         scenes = layout["scenes"]  # a tile found damaged since: ingest it again
     elif (root.attrs.get("planned") or {}).get("fingerprint") == fingerprint:
@@ -404,19 +501,20 @@ def ingest(run: Run, engine) -> dict:
         root.attrs["planned"] = {"fingerprint": fingerprint, "scenes": scenes}
     for scene, info in scenes.items():
         say(f"ingest: scene {scene} {layout_text(info['grid'])}", quiet=run.quiet)
+    by_index = {tile["index"]: tile for tile in tiles}
     tasks = []
-    for tile in tiles:
-        scene = tile["scene"]
-        tasks.append(
-            Task(
-                key=f"ingest-{scene}-{tile['index']}-{fingerprint[:8]}",
+    for scene, info in scenes.items():
+        for group in scene_groups(info):
+            members = tuple(by_index[index] for index in group)
+            tasks.append(Task(
+                key=f"ingest-{scene}-{group[0]}-{fingerprint[:8]}",
                 fn=ingest_tile,
                 kwargs={"task": IngestTask(
                     store_path=str(run.store_path),
                     scene=scene,
-                    tile=tile,
-                    grid=scenes[scene]["grid"],
-                    halo=scenes[scene]["halo"],
+                    tiles=members,
+                    grid=info["grid"],
+                    halo=info["halo"],
                     label_field=run.cfg.data.label_field,
                     code_to_class=run.code_to_class,
                     split=run.cfg.data.split,
@@ -427,20 +525,20 @@ def ingest(run: Run, engine) -> dict:
                     exclude_codes=tuple(run.cfg.data.exclude_codes),
                     exclude_withheld=run.cfg.data.exclude_withheld,
                 )},
-                where=f"tile {tile['path']} (scene '{scene}')",
+                where=f"{tiles_text(list(members))} (scene '{scene}')",
                 reproduce=f"silva ingest CONFIG --out {run.out} --in-process",
-            )
-        )
+            ))
     results = engine.map("ingest", tasks)
     for scene, info in scenes.items():
         names = set()
         for task in tasks:
             if task.kwargs["task"].scene == scene:
-                names.update(results[task.key])
+                names.update(results[task.key]["core_counts"])
         info["chunks"] = sorted(names)
+    excluded_by_tile = {index: n for task in tasks
+                        for index, n in results[task.key]["excluded"].items()}
     for tile in tiles:  # points the ingest filters left out (data.exclude_*)
-        tile["excluded"] = int(root[f"scenes/{tile['scene']}/parts/{tile['index']}"]
-                               .attrs.get("excluded", 0))
+        tile["excluded"] = int(excluded_by_tile.get(str(tile["index"]), 0))
     excluded = sum(t["excluded"] for t in tiles)
     if excluded:
         say(f"ingest: {counted(excluded, 'point')} excluded (data.exclude_codes / "
