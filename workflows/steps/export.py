@@ -29,7 +29,7 @@ from pipeline.io import ExtraDim, export_with_extra_dims, read_info
 from pipeline.io.las import extra_dimension_types
 from pipeline.io.raster import cell_index, max_per_cell, tile_grid, write_geotiff
 from pipeline.store import (
-    chunk_path, is_done, mark_done, open_store, proba_array, read_array, read_terrain, rows_of,
+    chunk_path, is_done, mark_done, open_store, proba_array, read_array, rows_of,
 )
 from pipeline.terrain import Raster, ground_elevation
 from pipeline.tiling import global_ids, layout_from_dict
@@ -38,6 +38,7 @@ from workflows.engine import Task
 from workflows.progress import counted, say
 from workflows.run import Run
 from workflows.steps.ingest import excluded_points
+from workflows.steps.terrain import scene_terrain
 
 PREDICTED = "PredictedClassification"
 HEIGHT_ABOVE_GROUND = "HeightAboveGround"
@@ -273,7 +274,7 @@ def export_tile(task: ExportTask):
                                     allow_missing, feature_index)
     codes_array = np.asarray(codes)
     n_undefined = n_excluded = 0
-    dtm = read_terrain(root, tile["scene"])
+    dtm = scene_terrain(root, store_path, tile["scene"])  # read once per worker process
     tile_rasters = _TileRasters(tile, rasters, dtm) if rasters is not None else None
     canopy = np.zeros(len(classes), dtype=bool)
     if rasters is not None:
