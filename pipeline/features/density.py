@@ -18,6 +18,8 @@ holds every voxel that reaches a core point's sphere (:func:`capped_halo`) gives
 neighbourhoods as the whole cloud, bit for bit, as for voxel representatives.
 """
 
+import math
+
 import numpy as np
 
 from pipeline.features.neighbors import _check_cloud, _check_ids
@@ -36,8 +38,9 @@ def cap_voxel(radius: float) -> float:
 
 
 def capped_halo(radius: float) -> float:
-    """The halo in metres that keeps capped neighbourhoods of ``radius`` chunk-invariant."""
-    return halo(radius, cap_voxel(radius))
+    """The halo in metres that keeps capped neighbourhoods of ``radius`` chunk-invariant,
+    rounded up to the millimetre so that configurations show it plainly."""
+    return math.ceil(halo(radius, cap_voxel(radius)) * 1000) / 1000
 
 
 def neighbourhood_members(xyz, ids, radius) -> np.ndarray | None:

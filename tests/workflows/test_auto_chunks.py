@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from pipeline.features.density import capped_halo
 from pipeline.io import read_info, read_points
 from pipeline.store import open_store
 from pipeline.tiling import SIZE_SERIES, BalancedLayout, layout_from_dict
@@ -17,7 +18,7 @@ from workflows.status import run_status
 from workflows.steps.ingest import plan_scenes, plan_tiles
 
 
-HALO = 0.5  # the halo the plans below are made with: write_config's features.r1
+HALO = capped_halo(0.5)  # the halo the plans below are made with: write_config's features
 
 
 def scene_headers(directory) -> tuple[int, np.ndarray, np.ndarray]:
@@ -98,9 +99,10 @@ def test_explicit_chunk_size_is_used_as_given(tmp_path, survey):
 
 
 def test_auto_size_is_clamped_to_four_halos_and_to_the_scene(tmp_path, survey):
-    # A target below any chunk's halo share: no smaller than 4 halos (2 m), mostly core.
+    # A target below any chunk's halo share: no smaller than 4 halos (2.22 m, 2.5 m in the
+    # size series), mostly core.
     tiny = planned_grids(tmp_path, survey, chunk_size="auto", target_points=100)
-    assert {grid["size"] for grid in tiny.values()} == {2.0}
+    assert {grid["size"] for grid in tiny.values()} == {2.5}
     # A target above the scene's points: one chunk side spans the 14 m plot, the smallest
     # series value >= 14 m.
     whole = planned_grids(tmp_path, survey, chunk_size="auto", target_points=10_000_000)
@@ -139,7 +141,9 @@ def test_auto_is_balanced_by_default(tmp_path, survey):
     assert cfg.tiling.layout == "balanced"
 
 
-@pytest.mark.parametrize("target_points", [10_000, 20_000])
+# (at 12,000 and below, the densest chunks of these plots would have to be cut into sides
+# mostly halo, MIN_CORE_SHARE: the layout keeps them whole, above the target)
+@pytest.mark.parametrize("target_points", [15_000, 20_000])
 def test_balanced_chunks_hold_at_most_target_points(tmp_path, survey, target_points):
     scenes = planned(tmp_path, survey, chunk_size="auto", layout="balanced",
                      target_points=target_points)

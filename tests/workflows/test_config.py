@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from pipeline.errors import ConfigError, InputError, MissingFileError
+from pipeline.features.density import capped_halo
 from workflows.config import (
     SilvaConfig,
     dump_config,
@@ -82,7 +83,7 @@ def test_defaults():
                          "exclude_codes": [], "exclude_withheld": False,
                          "drop_unlisted": False, "allow_overlap": False}
     assert d["tiling"] == {"chunk_size": "auto", "layout": "balanced",
-                           "target_points": 1_000_000, "halo": 1.52, "read_batch": 1_000_000}
+                           "target_points": 1_000_000, "halo": 1.685, "read_batch": 1_000_000}
     assert d["features"] == {"set": "paper", "r1": 0.5, "r2": 0.25, "max_neighbors": 64,
                              "context_max_neighbors": None, "plane": "pca",
                              "scales": [0.5, 1.0, 2.0, 4.0], "column": 3.0, "cell": 0.5,
@@ -110,10 +111,11 @@ def test_defaults():
 def test_derived_radii_and_halo():
     cfg = validate_config({"features": {"r1": 0.8}})
     assert cfg.features.r2 == cfg.features.radius2 == 0.4
-    # the features' reach (r1 for the paper set) and r1 + 1 cm for each of 2 later stages
-    assert cfg.tiling.halo == cfg.halo == 2.42
+    # the features' reach (for the paper set r1 and the diagonal of the density voxels,
+    # r1 / 16, rounded up to the mm: 0.887) and that + 1 cm for each of 2 later stages
+    assert cfg.tiling.halo == cfg.halo == 2.681
     cfg = validate_config({"features": {"r1": 0.8}, "cascade": {"stages": 1}})
-    assert cfg.halo == 0.8
+    assert cfg.halo == 0.887
     cfg = validate_config({"features": {"r1": 0.8, "r2": 0.3}, "tiling": {"halo": 2.0}})
     assert cfg.features.radius2 == 0.3 and cfg.halo == 2.0
 
@@ -183,8 +185,8 @@ def test_a_single_code_or_path_is_a_list():
     ({"features": {"r1": float("inf")}}, "features.r1 must be 'auto' or a number of metres > 0, got inf"),
     ({"features": {"r1": float("nan")}}, "features.r1 must be 'auto' or a number of metres > 0, got nan"),
     ({"tiling": {"halo": 0.2}},
-     "tiling.halo 0.2 is smaller than the largest radius 0.5; use a halo >= 0.5 or leave it "
-     "unset"),
+     "tiling.halo 0.2 is smaller than the features' reach 0.555; use a halo >= 0.555 or leave "
+     "it unset"),
     ({"features": {"r1": 1.0, "r2": 1.5}}, "features.r2 must be > 0 and <= features.r1 (1.0), "
                                            "got 1.5"),
     ({"features": {"set": "enhanced"}}, "features.set must be one of the feature sets 'paper', "
@@ -326,7 +328,7 @@ def test_overrides_scalars_lists_and_nested_keys(tmp_path):
     assert cfg.data.split.axis == "y" and cfg.data.split.at == 528.0
     assert cfg.output.write_classification is True
     # derived values follow the overridden radius
-    assert cfg.features.r2 == 0.3 and cfg.halo == 1.82  # 0.6 + 2 x 0.61
+    assert cfg.features.r2 == 0.3 and cfg.halo == 2.015  # 0.665 + 2 x 0.675
 
 
 def test_later_override_wins(tmp_path):
@@ -404,7 +406,7 @@ def test_dump_load_round_trip(tmp_path, monkeypatch):
         "output.format=las",
     ])
     text = dump_config(cfg)
-    assert "r2: 0.15" in text and "halo: 0.92" in text  # derived values written out
+    assert "r2: 0.15" in text and "halo: 1.019" in text  # derived values written out
     saved = tmp_path / "elsewhere" / "config.yaml"
     saved.parent.mkdir()
     saved.write_text(text)
@@ -428,7 +430,7 @@ def test_auto_chunk_size_round_trips(tmp_path):
 )
 def test_dump_load_round_trip_property(r1, extra_halo, chunk, stages, fraction, seed):
     cfg = validate_config({
-        "tiling": {"chunk_size": chunk, "halo": r1 + extra_halo},
+        "tiling": {"chunk_size": chunk, "halo": capped_halo(r1) + extra_halo},
         "features": {"r1": r1},
         "cascade": {"stages": stages, "max_features": fraction, "seed": seed},
     })
@@ -506,7 +508,7 @@ def test_unset_halo_follows_r1_into_ingest():
     b = validate_config({"features": {"r1": 0.6}})
     assert fingerprint(a, "ingest") != fingerprint(b, "ingest")
     # the same halo written out or left to its default is the same ingest
-    c = validate_config({"features": {"r1": 0.5}, "tiling": {"halo": 1.52}})
+    c = validate_config({"features": {"r1": 0.5}, "tiling": {"halo": 1.685}})
     assert all(fingerprint(a, step) == fingerprint(c, step) for step in STEPS)
 
 

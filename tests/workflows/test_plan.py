@@ -13,16 +13,16 @@ def test_plan_prints_scenes_grid_and_estimates_and_writes_nothing(tmp_path, surv
     result = CliRunner().invoke(main, ["plan", str(config), "--picture", str(picture)])
     assert result.exit_code == 0, result.output
     lines = result.output.splitlines()
-    assert lines[0].startswith("features: set paper (11 columns), r1 0.5 m, halo 1.01 m")
+    assert lines[0].startswith("features: set paper (11 columns), r1 0.5 m, halo 1.12 m")
     scenes = [line for line in lines if line.startswith("scene ")]
     assert [s.split(":")[0] for s in scenes] == ["scene train", "scene test"]
     assert all("4 tiles" in s and "chunks of 5 m, a 3 x 3 grid" in s for s in scenes)
     # 5 m squares: their borders hold too many points for the one pass (keep_features auto)
-    assert all("halo 0.5 m (stage by stage)" in s for s in scenes)
+    assert all("halo 0.555 m (stage by stage)" in s for s in scenes)
     one_chunk = CliRunner().invoke(main, ["plan", str(config), "--set",
                                           "tiling.chunk_size=100"]).output.splitlines()
     assert [line.split("; ")[1] for line in one_chunk if line.startswith("scene ")] == [
-        "halo 0.5 m (stage by stage)", "halo 1.01 m (one pass)"]
+        "halo 0.555 m (stage by stage)", "halo 1.12 m (one pass)"]
     assert any(line.startswith("memory: about ") for line in lines)
     assert any(line.startswith("time: about ") for line in lines)
     assert picture.stat().st_size > 5_000 and sorted(p.name for p in tmp_path.iterdir()) == [

@@ -595,7 +595,7 @@ class SilvaConfig(Section):
         if halo is None:
             object.__setattr__(self, "tiling", self.tiling.model_copy(update={"halo": self.halo}))
         elif halo < largest:
-            raise fail(f"tiling.halo {show(halo)} is smaller than the largest radius "
+            raise fail(f"tiling.halo {show(halo)} is smaller than the features' reach "
                        f"{show(largest)}; use a halo >= {show(largest)} or leave it unset")
         return self
 
