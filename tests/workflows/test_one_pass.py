@@ -152,7 +152,7 @@ def test_the_default_set_in_one_pass_over_many_chunks_equals_one_stored_chunk(su
 
 def test_auto_leaves_scenes_of_small_chunks_to_the_stored_features(survey, tmp_path):
     """keep_features auto: a scene gets the halo of the one pass unless the borders of its
-    chunks hold more than a tenth of its points; false and true decide alone; the train
+    chunks hold more than an eighth of its points; false and true decide alone; the train
     scene never gets it. The halo then decides which scenes go in one pass."""
     def planned(keep, size):
         cfg = load_config(write_config(tmp_path / "c.yaml", survey, tiling={"chunk_size": size},

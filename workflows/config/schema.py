@@ -510,7 +510,7 @@ class OutputConfig(Section):
         "features of every scene in store.zarr, so that a rerun with other cascade "
         "settings, or another model applied to the same output, reuses them (silva sweep "
         "sets it). auto: false, except for a scene whose chunks are so small that the one "
-        "pass would compute more than a tenth of its points twice (their borders). "
+        "pass would compute more than an eighth of its points twice (their borders). "
         "Exported feature columns (output.feature_dims) keep them too. Changing it in an "
         "output directory ingests again: each scene's halo follows it.",
     )
