@@ -190,7 +190,11 @@ def _chunk_step(fn, store_path, scene, chunk, step, fingerprint, params):
     """
     view = ChunkView(store_path, scene, chunk, create=step in ASSEMBLING)
     if step is not None and is_done(view.group, step, fingerprint):
-        return view.group.attrs.get("results", {}).get(step)
+        stored = view.group.attrs.get("results", {})
+        if step in stored and stored[step] is not None:
+            return stored[step]
+        # a done-mark without its summary: run the step again (the same outputs), rather
+        # than hand the coordinator nothing
     result = fn(view, params)
     if step is not None:
         results = {**view.group.attrs.get("results", {}), step: result}

@@ -382,3 +382,25 @@ def test_corrupt_root_store_metadata_is_one_line(tmp_path, survey):
     for args in (("status", out), ("ingest", config, "--out", out, "-q", "--in-process")):
         line = error_line(silva(*args))
         assert f"store {out / 'store.zarr'} is damaged" in line and "--overwrite" in line
+
+
+def test_a_done_mark_without_its_summary_runs_the_step_again(tmp_path, survey):
+    """A chunk marked done whose stored summary is missing: the step runs again for it (the
+    same outputs) instead of handing the coordinator nothing."""
+    from pipeline.store import chunk_path, open_store
+
+    config = write_config(tmp_path / "c.yaml", survey,
+                          cascade={"n_estimators": 4, "max_train_points": 3000})
+    out = tmp_path / "out"
+    assert silva("run", config, "--out", out, "--in-process", "-q").exit_code == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    root = open_store(out / "store.zarr")
+    chunk = root.attrs["layout"]["scenes"]["train"]["chunks"][0]
+    group = root[chunk_path("train", chunk)]
+    assert "features" in group.attrs["done"]
+    group.update_attributes({"results": {k: v for k, v in group.attrs["results"].items()
+                                         if k != "features"}})
+    result = silva("run", config, "--out", out, "--in-process", "-q")
+    assert result.exit_code == 0, result.output
+    assert "features" in root[chunk_path("train", chunk)].attrs["results"]
+    assert json.loads((out / "metrics.json").read_text()) == metrics
