@@ -191,7 +191,7 @@ def _chunk_step(fn, store_path, scene, chunk, step, fingerprint, params):
     view = ChunkView(store_path, scene, chunk, create=step in ASSEMBLING)
     if step is not None and is_done(view.group, step, fingerprint):
         stored = view.group.attrs.get("results", {})
-        if step in stored and stored[step] is not None:
+        if step in stored:  # None too: the summary of a step that returns nothing
             return stored[step]
         # a done-mark without its summary: run the step again (the same outputs), rather
         # than hand the coordinator nothing
