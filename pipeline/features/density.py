@@ -23,7 +23,7 @@ import math
 import numpy as np
 
 from pipeline.features.neighbors import _check_cloud, _check_ids
-from pipeline.features.voxel import halo, voxel_keys
+from pipeline.features.voxel import halo, voxel_runs
 
 #: Points of one voxel that may take part in other points' neighbourhoods.
 VOXEL_CAP = 64
@@ -54,17 +54,15 @@ def neighbourhood_members(xyz, ids, radius) -> np.ndarray | None:
     ids = _check_ids(ids, len(xyz))
     if len(xyz) <= VOXEL_CAP:
         return None
-    keys = voxel_keys(xyz, cap_voxel(radius))
-    # voxel by voxel, ids ascending within a voxel (ties by row: lexsort is stable)
-    order = np.lexsort((ids, keys[:, 2], keys[:, 1], keys[:, 0]))
-    sorted_keys = keys[order]
-    start = np.empty(len(order), dtype=bool)
-    start[0] = True
-    np.any(sorted_keys[1:] != sorted_keys[:-1], axis=1, out=start[1:])
-    first = np.flatnonzero(start)
-    if np.diff(np.append(first, len(order))).max() <= VOXEL_CAP:
+    order, boundary = voxel_runs(xyz, cap_voxel(radius))
+    run = np.cumsum(boundary) - 1
+    if np.bincount(run).max() <= VOXEL_CAP:  # the usual case: nothing piles up
         return None
-    rank = np.arange(len(order)) - np.repeat(first, np.diff(np.append(first, len(order))))
+    # voxel by voxel, ids ascending within a voxel (ties by row: rows ascend in a run and
+    # lexsort is stable); a point's rank is its place in its voxel's run
+    order = order[np.lexsort((ids[order], run))]
+    first = np.flatnonzero(boundary)
+    rank = np.arange(len(order)) - first[run]
     members = np.empty(len(order), dtype=bool)
     members[order] = rank < VOXEL_CAP
     return members

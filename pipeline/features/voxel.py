@@ -124,13 +124,11 @@ def _pick(order, boundary, ids, rep_of_run, rep_of_point):
             start = k
 
 
-def _representatives(xyz, ids, voxel) -> tuple[np.ndarray, np.ndarray]:
-    """(representative rows in voxel order, representative row of every point)."""
-    xyz = _check_cloud(xyz)
-    ids = _check_ids(ids, len(xyz))
+def voxel_runs(xyz, voxel) -> tuple[np.ndarray, np.ndarray]:
+    """The points of float64 (N, 3) ``xyz``, N >= 1, grouped by voxel: ``order`` int64 (N,)
+    rows sorted by voxel (rows ascending within one), and ``boundary`` bool (N,), True
+    where a voxel's run starts in ``order``."""
     n = len(xyz)
-    if n == 0:
-        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
     keys = voxel_keys(xyz, voxel)
     linear = _linear_keys(keys)
     if linear is not None:
@@ -145,7 +143,17 @@ def _representatives(xyz, ids, voxel) -> tuple[np.ndarray, np.ndarray]:
         boundary = np.empty(n, dtype=np.bool_)
         boundary[0] = True
         np.any(sorted_keys[1:] != sorted_keys[:-1], axis=1, out=boundary[1:])
-    order = order.astype(np.int64)
+    return order.astype(np.int64), boundary
+
+
+def _representatives(xyz, ids, voxel) -> tuple[np.ndarray, np.ndarray]:
+    """(representative rows in voxel order, representative row of every point)."""
+    xyz = _check_cloud(xyz)
+    ids = _check_ids(ids, len(xyz))
+    n = len(xyz)
+    if n == 0:
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+    order, boundary = voxel_runs(xyz, voxel)
     rep_of_run = np.empty(int(boundary.sum()), dtype=np.int64)
     rep_of_point = np.empty(n, dtype=np.int64)
     _pick(order, boundary, ids, rep_of_run, rep_of_point)
