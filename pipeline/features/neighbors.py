@@ -319,7 +319,8 @@ def _sphere_sums_block(
                     f0, n0 = _far_near(box[k, 0], box[k, 1], xq)
                     f1, n1 = _far_near(box[k, 2], box[k, 3], yq)
                     f2, n2 = _far_near(box[k, 4], box[k, 5], zq)
-                    if n0 * n0 + n1 * n1 + n2 * n2 > r2:
+                    near = n0 * n0 + n1 * n1 + n2 * n2
+                    if near > r2:
                         continue
                     far = f0 * f0 + f1 * f1 + f2 * f2
                     if far <= r2_inner:
@@ -327,7 +328,7 @@ def _sphere_sums_block(
                             out[b, c] += cell_sums[k, c]
                             out[b, n_classes + c] += cell_sums[k, c]
                         continue
-                    if far <= r2 and n0 * n0 + n1 * n1 + n2 * n2 > r2_inner:
+                    if far <= r2 and near > r2_inner:
                         for c in range(n_classes):
                             out[b, c] += cell_sums[k, c]
                         continue
