@@ -20,6 +20,7 @@ import numpy as np
 
 from pipeline.cascade.stage import predict_stage_proba, stage_context, stage_input
 from pipeline.features.density import capped_halo
+from pipeline.tiling import box_distance
 
 #: Metres added to every context radius: distances computed in floating point may exceed
 #: the exact ones by far less than this, so a ring never misses a neighbour it needs.
@@ -32,16 +33,6 @@ def one_pass_halo(feature_reach: float, r1: float, stages: int) -> float:
     if stages <= 1:
         return feature_reach
     return round(feature_reach + (stages - 1) * (capped_halo(r1) + 2 * SLACK), 6)
-
-
-def box_distance(xy: np.ndarray, box) -> np.ndarray:
-    """float64 (n,) distance of each point from the chunk's box (xmin, ymin, xmax, ymax)
-    along the farther axis: the distance by which the box must grow to hold the point, the
-    measure the halo is cut by. Zero inside; a box may be open (infinite) outwards."""
-    x0, y0, x1, y1 = box
-    dx = np.maximum(np.maximum(x0 - xy[:, 0], xy[:, 0] - x1), 0.0)
-    dy = np.maximum(np.maximum(y0 - xy[:, 1], xy[:, 1] - y1), 0.0)
-    return np.maximum(dx, dy)
 
 
 def stage_rows(xy: np.ndarray, n_core: int, box, r1: float, stages: int) -> list[np.ndarray]:

@@ -37,7 +37,7 @@ from pipeline.features.local import PLANES, local_surface
 from pipeline.features.voxel import halo as voxel_halo
 from pipeline.features.voxel import representative_of
 from pipeline.terrain import TerrainParams, ground_elevation, terrain_model
-from pipeline.tiling import series_ceil
+from pipeline.tiling import box_distance, series_ceil
 
 SURFACE_SIZE_NAMES = ("log_neighbors", "log_area")
 #: The height features the rich sets keep. The column's extent and the height below its top
@@ -214,9 +214,29 @@ def _combine(name: str, params: FeatureParams, *parts, uses_ground: bool = False
     reach = max(r for _, r, _ in parts)
 
     def compute(xyz, query, ids, ground):
-        return np.hstack([describe(xyz, query, ids, ground) for _, _, describe in parts])
+        # each part sees only the points within its own reach of the queries' box: a
+        # chunk's halo is as wide as the farthest-reaching part, and the structures of the
+        # others (voxels, grids) need not cover it
+        distance = (box_distance(xyz[:, :2], query_box(xyz[query, :2])) if len(query)
+                    else np.zeros(len(xyz)))
+        blocks = []
+        for _, part_reach, describe in parts:
+            rows = np.flatnonzero(distance <= part_reach)
+            if len(rows) == len(xyz):
+                blocks.append(describe(xyz, query, ids, ground))
+            else:
+                blocks.append(describe(xyz[rows], np.searchsorted(rows, query), ids[rows],
+                                       None if ground is None else ground[rows]))
+        return np.hstack(blocks)
 
     return FeatureSet(name, columns, reach, compute, uses_ground, params.terrain)
+
+
+def query_box(xy: np.ndarray) -> tuple[float, float, float, float]:
+    """The XY box (xmin, ymin, xmax, ymax) of the query points ``xy``: every point within
+    distance d of one of them lies within d of it (:func:`pipeline.tiling.box_distance`)."""
+    (x0, y0), (x1, y1) = xy.min(axis=0), xy.max(axis=0)
+    return (float(x0), float(y0), float(x1), float(y1))
 
 
 def scene_ground(xyz: np.ndarray, terrain: TerrainParams) -> np.ndarray:

@@ -1,5 +1,5 @@
-"""A regular XY grid of square chunks, sized from header statistics; global point ids and
-the readable size series both layouts round to."""
+"""A regular XY grid of square chunks, sized from header statistics; global point ids, the
+readable size series both layouts round to, and the distance a halo is cut by."""
 
 import math
 from dataclasses import asdict, dataclass, fields
@@ -119,6 +119,16 @@ def auto_chunk_size(
     side = window - 2 * halo
     exact = series_floor(side) if side > 0 else 0.0
     return max(lower, min(exact, upper))
+
+
+def box_distance(xy: np.ndarray, box) -> np.ndarray:
+    """float64 (n,) distance of each point from a box (xmin, ymin, xmax, ymax) along the
+    farther axis: the distance by which the box must grow to hold the point, the measure a
+    chunk's halo is cut by. Zero inside; a box may be open (infinite) outwards."""
+    x0, y0, x1, y1 = box
+    dx = np.maximum(np.maximum(x0 - xy[:, 0], xy[:, 0] - x1), 0.0)
+    dy = np.maximum(np.maximum(y0 - xy[:, 1], xy[:, 1] - y1), 0.0)
+    return np.maximum(dx, dy)
 
 
 def is_integer(value) -> bool:

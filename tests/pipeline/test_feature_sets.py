@@ -39,6 +39,16 @@ def test_a_chunk_with_its_reach_equals_the_whole_cloud(plot, params):
     np.testing.assert_array_equal(chunk[order], whole[np.argsort(ids[core])])
 
 
+def test_the_features_of_a_few_points_are_those_they_have_among_all(plot):
+    """A set computes each part on the points within that part's reach of the queries:
+    the features of a corner are those it gets when every point is a query (no crop)."""
+    xyz, ids = plot
+    fs = feature_set(PARAMS[-1])
+    corner = np.flatnonzero((xyz[:, 0] < xyz[:, 0].min() + 2.5)
+                            & (xyz[:, 1] < xyz[:, 1].min() + 2.5))
+    np.testing.assert_array_equal(fs(xyz, corner, ids), fs(xyz, None, ids)[corner])
+
+
 def test_columns_are_named_and_the_rich_sets_extend_the_paper():
     paper, cov, default = (feature_set(FeatureParams(set=s)) for s in FEATURE_SETS)
     assert len(paper.columns) == 11 and paper.columns[0] == "I2_22"

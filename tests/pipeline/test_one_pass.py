@@ -8,9 +8,10 @@ from scipy.spatial import cKDTree
 from sklearn.ensemble import RandomForestClassifier
 
 from pipeline.cascade import one_pass, one_pass_halo, predict_stage_proba, stage_context
-from pipeline.cascade.one_pass import box_distance, stage_rows
+from pipeline.cascade.one_pass import stage_rows
 from pipeline.cascade.stage import stage_input
 from pipeline.features.density import capped_halo
+from pipeline.tiling import box_distance
 
 R1, R2, REACH, N_CLASSES = 0.6, 0.3, 0.9, 3
 
