@@ -10,6 +10,7 @@ exports) should use.
 import io
 
 import matplotlib
+import matplotlib.colors
 import matplotlib.ticker
 import numpy as np
 from matplotlib.figure import Figure
@@ -59,6 +60,13 @@ STYLE = {
 def class_colour(i: int) -> str:
     """The colour ('#RRGGBB') of class index ``i``; the palette repeats after 12 classes."""
     return CLASS_COLOURS[int(i) % len(CLASS_COLOURS)]
+
+
+def class_colours(labels: np.ndarray, n_classes: int) -> np.ndarray:
+    """float (N, 4) RGBA of class indices ``labels``: a scatter of many points parses
+    colours given as numbers at once, and '#RRGGBB' strings one by one."""
+    palette = matplotlib.colors.to_rgba_array([class_colour(i) for i in range(n_classes)])
+    return palette[np.asarray(labels, dtype=np.int64)]
 
 
 def format_score(value: float) -> str:
@@ -227,8 +235,7 @@ def topdown_figure(topdown: dict) -> Figure:
         # Marker area (pt^2) about the map area per point, so the cover looks continuous.
         per_point = width * height * 72 * 72 / max(x.size, 1)
         size = float(np.clip(2.5 * per_point, 0.05, 30.0))
-        palette = np.array([class_colour(i) for i in range(len(names))])
-        ax.scatter(x, y, c=palette[label] if x.size else [], s=size, marker="s",
+        ax.scatter(x, y, c=class_colours(label, len(names)) if x.size else [], s=size, marker="s",
                    linewidths=0, rasterized=True)
         ax.set_aspect("equal")
         ax.ticklabel_format(useOffset=False, style="plain")

@@ -11,7 +11,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
 from workflows.report.figures import (
-    DPI, STYLE, _mpl_text, class_colour, png_bytes, terrain_figure, topdown_figure,
+    DPI, STYLE, _mpl_text, class_colour, class_colours, png_bytes, terrain_figure, topdown_figure,
 )
 from pipeline.atomic import atomic_path, atomic_write_bytes
 from workflows.report.html import CSS, _escape, _format_value
@@ -40,8 +40,8 @@ def profile_figure(survey: dict) -> Figure:
             ax = fig.add_subplot(len(scenes), 1, row + 1)
             along, height, label = data["profile"]
             order = np.random.default_rng(0).permutation(len(label))
-            palette = np.array([class_colour(i) for i in range(len(names))])
-            ax.scatter(along[order], height[order], c=palette[label[order]] if len(label) else [],
+            ax.scatter(along[order], height[order],
+                       c=class_colours(label[order], len(names)) if len(label) else [],
                        s=1.5, linewidths=0, rasterized=True)
             ax.ticklabel_format(useOffset=False, style="plain")
             ax.set_xlabel(f"{data['profile_axis']} (map units)")
