@@ -23,6 +23,7 @@ from workflows.report import (
     topdown_figure,
     write_report,
 )
+from workflows.report.figures import draw_points
 
 NAMES = ["terrain", "tree", "dead_wood", "misc"]
 IMG = re.compile(r'<img src="data:image/png;base64,([A-Za-z0-9+/=]+)"')
@@ -246,6 +247,24 @@ def test_class_colours_are_stable_and_used_on_the_map():
     assert share_of(class_colour(2)) > 0.08
     assert share_of(class_colour(2)) > 20 * max(share_of(class_colour(0)),
                                                 share_of(class_colour(1)))
+
+
+def test_points_drawn_as_an_image_show_the_last_point_of_each_cell():
+    from matplotlib.figure import Figure
+
+    ax = Figure().add_subplot()
+    red, blue = matplotlib.colors.to_rgba("red"), matplotlib.colors.to_rgba("blue")
+    # two points share the cell at the origin (blue drawn last); one is alone at (2, 1)
+    draw_points(ax, [0.0, 0.1, 2.0], [0.0, 0.2, 1.0], [red, blue, red], 0.5)
+    image = ax.get_images()[0]
+    pixels = np.asarray(image.get_array())
+    assert pixels.shape == (3, 5, 4)  # cells of 0.5 from (-0.25, -0.25) to (2.25, 1.25)
+    np.testing.assert_allclose(pixels[0, 0], blue)
+    np.testing.assert_allclose(pixels[2, 4], red)
+    assert np.count_nonzero(pixels[..., 3]) == 2  # transparent where no point is
+    np.testing.assert_allclose(image.get_extent(), (-0.25, 2.25, -0.25, 1.25))
+    x0, x1 = ax.get_xlim()
+    assert x0 < -0.25 and x1 > 2.25  # a scatter's margins around the points
 
 
 def test_topdown_rejects_labels_outside_the_classes():

@@ -8,8 +8,10 @@ exports) should use.
 """
 
 import io
+import math
 
 import matplotlib
+import matplotlib.cm
 import matplotlib.colors
 import matplotlib.ticker
 import numpy as np
@@ -67,6 +69,38 @@ def class_colours(labels: np.ndarray, n_classes: int) -> np.ndarray:
     colours given as numbers at once, and '#RRGGBB' strings one by one."""
     palette = matplotlib.colors.to_rgba_array([class_colour(i) for i in range(n_classes)])
     return palette[np.asarray(labels, dtype=np.int64)]
+
+
+def marker_side(size: float, data_per_inch: float) -> float:
+    """The side in data units of a square marker of ``size`` pt² (as a scatter's ``s``),
+    at least one pixel, on axes showing ``data_per_inch`` data units per inch."""
+    return max(math.sqrt(size) / 72.0, 1.0 / DPI) * data_per_inch
+
+
+def draw_points(ax, x, y, rgba, side, **imshow) -> None:
+    """Draw points as square markers of ``side`` data units (or (side x, side y)), each
+    cell of that side in the colour of the last point in it, as one image: the same
+    picture as a scatter of square markers, which Agg draws in a good part of a second
+    for 10^5 points, and an image in milliseconds. ``imshow``: more imshow arguments
+    (e.g. aspect="auto")."""
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    if x.size == 0:
+        return
+    sx, sy = np.broadcast_to(np.asarray(side, dtype=np.float64), (2,))
+    x0, y0 = x.min() - sx / 2, y.min() - sy / 2
+    i = ((x - x0) / sx).astype(np.int64)
+    j = ((y - y0) / sy).astype(np.int64)
+    nx, ny = int(i.max()) + 1, int(j.max()) + 1
+    cell = j * nx + i
+    _, from_end = np.unique(cell[::-1], return_index=True)
+    last = x.size - 1 - from_end  # the last point of each occupied cell is drawn on top
+    image = np.zeros((ny * nx, 4), dtype=np.float32)  # transparent where no point is
+    image[cell[last]] = np.asarray(rgba, dtype=np.float32)[last]
+    drawn = ax.imshow(image.reshape(ny, nx, 4), origin="lower", interpolation="nearest",
+                      extent=(x0, x0 + nx * sx, y0, y0 + ny * sy), **imshow)
+    drawn.sticky_edges.x.clear()  # the axes keep a scatter's margins around the points
+    drawn.sticky_edges.y.clear()
+    ax.autoscale_view()
 
 
 def format_score(value: float) -> str:
@@ -235,8 +269,8 @@ def topdown_figure(topdown: dict) -> Figure:
         # Marker area (pt^2) about the map area per point, so the cover looks continuous.
         per_point = width * height * 72 * 72 / max(x.size, 1)
         size = float(np.clip(2.5 * per_point, 0.05, 30.0))
-        ax.scatter(x, y, c=class_colours(label, len(names)) if x.size else [], s=size, marker="s",
-                   linewidths=0, rasterized=True)
+        side = marker_side(size, max(span_x / width, span_y / height))
+        draw_points(ax, x, y, class_colours(label, len(names)), side)
         ax.set_aspect("equal")
         ax.ticklabel_format(useOffset=False, style="plain")
         ax.set_xlabel("x (map units)")
@@ -349,13 +383,17 @@ def terrain_figure(terrain: dict) -> Figure:
             x, y = np.asarray(entry["x"]), np.asarray(entry["y"])
             height = np.asarray(entry["height"], dtype=np.float64)
             order = np.argsort(height, kind="stable")  # the tallest drawn last, on top
-            dots = ax.scatter(x[order], y[order], c=height[order], s=1.0, marker="s",
-                              cmap="viridis", vmin=0, linewidths=0, rasterized=True)
+            colours = matplotlib.cm.ScalarMappable(
+                matplotlib.colors.Normalize(vmin=0, vmax=max(height.max(initial=0), 1e-9)),
+                "viridis")
+            panel = 4.5  # inches: about the width of this axes
+            side = marker_side(1.0, max(extent[1] - extent[0], extent[3] - extent[2]) / panel)
+            draw_points(ax, x[order], y[order], colours.to_rgba(height[order]), side)
             ax.set_xlim(extent[0], extent[1])
             ax.set_ylim(extent[2], extent[3])
             ax.set_aspect("equal")
             ax.ticklabel_format(useOffset=False, style="plain")
             ax.set_title(f"canopy height above the terrain ({x.size:,} sampled points)")
-            fig.colorbar(dots, ax=ax, label="m above ground", shrink=0.8)
+            fig.colorbar(colours, ax=ax, label="m above ground", shrink=0.8)
         fig.tight_layout()
     return fig

@@ -6,14 +6,16 @@ import base64
 from pathlib import Path
 
 import matplotlib
+import matplotlib.colors
 import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
-from workflows.report.figures import (
-    DPI, STYLE, _mpl_text, class_colour, class_colours, png_bytes, terrain_figure, topdown_figure,
-)
 from pipeline.atomic import atomic_path, atomic_write_bytes
+from workflows.report.figures import (
+    DPI, STYLE, _mpl_text, class_colour, class_colours, draw_points, marker_side, png_bytes,
+    terrain_figure, topdown_figure,
+)
 from workflows.report.html import CSS, _escape, _format_value
 
 CAPTIONS = {
@@ -40,9 +42,10 @@ def profile_figure(survey: dict) -> Figure:
             ax = fig.add_subplot(len(scenes), 1, row + 1)
             along, height, label = data["profile"]
             order = np.random.default_rng(0).permutation(len(label))
-            ax.scatter(along[order], height[order],
-                       c=class_colours(label[order], len(names)) if len(label) else [],
-                       s=1.5, linewidths=0, rasterized=True)
+            spans = [np.ptp(v) if len(v) else 1.0 for v in (along, height)]
+            draw_points(ax, along[order], height[order], class_colours(label[order], len(names)),
+                        (marker_side(1.5, spans[0] / 9.0), marker_side(1.5, spans[1] / 2.2)),
+                        aspect="auto")
             ax.ticklabel_format(useOffset=False, style="plain")
             ax.set_xlabel(f"{data['profile_axis']} (map units)")
             ax.set_ylabel("m above ground")
@@ -62,10 +65,12 @@ def uncertain_figure(survey: dict) -> Figure:
             ax = fig.add_subplot(len(scenes), 1, row + 1)
             x, y, _, _, confidence = data["map"]
             uncertain = confidence < low
-            ax.scatter(x[~uncertain], y[~uncertain], c="#D0D4D8", s=0.6, linewidths=0,
-                       rasterized=True)
-            ax.scatter(x[uncertain], y[uncertain], c="#CF222E", s=1.2, linewidths=0,
-                       rasterized=True)
+            per_inch = max(np.ptp(x), np.ptp(y) * 7.0 / 6.0) / 6.5 if len(x) else 1.0
+            for chosen, colour, size in ((~uncertain, "#D0D4D8", 0.6),
+                                         (uncertain, "#CF222E", 1.2)):  # uncertain on top
+                draw_points(ax, x[chosen], y[chosen],
+                            np.tile(matplotlib.colors.to_rgba(colour), (chosen.sum(), 1)),
+                            marker_side(size, per_inch))
             ax.set_aspect("equal")
             ax.ticklabel_format(useOffset=False, style="plain")
             share = uncertain.mean() if len(x) else 0.0
