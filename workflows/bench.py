@@ -12,9 +12,10 @@
   resident memory of a worker.
 
 Both print a table; with ``--json`` the last line of stdout is one JSON object with every
-figure. Timings are best-of-``--repeat`` wall times for the kernels and one run each for the
-pipeline (a whole run is long; rerun the command to see the spread). The numba kernels are
-compiled (or loaded) before anything is timed.
+figure. Timings are best-of-``--repeat`` wall times for the kernels; for the pipeline, the
+medians of ``--repeat`` rounds in which the kinds of run take turns, each ratio (speed-up,
+chunk overhead) taken within a round, so that a drift of the machine's speed hits both of
+its runs. The numba kernels are compiled (or loaded) before anything is timed.
 """
 
 from __future__ import annotations
@@ -385,8 +386,9 @@ ONE_CHUNK = ("tiling.chunk_size=auto", "tiling.layout=balanced",
 
 
 def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(), *,
-                   quiet: bool = False) -> dict:
-    """Time the runs of ``config`` (see module); return the figures."""
+                   quiet: bool = False, repeat: int = 1) -> dict:
+    """Time the runs of ``config`` (see module) ``repeat`` times, the kinds of run taking
+    turns; return the figures: medians over the rounds, each ratio taken within a round."""
     from workflows.cluster import open_client
     from workflows.commands import prepare_kernels
     from workflows.config import load_config
@@ -395,64 +397,97 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
     cfg = load_config(config, overrides)  # a bad config or a missing input: now, not later
     read_paths(cfg, config, model)
     params = Run(cfg, Path("."), quiet=True).features
+    # (label, workers, extra overrides), grouped by cluster: the 1-worker runs share one
+    plan = {1: [("1 worker", ()), ("1 worker, one chunk per scene", ONE_CHUNK)]}
+    if workers > 1:
+        plan[workers] = [(f"{workers} workers", ())]
+    rounds, peaks = [], []
     with prepare_kernels(quiet, params) as kernels:
-        # (label, workers, extra overrides), grouped by cluster: the 1-worker runs share one
-        plan = {1: [("1 worker", ()), ("1 worker, one chunk per scene", ONE_CHUNK)]}
-        if workers > 1:
-            plan[workers] = [(f"{workers} workers", ())]
-        runs, peaks = {}, []
         work = Path(tempfile.mkdtemp(prefix="silva-bench-"))
         try:
-            for n, items in plan.items():
-                cluster = load_config(config, [
-                    *overrides, "cluster.kind=local", f"cluster.n_workers={n}",
-                    "cluster.threads_per_worker=1", "cluster.dashboard=false"]).cluster
-                with open_client(cluster, quiet=True, local_directory=work / "dask") as client:
-                    kernels.wait()  # compiled while the cluster started
-                    client.run(prime_worker, kernels.groups)
-                    pids = _worker_pids(client)
-                    for label, extra in items:
-                        say(f"run on {label}", quiet=quiet)
-                        with RssSampler(pids) as memory:
-                            runs[label] = summary = one_run(
-                                config, [*overrides, *extra], work / f"run{len(runs)}", model,
-                                client)
-                        summary["cpu_seconds"] = memory.cpu_seconds
-                        peaks += memory.peaks.values()
-                        say(f"  {summary['points']:,} points, {summary['chunks']} chunks: "
-                            f"{summary['seconds']:.1f} s, workers' CPU "
-                            f"{summary['cpu_seconds']:.1f} s", quiet=quiet)
+            for turn in range(repeat):
+                runs = {}
+                for n, items in plan.items():
+                    cluster = load_config(config, [
+                        *overrides, "cluster.kind=local", f"cluster.n_workers={n}",
+                        "cluster.threads_per_worker=1", "cluster.dashboard=false"]).cluster
+                    with open_client(cluster, quiet=True, local_directory=work / "dask") as client:
+                        kernels.wait()  # compiled while the cluster started
+                        client.run(prime_worker, kernels.groups)
+                        pids = _worker_pids(client)
+                        for label, extra in items:
+                            say(f"run on {label}" + (f" (round {turn + 1} of {repeat})"
+                                                     if repeat > 1 else ""), quiet=quiet)
+                            out = work / f"run{turn}-{len(runs)}"
+                            with RssSampler(pids) as memory:
+                                runs[label] = summary = one_run(
+                                    config, [*overrides, *extra], out, model, client)
+                            shutil.rmtree(out, ignore_errors=True)
+                            summary["cpu_seconds"] = memory.cpu_seconds
+                            peaks += memory.peaks.values()
+                            say(f"  {summary['points']:,} points, {summary['chunks']} chunks: "
+                                f"{summary['seconds']:.1f} s, workers' CPU "
+                                f"{summary['cpu_seconds']:.1f} s", quiet=quiet)
+                rounds.append(runs)
         finally:
             shutil.rmtree(work, ignore_errors=True)
-    one = runs["1 worker"]
-    many = runs[f"{workers} workers"] if workers > 1 else one
-    single = runs["1 worker, one chunk per scene"]
-    points = one["points"]
+    return _pipeline_figures(config, model, workers, rounds, peaks)
+
+
+def _pipeline_figures(config, model, workers: int, rounds: list[dict], peaks: list) -> dict:
+    """The figures of :func:`bench_pipeline` from its rounds of runs {label: summary}."""
+    import numpy as np
+
+    labels = list(rounds[0])
+    one_label, single_label = labels[0], labels[1]
+    many_label = labels[2] if workers > 1 else one_label
+
+    def median(values):
+        return float(np.median(values))
+
+    def per_round(fn):
+        return [fn(r) for r in rounds]
+
+    seconds = {label: median(per_round(lambda r: r[label]["seconds"])) for label in labels}
+    cpu = {label: median(per_round(lambda r: r[label]["cpu_seconds"])) for label in labels}
+    first = rounds[0]
+    points = first[one_label]["points"]
+    speedups = per_round(lambda r: r[one_label]["seconds"] / r[many_label]["seconds"])
+    overheads = per_round(lambda r: r[one_label]["seconds"] / r[single_label]["seconds"] - 1)
+    many = seconds[many_label]
     result = {
         "config": str(config), "model": None if model is None else str(model),
-        "points": points, "workers": workers, "chunks": many["chunks"],
-        "chunks_one_chunk_run": single["chunks"],
-        "seconds": round(many["seconds"], 2),
-        "seconds_one_worker": round(one["seconds"], 2),
-        "seconds_one_chunk": round(single["seconds"], 2),
-        "points_per_s": round(points / many["seconds"], 1),
-        "points_per_s_per_worker": round(points / many["seconds"] / workers, 1),
-        "points_per_s_one_worker": round(points / one["seconds"], 1),
-        "speedup": round(one["seconds"] / many["seconds"], 3),
-        "chunk_overhead": round(one["seconds"] / single["seconds"] - 1, 3),
-        "worker_cpu_seconds": {label: round(r["cpu_seconds"], 2) for label, r in runs.items()},
-        "points_per_worker_cpu_s": round(points / max(many["cpu_seconds"], 1e-9), 1),
-        "chunk_overhead_cpu": round(one["cpu_seconds"] / max(single["cpu_seconds"], 1e-9) - 1,
-                                    3),
+        "points": points, "workers": workers, "rounds": len(rounds),
+        "chunks": first[many_label]["chunks"],
+        "chunks_one_chunk_run": first[single_label]["chunks"],
+        "seconds": round(many, 2),
+        "seconds_one_worker": round(seconds[one_label], 2),
+        "seconds_one_chunk": round(seconds[single_label], 2),
+        "seconds_per_round": {label: per_round(lambda r: round(r[label]["seconds"], 2))
+                              for label in labels},
+        "points_per_s": round(points / many, 1),
+        "points_per_s_per_worker": round(points / many / workers, 1),
+        "points_per_s_one_worker": round(points / seconds[one_label], 1),
+        "speedup": round(median(speedups), 3),
+        "speedup_per_round": [round(v, 3) for v in speedups],
+        "chunk_overhead": round(median(overheads), 3),
+        "chunk_overhead_per_round": [round(v, 3) for v in overheads],
+        "worker_cpu_seconds": {label: round(cpu[label], 2) for label in labels},
+        "points_per_worker_cpu_s": round(points / max(cpu[many_label], 1e-9), 1),
+        "chunk_overhead_cpu": round(median(per_round(
+            lambda r: r[one_label]["cpu_seconds"] / max(r[single_label]["cpu_seconds"], 1e-9)
+            - 1)), 3),
         "peak_rss_per_worker_mib": round(max(peaks), 1),
         "peak_rss_coordinator_mib": round(_peak_rss_mib(), 1),
-        "timings": {label: r["timings"] for label, r in runs.items()},
+        "timings": {label: {step: round(median(per_round(
+            lambda r: r[label]["timings"].get(step, 0.0))), 2)
+            for step in first[label]["timings"]} for label in labels},
     }
-    _print_runs(runs, result)
-    scenes = len(single["chunk size (m)"].split(", "))
-    if single["chunks"] > scenes:
+    _print_runs(labels, result)
+    scenes = len(first[single_label]["chunk size (m)"].split(", "))
+    if first[single_label]["chunks"] > scenes:
         click.echo(f"note: the one-chunk run still cut {scenes} scenes into "
-                   f"{single['chunks']} chunks")
+                   f"{first[single_label]['chunks']} chunks")
     return result
 
 
@@ -461,19 +496,29 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
 NO_TIME = 0.05
 
 
-def _print_runs(runs: dict, result: dict) -> None:
+def _print_runs(labels: list[str], result: dict) -> None:
+    import numpy as np
+
     points, width = result["points"], 34
+    medians = " (medians of the rounds)" if result["rounds"] > 1 else ""
     click.echo(f"{points:,} points, {result['chunks']} chunks ({result['chunks_one_chunk_run']} "
-               "in the one-chunk run); seconds and points/s per step, cluster start excluded:")
-    click.echo(f"{'step':<10}" + "".join(f"{label:>{width}}" for label in runs))
-    steps = list(dict.fromkeys(s for r in runs.values() for s in r["timings"]
-                               if r["timings"][s] >= NO_TIME))
+               f"in the one-chunk run); seconds and points/s per step, cluster start "
+               f"excluded{medians}:")
+    click.echo(f"{'step':<10}" + "".join(f"{label:>{width}}" for label in labels))
+    timings = result["timings"]
+    steps = list(dict.fromkeys(s for label in labels for s in timings[label]
+                               if timings[label][s] >= NO_TIME))
+    totals = {label: result["seconds_per_round"][label] for label in labels}
     for step in [*steps, "total"]:
-        cells = [r["seconds"] if step == "total" else r["timings"].get(step)
-                 for r in runs.values()]
+        cells = [float(np.median(totals[label])) if step == "total"
+                 else timings[label].get(step) for label in labels]
         click.echo(f"{step:<10}" + "".join(
             f"{'':>{width}}" if c is None or c < NO_TIME  # not run, or inside another step
             else f"{f'{c:.1f} s {points / c:,.0f}/s':>{width}}" for c in cells))
+    if result["rounds"] > 1:
+        click.echo("per round: speed-up " + ", ".join(
+            f"{v:.2f}x" for v in result["speedup_per_round"]) + "; chunk overhead " + ", ".join(
+            f"{100 * v:.1f} %" for v in result["chunk_overhead_per_round"]))
     click.echo(f"{result['workers']} workers: {result['points_per_s']:,.0f} points/s "
                f"({result['points_per_s_per_worker']:,.0f} per worker), "
                f"{result['speedup']:.2f}x one worker; chunk overhead "
@@ -491,20 +536,23 @@ def _print_runs(runs: dict, result: dict) -> None:
               help="Workers of the parallel run (the others run on one).")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="Override a config value, e.g. data.predict=[plot.laz] (repeatable).")
+@click.option("--repeat", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Rounds of runs, the kinds of run taking turns: the figures are medians, "
+              "each ratio taken within a round (a shared machine's speed drifts).")
 @click.option("--quiet", "-q", is_flag=True, help="No line per run on stderr.")
 @click.option("--json", "as_json", is_flag=True,
               help="Also print every figure as one JSON object, the last line of stdout.")
-def pipeline_command(config, model_dir, workers, overrides, quiet, as_json):
+def pipeline_command(config, model_dir, workers, overrides, repeat, quiet, as_json):
     """Time 'silva run' of CONFIG (with --model: its classification) end to end on 1 worker,
     on N workers and on 1 worker with one chunk per scene, each in a temporary directory.
 
     \b
     Examples:
       silva bench pipeline survey.yaml --workers 2
-      silva bench pipeline survey.yaml --model results/model --workers 2
+      silva bench pipeline survey.yaml --model results/model --workers 2 --repeat 3
     """
     if model_dir is not None and not model_dir.is_dir():
         raise MissingFileError(f"model directory {model_dir} not found; give OUT/model of a "
                                "finished run")
-    result = bench_pipeline(config, model_dir, workers, overrides, quiet=quiet)
+    result = bench_pipeline(config, model_dir, workers, overrides, quiet=quiet, repeat=repeat)
     _emit(result, as_json)

@@ -95,10 +95,17 @@ def test_bench_features_of_a_missing_file_is_one_line(tmp_path):
 def test_bench_pipeline_gives_every_figure(tiny, tmp_path):
     config = write_config(tmp_path / "tiny.yaml", tiny, tiling={"chunk_size": 3.0},
                           cascade={"stages": 1, "n_estimators": 4, "max_train_points": 2000})
-    result = silva("bench", "pipeline", config, "--workers", 1, "--json", "-q")
+    result = silva("bench", "pipeline", config, "--workers", 1, "--repeat", 2, "--json", "-q")
     figures = _last_json(result)
     assert set(PIPELINE_KEYS) <= figures.keys()
     assert figures["workers"] == 1 and figures["speedup"] == 1.0
+    # two rounds, each ratio within its round, the figures their medians
+    assert figures["rounds"] == 2
+    assert all(len(v) == 2 for v in figures["seconds_per_round"].values())
+    assert figures["chunk_overhead"] == pytest.approx(
+        np.median(figures["chunk_overhead_per_round"]), abs=2e-3)
+    assert figures["seconds_one_chunk"] == pytest.approx(
+        np.median(figures["seconds_per_round"]["1 worker, one chunk per scene"]), abs=0.01)
     assert figures["chunks"] > 1 and figures["chunks_one_chunk_run"] == 2  # train, test
     for key in PIPELINE_KEYS:
         assert _positive(figures[key]) or key == "chunk_overhead", (key, figures[key])
