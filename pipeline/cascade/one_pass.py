@@ -35,6 +35,12 @@ def one_pass_halo(feature_reach: float, r1: float, stages: int) -> float:
     return round(feature_reach + (stages - 1) * (capped_halo(r1) + 2 * SLACK), 6)
 
 
+def ring_width(r1: float, stages: int) -> float:
+    """How far beyond its core a chunk's one pass computes the first stage: one context
+    reach (plus slack) per later stage."""
+    return (stages - 1) * (capped_halo(r1) + SLACK)
+
+
 def stage_rows(xy: np.ndarray, n_core: int, box, r1: float, stages: int) -> list[np.ndarray]:
     """Rows of a chunk's window (core first, then halo) that each stage is computed for:
     the core and the halo points within (stages - 1 - t) context reaches (plus slack) of
@@ -42,7 +48,7 @@ def stage_rows(xy: np.ndarray, n_core: int, box, r1: float, stages: int) -> list
     distance = box_distance(xy[n_core:], box)
     core = np.arange(n_core, dtype=np.int64)
     return [np.concatenate([core, n_core + np.flatnonzero(
-        distance <= (stages - 1 - t) * (capped_halo(r1) + SLACK))]) if t < stages - 1 else core
+        distance <= ring_width(r1, stages - t))]) if t < stages - 1 else core
         for t in range(stages)]
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.cascade.one_pass import ring_width
 from pipeline.io import iter_points, labels_from_codes, read_info
 from pipeline.io.crs import check_same_crs
 from pipeline.errors import ConfigError, InputError, StoreError
@@ -157,7 +158,7 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
         halo = run.halo if one_pass else reach
         info = _cut_scene(run, members, halo, counts)
         if one_pass and run.cfg.output.keep_features == "auto" and border_share(
-                info, halo, (run.n_stages - 1) * run.r1) > MAX_BORDER_SHARE:
+                info, halo, ring_width(run.r1, run.n_stages)) > MAX_BORDER_SHARE:
             # the one pass would cost more than the stored features save
             one_pass, halo = False, reach
             info = _cut_scene(run, members, halo, counts)
