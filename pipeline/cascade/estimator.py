@@ -1,5 +1,7 @@
 """``CascadedForest``: the cascade as a scikit-learn estimator on clouds in memory."""
 
+import warnings
+
 import numpy as np
 from sklearn.base import BaseEstimator, ClassifierMixin
 from sklearn.utils.validation import check_is_fitted
@@ -7,6 +9,7 @@ from sklearn.utils.validation import check_is_fitted
 from pipeline.cascade.driver import CloudData, run_cascade
 from pipeline.cascade.params import CascadeParams, ForestParams, resolve_seed
 from pipeline.cascade.stage import labels_from_proba
+from pipeline.features.density import left_out, neighbourhood_members, pile_up_warning
 from pipeline.features.sets import FeatureParams, feature_set
 
 _FEATURES, _CASCADE, _FOREST = FeatureParams(), CascadeParams(), ForestParams()
@@ -109,6 +112,10 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
         if ids.shape != (len(xyz),):
             raise ValueError(f"ids must have shape ({len(xyz)},), got {ids.shape}")
         params = self.feature_params_
+        piled = left_out(neighbourhood_members(xyz, ids, params.r1))
+        if piled:  # as the workflow says it: the points are classified, the fix is the input's
+            warnings.warn(pile_up_warning(piled, len(xyz), params.r1), UserWarning,
+                          stacklevel=3)
         features = feature_set(params)(xyz, ids=ids)
         if labels is None:
             labels = np.full(len(xyz), -1, dtype=np.int64)

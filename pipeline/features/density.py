@@ -74,3 +74,12 @@ def left_out(members: np.ndarray | None, rows=None) -> int:
         return 0
     return int(np.count_nonzero(~(members if rows is None else members[rows])))
 
+
+def pile_up_warning(piled: int, checked: int, radius: float) -> str:
+    """What to tell a user of whom ``piled`` of ``checked`` points are left out of their
+    neighbours' neighbourhoods of ``radius`` (the fix: thin the input)."""
+    return (f"{piled:,} points ({100 * piled / max(checked, 1):.2g}%) are left out of their "
+            f"neighbours' features, where more than {VOXEL_CAP} points share a voxel of "
+            f"{100 * cap_voxel(radius):.2g} cm (a parked scanner, a strip flown twice?); they "
+            "are still classified. If the pile-up is an artefact, thin the input (e.g. "
+            "PDAL's filters.sample)")

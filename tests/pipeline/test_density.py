@@ -121,3 +121,16 @@ def test_a_pile_up_across_the_halo_edge_gives_the_whole_clouds_features(plot, se
     whole_context = context_features(xyz, R1, labels=labels, n_classes=3,
                                      query=np.flatnonzero(core), ids=ids)
     np.testing.assert_array_equal(chunk_context, whole_context)
+
+
+def test_the_estimator_warns_of_a_pile_up_as_the_workflow_does(plot):
+    from pipeline.cascade import CascadedForest
+
+    xyz, ids = piled(plot, plot[100], n=500)
+    labels = (xyz[:, 2] > np.median(xyz[:, 2])).astype(np.int64)
+    model = CascadedForest(stages=1, n_estimators=2, r1=R1, max_train_points=2_000,
+                           random_state=0)
+    with pytest.warns(UserWarning, match=r"[0-9,]+ points .* left out .* thin the input"):
+        model.fit(xyz, labels, ids=ids)
+    with pytest.warns(UserWarning, match="left out"):
+        assert len(model.predict(xyz, ids=ids)) == len(xyz)  # every point classified

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.cascade import id_hash
-from pipeline.features.density import VOXEL_CAP, cap_voxel, left_out, neighbourhood_members
+from pipeline.features.density import left_out, neighbourhood_members, pile_up_warning
 from pipeline.features.neighbors import RadiusIndex
 from pipeline.features.sets import FeatureParams, feature_set
 from pipeline.store import ROLE_TRAIN
@@ -93,8 +93,4 @@ def warn_neighbourhoods(run: Run, results) -> None:
     checked = sum(value.get("checked", 0) for value in results)
     piled = sum(value.get("piled", 0) for value in results)
     if piled:
-        say(f"warning: {piled:,} points ({100 * piled / checked:.2g}%) are left out of their "
-            f"neighbours' features, where more than {VOXEL_CAP} points share a voxel of "
-            f"{100 * cap_voxel(run.r1):.2g} cm (a parked scanner, a strip flown twice?); they "
-            "are still classified. If the pile-up is an artefact, thin the input (e.g. "
-            "PDAL's filters.sample)")
+        say(f"warning: {pile_up_warning(piled, checked, run.r1)}")
