@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 from sklearn.ensemble import RandomForestClassifier
 
 from pipeline.cascade import one_pass, one_pass_halo, predict_stage_proba, stage_context
-from pipeline.cascade.one_pass import stage_rows
+from pipeline.cascade.one_pass import ring_width, stage_rows
 from pipeline.cascade.stage import stage_input
 from pipeline.features.density import capped_halo
 from pipeline.tiling import box_distance
@@ -128,3 +128,7 @@ def test_one_pass_halo_adds_a_context_reach_per_later_stage():
     assert one_pass_halo(REACH, R1, 1) == REACH
     assert one_pass_halo(3.5, 0.5, 2) == pytest.approx(3.5 + reach + 0.01)
     assert one_pass_halo(3.5, 0.5, 3) == pytest.approx(3.5 + 2 * (reach + 0.01))
+    # the first stage's ring lies within the halo, with the features' reach beyond it
+    for stages in (1, 2, 3):
+        assert ring_width(0.5, stages) == pytest.approx((stages - 1) * (reach + 0.005))
+        assert one_pass_halo(3.5, 0.5, stages) >= 3.5 + ring_width(0.5, stages)
