@@ -202,12 +202,14 @@ def _kernels_of(run, steps, quiet: bool, kernels=None):
     return contextlib.nullcontext(None)
 
 
-def check_before_start(run, steps) -> list[dict]:
+def check_before_start(run, steps, in_process: bool = False) -> list[dict]:
     """Check everything a run of ``steps`` can check without workers, before its cluster
     starts and its kernels compile, so that a mistake is refused in seconds: the input globs
     and files and the tiles' headers (as ingest plans them: no file, an empty tile, the same
     tile in train and test, two tiles of one name, mixed CRS), the output point format, and
-    the saved model a run applies. Raises the error the step would raise later."""
+    the saved model a run applies, and that a local cluster's workers have the memory for
+    the largest chunk. Raises the error the step would raise later."""
+    from workflows.plan import check_memory
     from workflows.steps.cascade import check_model
     from workflows.steps.export import check_output_names, check_point_formats
     from workflows.steps.ingest import plan_tiles
@@ -218,6 +220,8 @@ def check_before_start(run, steps) -> list[dict]:
         check_output_names(run, tiles)
     if run.model_dir is not None:
         check_model(run)
+    if "features" in steps and not in_process:
+        check_memory(run, tiles)
     return tiles
 
 
@@ -275,7 +279,7 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
             if verbose:
                 click.echo(f"# resolved configuration (saved to {out / 'config.yaml'})\n"
                            f"{text}", err=True)
-            tiles = check_before_start(run, steps)  # before the cluster and the compiling
+            tiles = check_before_start(run, steps, in_process)  # before the cluster, the kernels
             weights = step_weights(run, tiles, plan_workers(run))  # the ETA counts training
             with run_progress(steps, quiet=quiet, stages=run.n_stages,
                               weights=weights) as progress, \

@@ -8,21 +8,34 @@ and the run's duration. The estimates come from rates measured on the
 minute.
 """
 
+import logging
 import math
 import os
 from pathlib import Path
 
+from dask.utils import format_bytes
+
 from pipeline.atomic import atomic_path
+from pipeline.errors import ConfigError
 from pipeline.features.sets import feature_set
 from pipeline.tiling import Grid, layout_from_dict, tile_area
 from workflows.progress import clock, counted
 from workflows.run import Run
-from workflows.steps.ingest import plan_scenes, plan_tiles
+from workflows.steps.ingest import plan_scenes, plan_tiles, scene_chunk_size
 from workflows.steps.one_pass import one_pass_scenes
 
-#: Resident bytes per point of a chunk (core and halo) while a worker computes it: the
-#: measured peak of a 1,000,000-point chunk is about 0.7 GiB.
-WORKER_BYTES_PER_POINT = 700
+log = logging.getLogger(__name__)
+
+#: A worker's resident memory, :func:`worker_bytes`: the process with its libraries, kernels
+#: and forests, and per point of the chunk it computes (core and halo) its coordinates and
+#: structures, and every feature column (float32 values and the float64 work of the
+#: covariance). Measured peaks of the TLS plot's 1,544,202 points in one process: the
+#: default set (61 columns) with both stages of the forest template 1,875 MiB, the
+#: covariance set (48) 1,627 MiB, the paper set (11) 823 MiB; 400,000 points of the
+#: default set 784 MiB.
+WORKER_BASE_BYTES = 450 * 2**20
+WORKER_BYTES_PER_POINT = 180
+WORKER_BYTES_PER_COLUMN = 13
 #: Store bytes per point besides the feature columns (coordinates, ids, labels, halo copies,
 #: per-stage context and probabilities, compressed): about 114 bytes measured with 11 columns.
 STORE_BYTES_PER_POINT = 70
@@ -38,6 +51,65 @@ OTHER_RATE = 25_000
 #: random forests of 10 trees on 50,000-100,000 rows of 30-61 columns, leaves of 1-20,
 #: measured 7.5e-8 to 9.5e-8 on the 2-core reference machine.
 TREE_SECONDS = 8.5e-8
+
+
+def worker_bytes(points: float, columns: int) -> float:
+    """Estimated peak resident bytes of a worker computing a chunk of ``points`` (core and
+    halo) with ``columns`` feature columns."""
+    return WORKER_BASE_BYTES + points * (WORKER_BYTES_PER_POINT
+                                         + WORKER_BYTES_PER_COLUMN * columns)
+
+
+def foreseen_window(run: Run, tiles: list[dict]) -> int:
+    """The points of the largest chunk with its halo, as the tiles' headers foresee it: a
+    layout balanced by point count holds a chunk to tiling.target_points (or the whole
+    scene, if smaller); a grid's chunk holds its area's share at the mean density."""
+    largest = 0.0
+    for scene in {t["scene"] for t in tiles}:
+        members = [t for t in tiles if t["scene"] == scene]
+        points = sum(t["n_points"] for t in members)
+        tiling = run.cfg.tiling
+        if tiling.chunk_size == "auto" and tiling.layout == "balanced":
+            largest = max(largest, min(points, tiling.target_points))
+            continue
+        mins = [min(t["mins"][i] for t in members) for i in (0, 1)]
+        maxs = [max(t["maxs"][i] for t in members) for i in (0, 1)]
+        size = scene_chunk_size(run, points, mins, maxs, run.halo)
+        area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
+        largest = max(largest, min(points, points / max(area, 1e-9)
+                                   * (size + 2 * run.halo) ** 2))
+    return int(largest)
+
+
+def worker_memory_limit(cluster) -> int | None:
+    """Bytes a worker of the configured local cluster may hold (``auto``: the machine's
+    memory shared out among the workers, as distributed does); None for a cluster started
+    elsewhere or without a limit."""
+    if cluster.kind != "local":
+        return None
+    from distributed.worker_memory import parse_memory_limit
+
+    workers = int(cluster.n_workers or os.cpu_count() or 1)
+    threads = int(cluster.threads_per_worker)
+    return parse_memory_limit(cluster.memory_limit, threads, workers * threads, logger=log)
+
+
+def check_memory(run: Run, tiles: list[dict]) -> None:
+    """Refuse a local cluster whose workers' memory limit the largest chunk would exceed,
+    before the cluster starts: distributed would restart its workers, and the run stop
+    only after they failed."""
+    limit = worker_memory_limit(run.cfg.cluster)
+    if not limit:
+        return
+    columns = len(feature_set(run.features).columns)
+    points = foreseen_window(run, tiles)
+    needed = worker_bytes(points, columns)
+    if needed > limit:
+        raise ConfigError(
+            f"cluster.memory_limit ({format_bytes(limit)} per worker) is too small: a worker "
+            f"needs about {format_bytes(needed)} for the largest chunk ({points:,} points "
+            f"with its halo, {columns} feature columns); raise cluster.memory_limit, or "
+            "lower tiling.target_points (or cluster.n_workers, with memory_limit: auto)")
 
 
 def features_tried(max_features, columns: int) -> int:
@@ -106,7 +178,7 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
         largest = max(largest, per_chunk)
         disk += points * (ONE_PASS_BYTES_PER_POINT if scene in one_pass
                           else STORE_BYTES_PER_POINT + 4 * columns)
-    memory = largest * WORKER_BYTES_PER_POINT
+    memory = worker_bytes(largest, columns)
     spent = estimated_seconds(run, tiles, workers)
     seconds, training = spent["features"] + spent["other"], spent["training"]
     lines += [

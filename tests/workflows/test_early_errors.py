@@ -110,3 +110,48 @@ def test_resume_command_drops_overwrite_and_keeps_everything_else():
         "silva run a.yaml --set 'data.test=[x y/*.laz]'")
     assert resume_command("silva demo --out d") == "silva demo --out d"
     assert resume_command("silva run 'unbalanced") == "silva run 'unbalanced"
+
+
+def test_a_memory_limit_too_small_for_the_largest_chunk_is_refused_before_the_cluster_starts(
+        tmp_path, survey, started):
+    config = write_config(tmp_path / "c.yaml", survey)
+    out = tmp_path / "out"
+    result = silva("run", config, "--out", out, "--set", "cluster.memory_limit=300MiB")
+    line = error_line(result)
+    assert line.startswith("silva: error: cluster.memory_limit (300.00 MiB per worker) is too "
+                           "small: a worker needs about ")
+    assert "raise cluster.memory_limit, or lower tiling.target_points" in line
+    assert started == []
+    assert _last_log_line(out).endswith(f" ERROR workflows.progress: {line}")
+
+
+def test_the_memory_a_worker_needs_follows_its_chunk_and_columns(tmp_path, survey):
+    from workflows.config import load_config
+    from workflows.plan import (WORKER_BASE_BYTES, check_memory, foreseen_window,
+                                worker_bytes, worker_memory_limit)
+    from workflows.run import Run
+    from workflows.steps.ingest import plan_tiles
+
+    # the measured peaks it was fitted on: 1,875 MiB for the default set's 61 columns on
+    # 1,544,202 points with both stages, 823 MiB for the paper set's 11 (its features alone)
+    assert worker_bytes(1_544_202, 61) / 2**20 == pytest.approx(1875, rel=0.05)
+    assert 823 < worker_bytes(1_544_202, 11) / 2**20 < 823 * 1.15
+    assert worker_bytes(0, 61) == WORKER_BASE_BYTES
+
+    def run_of(*overrides):
+        config = write_config(tmp_path / "m.yaml", survey)
+        return Run(load_config(config, list(overrides)), tmp_path / "out", quiet=True)
+
+    run = run_of("tiling.chunk_size=auto", "tiling.target_points=20000")
+    tiles = plan_tiles(run)
+    scene_points = max(sum(t["n_points"] for t in tiles if t["scene"] == s)
+                       for s in ("train", "test"))
+    assert foreseen_window(run, tiles) == min(20000, scene_points)
+    grid = run_of("tiling.chunk_size=3.0")
+    assert 0 < foreseen_window(grid, tiles) < scene_points
+    # a limit as given, 'auto' the machine's share, none for a cluster started elsewhere
+    assert worker_memory_limit(run_of("cluster.memory_limit=2GiB").cfg.cluster) == 2 * 2**30
+    assert worker_memory_limit(run_of("cluster.memory_limit=auto").cfg.cluster) > 0
+    assert worker_memory_limit(run_of("cluster.kind=address",
+                                      "cluster.address=tcp://127.0.0.1:1").cfg.cluster) is None
+    check_memory(run_of("cluster.memory_limit=2GiB"), tiles)  # enough: no error

@@ -248,13 +248,40 @@ def test_os_error_in_a_step_is_one_line(tmp_path, monkeypatch):
 # (the restart count and its diagnosis: tests/workflows/test_watch.py)
 
 
-@pytest.mark.slow
 def test_memory_limit_too_small_for_a_worker_stops_the_run(tmp_path, survey):
+    """Refused before the cluster starts (a limit that workers reach while they run:
+    tests/workflows/test_watch.py)."""
     config = write_config(tmp_path / "c.yaml", survey)
     started = time.monotonic()
     result = silva("run", config, "--out", tmp_path / "out", "-q",
                    "--set", "cluster.memory_limit=120MiB")
     assert "cluster.memory_limit (120.00 MiB per worker) is too small" in error_line(result)
+    assert time.monotonic() - started < 15
+    assert not (tmp_path / "out" / "metrics.json").exists()
+
+
+@pytest.mark.slow
+def test_workers_over_their_memory_limit_stop_the_run_with_the_fix(tmp_path, survey):
+    """A limit the workers reach while they run (the check before the start only foresees
+    the largest chunk from the headers): the run stops and names the limit."""
+    from distributed import Client, LocalCluster
+
+    from workflows.config import load_config
+    from workflows.engine import Engine
+    from workflows.run import Run
+    from workflows.watch import NoWorkerCanRun
+    from workflows.workflow import execute
+
+    config = write_config(tmp_path / "c.yaml", survey)
+    started = time.monotonic()
+    with LocalCluster(n_workers=1, threads_per_worker=1, memory_limit="120MiB",
+                      host="127.0.0.1", dashboard_address=None, processes=True) as cluster, \
+            Client(cluster) as client:
+        run = Run(load_config(config), tmp_path / "out", quiet=True)
+        run.save_config()
+        with pytest.raises(NoWorkerCanRun, match=r"cluster\.memory_limit \(120\.00 MiB per "
+                                                 r"worker\) is too small"):
+            execute(run, Engine(client, quiet=True), "report")
     assert time.monotonic() - started < 120
     assert not (tmp_path / "out" / "metrics.json").exists()
 
