@@ -183,12 +183,21 @@ def test_resume_after_sigkill(reference, survey, tmp_path):
     done_before = _invariant_mtimes(out)
     assert done_before, "the run was killed before any chunk finished"
     assert not (out / "metrics.json").exists()
+    marks = {chunk: _marks(chunk) for chunk in done_before}  # to tell why, should one rerun
     result = silva("run", config, "--out", out, "--quiet")
     assert result.exit_code == 0, result.output
     after = _invariant_mtimes(out)
     for chunk, mtime in done_before.items():
-        assert after[chunk] == mtime, f"{chunk} was recomputed"
+        assert after[chunk] == mtime, (f"{chunk} was recomputed; its marks when killed: "
+                                       f"{marks[chunk]}, after: {_marks(chunk)}")
     assert_same_predictions(reference, out)
+
+
+def _marks(features_dir: str) -> dict:
+    """The done-marks of a chunk and the steps it kept results of, from its metadata."""
+    attrs = json.loads((Path(features_dir).parent / "zarr.json").read_text())["attributes"]
+    return {"done": attrs.get("done"), "results": sorted(attrs.get("results", {})),
+            "assembled": attrs.get("assembled")}
 
 
 def test_changed_config_invalidates_only_what_it_affects(reference, survey, tmp_path):
