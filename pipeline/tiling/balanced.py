@@ -124,8 +124,9 @@ class BalancedLayout:
 
         A chunk holding more is cut on the lattice line nearest to where its points are
         shared out in the ratio floor(m / 2) : ceil(m / 2), m the number of chunks its
-        points need (the median when m is 2 or 3), across its longer side (of its points'
-        box) unless a line across the other side comes nearer. A line is refused when a side
+        points need (the median when m is 2 or 3), across the side where that line leaves
+        the smaller largest window (its points with the halo; nearer the share on a tie, the
+        longer side of its points' box first). A line is refused when a side
         would keep less than :data:`MIN_CORE_SHARE` of core points with its halo; the next
         nearest are tried (:data:`CUT_TRIALS` per side, as long as the smaller part keeps at
         least half its share), and when all are refused the chunk stays whole, even above
@@ -301,23 +302,27 @@ class _Splitter:
         share = core * (parts // 2) / parts
         ij = self.ij[idx]
         extent = ij.max(axis=0) - ij.min(axis=0)
-        found = None  # (how far from the share, axis, line)
+        found = None  # (larger window, how far from the share, axis, line)
         for axis in sorted((0, 1), key=lambda a: -extent[a]):  # the longer side first
             values, inverse = np.unique(ij[:, axis], return_inverse=True)
             below = np.cumsum(np.bincount(inverse, weights=self.n[idx]))[:-1]
             miss = np.abs(below - share)
             for k in np.argsort(miss, kind="stable")[:CUT_TRIALS]:
-                if miss[k] > share / 2 or (found is not None and miss[k] >= found[0]):
+                if miss[k] > share / 2:
                     break
                 line = int(values[k + 1])
                 below_box, above_box = list(box), list(box)
                 below_box[2 * axis + 1] = above_box[2 * axis] = line
-                if (below[k] >= MIN_CORE_SHARE * self.window(below_box)
-                        and core - below[k] >= MIN_CORE_SHARE * self.window(above_box)):
-                    found = (miss[k], axis, line)
+                windows = self.window(below_box), self.window(above_box)
+                if (below[k] >= MIN_CORE_SHARE * windows[0]
+                        and core - below[k] >= MIN_CORE_SHARE * windows[1]):
+                    # across the side whose cut leaves the smaller largest window: the
+                    # memory of a worker, and the halo copies and rings computed twice
+                    if found is None or (max(windows), miss[k]) < found[:2]:
+                        found = (max(windows), miss[k], axis, line)
                     break
         if found is None:
             return None
-        _, axis, line = found
+        _, _, axis, line = found
         low = ij[:, axis] < line
         return axis, line, idx[low], idx[~low]

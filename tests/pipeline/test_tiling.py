@@ -443,3 +443,18 @@ def test_balanced_refuses_bad_arguments(kwargs, message):
     args = dict(counts=CellCounts.empty(0.1), halo=0.5, target_points=10) | kwargs
     with pytest.raises(ValueError, match=message):
         BalancedLayout.build(**args)
+
+
+def test_a_balanced_cut_leaves_the_smaller_largest_window():
+    # a strip 41 m by 10 m, 100 points per square metre: the median falls inside a column
+    # across x (20,000 and 21,000 points below the nearest lines) and on a line across y
+    # (20,500); cut across y, each side would hold a 41 m x 7 m window with its 2 m halo,
+    # cut across x at most 23 m x 10 m
+    cells = np.stack(np.meshgrid(np.arange(41), np.arange(10), indexing="ij"), -1).reshape(-1, 2)
+    xy = np.repeat(cells + 0.5, 100, axis=0)
+    layout = BalancedLayout.build(CellCounts.of(xy, 1.0), halo=2.0, target_points=30_000)
+    assert layout.n_chunks == 2
+    axis, line, _, _ = layout.cuts[0]
+    assert axis == 0 and line in (20.0, 21.0)
+    core, window = layout.estimate(CellCounts.of(xy, 1.0), 2.0)
+    assert max(window) < 41 * 7 * 100 and sorted(core) == [20_000, 21_000]
