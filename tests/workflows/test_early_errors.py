@@ -39,16 +39,23 @@ def _last_log_line(out):
     return (out / LOG_NAME).read_text().splitlines()[-1]
 
 
+def refused_at_start(result, out, started) -> str:
+    """The error line of a run refused before its cluster started and its kernels compiled;
+    the line also ends the run's log."""
+    line = error_line(result)
+    assert started == []
+    assert _last_log_line(out).endswith(f" ERROR workflows.progress: {line}")
+    return line
+
+
 def test_a_glob_that_matches_nothing_is_refused_before_the_cluster_starts(
         tmp_path, survey, started):
     config = write_config(tmp_path / "c.yaml", survey)
     out = tmp_path / "out"
     result = silva("run", config, "--out", out, "--set", "data.test=[/nonexistent/*.laz]")
-    line = error_line(result)
+    line = refused_at_start(result, out, started)
     assert line == ("silva: error: no file matches '/nonexistent/*.laz' in data.test; check "
                     "the path or glob")
-    assert started == []
-    assert _last_log_line(out).endswith(f" ERROR workflows.progress: {line}")
     assert not (out / "store.zarr").exists()
 
 
@@ -60,10 +67,7 @@ def test_a_file_that_is_no_las_tile_is_refused_before_the_cluster_starts(
     config = write_config(tmp_path / "c.yaml", survey)
     out = tmp_path / "out"
     result = silva("features", config, "--out", out, "--set", f"data.test=[{bad}]")
-    line = error_line(result)
-    assert str(bad) in line
-    assert started == []
-    assert _last_log_line(out).endswith(line)
+    assert str(bad) in refused_at_start(result, out, started)
 
 
 def test_a_model_directory_without_a_model_is_refused_before_the_cluster_starts(
@@ -73,10 +77,7 @@ def test_a_model_directory_without_a_model_is_refused_before_the_cluster_starts(
     config = write_config(tmp_path / "c.yaml", survey)
     out = tmp_path / "out"
     result = silva("predict", config, "--model", model, "--out", out)
-    line = error_line(result)
-    assert f"no model at {model}" in line
-    assert started == []
-    assert _last_log_line(out).endswith(line)
+    assert f"no model at {model}" in refused_at_start(result, out, started)
 
 
 def test_with_good_inputs_the_cluster_starts(tmp_path, survey, started):
@@ -117,12 +118,10 @@ def test_a_memory_limit_too_small_for_the_largest_chunk_is_refused_before_the_cl
     config = write_config(tmp_path / "c.yaml", survey)
     out = tmp_path / "out"
     result = silva("run", config, "--out", out, "--set", "cluster.memory_limit=300MiB")
-    line = error_line(result)
+    line = refused_at_start(result, out, started)
     assert line.startswith("silva: error: cluster.memory_limit (300.00 MiB per worker) is too "
                            "small: a worker needs about ")
     assert "raise cluster.memory_limit, or lower tiling.target_points" in line
-    assert started == []
-    assert _last_log_line(out).endswith(f" ERROR workflows.progress: {line}")
 
 
 def test_the_memory_a_worker_needs_follows_its_chunk_and_columns(tmp_path, survey):
