@@ -65,40 +65,47 @@ def foreseen_window(run: Run, tiles: list[dict]) -> int:
     layout balanced by point count holds a chunk to tiling.target_points (or the whole
     scene, if smaller); a grid's chunk holds its area's share at the mean density."""
     largest = 0.0
+    tiling = run.cfg.tiling
     for scene in {t["scene"] for t in tiles}:
         members = [t for t in tiles if t["scene"] == scene]
         points = sum(t["n_points"] for t in members)
-        tiling = run.cfg.tiling
         if tiling.chunk_size == "auto" and tiling.layout == "balanced":
             largest = max(largest, min(points, tiling.target_points))
             continue
         mins = [min(t["mins"][i] for t in members) for i in (0, 1)]
         maxs = [max(t["maxs"][i] for t in members) for i in (0, 1)]
         size = scene_chunk_size(run, points, mins, maxs, run.halo)
-        area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
-        largest = max(largest, min(points, points / max(area, 1e-9)
-                                   * (size + 2 * run.halo) ** 2))
+        largest = max(largest, grid_window(members, size, run.halo))
     return int(largest)
 
 
-def worker_memory_limit(cluster) -> int | None:
-    """Bytes a worker of the configured local cluster may hold (``auto``: the machine's
-    memory shared out among the workers, as distributed does); None for a cluster started
+def grid_window(members: list[dict], size: float, halo: float) -> float:
+    """Points of a grid chunk of side ``size`` with its ``halo`` over the tiles ``members``
+    of a scene, at their mean density (at most the scene's points)."""
+    points = sum(t["n_points"] for t in members)
+    area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
+    return min(points, points / max(area, 1e-9) * (size + 2 * halo) ** 2)
+
+
+def worker_memory_limit(run: Run) -> int | None:
+    """Bytes a worker of the run's local cluster may hold (``auto``: the machine's memory
+    shared out among the workers, as distributed does); None for a cluster started
     elsewhere or without a limit."""
+    cluster = run.cfg.cluster
     if cluster.kind != "local":
         return None
     from distributed.worker_memory import parse_memory_limit
 
-    workers = int(cluster.n_workers or os.cpu_count() or 1)
     threads = int(cluster.threads_per_worker)
-    return parse_memory_limit(cluster.memory_limit, threads, workers * threads, logger=log)
+    return parse_memory_limit(cluster.memory_limit, threads, plan_workers(run) * threads,
+                              logger=log)
 
 
 def check_memory(run: Run, tiles: list[dict]) -> None:
     """Refuse a local cluster whose workers' memory limit the largest chunk would exceed,
     before the cluster starts: distributed would restart its workers, and the run stop
     only after they failed."""
-    limit = worker_memory_limit(run.cfg.cluster)
+    limit = worker_memory_limit(run)
     if not limit:
         return
     columns = len(feature_set(run.features).columns)
@@ -164,8 +171,7 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
                 f"{counted(points, 'point')}, {points / area:,.1f} points/m²; "
                 f"halo {info['halo']:g} m ({way}); ")
         if isinstance(grid, Grid):
-            window = (grid.size + 2 * info["halo"]) ** 2
-            per_chunk = min(points, points / area * window)
+            per_chunk = grid_window(members, grid.size, info["halo"])
             lines.append(f"{head}chunks of {grid.size:g} m, a {grid.nx} x {grid.ny} grid; "
                          f"about {counted(round(per_chunk), 'point')} in a chunk with its halo")
         else:

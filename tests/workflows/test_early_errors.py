@@ -149,8 +149,8 @@ def test_the_memory_a_worker_needs_follows_its_chunk_and_columns(tmp_path, surve
     grid = run_of("tiling.chunk_size=3.0")
     assert 0 < foreseen_window(grid, tiles) < scene_points
     # a limit as given, 'auto' the machine's share, none for a cluster started elsewhere
-    assert worker_memory_limit(run_of("cluster.memory_limit=2GiB").cfg.cluster) == 2 * 2**30
-    assert worker_memory_limit(run_of("cluster.memory_limit=auto").cfg.cluster) > 0
+    assert worker_memory_limit(run_of("cluster.memory_limit=2GiB")) == 2 * 2**30
+    assert worker_memory_limit(run_of("cluster.memory_limit=auto")) > 0
     assert worker_memory_limit(run_of("cluster.kind=address",
-                                      "cluster.address=tcp://127.0.0.1:1").cfg.cluster) is None
+                                      "cluster.address=tcp://127.0.0.1:1")) is None
     check_memory(run_of("cluster.memory_limit=2GiB"), tiles)  # enough: no error
