@@ -483,7 +483,7 @@ def _pipeline_figures(config, model, workers: int, rounds: list[dict], peaks: li
             lambda r: r[label]["timings"].get(step, 0.0))), 2)
             for step in first[label]["timings"]} for label in labels},
     }
-    _print_runs(labels, result)
+    _print_runs(labels, seconds, result)
     scenes = len(first[single_label]["chunk size (m)"].split(", "))
     if first[single_label]["chunks"] > scenes:
         click.echo(f"note: the one-chunk run still cut {scenes} scenes into "
@@ -496,9 +496,8 @@ def _pipeline_figures(config, model, workers: int, rounds: list[dict], peaks: li
 NO_TIME = 0.05
 
 
-def _print_runs(labels: list[str], result: dict) -> None:
-    import numpy as np
-
+def _print_runs(labels: list[str], seconds: dict, result: dict) -> None:
+    """The table of the runs ``labels``, their whole runs' ``seconds`` and step timings."""
     points, width = result["points"], 34
     medians = " (medians of the rounds)" if result["rounds"] > 1 else ""
     click.echo(f"{points:,} points, {result['chunks']} chunks ({result['chunks_one_chunk_run']} "
@@ -508,10 +507,9 @@ def _print_runs(labels: list[str], result: dict) -> None:
     timings = result["timings"]
     steps = list(dict.fromkeys(s for label in labels for s in timings[label]
                                if timings[label][s] >= NO_TIME))
-    totals = {label: result["seconds_per_round"][label] for label in labels}
     for step in [*steps, "total"]:
-        cells = [float(np.median(totals[label])) if step == "total"
-                 else timings[label].get(step) for label in labels]
+        cells = [seconds[label] if step == "total" else timings[label].get(step)
+                 for label in labels]
         click.echo(f"{step:<10}" + "".join(
             f"{'':>{width}}" if c is None or c < NO_TIME  # not run, or inside another step
             else f"{f'{c:.1f} s {points / c:,.0f}/s':>{width}}" for c in cells))
