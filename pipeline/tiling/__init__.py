@@ -42,8 +42,8 @@ from pipeline.tiling.grid import (
 __all__ = [
     "CUT_TRIALS", "GROUP_SHARE", "MAX_COUNT_CELLS", "MIN_CORE_SHARE", "SIZE_SERIES",
     "TILE_SHIFT", "BalancedLayout", "CellCounts", "Grid", "auto_chunk_size",
-    "box_distance", "count_cell_size", "global_ids", "group_tiles", "layout_from_dict", "series_ceil",
-    "split_global_ids", "tile_area",
+    "box_distance", "count_cell_size", "global_ids", "group_tiles", "layout_from_dict",
+    "series_ceil", "split_global_ids", "tile_area",
 ]
 
 
