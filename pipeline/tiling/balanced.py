@@ -18,21 +18,30 @@ MAX_COUNT_CELLS = 4_000_000
 #: be mostly copies of its neighbours' points.
 MIN_CORE_SHARE = 4 / 9
 
+#: The counting lattice has at least this many lines across a chunk's expected side, so that
+#: a cut misses its share of points by at most about half a line's worth: 1 %.
+LINES_PER_CHUNK = 50
+
 #: Lattice lines tried per side of a chunk, nearest to the wanted share first, before it is
 #: left whole.
 CUT_TRIALS = 64
 
 
-def count_cell_size(halo: float, area: float) -> float:
-    """The side in metres of the counting lattice of a scene whose tiles cover ``area`` m².
+def count_cell_size(halo: float, area: float, chunk_area: float = math.inf) -> float:
+    """The side in metres of the counting lattice of a scene whose tiles cover ``area`` m²,
+    cut into chunks of about ``chunk_area`` m² each.
 
     A quarter halo rounded down to the series (cuts fall on lattice lines, so they are
-    readable numbers, and a chunk's halo is counted to within a quarter of its width), or
-    coarser when the tiles' area would need more than :data:`MAX_COUNT_CELLS` cells.
+    readable numbers, and a chunk's halo is counted to within a quarter of its width), finer
+    when a chunk's side would hold fewer than :data:`LINES_PER_CHUNK` lines (a small dense
+    scan: the two chunks of a 12 m plot cut on a 1 m lattice differed by 12 % in points and
+    17 % in time), or coarser when the tiles' area would need more than
+    :data:`MAX_COUNT_CELLS` cells.
     """
     if not (math.isfinite(halo) and halo > 0):
         raise ValueError(f"halo must be a finite number > 0, got {halo!r}")
-    fine = series_floor(halo / 4)
+    lines = math.sqrt(chunk_area) / LINES_PER_CHUNK
+    fine = series_floor(min(halo / 4, lines) if lines > 0 else halo / 4)
     if area > 0 and area / fine**2 > MAX_COUNT_CELLS:
         return series_ceil(math.sqrt(area / MAX_COUNT_CELLS))
     return fine

@@ -423,10 +423,26 @@ def test_grid_boxes_match_its_cells(cloud):
 
 def test_count_cell_size():
     assert count_cell_size(0.5, 1e4) == 0.12 and count_cell_size(3.70711, 190.0) == 0.8
+    # a chunk's side holds at least LINES_PER_CHUNK lines: 12 m chunks, 0.24 m at most
+    assert count_cell_size(4.27, 228.0, 144.0) == 0.2
+    assert count_cell_size(0.5, 1e4, 1e4) == 0.12  # a quarter halo is finer already
     # a huge sparse scene: at most MAX_COUNT_CELLS cells over its tiles
     assert count_cell_size(0.5, 1e8) == 5.0
     with pytest.raises(ValueError, match="halo must be a finite number > 0, got 0"):
         count_cell_size(0, 1.0)
+
+
+def test_a_small_dense_plot_is_cut_into_equal_cores():
+    # a 19 x 12 m plot in two chunks with a 4.27 m halo: on the quarter-halo lattice (1 m)
+    # the cut falls a column away from the median, and one core holds 10 % more points
+    rng = np.random.default_rng(0)
+    n, halo, area = 200_000, 4.27, 19.0 * 12.0
+    xyz = np.c_[rng.uniform(0, 19, n), rng.uniform(0, 12, n), rng.uniform(0, 10, n)]
+    target = n * 2 // 3
+    cell = count_cell_size(halo, area, area * target / n)
+    layout = BalancedLayout.build(CellCounts.of(xyz, cell), halo, target)
+    core = np.bincount(layout.chunk_of(xyz))
+    assert len(core) == 2 and abs(core[0] - core[1]) < 0.02 * n / 2
 
 
 def test_counts_on_different_lattices_do_not_add():

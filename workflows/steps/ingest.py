@@ -232,7 +232,9 @@ def count_tiles(paths, cell: float, read_batch: int) -> CellCounts:
 def scene_counts(run: Run, scene: str, members: list[dict], engine=None) -> CellCounts:
     """The points of a scene's tiles counted on one lattice (the balanced layout's first
     pass: XY only, streamed in read batches)."""
-    cell = count_cell_size(run.halo, sum(tile_area(t["mins"], t["maxs"]) for t in members))
+    area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
+    n_points = sum(t["n_points"] for t in members)
+    cell = count_cell_size(run.halo, area, area * run.cfg.tiling.target_points / n_points)
     batch = run.cfg.tiling.read_batch
     # small tiles counted together (the layout that groups them by chunk is not known yet)
     groups = [[members[i] for i in group] for group in
