@@ -74,3 +74,14 @@ def test_bad_parameters_are_refused():
         FeatureParams(plane="yz")
     with pytest.raises(ValueError, match="scales"):
         FeatureParams(scales=(1.0, 1.0))
+
+
+def test_a_part_giving_fewer_columns_than_it_names_is_refused():
+    from pipeline.features.sets import _combine
+
+    def describe(xyz, query, ids, ground):  # names two columns, gives one
+        return [np.zeros((len(query), 1))]
+
+    broken = _combine("broken", FeatureParams(), (("a", "b"), 0.5, describe))
+    with pytest.raises(AssertionError, match="broken gave 1 columns"):
+        broken(np.random.default_rng(0).random((50, 3)))
