@@ -63,14 +63,19 @@ def worker_bytes(points: float, columns: int) -> float:
 def foreseen_window(run: Run, tiles: list[dict]) -> int:
     """The points of the largest chunk with its halo, as the tiles' headers foresee it: a
     layout balanced by point count holds a chunk to tiling.target_points (or the whole
-    scene, if smaller); a grid's chunk holds its area's share at the mean density."""
+    scene, if smaller), unless the smallest chunk it cuts, a core of four halos a side
+    (:data:`~pipeline.tiling.MIN_CORE_SHARE`), holds more with its halo at the mean
+    density; a grid's chunk holds its area's share at the mean density."""
     largest = 0.0
     tiling = run.cfg.tiling
     for scene in {t["scene"] for t in tiles}:
         members = [t for t in tiles if t["scene"] == scene]
         points = sum(t["n_points"] for t in members)
         if tiling.chunk_size == "auto" and tiling.layout == "balanced":
-            largest = max(largest, min(points, tiling.target_points))
+            # a small dense plot: the TLS plot's 1.5 M points, cut in two at a target of
+            # 1 M, keep windows of 1.1 and 1.3 M
+            smallest = grid_window(members, 4 * run.halo, run.halo)
+            largest = max(largest, min(points, tiling.target_points), smallest)
             continue
         mins = [min(t["mins"][i] for t in members) for i in (0, 1)]
         maxs = [max(t["maxs"][i] for t in members) for i in (0, 1)]
