@@ -14,6 +14,7 @@ from pipeline.io.tiles import (
     iter_points,
     read_info,
     read_points,
+    reads_ranges,
     tile_format,
 )
 
@@ -31,6 +32,7 @@ __all__ = [
     "read_info",
     "read_oakland",
     "read_points",
+    "reads_ranges",
     "tile_format",
     "write_las",
 ]

@@ -25,7 +25,8 @@ class TileFormat:
     fields=) -> Iterator[PointBatch]`` streams the points; ``export(src, dst, extra_dims,
     compute, batch_size=, set_classification=) -> Path`` copies a tile to LAS with extra dims,
     or is None when the format cannot keep its dimensions; ``available()`` says whether the
-    libraries it needs are installed.
+    libraries it needs are installed. With ``ranges``, ``iter_points`` also takes ``start=``
+    and ``stop=`` and reads only those points, without reading the ones before.
     """
 
     name: str
@@ -34,6 +35,7 @@ class TileFormat:
     iter_points: Callable[..., Iterator[PointBatch]]
     export: Callable[..., Path] | None = None
     available: Callable[[], bool] = _always
+    ranges: bool = False
 
 
 _FORMATS: list[TileFormat] = []

@@ -243,24 +243,28 @@ def read_las_info(path) -> TileInfo:
         )
 
 
-def _chunks(reader: laspy.LasReader, path, batch_size: int) -> Iterator:
-    """The reader's points in chunks of batch_size, refusing short or undecodable chunks."""
-    total = int(reader.header.point_count)
-    chunks = reader.chunk_iterator(batch_size)
-    done = 0
+def _chunks(reader: laspy.LasReader, path, batch_size: int, start: int = 0,
+            stop: int | None = None) -> Iterator:
+    """The reader's points ``start`` to ``stop`` (default: to the header's count) in chunks
+    of batch_size, refusing short or undecodable chunks."""
+    total = int(reader.header.point_count) if stop is None else stop
+    done = start
+    try:
+        if start:
+            reader.seek(start)
+    except Exception as exc:
+        raise unreadable(path, exc) from exc
     while done < total:
+        expected = min(batch_size, total - done)
         try:
-            chunk = next(chunks)
-        except StopIteration:
-            chunk = None
+            chunk = reader.read_points(expected)
         except Exception as exc:
             raise unreadable(path, exc) from exc
-        expected = min(batch_size, total - done)
-        if chunk is None or len(chunk) < expected:
-            got = done + (0 if chunk is None else len(chunk))
+        if len(chunk) < expected:
             raise InputError(
-                f"cannot read {path}: the file ends after {got} of the {total} points its "
-                "header announces; re-export or re-download it"
+                f"cannot read {path}: the file ends after {done + len(chunk)} of the "
+                f"{int(reader.header.point_count)} points its header announces; re-export or "
+                "re-download it"
             )
         yield chunk
         done += len(chunk)
@@ -274,8 +278,11 @@ def real_xyz(chunk, header: laspy.LasHeader) -> np.ndarray:
     return xyz
 
 
-def iter_las_points(path, batch_size=1_000_000, fields=("classification",)) -> Iterator[PointBatch]:
-    """Stream a LAS/LAZ tile as PointBatch objects of at most batch_size points.
+def iter_las_points(path, batch_size=1_000_000, fields=("classification",), start: int = 0,
+                    stop: int | None = None) -> Iterator[PointBatch]:
+    """Stream a LAS/LAZ tile, or its points ``start`` to ``stop`` (a LAZ file is entered at
+    the compressed chunk that holds ``start``), as PointBatch objects of at most batch_size
+    points.
 
     ``fields`` are dimension names of the tile (``TileInfo.dimensions``), returned in the
     file's dtype; of a LAZ tile of point format 6-10 only the layers of x, y, z and
@@ -287,15 +294,19 @@ def iter_las_points(path, batch_size=1_000_000, fields=("classification",)) -> I
     info = read_las_info(path)
     if info.n_points == 0:
         raise empty_tile(path)
+    stop = info.n_points if stop is None else stop
+    if not 0 <= start <= stop <= info.n_points:
+        raise ValueError(f"points {start} to {stop} are not a range of the {info.n_points} "
+                         f"points of {path}")
     resolved = resolve_fields(names, info.dimensions, path)
-    return _stream_las(path, batch_size, resolved)
+    return _stream_las(path, batch_size, resolved, start, stop)
 
 
-def _stream_las(path, batch_size: int, resolved: dict[str, str]) -> Iterator[PointBatch]:
+def _stream_las(path, batch_size: int, resolved: dict[str, str], start: int,
+                stop: int) -> Iterator[PointBatch]:
     with open_las(path, decompression_selection(resolved.values())) as reader:
         header = reader.header
-        start = 0
-        for chunk in _chunks(reader, path, batch_size):
+        for chunk in _chunks(reader, path, batch_size, start, stop):
             values = {name: np.array(chunk[dim]) for name, dim in resolved.items()}
             yield PointBatch(start=start, xyz=real_xyz(chunk, header), fields=values)
             start += len(chunk)
@@ -643,5 +654,7 @@ def export_las(
     return dst
 
 
-register_format(TileFormat("las", (".las",), read_las_info, iter_las_points, export_las))
-register_format(TileFormat("laz", (".laz",), read_las_info, iter_las_points, export_las))
+register_format(TileFormat("las", (".las",), read_las_info, iter_las_points, export_las,
+                           ranges=True))
+register_format(TileFormat("laz", (".laz",), read_las_info, iter_las_points, export_las,
+                           ranges=True))

@@ -52,8 +52,11 @@ def read_info(path) -> TileInfo:
     return _format_of(path).read_info(path)
 
 
-def iter_points(path, batch_size=1_000_000, fields=("classification",)) -> Iterator[PointBatch]:
-    """Stream a tile as consecutive PointBatch objects of at most batch_size points.
+def iter_points(path, batch_size=1_000_000, fields=("classification",), start: int = 0,
+                stop: int | None = None) -> Iterator[PointBatch]:
+    """Stream a tile as consecutive PointBatch objects of at most batch_size points: every
+    point, or the points ``start`` to ``stop`` of a format that reads ranges
+    (:func:`reads_ranges`; ValueError for another).
 
     Memory is bounded by batch_size. ``fields`` names dimensions of the tile
     (``read_info(path).dimensions``; matching ignores case and underscores when there is no
@@ -62,7 +65,18 @@ def iter_points(path, batch_size=1_000_000, fields=("classification",)) -> Itera
     NaN or infinite coordinates, or a field the tile does not have.
     """
     path = check_file(path)
-    return _format_of(path).iter_points(path, batch_size=batch_size, fields=fields)
+    fmt = _format_of(path)
+    if start == 0 and stop is None:
+        return fmt.iter_points(path, batch_size=batch_size, fields=fields)
+    if not fmt.ranges:
+        raise ValueError(f"{path}: the {fmt.name} format is read whole, not by point ranges")
+    return fmt.iter_points(path, batch_size=batch_size, fields=fields, start=start, stop=stop)
+
+
+def reads_ranges(path) -> bool:
+    """Whether :func:`iter_points` reads a range of the tile's points without the ones
+    before (LAS, LAZ)."""
+    return _format_of(path).ranges
 
 
 def read_points(path, fields=("classification",)) -> PointBatch:

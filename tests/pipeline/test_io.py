@@ -19,6 +19,7 @@ from pipeline.io import (
     read_info,
     read_oakland,
     read_points,
+    reads_ranges,
     write_las,
 )
 
@@ -119,6 +120,36 @@ def test_chunked_read_equals_full_read(tile, batch_size):
         chunked = np.concatenate([b.fields[name] for b in batches])
         assert chunked.dtype == full.fields[name].dtype
         assert np.array_equal(chunked, full.fields[name])
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_a_range_of_points_equals_the_slice_of_the_whole(tmp_path, suffix):
+    # 120,000 points: a LAZ file of compressed chunks of 50,000, entered in the middle of one
+    xyz, fields = _points(120_000)
+    path = write_las(tmp_path / f"big{suffix}", xyz, fields=fields, extra_dims=EXTRA)
+    names = ("classification", "gps_time", "Segment")
+    full = read_points(path, fields=names)
+    for start, stop in ((0, 7), (49_999, 100_001), (73_000, 120_000), (5, 5)):
+        batches = list(iter_points(path, batch_size=20_000, fields=names, start=start,
+                                   stop=stop))
+        assert [b.start for b in batches] == list(range(start, stop, 20_000))
+        rows = slice(start, stop)
+        got = np.concatenate([b.xyz for b in batches]) if batches else np.empty((0, 3))
+        assert np.array_equal(got, full.xyz[rows])
+        for name in names:
+            values = [b.fields[name] for b in batches]
+            assert np.array_equal(np.concatenate(values) if values else [],
+                                  full.fields[name][rows])
+    assert reads_ranges(path)
+    with pytest.raises(ValueError, match="are not a range of the 120000 points"):
+        iter_points(path, start=100, stop=120_001)
+
+
+def test_a_format_read_whole_refuses_a_range(tmp_path):
+    path = _write_oakland(tmp_path / "a.xyz_label_conf", _oakland_rows(50))
+    assert not reads_ranges(path)
+    with pytest.raises(ValueError, match="read whole, not by point ranges"):
+        iter_points(path, start=10, stop=20)
 
 
 def test_fields_match_case_and_underscores(tile):
