@@ -66,26 +66,32 @@ def noisy(survey, tmp_path_factory):
             "root": root}
 
 
-def _config(path, survey, tile, scene="predict", **data):
-    """One tile in ``scene``; a train tile is split in two at its middle (y)."""
+def _config(path, survey, tile, scene="predict", ranges=1, **data):
+    """One tile in ``scene``, read in ``ranges`` point ranges; a train tile is split in two
+    at its middle (y)."""
     if scene == "train":
         las = laspy.read(tile)
         data["split"] = {"axis": "y", "at": float(np.median(las.y))}
+    target = -(-laspy.open(tile).header.point_count // ranges)
     return write_config(path, survey, data={"train": [], "test": [], scene: [str(tile)], **data},
-                        tiling={"chunk_size": 3.0}, cascade={"stages": 1})
+                        tiling={"chunk_size": 3.0, "target_points": target},
+                        cascade={"stages": 1})
 
 
 def test_excluded_points_are_in_no_chunk_and_change_no_feature(noisy, survey, tmp_path):
     runs = {}
-    for name, data in (("clean", {}),
-                       ("noisy", {"exclude_codes": list(NOISE), "exclude_withheld": True})):
-        config = _config(tmp_path / f"{name}.yaml", survey, noisy[name], **data)
+    # the noisy tile read in three point ranges: the same chunks, the excluded points summed
+    for name, ranges, data in (
+            ("clean", 1, {}),
+            ("noisy", 3, {"exclude_codes": list(NOISE), "exclude_withheld": True})):
+        config = _config(tmp_path / f"{name}.yaml", survey, noisy[name], ranges=ranges, **data)
         summary = _run(config, tmp_path / name, "features")
         runs[name] = (open_store(tmp_path / name / "store.zarr", mode="r"), summary)
     (clean, clean_summary), (noisy_store, noisy_summary) = runs["clean"], runs["noisy"]
     assert noisy_summary["excluded points"] == int(noisy["added"].sum())
     assert clean_summary["excluded points"] == 0
     layout = noisy_store.attrs["layout"]
+    assert len(layout["scenes"]["predict"]["tiles"]) == 3
     index = next(t["index"] for t in layout["tiles"] if t["path"] == str(noisy["noisy"]))
     noise_gid = global_ids(index, 0, len(noisy["added"]))[noisy["added"]]
     chunks = layout["scenes"]["predict"]["chunks"]

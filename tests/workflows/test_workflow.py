@@ -111,7 +111,8 @@ def test_chunk_invariance_many_chunks_two_workers(reference, many_chunks):
 
 def test_chunk_invariance_balanced_chunks(reference, survey, tmp_path):
     """Chunks balanced by point count (chunk_size auto, the default layout): uneven
-    rectangles, the same predictions as one chunk, bit for bit."""
+    rectangles, the same predictions as one chunk, bit for bit. Tiles above the target
+    are read by point ranges, a task each."""
     config = write_config(tmp_path / "balanced.yaml", survey,
                           tiling={"chunk_size": "auto", "target_points": 12_000})
     out = tmp_path / "out"
@@ -120,6 +121,7 @@ def test_chunk_invariance_balanced_chunks(reference, survey, tmp_path):
     layout = open_store(out / "store.zarr", mode="r").attrs["layout"]
     for info in layout["scenes"].values():
         assert info["grid"]["kind"] == "balanced" and len(info["chunks"]) >= 4
+        assert info["ranges"] and len(info["tiles"]) > len(info["groups"])
     assert_same_predictions(reference, out)
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.cascade.one_pass import ring_width
-from pipeline.io import iter_points, labels_from_codes, read_info
+from pipeline.io import iter_points, labels_from_codes, read_info, reads_ranges
 from pipeline.io.crs import check_same_crs
 from pipeline.errors import ConfigError, InputError, StoreError
 from pipeline.store import (
@@ -146,7 +146,7 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
     features' reach, all that the cascade stage by stage needs. Each scene's entry records
     the decision (``one_pass``): every step reads it there.
     """
-    scenes = {}
+    scenes, by_index = {}, {t["index"]: t for t in tiles}
     for scene in SCENES:
         members = [t for t in tiles if t["scene"] == scene]
         if not members:
@@ -163,9 +163,59 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
             one_pass, halo = False, reach
             info = _cut_scene(run, members, halo, counts)
         groups = ingest_groups(run, members, info["grid"])
-        scenes[scene] = {"tiles": [group[0] for group in groups], "groups": groups, **info,
-                         "halo": halo, "one_pass": one_pass}
+        ranges = {str(group[0]): n for group in groups if len(group) == 1
+                  and (n := point_ranges(run, by_index[group[0]])) > 1}
+        entry = {"groups": groups, "ranges": ranges, **info, "halo": halo,
+                 "one_pass": one_pass}
+        scenes[scene] = {"tiles": [unit.key for unit in read_units(entry)], **entry}
     return scenes
+
+
+def point_ranges(run: Run, tile: dict) -> int:
+    """In how many point ranges a tile is read (one task each, so that the workers share a
+    big file): one per ``tiling.target_points`` points, a chunk's worth, for a format that
+    reads ranges; else one."""
+    if not reads_ranges(tile["path"]):
+        return 1
+    return max(1, -(-tile["n_points"] // int(run.cfg.tiling.target_points)))
+
+
+@dataclass(frozen=True)
+class ReadUnit:
+    """What one ingest task reads: the tiles of a group (``tiles``, indices), or the
+    point range ``part`` of ``parts`` of a single tile; ``key`` names its parts in the
+    store."""
+
+    key: int | str
+    tiles: tuple[int, ...]
+    part: int = 0
+    parts: int = 1
+
+    def span(self, n_points: int) -> tuple[int, int] | None:
+        """(start, stop) of the range in a tile of ``n_points``; None: the whole tiles."""
+        return range_span(n_points, self.part, self.parts)
+
+
+def range_span(n_points: int, part: int, parts: int) -> tuple[int, int] | None:
+    """(start, stop) of range ``part`` of ``parts`` equal ranges of ``n_points`` points;
+    None for the one range of a tile read whole."""
+    if parts == 1:
+        return None
+    return n_points * part // parts, n_points * (part + 1) // parts
+
+
+def read_units(info: dict) -> list[ReadUnit]:
+    """The ingest tasks of a scene from its layout entry: a group of tiles each, a range
+    each of a tile read in ranges (``ranges``: tile index -> how many)."""
+    ranges = info.get("ranges") or {}
+    units = []
+    for group in scene_groups(info):
+        n = int(ranges.get(str(group[0]), 1))
+        if n == 1:
+            units.append(ReadUnit(group[0], tuple(group)))
+        else:
+            units += [ReadUnit(f"{group[0]}.{k}", tuple(group), k, n) for k in range(n)]
+    return units
 
 
 def group_budget(run: Run) -> int:
@@ -213,25 +263,29 @@ def _cut_scene(run: Run, members: list[dict], halo: float, counts) -> dict:
                          for name, values in zip(("core", "window"), estimates)}}
 
 
-def count_tile(path, cell: float, read_batch: int) -> CellCounts:
-    """The points of one tile counted on the lattice of ``cell`` metres."""
+def count_tile(path, cell: float, read_batch: int, span=None) -> CellCounts:
+    """The points of one tile (or of its point range ``span``, (start, stop)) counted on the
+    lattice of ``cell`` metres."""
+    start, stop = span or (0, None)
     counts = CellCounts.empty(cell)
-    for batch in iter_points(path, batch_size=read_batch, fields=()):
+    for batch in iter_points(path, batch_size=read_batch, fields=(), start=start, stop=stop):
         counts = counts + CellCounts.of(batch.xyz, cell)
     return counts
 
 
-def count_tiles(paths, cell: float, read_batch: int) -> CellCounts:
-    """Worker task: the points of some tiles counted on the lattice of ``cell`` metres."""
+def count_tiles(paths, cell: float, read_batch: int, span=None) -> CellCounts:
+    """Worker task: the points of some tiles (or the point range ``span`` of one) counted
+    on the lattice of ``cell`` metres."""
     counts = CellCounts.empty(cell)
     for path in paths:
-        counts = counts + count_tile(path, cell, read_batch)
+        counts = counts + count_tile(path, cell, read_batch, span)
     return counts
 
 
 def scene_counts(run: Run, scene: str, members: list[dict], engine=None) -> CellCounts:
     """The points of a scene's tiles counted on one lattice (the balanced layout's first
-    pass: XY only, streamed in read batches)."""
+    pass: XY only, streamed in read batches); small tiles counted together, big ones by
+    point ranges (:func:`point_ranges`), a task each."""
     area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
     n_points = sum(t["n_points"] for t in members)
     cell = count_cell_size(run.halo, area, area * run.cfg.tiling.target_points / n_points)
@@ -240,15 +294,20 @@ def scene_counts(run: Run, scene: str, members: list[dict], engine=None) -> Cell
     groups = [[members[i] for i in group] for group in
               group_tiles([t["n_points"] for t in members], np.zeros(len(members), np.int64),
                           group_budget(run))]
+    units = []
+    for group in groups:
+        n = point_ranges(run, group[0]) if len(group) == 1 else 1
+        units += [(group, range_span(group[0]["n_points"], k, n)) for k in range(n)]
+    kwargs = [dict(paths=[t["path"] for t in group], cell=cell, read_batch=batch, span=span)
+              for group, span in units]
     if engine is None:
-        parts = [count_tiles([t["path"] for t in group], cell, batch) for group in groups]
+        parts = [count_tiles(**kw) for kw in kwargs]
     else:
-        tasks = [Task(key=f"count-{scene}-{group[0]['index']}-{cell:g}", fn=count_tiles,
-                      kwargs=dict(paths=[t["path"] for t in group], cell=cell,
-                                  read_batch=batch),
+        tasks = [Task(key=f"count-{scene}-{group[0]['index']}-{span and span[0]}-{cell:g}",
+                      fn=count_tiles, kwargs=kw,
                       where=f"{tiles_text(group)} (scene '{scene}')",
                       reproduce=f"silva plan CONFIG (reads {tiles_text(group)})")
-                 for group in groups]
+                 for (group, span), kw in zip(units, kwargs)]
         results = engine.map("ingest (count)", tasks)
         parts = [results[task.key] for task in tasks]
     total = CellCounts.empty(cell)
@@ -319,8 +378,8 @@ def filter_fields(label_field, labelled: bool, exclude_codes, exclude_withheld) 
 
 @dataclass(frozen=True)
 class IngestTask:
-    """What the ingest of one input tile, or of a group of small tiles, needs (see
-    :func:`ingest_tile`)."""
+    """What the ingest of one input tile, of a group of small tiles, or of a point range
+    of a big tile needs (see :func:`ingest_tile`)."""
 
     store_path: str
     scene: str
@@ -335,10 +394,14 @@ class IngestTask:
     keep_codes: object = None  # data.drop_unlisted: the listed codes, else None
     exclude_codes: tuple[int, ...] = ()
     exclude_withheld: bool = False
+    key: int | str | None = None  # names the parts in the store; None: the first tile's index
+    span: tuple[int, int] | None = None  # (start, stop): a point range of the one tile
 
     def __post_init__(self):
         if isinstance(self.tiles, dict):
             object.__setattr__(self, "tiles", (self.tiles,))
+        if self.key is None:
+            object.__setattr__(self, "key", self.tiles[0]["index"])
 
 
 def ingest_tile(task: IngestTask) -> dict:
@@ -348,7 +411,8 @@ def ingest_tile(task: IngestTask) -> dict:
 
     A group's points are stored together, under its first tile's index: one part per chunk
     they fall in, appended once per read batch of points (of however many tiles), so a group
-    of small tiles costs about what one tile of all their points costs.
+    of small tiles costs about what one tile of all their points costs. A point range of a
+    big tile (``span``) is stored under its own ``key``.
 
     With ``keep_codes`` (data.drop_unlisted), labelled points with other codes are left out.
     Points with a classification in ``exclude_codes``, or with the withheld flag when
@@ -361,7 +425,7 @@ def ingest_tile(task: IngestTask) -> dict:
     read_batch, fingerprint, keep_codes = task.read_batch, task.fingerprint, task.keep_codes
     exclude_codes, exclude_withheld = task.exclude_codes, task.exclude_withheld
     root = open_store(store_path)
-    marker = root.require_group(f"scenes/{scene}/parts/{tiles[0]['index']}")
+    marker = root.require_group(f"scenes/{scene}/parts/{task.key}")
     if is_done(marker, "ingest", fingerprint):
         return {"core_counts": marker.attrs["core_counts"],
                 "excluded": _excluded(marker.attrs, tiles)}
@@ -369,14 +433,16 @@ def ingest_tile(task: IngestTask) -> dict:
         if chunk_path(scene, name) in root:  # chunks built from it are built again
             forget_done(root[chunk_path(scene, name)])
         del marker[name]
-    writer = _PartWriter(root, scene, tiles[0]["index"], layout_from_dict(grid), task.halo)
+    writer = _PartWriter(root, scene, task.key, layout_from_dict(grid), task.halo)
+    start, stop = task.span or (0, None)
     labelled = scene != "predict"
     excluded: dict[str, int] = {}
     fields = filter_fields(label_field, labelled, exclude_codes, exclude_withheld)
     pending, held = [], 0  # points read and not yet written: less than a read batch
     for tile in tiles:
         n_read = n_excluded = 0
-        for batch in iter_points(tile["path"], batch_size=read_batch, fields=fields):
+        for batch in iter_points(tile["path"], batch_size=read_batch, fields=fields,
+                                 start=start, stop=stop):
             xyz = batch.xyz
             n_read += len(xyz)
             gid = global_ids(tile["index"], batch.start, len(xyz))
@@ -400,7 +466,7 @@ def ingest_tile(task: IngestTask) -> dict:
             if held >= read_batch:
                 writer.write(*(np.concatenate(column) for column in zip(*pending)))
                 pending, held = [], 0
-        if n_read != tile["n_points"]:
+        if n_read != (tile["n_points"] if stop is None else stop - start):
             raise InputError(f"tile {tile['path']}: its header announces {tile['n_points']} "
                              f"points but {n_read} were read; the file is truncated or its "
                              "header is wrong: repair or re-export it")
@@ -414,10 +480,10 @@ def ingest_tile(task: IngestTask) -> dict:
 
 
 class _PartWriter:
-    """Appends points to the parts (per chunk, core and halo) stored under one index."""
+    """Appends points to the parts (per chunk, core and halo) stored under one key."""
 
-    def __init__(self, root, scene: str, index: int, grid, halo: float):
-        self.root, self.scene, self.index, self.grid, self.halo = root, scene, index, grid, halo
+    def __init__(self, root, scene: str, key: int | str, grid, halo: float):
+        self.root, self.scene, self.key, self.grid, self.halo = root, scene, key, grid, halo
         self.appender = Appender()
         self.groups: dict[str, object] = {}  # chunk name -> its part group
         self.counts: dict[str, int] = {}  # chunk name -> core points written
@@ -425,7 +491,7 @@ class _PartWriter:
     def _part(self, chunk: int):
         name = self.grid.chunk_name(chunk)
         if name not in self.groups:
-            self.groups[name] = self.root.require_group(part_path(self.scene, self.index, name))
+            self.groups[name] = self.root.require_group(part_path(self.scene, self.key, name))
         return self.groups[name]
 
     def write(self, xyz, gid, label, role) -> None:
@@ -466,8 +532,8 @@ def _excluded(attrs, tiles) -> dict[str, int]:
     return {str(t["index"]): int(excluded.get(str(t["index"]), 0)) for t in tiles}
 
 
-def _ingested(root, scene: str, index: int, fingerprint: str) -> bool:
-    path = f"scenes/{scene}/parts/{index}"
+def _ingested(root, scene: str, key: int | str, fingerprint: str) -> bool:
+    path = f"scenes/{scene}/parts/{key}"
     return path in root and is_done(root[path], "ingest", fingerprint)
 
 
@@ -486,8 +552,8 @@ def ingest(run: Run, engine) -> dict:
     root = run.store
     layout = root.attrs.get("layout")
     if layout is not None and layout.get("fingerprint") == fingerprint:
-        if all(_ingested(root, scene, group[0], fingerprint)
-               for scene, info in layout["scenes"].items() for group in scene_groups(info)):
+        if all(_ingested(root, scene, unit.key, fingerprint)
+               for scene, info in layout["scenes"].items() for unit in read_units(info)):
             return layout
         scenes = layout["scenes"]  # a tile found damaged since: ingest it again
     elif (root.attrs.get("planned") or {}).get("fingerprint") == fingerprint:
@@ -507,10 +573,11 @@ def ingest(run: Run, engine) -> dict:
     by_index = {tile["index"]: tile for tile in tiles}
     tasks = []
     for scene, info in scenes.items():
-        for group in scene_groups(info):
-            members = tuple(by_index[index] for index in group)
+        for unit in read_units(info):
+            members = tuple(by_index[index] for index in unit.tiles)
+            span = unit.span(members[0]["n_points"])
             tasks.append(Task(
-                key=f"ingest-{scene}-{group[0]}-{fingerprint[:8]}",
+                key=f"ingest-{scene}-{unit.key}-{fingerprint[:8]}",
                 fn=ingest_tile,
                 kwargs={"task": IngestTask(
                     store_path=str(run.store_path),
@@ -527,8 +594,12 @@ def ingest(run: Run, engine) -> dict:
                                 else None),
                     exclude_codes=tuple(run.cfg.data.exclude_codes),
                     exclude_withheld=run.cfg.data.exclude_withheld,
+                    key=unit.key,
+                    span=span,
                 )},
-                where=f"{tiles_text(list(members))} (scene '{scene}')",
+                where=(f"{tiles_text(list(members))}"
+                       f"{f' (points {span[0]:,} to {span[1]:,})' if span else ''}"
+                       f" (scene '{scene}')"),
                 reproduce=f"silva ingest CONFIG --out {run.out} --in-process",
             ))
     results = engine.map("ingest", tasks)
@@ -538,8 +609,10 @@ def ingest(run: Run, engine) -> dict:
             if task.kwargs["task"].scene == scene:
                 names.update(results[task.key]["core_counts"])
         info["chunks"] = sorted(names)
-    excluded_by_tile = {index: n for task in tasks
-                        for index, n in results[task.key]["excluded"].items()}
+    excluded_by_tile: dict[str, int] = {}  # a tile read in ranges: the sum of its ranges'
+    for task in tasks:
+        for index, n in results[task.key]["excluded"].items():
+            excluded_by_tile[index] = excluded_by_tile.get(index, 0) + n
     for tile in tiles:  # points the ingest filters left out (data.exclude_*)
         tile["excluded"] = int(excluded_by_tile.get(str(tile["index"]), 0))
     excluded = sum(t["excluded"] for t in tiles)
