@@ -4,8 +4,9 @@ The grid of a scene comes from the tiles' headers (no point read); then one task
 streams it in batches and appends each batch's points to the parts of the chunks (and halos)
 they fall in. Small tiles of one chunk are read by one task, up to a share of a chunk's
 points (:func:`~pipeline.tiling.group_tiles`), and stored as one part per chunk: the cost
-follows the points, not the number of files. Memory is bounded by the read batch, not by the
-tile or survey size.
+follows the points, not the number of files. A LAS/LAZ tile of more than a chunk's points
+is read in point ranges, a task each, so that the workers share a survey of a few big files.
+Memory is bounded by the read batch, not by the tile or survey size.
 """
 
 import hashlib
@@ -129,12 +130,13 @@ def plan_tiles(run: Run) -> list[dict]:
 def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
     """The chunk layout of each scene, covering all its tiles (under the key ``grid``), its
     halo (``halo``) and the tiles each ingest task reads (``groups``, lists of tile indices,
-    see :func:`ingest_groups`); ``tiles`` lists the first tile of each group, under whose
-    index the group's points are stored (every tile, when none are grouped).
+    see :func:`ingest_groups`; ``ranges``: tile index -> the point ranges a big tile is read
+    in, see :func:`point_ranges`); ``tiles`` lists the keys the points are stored under (see
+    :func:`read_units`): the first tile of each group, "i.k" for range k of tile i.
 
     With ``tiling.chunk_size: auto`` and ``tiling.layout: balanced`` (the default), a first
-    pass counts each tile's points on a lattice (one task per tile, or per group of small
-    tiles, on ``engine``, or in this process) and the scene is cut into chunks balanced by
+    pass counts each tile's points on a lattice (one task per tile, per group of small
+    tiles or per range of a big one, on ``engine``, or in this process) and the scene is cut into chunks balanced by
     point count (:class:`~pipeline.tiling.BalancedLayout`); ``estimate`` then holds the min,
     median and max counted points of the chunks' cores and of their cores with halos. Otherwise a
     regular grid: of ``chunk_size`` metres, or with ``layout: grid`` sized from the headers
