@@ -15,11 +15,14 @@ pytestmark = pytest.mark.slow
 
 FEATURES = {"set": "covariance", "r1": 0.5}
 RASTERS = {"rasters": ["dtm", "dsm", "chm"], "raster_resolution": 2.0}
+#: one stage: the context's chunk invariance is tested by the workflow's other runs
+CASCADE = {"stages": 1, "n_estimators": 6, "min_samples_leaf": 15, "max_train_points": 8000,
+           "seed": 3}
 
 
 def run(tmp_path, survey, name, chunk_size):
     config = write_config(tmp_path / f"{name}.yaml", survey, features=FEATURES,
-                          tiling={"chunk_size": chunk_size}, output=RASTERS)
+                          tiling={"chunk_size": chunk_size}, output=RASTERS, cascade=CASCADE)
     out = tmp_path / name
     result = silva("run", config, "--out", out, "--in-process", "-q")
     assert result.exit_code == 0, result.output
@@ -99,7 +102,7 @@ def test_rasters_no_longer_asked_for_are_removed(runs, survey, tmp_path):
 
     out = tmp_path / "copy"
     shutil.copytree(runs[0], out)
-    config = write_config(tmp_path / "c.yaml", survey, features=FEATURES,
+    config = write_config(tmp_path / "c.yaml", survey, features=FEATURES, cascade=CASCADE,
                           tiling={"chunk_size": 100.0}, output={"rasters": ["dtm"],
                                                                 "raster_resolution": 2.0})
     result = silva("export", config, "--out", out, "--in-process", "-q")
@@ -113,7 +116,7 @@ def test_an_export_done_already_keeps_its_rasters(runs, survey, tmp_path):
     out = tmp_path / "copy"
     shutil.copytree(runs[0], out)
     before = sorted(p.name for p in (out / "rasters").iterdir())
-    config = write_config(tmp_path / "c.yaml", survey, features=FEATURES,
+    config = write_config(tmp_path / "c.yaml", survey, features=FEATURES, cascade=CASCADE,
                           tiling={"chunk_size": 100.0}, output=RASTERS)
     result = silva("export", config, "--out", out, "--in-process", "-q")
     assert result.exit_code == 0, result.output
