@@ -136,11 +136,11 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
 
     With ``tiling.chunk_size: auto`` and ``tiling.layout: balanced`` (the default), a first
     pass counts each tile's points on a lattice (one task per tile, per group of small
-    tiles or per range of a big one, on ``engine``, or in this process) and the scene is cut into chunks balanced by
-    point count (:class:`~pipeline.tiling.BalancedLayout`); ``estimate`` then holds the min,
-    median and max counted points of the chunks' cores and of their cores with halos. Otherwise a
-    regular grid: of ``chunk_size`` metres, or with ``layout: grid`` sized from the headers
-    (see :func:`scene_chunk_size`).
+    tiles or per range of a big one, on ``engine``, or in this process) and the scene is cut
+    into chunks balanced by point count (:class:`~pipeline.tiling.BalancedLayout`);
+    ``estimate`` then holds the min, median and max counted points of the chunks' cores and
+    of their cores with halos. Otherwise a regular grid: of ``chunk_size`` metres, or with
+    ``layout: grid`` sized from the headers (see :func:`scene_chunk_size`).
 
     A scene that may be classified in one pass (:func:`~workflows.steps.one_pass.
     wants_one_pass`) gets the configured halo, unless (``output.keep_features: auto``) the
