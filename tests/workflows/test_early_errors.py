@@ -39,9 +39,13 @@ def _last_log_line(out):
     return (out / LOG_NAME).read_text().splitlines()[-1]
 
 
-def refused_at_start(result, out, started) -> str:
-    """The error line of a run refused before its cluster started and its kernels compiled;
-    the line also ends the run's log."""
+def refused_at_start(tmp_path, survey, started, command, *args) -> str:
+    """The error line of ``silva COMMAND CONFIG ARGS --out OUT`` on the survey's config,
+    refused before its cluster started and its kernels compiled; the line also ends the
+    run's log in OUT (``tmp_path / "out"``)."""
+    config = write_config(tmp_path / "c.yaml", survey)
+    out = tmp_path / "out"
+    result = silva(command, config, *args, "--out", out)
     line = error_line(result)
     assert started == []
     assert _last_log_line(out).endswith(f" ERROR workflows.progress: {line}")
@@ -50,13 +54,11 @@ def refused_at_start(result, out, started) -> str:
 
 def test_a_glob_that_matches_nothing_is_refused_before_the_cluster_starts(
         tmp_path, survey, started):
-    config = write_config(tmp_path / "c.yaml", survey)
-    out = tmp_path / "out"
-    result = silva("run", config, "--out", out, "--set", "data.test=[/nonexistent/*.laz]")
-    line = refused_at_start(result, out, started)
+    line = refused_at_start(tmp_path, survey, started, "run", "--set",
+                            "data.test=[/nonexistent/*.laz]")
     assert line == ("silva: error: no file matches '/nonexistent/*.laz' in data.test; check "
                     "the path or glob")
-    assert not (out / "store.zarr").exists()
+    assert not (tmp_path / "out" / "store.zarr").exists()
 
 
 def test_a_file_that_is_no_las_tile_is_refused_before_the_cluster_starts(
@@ -64,20 +66,16 @@ def test_a_file_that_is_no_las_tile_is_refused_before_the_cluster_starts(
     bad = tmp_path / "tiles" / "bad.laz"
     bad.parent.mkdir()
     bad.write_text("not a point cloud\n")
-    config = write_config(tmp_path / "c.yaml", survey)
-    out = tmp_path / "out"
-    result = silva("features", config, "--out", out, "--set", f"data.test=[{bad}]")
-    assert str(bad) in refused_at_start(result, out, started)
+    assert str(bad) in refused_at_start(tmp_path, survey, started, "features", "--set",
+                                        f"data.test=[{bad}]")
 
 
 def test_a_model_directory_without_a_model_is_refused_before_the_cluster_starts(
         tmp_path, survey, started):
     model = tmp_path / "model"
     model.mkdir()
-    config = write_config(tmp_path / "c.yaml", survey)
-    out = tmp_path / "out"
-    result = silva("predict", config, "--model", model, "--out", out)
-    assert f"no model at {model}" in refused_at_start(result, out, started)
+    assert f"no model at {model}" in refused_at_start(tmp_path, survey, started, "predict",
+                                                      "--model", model)
 
 
 def test_with_good_inputs_the_cluster_starts(tmp_path, survey, started):
@@ -115,10 +113,8 @@ def test_resume_command_drops_overwrite_and_keeps_everything_else():
 
 def test_a_memory_limit_too_small_for_the_largest_chunk_is_refused_before_the_cluster_starts(
         tmp_path, survey, started):
-    config = write_config(tmp_path / "c.yaml", survey)
-    out = tmp_path / "out"
-    result = silva("run", config, "--out", out, "--set", "cluster.memory_limit=300MiB")
-    line = refused_at_start(result, out, started)
+    line = refused_at_start(tmp_path, survey, started, "run", "--set",
+                            "cluster.memory_limit=300MiB")
     assert line.startswith("silva: error: cluster.memory_limit (300.00 MiB per worker) is too "
                            "small: a worker needs about ")
     assert "raise cluster.memory_limit, or lower tiling.target_points" in line
