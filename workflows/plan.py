@@ -18,7 +18,7 @@ from dask.utils import format_bytes
 from pipeline.atomic import atomic_path
 from pipeline.errors import ConfigError
 from pipeline.features.sets import feature_set
-from pipeline.tiling import Grid, layout_from_dict, tile_area
+from pipeline.tiling import MIN_CHUNK_HALOS, Grid, layout_from_dict, tile_area
 from workflows.progress import clock, counted
 from workflows.run import Run
 from workflows.steps.ingest import plan_scenes, plan_tiles, scene_chunk_size
@@ -28,11 +28,12 @@ log = logging.getLogger(__name__)
 
 #: A worker's resident memory, :func:`worker_bytes`: the process with its libraries, kernels
 #: and forests, and per point of the chunk it computes (core and halo) its coordinates and
-#: structures, and every feature column (float32 values and the float64 work of the
-#: covariance). Measured peaks of the TLS plot's 1,544,202 points in one process: the
-#: default set (61 columns) with both stages of the forest template 1,875 MiB, the
-#: covariance set (48) 1,627 MiB, the paper set (11) 823 MiB; 400,000 points of the
-#: default set 784 MiB.
+#: structures, and every feature column (float32 values and the work of the covariance).
+#: Measured peaks of the TLS plot's 1,544,202 points in one process: the default set (61
+#: columns) with both stages of the forest template 1,875 MiB, the covariance set (48)
+#: 1,627 MiB, the paper set (11) 823 MiB; 400,000 points of the default set 784 MiB. Since
+#: the feature columns go straight into float32 the default set's peak is about 5 % lower
+#: (1,765 MiB in the bench), so the model errs on the safe side.
 WORKER_BASE_BYTES = 450 * 2**20
 WORKER_BYTES_PER_POINT = 180
 WORKER_BYTES_PER_COLUMN = 13
@@ -63,9 +64,9 @@ def worker_bytes(points: float, columns: int) -> float:
 def foreseen_window(run: Run, tiles: list[dict]) -> int:
     """The points of the largest chunk with its halo, as the tiles' headers foresee it: a
     layout balanced by point count holds a chunk to tiling.target_points (or the whole
-    scene, if smaller), unless the smallest chunk it cuts, a core of four halos a side
-    (:data:`~pipeline.tiling.MIN_CORE_SHARE`), holds more with its halo at the mean
-    density; a grid's chunk holds its area's share at the mean density."""
+    scene, if smaller), unless the smallest chunk it cuts, a core of
+    :data:`~pipeline.tiling.MIN_CHUNK_HALOS` halos a side, holds more with its halo at the
+    mean density; a grid's chunk holds its area's share at the mean density."""
     largest = 0.0
     tiling = run.cfg.tiling
     for scene in {t["scene"] for t in tiles}:
@@ -74,7 +75,7 @@ def foreseen_window(run: Run, tiles: list[dict]) -> int:
         if tiling.chunk_size == "auto" and tiling.layout == "balanced":
             # a small dense plot: the TLS plot's 1.5 M points, cut in two at a target of
             # 1 M, keep windows of 1.1 and 1.3 M
-            smallest = grid_window(members, 4 * run.halo, run.halo)
+            smallest = grid_window(members, MIN_CHUNK_HALOS * run.halo, run.halo)
             largest = max(largest, min(points, tiling.target_points), smallest)
             continue
         mins = [min(t["mins"][i] for t in members) for i in (0, 1)]

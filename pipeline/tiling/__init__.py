@@ -28,6 +28,7 @@ from pipeline.tiling.balanced import (
 )
 from pipeline.tiling.groups import GROUP_SHARE, group_tiles
 from pipeline.tiling.grid import (
+    MIN_CHUNK_HALOS,
     SIZE_SERIES,
     TILE_SHIFT,
     Grid,
@@ -40,7 +41,8 @@ from pipeline.tiling.grid import (
 )
 
 __all__ = [
-    "CUT_TRIALS", "GROUP_SHARE", "MAX_COUNT_CELLS", "MIN_CORE_SHARE", "SIZE_SERIES",
+    "CUT_TRIALS", "GROUP_SHARE", "MAX_COUNT_CELLS", "MIN_CHUNK_HALOS", "MIN_CORE_SHARE",
+    "SIZE_SERIES",
     "TILE_SHIFT", "BalancedLayout", "CellCounts", "Grid", "auto_chunk_size",
     "box_distance", "count_cell_size", "global_ids", "group_tiles", "layout_from_dict",
     "series_ceil", "split_global_ids", "tile_area",

@@ -13,9 +13,10 @@ from pipeline.tiling.grid import is_integer, series_floor, series_ceil
 MAX_COUNT_CELLS = 4_000_000
 
 #: A cut is made only when each side keeps at least this share of core points among the
-#: points it holds with its halo: 4/9 is the core share of a square chunk of side 4 halos at
-#: uniform density, the smallest chunk :func:`auto_chunk_size` makes. A smaller chunk would
-#: be mostly copies of its neighbours' points.
+#: points it holds with its halo: 4/9 is the core share of a square chunk of side
+#: :data:`~pipeline.tiling.grid.MIN_CHUNK_HALOS` (4) halos at uniform density, the smallest
+#: chunk :func:`auto_chunk_size` makes. A smaller chunk would be mostly copies of its
+#: neighbours' points.
 MIN_CORE_SHARE = 4 / 9
 
 #: The counting lattice has at least this many lines across a chunk's expected side, so that

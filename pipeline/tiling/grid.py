@@ -13,6 +13,10 @@ TILE_SHIFT = 40
 # whose neighbours differ by at most a factor 4/3.
 SIZE_SERIES = (1.0, 1.2, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0)
 
+#: The smallest chunk side, in halos: a smaller chunk would be mostly halo, copies of its
+#: neighbours' points.
+MIN_CHUNK_HALOS = 4
+
 
 def global_ids(tile_index: int, start: int, count: int) -> np.ndarray:
     """int64 global ids of ``count`` consecutive points of a tile, from index ``start``."""
@@ -106,7 +110,7 @@ def auto_chunk_size(
         raise ValueError(f"extent {extent!r} is smaller than the side of a square of area "
                          f"{area!r}; give the larger side of the bounding box")
     n_points, target_points = int(n_points), int(target_points)
-    lower = series_ceil(4 * halo)
+    lower = series_ceil(MIN_CHUNK_HALOS * halo)
     if extent == 0:  # every point at one XY location
         return lower
     upper = series_ceil(extent)
