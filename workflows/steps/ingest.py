@@ -165,21 +165,21 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
             one_pass, halo = False, reach
             info = _cut_scene(run, members, halo, counts)
         groups = ingest_groups(run, members, info["grid"])
-        ranges = {str(group[0]): n for group in groups if len(group) == 1
-                  and (n := point_ranges(run, by_index[group[0]])) > 1}
+        ranges = {str(group[0]): n for group in groups
+                  if (n := point_ranges(run, [by_index[i] for i in group])) > 1}
         entry = {"groups": groups, "ranges": ranges, **info, "halo": halo,
                  "one_pass": one_pass}
         scenes[scene] = {"tiles": [unit.key for unit in read_units(entry)], **entry}
     return scenes
 
 
-def point_ranges(run: Run, tile: dict) -> int:
-    """In how many point ranges a tile is read (one task each, so that the workers share a
-    big file): one per ``tiling.target_points`` points, a chunk's worth, for a format that
-    reads ranges; else one."""
-    if not reads_ranges(tile["path"]):
+def point_ranges(run: Run, group: list[dict]) -> int:
+    """In how many point ranges a group of tiles (dicts) is read (one task each, so that
+    the workers share a big file): a tile alone, of a format that reads ranges, one per
+    ``tiling.target_points`` points, a chunk's worth; anything else whole."""
+    if len(group) != 1 or not reads_ranges(group[0]["path"]):
         return 1
-    return max(1, -(-tile["n_points"] // int(run.cfg.tiling.target_points)))
+    return max(1, -(-group[0]["n_points"] // int(run.cfg.tiling.target_points)))
 
 
 @dataclass(frozen=True)
@@ -298,7 +298,7 @@ def scene_counts(run: Run, scene: str, members: list[dict], engine=None) -> Cell
                           group_budget(run))]
     units = []
     for group in groups:
-        n = point_ranges(run, group[0]) if len(group) == 1 else 1
+        n = point_ranges(run, group)
         units += [(group, range_span(group[0]["n_points"], k, n)) for k in range(n)]
     kwargs = [dict(paths=[t["path"] for t in group], cell=cell, read_batch=batch, span=span)
               for group, span in units]
