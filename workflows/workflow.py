@@ -3,7 +3,9 @@ cascade), export, evaluate, report.
 
 The features and the stage-by-stage cascade cover the scenes the forests train on (and
 every scene with ``output.keep_features``); the other scenes are classified afterwards, in
-one pass per chunk (:mod:`workflows.steps.one_pass`), which stores no features.
+one pass per chunk (:mod:`workflows.steps.one_pass`), which stores no features. A run
+without labelled test points surveys its predictions before the export, so that its report's
+figures are drawn while the workers write the tiles.
 
 Every command is a target: it runs the steps up to and including its own. Steps skip the work
 a previous run finished with the same configuration, so rerunning a killed command resumes it.
@@ -17,6 +19,7 @@ import logging
 import os
 import platform
 import time
+from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timezone
 
 from pipeline import __version__
@@ -102,13 +105,17 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     if only is not None or last < 3:
         return summary
     n_stages = len(stages)
-    summary["predictions"] = timed(
-        "export", export, run, engine, layout, n_stages - 1, stages[-1]["fingerprint"]
-    )
+    labelled = has_test_points(layout, run.cfg.data.split)
+    drawn = None
+    with ThreadPoolExecutor(max_workers=1) as painter:
+        if last >= 5 and not labelled:  # the report's figures are drawn while workers export
+            drawn = _draw_survey(run, engine, layout, n_stages - 1, timed, painter, "export")
+        summary["predictions"] = timed(
+            "export", export, run, engine, layout, n_stages - 1, stages[-1]["fingerprint"]
+        )
     if last < 4:
         return summary
     metrics = plots = None
-    labelled = has_test_points(layout, run.cfg.data.split)
     if labelled:
         metrics, plots = timed("evaluate", evaluate, run, engine, layout, n_stages)
         if metrics["n_test_points"] == 0:  # no score over no points: say so, report what is
@@ -123,11 +130,14 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
         if last >= 5:  # the report of what was predicted, without scores
             from workflows.report.survey import write_survey_report
 
-            found = timed("report", survey, run, engine, layout, n_stages - 1)
-            maps = {scene: data["map"] for scene, data in found["scenes"].items()}
-            write_survey_report(run.out, found, terrain=canopy_samples(run, maps),
-                                run_info=_run_info(run, summary, command),
-                                config_text=(run.out / "config.yaml").read_text())
+            if drawn is None:  # labelled test tiles that hold none of the classes
+                with ThreadPoolExecutor(max_workers=1) as painter:
+                    drawn = _draw_survey(run, engine, layout, n_stages - 1, timed, painter,
+                                         "report")
+            found, images = drawn
+            timed("report", write_survey_report, run.out, found, images.result(),
+                  run_info=_run_info(run, summary, command),
+                  config_text=(run.out / "config.yaml").read_text())
             summary["report"] = str(run.report_path)
         _finish(run, target, only, summary, stamp)
         return summary
@@ -149,6 +159,22 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
                    macro_f1=metrics["macro"]["f1"])
     _finish(run, target, only, summary, stamp)
     return summary
+
+
+def _draw_survey(run: Run, engine, layout: dict, final_stage: int, timed, painter,
+                 counted_in: str):
+    """The survey of an unlabelled run's predictions (its tasks counted in the progress of
+    step ``counted_in``) and a future of its figures, which ``painter`` (a thread) draws
+    meanwhile."""
+    found = timed("report", survey, run, engine, layout, final_stage, counted_in=counted_in)
+    maps = {scene: data["map"] for scene, data in found["scenes"].items()}
+    return found, painter.submit(_survey_images, found, canopy_samples(run, maps))
+
+
+def _survey_images(found: dict, terrain: dict) -> dict:
+    from workflows.report.survey import survey_images  # matplotlib: only runs that report
+
+    return survey_images(found, terrain)
 
 
 def _run_info(run: Run, summary: dict, command: str) -> dict:

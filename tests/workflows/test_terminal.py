@@ -83,6 +83,19 @@ def test_run_progress_counts_every_step_towards_the_whole_run():
     assert progress.lines[5].startswith("[6/6] report: done in 2.5 s")
 
 
+def test_the_survey_of_an_unlabelled_run_counts_in_the_step_it_runs_in():
+    steps = ("ingest", "features", "apply", "export", "evaluate", "report")
+    fractions = []
+    with run_progress(steps, quiet=True) as progress:  # the task names of the workflow's run
+        for name, total in [("ingest", 2), ("apply", 2), ("export (survey)", 2), ("export", 1)]:
+            with StepProgress(name, total, quiet=True) as step:
+                for _ in range(total):
+                    step.advance()
+                    fractions.append(progress.fraction())
+    assert fractions == sorted(fractions)  # the survey does not send the run back to apply
+    assert progress.step_label == "4/6"
+
+
 def test_run_progress_says_which_steps_were_done_before_or_skipped():
     with run_progress(STEPS, quiet=False) as progress:
         with StepProgress("export", 2, quiet=True) as step:

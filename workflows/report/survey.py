@@ -178,15 +178,14 @@ def render_survey_page(survey: dict, images: dict, title: str, run_info: dict | 
     return "\n".join(parts)
 
 
-def write_survey_report(out_dir, survey: dict, *, terrain: dict | None = None,
-                        title: str = "Silva report", run_info: dict | None = None,
-                        config_text: str | None = None) -> Path:
-    """Write ``out_dir/report.html`` of an unlabelled run and its figures as
-    ``out_dir/plots/*.png`` (atomically, as :func:`workflows.report.write_report`)."""
+def write_survey_report(out_dir, survey: dict, images: dict, *, title: str = "Silva report",
+                        run_info: dict | None = None, config_text: str | None = None) -> Path:
+    """Write ``out_dir/report.html`` of an unlabelled run and its figures ``images``
+    (:func:`survey_images`) as ``out_dir/plots/*.png`` (atomically, as
+    :func:`workflows.report.write_report`)."""
     out_dir = Path(out_dir)
     plot_dir = out_dir / "plots"
     plot_dir.mkdir(parents=True, exist_ok=True)
-    images = survey_images(survey, terrain)
     for old in plot_dir.glob("*.png"):
         if old.stem not in images:
             old.unlink(missing_ok=True)  # the plots of an earlier, labelled report

@@ -91,8 +91,10 @@ def _profiles(layout: dict) -> dict:
     return views
 
 
-def survey(run: Run, engine, layout: dict, final_stage: int) -> dict:
-    """What the run predicted, per scene and tile (see the module docstring)."""
+def survey(run: Run, engine, layout: dict, final_stage: int, *,
+           counted_in: str = "report") -> dict:
+    """What the run predicted, per scene and tile (see the module docstring); its tasks
+    count in the progress of the run's step ``counted_in``."""
     total = sum(t["n_points"] for t in layout["tiles"])
     profiles = _profiles(layout)
     band_points = sum(t["n_points"] * profiles[t["scene"]][3] for t in layout["tiles"])
@@ -102,7 +104,7 @@ def survey(run: Run, engine, layout: dict, final_stage: int) -> dict:
                       min(1.0, PROFILE_POINTS / max(band_points, 1.0)))
     tasks = chunk_tasks(run, layout, "survey", chunk_survey, task, run.fingerprint("export"),
                         "report", marks=False)
-    by_scene = results_by_scene(tasks, engine.map("survey", tasks))
+    by_scene = results_by_scene(tasks, engine.map(f"{counted_in} (survey)", tasks))
     counts = sum(r["counts"] for rs in by_scene.values() for r in rs)
     scenes = {}
     for scene, results in by_scene.items():
