@@ -9,7 +9,9 @@
   classification that ``silva predict`` does) on a local cluster of 1 worker, of N workers,
   and of 1 worker with one chunk per scene, each into a fresh temporary directory: points per
   second, the speed-up of N workers, what cutting the scene into chunks costs, and the peak
-  resident memory of a worker.
+  resident memory of a worker; and, in every round, the speed-up the machine itself allows
+  (its N workers running the same fixed feature computation side by side against one alone),
+  since shared, throttled or hyperthreaded cores cap what any run can reach.
 
 Both print a table; with ``--json`` the last line of stdout is one JSON object with every
 figure. Timings are best-of-``--repeat`` wall times for the kernels; for the pipeline, the
@@ -363,6 +365,46 @@ def prime_worker(groups) -> None:
         numba_cache.GROUPS[name]()
 
 
+#: Points of the fixed cloud that measures the machine's scaling: about a second of the
+#: run's feature set on one core.
+SCALING_POINTS = 30_000
+
+
+def feature_seconds(params, n_points: int = SCALING_POINTS) -> float:
+    """Runs on a worker: the seconds the feature set of ``params`` takes on a fixed random
+    cloud of ``n_points`` (the same work at every call)."""
+    import numpy as np
+
+    from pipeline.features.sets import feature_set
+
+    side = (n_points / 400.0) ** (1 / 3)  # 400 points per m3: S1 and the columns are full
+    xyz = np.random.default_rng(0).uniform(0.0, side, (n_points, 3))
+    compute = feature_set(params)
+    started = time.perf_counter()
+    compute(xyz)
+    return time.perf_counter() - started
+
+
+def scaling(alone: float, side_by_side: list[float]) -> float:
+    """The speed-up of ``len(side_by_side)`` workers that took these seconds each for what
+    one worker alone did in ``alone`` seconds (each did the same work)."""
+    return len(side_by_side) * alone / max(side_by_side)
+
+
+def machine_scaling(client, params, n_points: int = SCALING_POINTS) -> float:
+    """How much faster every worker of ``client`` computes the feature set of ``params``
+    side by side than one worker alone: the speed-up this machine allows at the moment."""
+    workers = sorted(client.scheduler_info()["workers"])
+
+    def on(addresses):
+        return client.gather([client.submit(feature_seconds, params, n_points, pure=False,
+                                            workers=[a], allow_other_workers=False)
+                              for a in addresses])
+
+    on(workers)  # the first call of a process loads what the next ones reuse
+    return scaling(on(workers[:1])[0], on(workers))
+
+
 def one_run(config: Path, overrides, out: Path, model: Path | None, client) -> dict:
     """One ``silva run`` (``predict`` with ``model``) of ``config`` on ``client`` into
     ``out``: the run's summary plus ``seconds`` (its steps, the cluster already running)."""
@@ -415,6 +457,10 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
                         kernels.wait()  # compiled while the cluster started
                         client.run(prime_worker, kernels.groups)
                         pids = _worker_pids(client)
+                        if n > 1:
+                            allowed = machine_scaling(client, params)
+                            say(f"the machine allows {allowed:.2f}x on {n} workers",
+                                quiet=quiet)
                         for label, extra in items:
                             say(f"run on {label}" + (f" (round {turn + 1} of {repeat})"
                                                      if repeat > 1 else ""), quiet=quiet)
@@ -424,6 +470,8 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
                                     config, [*overrides, *extra], out, model, client)
                             shutil.rmtree(out, ignore_errors=True)
                             summary["cpu_seconds"] = memory.cpu_seconds
+                            if n > 1:
+                                summary["machine_scaling"] = allowed
                             peaks += memory.peaks.values()
                             say(f"  {summary['points']:,} points, {summary['chunks']} chunks: "
                                 f"{summary['seconds']:.1f} s, workers' CPU "
@@ -453,6 +501,7 @@ def _pipeline_figures(config, model, workers: int, rounds: list[dict], peaks: li
     first = rounds[0]
     points = first[one_label]["points"]
     speedups = per_round(lambda r: r[one_label]["seconds"] / r[many_label]["seconds"])
+    allowed = per_round(lambda r: r[many_label].get("machine_scaling", 1.0))
     overheads = per_round(lambda r: r[one_label]["seconds"] / r[single_label]["seconds"] - 1)
     many = seconds[many_label]
     result = {
@@ -470,6 +519,10 @@ def _pipeline_figures(config, model, workers: int, rounds: list[dict], peaks: li
         "points_per_s_one_worker": round(points / seconds[one_label], 1),
         "speedup": round(median(speedups), 3),
         "speedup_per_round": [round(v, 3) for v in speedups],
+        "machine_scaling": round(median(allowed), 3),
+        "machine_scaling_per_round": [round(v, 3) for v in allowed],
+        "speedup_of_machine_scaling": round(median(
+            [s / a for s, a in zip(speedups, allowed)]), 3),
         "chunk_overhead": round(median(overheads), 3),
         "chunk_overhead_per_round": [round(v, 3) for v in overheads],
         "worker_cpu_seconds": {label: round(cpu[label], 2) for label in labels},
@@ -517,6 +570,13 @@ def _print_runs(labels: list[str], seconds: dict, result: dict) -> None:
         click.echo("per round: speed-up " + ", ".join(
             f"{v:.2f}x" for v in result["speedup_per_round"]) + "; chunk overhead " + ", ".join(
             f"{100 * v:.1f} %" for v in result["chunk_overhead_per_round"]))
+    if result["workers"] > 1:
+        click.echo(f"the machine allowed {result['machine_scaling']:.2f}x on "
+                   f"{result['workers']} workers (its workers computing the same features side "
+                   "by side against one alone" + (", per round " + ", ".join(
+                       f"{v:.2f}x" for v in result["machine_scaling_per_round"])
+                       if result["rounds"] > 1 else "") + "); the run reached "
+                   f"{100 * result['speedup_of_machine_scaling']:.0f} % of it")
     click.echo(f"{result['workers']} workers: {result['points_per_s']:,.0f} points/s "
                f"({result['points_per_s_per_worker']:,.0f} per worker), "
                f"{result['speedup']:.2f}x one worker; chunk overhead "

@@ -119,3 +119,29 @@ def test_bench_pipeline_of_a_missing_config_or_model_is_one_line(tiny, tmp_path)
     line = error_line(silva("bench", "pipeline", config, "--model", tmp_path / "no-model"))
     assert "no-model not found" in line
 
+
+
+def test_the_machines_scaling_is_what_its_workers_do_side_by_side(capsys):
+    from distributed import Client, LocalCluster
+
+    from pipeline.features.sets import FeatureParams
+
+    assert bench_module.scaling(2.0, [2.0, 2.0]) == 2.0  # no slower side by side
+    assert bench_module.scaling(2.0, [2.5, 4.0]) == 1.0  # the slower one decides
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        allowed = bench_module.machine_scaling(client, FeatureParams(set="paper", r1=0.5),
+                                               n_points=3000)
+    assert _positive(allowed)
+    # the figures of a 2-worker bench: the run's speed-up against what the machine allowed
+    run = {"points": 10, "chunks": 2, "chunk size (m)": "test 3", "timings": {"apply": 1.0},
+           "cpu_seconds": 1.0}
+    rounds = [{"1 worker": {**run, "seconds": 10.0},
+               "1 worker, one chunk per scene": {**run, "seconds": 9.0, "chunks": 1},
+               "2 workers": {**run, "seconds": seconds, "machine_scaling": allowed}}
+              for seconds, allowed in ((6.25, 1.6), (5.0, 1.8), (5.0, 2.0))]
+    figures = bench_module._pipeline_figures("c.yaml", None, 2, rounds, [100.0])
+    assert figures["speedup_per_round"] == [1.6, 2.0, 2.0]
+    assert figures["machine_scaling"] == 1.8
+    assert figures["speedup_of_machine_scaling"] == 1.0  # the median of 1.0, 1.11, 1.0
+    assert "the machine allowed 1.80x on 2 workers" in capsys.readouterr().out
