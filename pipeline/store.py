@@ -5,8 +5,9 @@ Layout::
     store.zarr/                      attrs: schema_version, layout (tiles, scenes, chunks)
       scenes/<scene>/parts/<tile>/           marker of an ingested tile: attrs done, parts
       scenes/<scene>/parts/<tile>/<chunk>/   points of one tile in one chunk (written by ingest,
-          core_xyz (n, 3) f8, core_gid (n,) i8,   removed once the chunk is assembled)
-          core_label (n,) i2, core_role (n,) i1, halo_xyz (m, 3) f8, halo_gid (m,) i8
+          core (n, 35) u1: records of xyz f8 x 3,  removed once the chunk is assembled)
+              gid i8, label i2, role i1
+          halo (m, 32) u1: records of xyz f8 x 3, gid i8
       scenes/<scene>/chunks/<chunk>/         one chunk
           points/   pack: xyz, gid, label, role (core points sorted by global id),
                           halo_xyz, halo_gid (halo copies sorted by global id)
@@ -57,10 +58,12 @@ from zarr.codecs import ZstdCodec
 from pipeline.errors import StoreError
 from pipeline.terrain import Raster
 
-SCHEMA_VERSION = 5  # 3: packs of byte planes in one shard per write; parts removed once
+SCHEMA_VERSION = 6  # 3: packs of byte planes in one shard per write; parts removed once
 # assembled; 4: a flag per point whose features are undefined, chunks classified in one pass;
-# 5: a terrain model per scene
+# 5: a terrain model per scene; 6: a part's core and halo points as one record array each
 CHECKSUM = "crc32"
+#: Rows of the zarr chunks of an appended array: its first write's rows, within these bounds.
+MIN_APPEND_CHUNK, MAX_APPEND_CHUNK = 1 << 10, 1 << 18
 _COMPRESSOR = ZstdCodec(level=0, checksum=True)
 _ZSTD = numcodecs.Zstd(level=0)  # to choose a layout on a sample
 _FLAT_KEYS = {"name": "v2", "separator": "."}  # a pack's shard is <pack>/0.0: no directories
@@ -192,39 +195,106 @@ def _member(group: zarr.Group, name: str):
 
 
 class Appender:
-    """Appends rows to arrays of groups, creating them on first use; :meth:`seal` then
-    records each array's checksum and returns the rows each holds, as read back from the
-    store, by ``(group path, array name)``. An array not sealed reads as damaged.
+    """Appends rows to *record arrays* of groups, creating them on first use; :meth:`seal`
+    then records each array's checksum and returns the rows each holds, as read back from
+    the store, by ``(group path, array name)``. An array not sealed reads as damaged.
 
-    Appended arrays are plain zarr arrays (one per name): ingest's parts, which the features
-    step reads once and then removes.
+    A record array holds the rows of several arrays of equal length side by side: one
+    uint8 (n, W) zarr array whose row k holds the bytes of row k of every member (attribute
+    ``members``), read back by :func:`read_records`. These are ingest's parts, which the
+    features step reads once and then removes: one array per part instead of one per
+    member, since every zarr array costs a few file operations whatever its size. Rows are
+    held in memory until ``hold_rows`` of them wait (or the seal), so that a small part is
+    written once, in zarr chunks of its own size: a chunk much longer than its rows costs
+    its whole length to encode at every write.
     """
 
-    def __init__(self):
-        self._arrays: dict[tuple[str, str], list] = {}  # -> [array, crc, rows appended]
+    def __init__(self, hold_rows: int = 1 << 20):
+        self.hold_rows = hold_rows
+        self._arrays: dict[tuple[str, str], list] = {}  # -> [group, array, crc, rows, members]
+        self._held: dict[tuple[str, str], list[np.ndarray]] = {}
+        self._held_rows = 0
 
-    def append(self, group: zarr.Group, arrays: dict[str, np.ndarray]) -> None:
-        for name, data in arrays.items():
-            data = np.ascontiguousarray(data)
-            entry = self._arrays.get((group.path, name))
-            if entry is None:
-                chunks = (1 << 18,) + data.shape[1:]
-                array = group.create_array(name, shape=(0,) + data.shape[1:], dtype=data.dtype,
-                                           chunks=chunks, compressors=_COMPRESSOR,
-                                           overwrite=True)
-                entry = self._arrays[(group.path, name)] = [array, 0, 0]
-            entry[0].append(data)
-            entry[1] = checksum(data, entry[1])
-            entry[2] += len(data)
+    def append(self, group: zarr.Group, name: str, arrays: dict[str, np.ndarray]) -> None:
+        """Append the rows of ``arrays`` (member name -> array, all of one length) to the
+        record array ``name`` of ``group``."""
+        record, members = _record(arrays)
+        entry = self._arrays.setdefault((group.path, name), [group, None, 0, 0, members])
+        if entry[4] != members:
+            raise ValueError(f"record array '{name}' of {group.path} has members {entry[4]}, "
+                             f"not {members}")
+        entry[2] = checksum(record, entry[2])
+        entry[3] += len(record)
+        self._held.setdefault((group.path, name), []).append(record)
+        self._held_rows += len(record)
+        if self._held_rows >= self.hold_rows:
+            self._write_held()
+
+    def _write_held(self) -> None:
+        for key, held in self._held.items():
+            entry = self._arrays[key]
+            data = np.concatenate(held)
+            if entry[1] is None:
+                entry[1] = _record_array(entry[0], key[1], data[:0], len(data),
+                                         {"members": entry[4]})
+            entry[1].append(data)
+        self._held, self._held_rows = {}, 0
 
     def seal(self) -> dict[tuple[str, str], tuple[int, int]]:
         """Record the checksums; return {(group, name): (rows appended, rows stored)}."""
         rows = {}
-        for key, (array, crc, appended) in self._arrays.items():
-            array.update_attributes({CHECKSUM: crc})
+        for key, (group, array, crc, appended, members) in self._arrays.items():
+            held = self._held.pop(key, [])
+            if array is None:  # every row still held: written once, with its checksum
+                array = _record_array(group, key[1], np.concatenate(held), appended,
+                                      {"members": members, CHECKSUM: crc})
+            else:
+                if held:
+                    array.append(np.concatenate(held))
+                array.update_attributes({CHECKSUM: crc})
             stored = zarr.open_array(store=array.store, path=array.path, mode="r").shape[0]
             rows[key] = (appended, stored)
+        self._held_rows = 0
         return rows
+
+
+def _record(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, dict]:
+    """The rows of ``arrays`` side by side as one uint8 (n, W) matrix, and its members:
+    name -> [dtype, shape of a row, first byte]."""
+    columns, members, start = [], {}, 0
+    n = len(next(iter(arrays.values())))
+    for name, data in arrays.items():
+        data = np.ascontiguousarray(data)
+        if len(data) != n:
+            raise ValueError(f"record member '{name}' has {len(data)} rows, not {n}")
+        columns.append(data.reshape(n, -1).view(np.uint8).reshape(n, -1))
+        members[name] = [data.dtype.str, list(data.shape[1:]), start]
+        start += columns[-1].shape[1]
+    return np.concatenate(columns, axis=1), members
+
+
+def _record_array(group: zarr.Group, name: str, data: np.ndarray, first_rows: int,
+                  attributes: dict):
+    """A new record array ``name`` of ``group`` holding ``data``, in zarr chunks of about
+    ``first_rows`` rows (its first write's)."""
+    rows = min(max(1 << max(first_rows - 1, 0).bit_length(), MIN_APPEND_CHUNK),
+               MAX_APPEND_CHUNK)
+    return group.create_array(name, data=data, chunks=(rows, max(data.shape[1], 1)),
+                              compressors=_COMPRESSOR, attributes=attributes)
+
+
+def read_records(group: zarr.Group, name: str) -> dict[str, np.ndarray]:
+    """The members of the record array ``name`` (:class:`Appender`), checked against its
+    checksum as :func:`read_array` checks an array."""
+    record = read_array(group, name)
+    members = group[name].attrs["members"]
+    arrays = {}
+    for member, (dtype, shape, start) in members.items():
+        dtype = np.dtype(dtype)
+        width = dtype.itemsize * int(np.prod(shape, dtype=np.int64))
+        values = np.ascontiguousarray(record[:, start:start + width]).view(dtype)
+        arrays[member] = values.reshape((len(record), *shape))
+    return arrays
 
 
 def read_array(group: zarr.Group, name: str) -> np.ndarray:
@@ -442,8 +512,9 @@ def _gather(found: dict, tiles, prefix: str, names) -> dict:
     for tile in tiles:
         part = found.get((tile, prefix))
         if part is not None:
+            records = read_records(part, prefix)
             for name in names:
-                arrays[name].append(read_array(part, f"{prefix}_{name}"))
+                arrays[name].append(records[name])
     arrays = {k: np.concatenate(v) if v else _EMPTY[k] for k, v in arrays.items()}
     order = np.argsort(arrays["gid"], kind="stable")
     return {k: v[order] for k, v in arrays.items()}

@@ -7,9 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import zarr
 
 from pipeline.errors import StoreError
 from pipeline.store import (
+    MIN_APPEND_CHUNK,
     Appender,
     chunk_points,
     drop_assembled_parts,
@@ -18,6 +20,7 @@ from pipeline.store import (
     mark_done,
     open_store,
     read_array,
+    read_records,
     remove_chunks,
     removed_record,
     write_arrays,
@@ -155,15 +158,32 @@ def test_appended_arrays_are_sealed_with_their_checksum(tmp_path):
     root = open_store(tmp_path / "s.zarr")
     marker = root.require_group("scenes/train/parts/0")
     part = root.require_group("scenes/train/parts/0/0_0")
-    appender = Appender()
+    appender = Appender(hold_rows=20)  # rows written every third batch, the rest held
     batches = [np.arange(i, i + 7, dtype=np.int64) for i in range(0, 70, 7)]
     for batch in batches:
-        appender.append(part, {"core_gid": batch})
+        appender.append(part, "core", {"gid": batch, "xyz": np.c_[batch, -batch, batch * 0.5]})
     with pytest.raises(StoreError, match="never completely written"):
-        read_array(part, "core_gid")  # not sealed yet: an unfinished ingest
+        read_records(part, "core")  # not sealed yet: an unfinished ingest
     mark_done(marker, "ingest", "fp")
-    assert appender.seal() == {(part.path, "core_gid"): (70, 70)}
-    assert np.array_equal(read_array(part, "core_gid"), np.concatenate(batches))
+    assert appender.seal() == {(part.path, "core"): (70, 70)}
+    records = read_records(part, "core")
+    gid = np.concatenate(batches)
+    assert np.array_equal(records["gid"], gid) and records["gid"].dtype == np.int64
+    assert np.array_equal(records["xyz"], np.c_[gid, -gid, gid * 0.5])
+
+
+def test_a_part_held_until_the_seal_is_written_whole():
+    root = zarr.group()
+    part = root.require_group("scenes/train/parts/0/0_0")
+    appender = Appender()
+    appender.append(part, "halo", {"xyz": np.ones((10, 3)), "gid": np.arange(10)})
+    with pytest.raises(StoreError, match="missing"):
+        read_records(part, "halo")  # nothing written before the seal
+    appender.seal()
+    assert part["halo"].chunks[0] == MIN_APPEND_CHUNK  # not the longest chunk for 10 rows
+    assert np.array_equal(read_records(part, "halo")["gid"], np.arange(10))
+    with pytest.raises(ValueError, match="members"):
+        appender.append(part, "halo", {"xyz": np.ones((2, 3))})
 
 
 def test_damaged_part_forgets_its_tile(tmp_path):
@@ -171,13 +191,13 @@ def test_damaged_part_forgets_its_tile(tmp_path):
     marker = root.require_group("scenes/train/parts/0")
     part = root.require_group("scenes/train/parts/0/0_0")
     appender = Appender()
-    appender.append(part, {"core_xyz": np.ones((10, 3))})
+    appender.append(part, "core", {"xyz": np.ones((10, 3))})
     appender.seal()
     mark_done(marker, "ingest", "fp")
-    for chunk in _chunk_files(tmp_path / "s.zarr" / part.path, "core_xyz"):
+    for chunk in _chunk_files(tmp_path / "s.zarr" / part.path, "core"):
         chunk.unlink()
     with pytest.raises(StoreError):
-        read_array(part, "core_xyz")
+        read_records(part, "core")
     assert not is_done(open_store(tmp_path / "s.zarr")["scenes/train/parts/0"], "ingest", "fp")
 
 
@@ -226,11 +246,10 @@ def _ingested(tmp_path, tiles=((0, 0), (1, 1000))):
         part = root.require_group(f"scenes/train/parts/{tile}/0_0")
         appender = Appender()
         gid = rng.permutation(np.arange(start, start + 50, dtype=np.int64))
-        appender.append(part, {"core_xyz": rng.normal(size=(50, 3)), "core_gid": gid,
-                               "core_label": np.full(50, 2, np.int16),
-                               "core_role": np.zeros(50, np.int8)})
-        appender.append(part, {"halo_xyz": rng.normal(size=(5, 3)),
-                               "halo_gid": gid[:5] + 10_000})
+        appender.append(part, "core", {"xyz": rng.normal(size=(50, 3)), "gid": gid,
+                                       "label": np.full(50, 2, np.int16),
+                                       "role": np.zeros(50, np.int8)})
+        appender.append(part, "halo", {"xyz": rng.normal(size=(5, 3)), "gid": gid[:5] + 10_000})
         appender.seal()
         mark_done(marker, "ingest", "ing", parts={"0_0": ["core", "halo"]})
     return root

@@ -435,7 +435,7 @@ def ingest_tile(task: IngestTask) -> dict:
         if chunk_path(scene, name) in root:  # chunks built from it are built again
             forget_done(root[chunk_path(scene, name)])
         del marker[name]
-    writer = _PartWriter(root, scene, task.key, layout_from_dict(grid), task.halo)
+    writer = _PartWriter(marker, layout_from_dict(grid), task.halo)
     start, stop = task.span or (0, None)
     labelled = scene != "predict"
     excluded: dict[str, int] = {}
@@ -482,10 +482,11 @@ def ingest_tile(task: IngestTask) -> dict:
 
 
 class _PartWriter:
-    """Appends points to the parts (per chunk, core and halo) stored under one key."""
+    """Appends points to the parts (per chunk, core and halo) under one key's ``marker``,
+    which holds no part yet."""
 
-    def __init__(self, root, scene: str, key: int | str, grid, halo: float):
-        self.root, self.scene, self.key, self.grid, self.halo = root, scene, key, grid, halo
+    def __init__(self, marker, grid, halo: float):
+        self.marker, self.grid, self.halo = marker, grid, halo
         self.appender = Appender()
         self.groups: dict[str, object] = {}  # chunk name -> its part group
         self.counts: dict[str, int] = {}  # chunk name -> core points written
@@ -493,7 +494,7 @@ class _PartWriter:
     def _part(self, chunk: int):
         name = self.grid.chunk_name(chunk)
         if name not in self.groups:
-            self.groups[name] = self.root.require_group(part_path(self.scene, self.key, name))
+            self.groups[name] = self.marker.create_group(name)
         return self.groups[name]
 
     def write(self, xyz, gid, label, role) -> None:
@@ -504,14 +505,13 @@ class _PartWriter:
         bounds = np.flatnonzero(np.diff(chunk[order])) + 1
         for rows in np.split(order, bounds):
             target = int(chunk[rows[0]])
-            self.appender.append(self._part(target), {
-                "core_xyz": xyz[rows], "core_gid": gid[rows], "core_label": label[rows],
-                "core_role": role[rows]})
+            self.appender.append(self._part(target), "core", {
+                "xyz": xyz[rows], "gid": gid[rows], "label": label[rows], "role": role[rows]})
             name = self.grid.chunk_name(target)
             self.counts[name] = self.counts.get(name, 0) + len(rows)
         for target, rows in self.grid.halo_members(xyz, self.halo):
-            self.appender.append(self._part(target), {"halo_xyz": xyz[rows],
-                                                      "halo_gid": gid[rows]})
+            self.appender.append(self._part(target), "halo", {"xyz": xyz[rows],
+                                                              "gid": gid[rows]})
 
     def seal(self) -> dict[str, list[str]]:
         """Record the checksums; return the kinds of points ("core", "halo") written per
@@ -522,7 +522,7 @@ class _PartWriter:
                 raise StoreError(f"store group '{group}' holds {stored} rows of '{name}' where "
                                  f"{appended} were written: another process writes to this "
                                  "store; run one Silva command per output directory and rerun")
-            parts.setdefault(group.rsplit("/", 1)[1], set()).add(name.split("_")[0])
+            parts.setdefault(group.rsplit("/", 1)[1], set()).add(name)
         return {chunk: sorted(kinds) for chunk, kinds in parts.items()}
 
 
