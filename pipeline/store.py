@@ -63,7 +63,7 @@ SCHEMA_VERSION = 6  # 3: packs of byte planes in one shard per write; parts remo
 # 5: a terrain model per scene; 6: a part's core and halo points as one record array each
 CHECKSUM = "crc32"
 #: Rows of the zarr chunks of an appended array: its first write's rows, within these bounds.
-MIN_APPEND_CHUNK, MAX_APPEND_CHUNK = 1 << 10, 1 << 18
+MIN_APPEND_CHUNK, MAX_APPEND_CHUNK = 1 << 14, 1 << 18
 _COMPRESSOR = ZstdCodec(level=0, checksum=True)
 _ZSTD = numcodecs.Zstd(level=0)  # to choose a layout on a sample
 _FLAT_KEYS = {"name": "v2", "separator": "."}  # a pack's shard is <pack>/0.0: no directories
