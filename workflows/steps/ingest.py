@@ -164,11 +164,9 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
             # the one pass would cost more than the stored features save
             one_pass, halo = False, reach
             info = _cut_scene(run, members, halo, counts)
-        groups = ingest_groups(run, members, info["grid"])
-        ranges = {str(group[0]): n for group in groups
-                  if (n := point_ranges(run, [by_index[i] for i in group])) > 1}
-        entry = {"groups": groups, "ranges": ranges, **info, "halo": halo,
-                 "one_pass": one_pass}
+        groups = [[by_index[i] for i in group]
+                  for group in ingest_groups(run, members, info["grid"])]
+        entry = {**read_entry(run, groups), **info, "halo": halo, "one_pass": one_pass}
         scenes[scene] = {"tiles": [unit.key for unit in read_units(entry)], **entry}
     return scenes
 
@@ -180,6 +178,15 @@ def point_ranges(run: Run, group: list[dict]) -> int:
     if len(group) != 1 or not reads_ranges(group[0]["path"]):
         return 1
     return max(1, -(-group[0]["n_points"] // int(run.cfg.tiling.target_points)))
+
+
+def read_entry(run: Run, groups: list[list[dict]]) -> dict:
+    """What a scene's layout entry records of its reading, for these groups of tiles
+    (dicts): the ``groups`` as tile indices and the ``ranges`` of the big tiles (tile index
+    -> how many, :func:`point_ranges`), from which :func:`read_units` makes the tasks."""
+    return {"groups": [[t["index"] for t in group] for group in groups],
+            "ranges": {str(group[0]["index"]): n for group in groups
+                       if (n := point_ranges(run, group)) > 1}}
 
 
 @dataclass(frozen=True)
@@ -296,20 +303,18 @@ def scene_counts(run: Run, scene: str, members: list[dict], engine=None) -> Cell
     groups = [[members[i] for i in group] for group in
               group_tiles([t["n_points"] for t in members], np.zeros(len(members), np.int64),
                           group_budget(run))]
-    units = []
-    for group in groups:
-        n = point_ranges(run, group)
-        units += [(group, range_span(group[0]["n_points"], k, n)) for k in range(n)]
-    kwargs = [dict(paths=[t["path"] for t in group], cell=cell, read_batch=batch, span=span)
-              for group, span in units]
+    by_index = {t["index"]: t for t in members}
+    units = [(unit, [by_index[i] for i in unit.tiles])
+             for unit in read_units(read_entry(run, groups))]
+    kwargs = [dict(paths=[t["path"] for t in tiles], cell=cell, read_batch=batch,
+                   span=unit.span(tiles[0]["n_points"])) for unit, tiles in units]
     if engine is None:
         parts = [count_tiles(**kw) for kw in kwargs]
     else:
-        tasks = [Task(key=f"count-{scene}-{group[0]['index']}-{span and span[0]}-{cell:g}",
-                      fn=count_tiles, kwargs=kw,
-                      where=f"{tiles_text(group)} (scene '{scene}')",
-                      reproduce=f"silva plan CONFIG (reads {tiles_text(group)})")
-                 for (group, span), kw in zip(units, kwargs)]
+        tasks = [Task(key=f"count-{scene}-{unit.key}-{cell:g}", fn=count_tiles, kwargs=kw,
+                      where=f"{tiles_text(tiles)} (scene '{scene}')",
+                      reproduce=f"silva plan CONFIG (reads {tiles_text(tiles)})")
+                 for (unit, tiles), kw in zip(units, kwargs)]
         results = engine.map("ingest (count)", tasks)
         parts = [results[task.key] for task in tasks]
     total = CellCounts.empty(cell)
