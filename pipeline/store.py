@@ -235,9 +235,9 @@ class Appender:
             entry = self._arrays[key]
             data = np.concatenate(held)
             if entry[1] is None:
-                entry[1] = _record_array(entry[0], key[1], data[:0], len(data),
-                                         {"members": entry[4]})
-            entry[1].append(data)
+                entry[1] = _record_array(entry[0], key[1], data, {"members": entry[4]})
+            else:
+                entry[1].append(data)
         self._held, self._held_rows = {}, 0
 
     def seal(self) -> dict[tuple[str, str], tuple[int, int]]:
@@ -246,7 +246,7 @@ class Appender:
         for key, (group, array, crc, appended, members) in self._arrays.items():
             held = self._held.pop(key, [])
             if array is None:  # every row still held: written once, with its checksum
-                array = _record_array(group, key[1], np.concatenate(held), appended,
+                array = _record_array(group, key[1], np.concatenate(held),
                                       {"members": members, CHECKSUM: crc})
             else:
                 if held:
@@ -273,11 +273,10 @@ def _record(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, dict]:
     return np.concatenate(columns, axis=1), members
 
 
-def _record_array(group: zarr.Group, name: str, data: np.ndarray, first_rows: int,
-                  attributes: dict):
+def _record_array(group: zarr.Group, name: str, data: np.ndarray, attributes: dict):
     """A new record array ``name`` of ``group`` holding ``data``, in zarr chunks of about
-    ``first_rows`` rows (its first write's)."""
-    rows = min(max(1 << max(first_rows - 1, 0).bit_length(), MIN_APPEND_CHUNK),
+    its rows (within :data:`MIN_APPEND_CHUNK` and :data:`MAX_APPEND_CHUNK`)."""
+    rows = min(max(1 << max(len(data) - 1, 0).bit_length(), MIN_APPEND_CHUNK),
                MAX_APPEND_CHUNK)
     return group.create_array(name, data=data, chunks=(rows, max(data.shape[1], 1)),
                               compressors=_COMPRESSOR, attributes=attributes)
@@ -286,8 +285,8 @@ def _record_array(group: zarr.Group, name: str, data: np.ndarray, first_rows: in
 def read_records(group: zarr.Group, name: str) -> dict[str, np.ndarray]:
     """The members of the record array ``name`` (:class:`Appender`), checked against its
     checksum as :func:`read_array` checks an array."""
-    record = read_array(group, name)
-    members = group[name].attrs["members"]
+    record, array = _read_checked(group, name)
+    members = array.attrs["members"]
     arrays = {}
     for member, (dtype, shape, start) in members.items():
         dtype = np.dtype(dtype)
@@ -304,6 +303,12 @@ def read_array(group: zarr.Group, name: str) -> np.ndarray:
     done-marks of its group (and of the groups above it) are cleared, so that running the
     command again recomputes the group.
     """
+    return _read_checked(group, name)[0]
+
+
+def _read_checked(group: zarr.Group, name: str):
+    """:func:`read_array`'s values, and the zarr array (a pack or an appended array) they
+    were read from."""
     try:
         found = _member(group, name)
         if found is None:
@@ -327,7 +332,7 @@ def read_array(group: zarr.Group, name: str) -> np.ndarray:
         problem = f"its bytes cannot be decoded ({type(err).__name__})"
     else:
         if expected is not None and checksum(data) == expected:
-            return data
+            return data, array
         problem = ("it was never completely written" if expected is None else
                    "its values differ from what was written: a chunk file is missing or "
                    "corrupt")
