@@ -26,6 +26,7 @@ from workflows.progress import (
     say,
     uncounted,
 )
+from workflows.step_table import STEPS, TARGETS, examples, progress_steps
 from workflows.templates import TEMPLATES, template_path, write_template
 
 log = logging.getLogger(__name__)
@@ -252,7 +253,7 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
     from workflows.config import validate_config
     from workflows.durations import reset
     from workflows.run import Run, applied_model, prepare_output, read_paths, record_applied_model
-    from workflows.workflow import STEPS, execute
+    from workflows.workflow import execute
 
     out = out or Path(f"silva-{Path(config).stem if config else 'predict'}")
     if model_dir is None and not overwrite:
@@ -265,8 +266,7 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
     lock = prepare_output(out, overwrite=overwrite, keep=keep, command=command)
     if overwrite:
         reset(out)  # the durations of the runs emptied start again
-    steps = [("apply" if s == "train" and model_dir else s) for s in STEPS]
-    steps = steps[: STEPS.index(target) + 1]
+    steps = progress_steps(target, applies_model=model_dir is not None)
     resume = resume_command(command)
     with run_logging(verbose, out / LOG_NAME), lock, _logged_error():
         log.info("start: %s (steps %s)", command, ", ".join(steps))
@@ -304,11 +304,6 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
     return summary
 
 
-def examples(*lines: str) -> str:
-    """A help text's example invocations: a paragraph click keeps line by line."""
-    return "\n\n\b\nExamples:\n" + "\n".join(f"  {line}" for line in lines)
-
-
 def _step_command(name: str, target: str, doc: str) -> click.Command:
     @run_options
     def command(config, out, overrides, overwrite, quiet, in_process, chunk, verbose):
@@ -318,29 +313,14 @@ def _step_command(name: str, target: str, doc: str) -> click.Command:
     return click.command(name)(command)
 
 
-# command -> (the step it runs up to, its help)
+# command -> (the step it runs up to, its help): 'run' and the commands of the step table
 STEP_COMMANDS = {
-    "run": ("report", "Run every step on CONFIG: ingest, features, train, export, evaluate, "
-                      "report. A rerun resumes: finished work with the same configuration "
-                      "is kept." + examples(
+    "run": ("report", f"Run every step on CONFIG: {', '.join(TARGETS)}. A rerun resumes: "
+                      "finished work with the same configuration is kept." + examples(
                           "silva run survey.yaml --out results/",
                           "silva run survey.yaml --out results/ --set features.r1=0.4 -q",
                       )),
-    "ingest": ("ingest", "Stream the input tiles of CONFIG into chunks with halos (store.zarr)."
-               + examples("silva ingest survey.yaml --out results/")),
-    "features": ("features", "Compute the moment invariants of every chunk (after ingest)."
-                 + examples(
-                     "silva features survey.yaml --out results/",
-                     "silva features survey.yaml --out results/ --chunk test/0_0",
-                 )),
-    "train": ("train", "Train the cascade and predict every stage (after features); saves "
-                       "OUT/model." + examples("silva train survey.yaml --out results/")),
-    "export": ("export", "Write predictions/<tile>.laz for every input tile (after train)."
-               + examples("silva export survey.yaml --out results/ --set output.format=las")),
-    "evaluate": ("evaluate", "Write metrics.json for the test points (after export)."
-                 + examples("silva evaluate survey.yaml --out results/")),
-    "report": ("report", "Write report.html with its plots (after evaluate)."
-               + examples("silva report survey.yaml --out results/")),
+    **{step.name: (step.name, step.command) for step in STEPS if step.command is not None},
 }
 
 

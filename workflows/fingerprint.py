@@ -1,7 +1,9 @@
 """The recompute fingerprint: a hash of the configuration keys that affect one workflow step.
 
-:data:`STEPS` is the list of fingerprinted steps; a rerun redoes a step whose fingerprint
-changed and keeps the others.
+:data:`STEPS` is the list of fingerprinted steps, as the step table
+(:mod:`workflows.step_table`) declares them with the configuration parts each hashes
+(:data:`PARTS`, or configuration paths hashed as written); a rerun redoes a step whose
+fingerprint changed and keeps the others.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from pipeline.errors import ConfigError
 from workflows.inputs import SCENES
+from workflows.step_table import FINGERPRINTED
 
 if TYPE_CHECKING:
     from workflows.config.schema import SilvaConfig
@@ -19,7 +22,7 @@ if TYPE_CHECKING:
 #: The keys of the features section that change the features (r2 and the context cap change
 #: only the cascade's context).
 FEATURE_KEYS = ("set", "r1", "max_neighbors", "plane", "scales", "column", "cell", "voxel")
-STEPS = ("ingest", "terrain", "features", "stage", "export", "evaluate")
+STEPS = tuple(FINGERPRINTED)
 _FINGERPRINT_VERSION = "silva-config-2"  # bump when the meaning of a fingerprinted key changes
 
 
@@ -57,41 +60,53 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
         raise ConfigError(f"config error: unknown step '{step}' for a fingerprint; "
                           f"use one of {', '.join(STEPS)}")
     d = cfg.model_dump(mode="json")
+    parts: dict[str, Any] = {"version": _FINGERPRINT_VERSION}
+    for part in FINGERPRINTED[step].fingerprint:
+        parts[part] = PARTS[part](cfg, d) if part in PARTS else _config_value(d, part)
+    text = json.dumps(parts, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _config_value(d: dict, path: str):
+    """The value at ``path`` ("section" or "section.key") of the dumped configuration."""
+    value = d
+    for key in path.split("."):
+        value = value[key]
+    return value
+
+
+def _ingest_part(cfg: SilvaConfig, d: dict) -> dict:
     data = d["data"]
-    parts: dict[str, Any] = {
-        "version": _FINGERPRINT_VERSION,
-        "ingest": {
-            **{scene: sorted(set(data[scene])) for scene in SCENES},
-            **{k: data[k] for k in ("label_field", "ignore", "split", "drop_unlisted")},
-            # a list of pairs: the class order is the class index (sort_keys would lose it)
-            "classes": [[name, codes] for name, codes in data["classes"].items()],
-            "chunk_size": cfg.tiling.chunk_size,
-            "halo": cfg.halo,
-        },
+    part = {
+        **{scene: sorted(set(data[scene])) for scene in SCENES},
+        **{k: data[k] for k in ("label_field", "ignore", "split", "drop_unlisted")},
+        # a list of pairs: the class order is the class index (sort_keys would lose it)
+        "classes": [[name, codes] for name, codes in data["classes"].items()],
+        "chunk_size": cfg.tiling.chunk_size,
+        "halo": cfg.halo,
     }
     if cfg.output.keep_features != "auto":
         # it chooses each scene's halo; only when set, so the default keeps its fingerprint
-        parts["ingest"]["keep_features"] = cfg.output.keep_features
+        part["keep_features"] = cfg.output.keep_features
     for key in ("exclude_codes", "exclude_withheld"):
         if data[key]:  # only when set: a config without filters keeps its fingerprint
-            parts["ingest"][key] = sorted(set(data[key])) if key == "exclude_codes" else True
+            part[key] = sorted(set(data[key])) if key == "exclude_codes" else True
     if cfg.tiling.chunk_size == "auto":
         # only then does it matter; an explicit size keeps the fingerprint it always had
-        parts["ingest"]["target_points"] = cfg.tiling.target_points
-        parts["ingest"]["layout"] = cfg.tiling.layout
-    if step != "ingest":
-        parts["terrain"] = d["terrain"]
-    if step not in ("ingest", "terrain"):
-        parts["features"] = {k: d["features"][k] for k in FEATURE_KEYS}
-    if step in ("stage", "export", "evaluate"):
-        parts["context"] = {"r2": cfg.features.radius2,
-                            "context_max_neighbors": cfg.features.context_max_neighbors}
-        parts["cascade"] = {k: v for k, v in d["cascade"].items() if k != "stages"}
-    if step == "export":
-        # what the store keeps does not change what is written
-        parts["output"] = {k: v for k, v in d["output"].items()
-                           if k not in ("keep_store", "keep_features")}
-    if step == "evaluate":
-        parts["background"] = data["background"]
-    text = json.dumps(parts, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+        part["target_points"] = cfg.tiling.target_points
+        part["layout"] = cfg.tiling.layout
+    return part
+
+
+#: The fingerprint parts with rules of their own (any other part is a configuration path).
+PARTS = {
+    "ingest": _ingest_part,
+    "features": lambda cfg, d: {k: d["features"][k] for k in FEATURE_KEYS},
+    "context": lambda cfg, d: {"r2": cfg.features.radius2,
+                               "context_max_neighbors": cfg.features.context_max_neighbors},
+    "cascade": lambda cfg, d: {k: v for k, v in d["cascade"].items() if k != "stages"},
+    # what the store keeps does not change what is written
+    "output": lambda cfg, d: {k: v for k, v in d["output"].items()
+                              if k not in ("keep_store", "keep_features")},
+    "background": lambda cfg, d: d["data"]["background"],
+}

@@ -21,6 +21,7 @@ from pipeline.features.sets import feature_set
 from pipeline.tiling import MIN_CHUNK_HALOS, Grid, layout_from_dict, tile_area
 from workflows.progress import clock, counted
 from workflows.run import Run
+from workflows.step_table import step_weights as table_weights
 from workflows.steps.ingest import plan_scenes, plan_tiles, scene_chunk_size
 from workflows.steps.one_pass import one_pass_scenes
 
@@ -222,12 +223,9 @@ def estimated_seconds(run: Run, tiles: list[dict], workers: int) -> dict[str, fl
 
 def step_weights(run: Run, tiles: list[dict], workers: int) -> dict[str, float]:
     """Each step's estimated seconds (:func:`estimated_seconds`): how the run's progress
-    weighs the steps for its ETA, the forests' training included."""
-    spent = estimated_seconds(run, tiles, workers)
-    other = spent["other"]
-    return {"ingest": 0.3 * other, "features": spent["features"],
-            "train": spent["training"] + 0.4 * other, "apply": 0.4 * other,
-            "export": 0.2 * other, "evaluate": 0.05 * other, "report": 0.05 * other}
+    weighs the steps for its ETA, the forests' training included (each step's
+    :class:`~workflows.step_table.Weight`)."""
+    return table_weights(estimated_seconds(run, tiles, workers))
 
 
 def _draw(scenes: dict, tiles: list[dict], path: Path) -> None:

@@ -26,12 +26,15 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
+from workflows.step_table import per_stage_names, step_weights
+
 log = logging.getLogger(__name__)
 
 #: Typical share of each step in a run's time (the demo and the benchmarks): the ETA of the
 #: whole run weighs each step's progress by it.
-STEP_WEIGHTS = {"ingest": 0.1, "features": 0.6, "train": 0.2, "apply": 0.2, "export": 0.04,
-                "evaluate": 0.02, "report": 0.04}
+STEP_WEIGHTS = step_weights()
+#: The steps whose tasks run once per cascade stage (``predict-3``: stage 3).
+PER_STAGE = per_stage_names()
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 _NOISY = ("distributed", "bokeh", "tornado")  # their own handlers write to stderr
 
@@ -64,10 +67,11 @@ def clock(seconds: float) -> str:
 class RunProgress:
     """Step n of m, elapsed and ETA of a whole run, from the progress of its steps' tasks.
 
-    ``steps`` are the run's steps in order (``workflows.workflow.STEPS`` up to the target).
-    Each :class:`StepProgress` reports here under its task name: ``ingest``, ``features``,
-    ``export`` and ``evaluate`` are steps; every other name (``sample-2``, ``predict-3``, ...)
-    belongs to the cascade step, and its trailing number is the stage out of ``stages``.
+    ``steps`` are the run's steps in order (:func:`workflows.step_table.progress_steps`).
+    Each :class:`StepProgress` reports here under its task name: a step's name (``ingest``,
+    ``features``, ``export``, ...) is its step; every other name (``sample-2``,
+    ``predict-3``, ...) belongs to the cascade step, and its trailing number is the stage out
+    of ``stages``.
     """
 
     def __init__(self, steps: Sequence[str], *, quiet: bool = False, stages: int = 1,
@@ -90,8 +94,7 @@ class RunProgress:
     def step_of(self, name: str) -> int:
         if name.split(" ", 1)[0] in self.steps:  # "ingest (count)" is part of ingest
             return self.steps.index(name.split(" ", 1)[0])
-        fixed = {"ingest", "features", "export", "evaluate", "report"}
-        cascade = [i for i, step in enumerate(self.steps) if step not in fixed]
+        cascade = [i for i, step in enumerate(self.steps) if step in PER_STAGE]
         return cascade[0] if cascade else len(self.steps) - 1
 
     def begin(self, name: str, total: int) -> None:
@@ -108,7 +111,7 @@ class RunProgress:
         """``done`` of the current task group's items are finished."""
         part = done / self._total
         stage = re.search(r"-(\d+)$", self._name)
-        if stage and self.steps[self._index] not in ("ingest", "features", "export", "evaluate"):
+        if stage and self.steps[self._index] in PER_STAGE:
             part = (min(int(stage.group(1)), self.stages) - 1 + part) / self.stages
         self._fraction = max(self._fraction, min(part, 1.0))
 

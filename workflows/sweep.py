@@ -155,11 +155,12 @@ def _run_one(item: SweepRun, engine, quiet: bool, command: str, kernels=None) ->
     """Run ``item`` up to evaluate in its run directory; keep and return its metrics."""
     from pipeline.atomic import atomic_write_text
     from workflows.run import Run
-    from workflows.workflow import STEPS, execute
+    from workflows.step_table import progress_steps
+    from workflows.workflow import execute
 
     run = Run(item.cfg, item.work, quiet=quiet)
     run.save_config()
-    steps = STEPS[: STEPS.index("evaluate") + 1]
+    steps = progress_steps("evaluate")
     with run_progress(steps, quiet=quiet, stages=int(item.cfg.cascade.stages)) as progress:
         summary = execute(run, engine, "evaluate", command=command, kernels=kernels)
         progress.finish(summary["timings"], list(summary["timings"]))

@@ -1,0 +1,90 @@
+"""What the steps of one execution hand on to each other (:class:`RunState`): the chunk
+layout, the training counts, the model's stages, the metrics; and the clock of each step."""
+
+import contextlib
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+from pipeline.errors import StoreError
+from workflows.durations import accumulate
+from workflows.run import Run, has_test_points
+from workflows.step_table import BY_NAME, steps_until
+
+
+@dataclass
+class RunState:
+    """One execution of the steps up to ``target``: its inputs and what the steps found.
+
+    ``kernels`` (:class:`workflows.commands.Kernels`, optional): the feature kernels
+    compiling in the background while ingest runs; waited for before the features step.
+    ``summary`` is what :func:`workflows.workflow.execute` returns; its ``timings`` fill in
+    as the steps finish.
+    """
+
+    run: Run
+    engine: object
+    target: str
+    only: str | None = None  # "scene/chunk": one chunk, in this process
+    command: str = ""
+    kernels: object = None
+    summary: dict = field(default_factory=dict)
+    stamp: str = ""  # what metrics and report follow from (Run.results_stamp)
+    model_stages: list | None = None  # the stages of the applied model, checked
+    layout: dict | None = None  # ingest's chunk layout
+    counts: object = None  # the training points per class (features)
+    staged: dict | None = None  # the layout's scenes classified stage by stage
+    one_pass: dict | None = None  # and those classified in one pass per chunk
+    stages: list | None = None  # the model's stage records
+    drawn: tuple | None = None  # an unlabelled run's survey and its figures (a future)
+    metrics: dict | None = None
+    plots: dict | None = None
+    _closing: contextlib.ExitStack = field(default_factory=contextlib.ExitStack, repr=False)
+    _painter: ThreadPoolExecutor | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        self.summary = {"out": str(self.run.out), "timings": {}}
+
+    def reaches(self, step: str) -> bool:
+        """Whether this execution runs up to ``step`` (a step of the table)."""
+        return BY_NAME[step] in steps_until(self.target)
+
+    @property
+    def fits(self) -> bool:
+        """Whether the run trains its own model (else it applies a saved one)."""
+        return self.run.model_dir is None
+
+    @property
+    def labelled(self) -> bool:
+        return has_test_points(self.layout, self.run.cfg.data.split)
+
+    @property
+    def n_stages(self) -> int:
+        return len(self.stages)
+
+    def timed(self, step: str, fn, *args, **kwargs):
+        """``fn(*args, **kwargs)``, its seconds added to ``step``'s in the summary's timings
+        and in the output directory's durations (a stopped or failed run's share too)."""
+        timings = self.summary["timings"]
+        started = time.monotonic()
+        try:
+            result = fn(*args, **kwargs)
+        except StoreError:
+            self.run.drop_results()  # a damaged store certifies no metrics made from it
+            raise
+        finally:
+            accumulate(self.run.out, {step: time.monotonic() - started})
+        timings[step] = round(timings.get(step, 0) + time.monotonic() - started, 2)
+        return result
+
+    def painter(self) -> ThreadPoolExecutor:
+        """A thread that draws figures while the workers compute; waited for by
+        :meth:`close`."""
+        if self._painter is None:
+            self._painter = self._closing.enter_context(ThreadPoolExecutor(max_workers=1))
+        return self._painter
+
+    def close(self) -> None:
+        """Wait for the figures still drawing."""
+        self._painter = None
+        self._closing.close()
