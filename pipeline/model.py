@@ -61,11 +61,18 @@ def read_description(model_dir: str | Path) -> dict:
     A complete description lists its classes (name and code) and at least one stage (file,
     fingerprint and the SHA-256 of the file).
     """
+    return read_model_file(model_dir)[0]
+
+
+def read_model_file(model_dir: str | Path) -> tuple[dict, str]:
+    """The model's description (:func:`read_description`) and the SHA-256 (hexadecimal) of
+    the bytes of its model.json, from one reading of the file."""
     path = Path(model_dir) / MODEL_FILE
     if not path.is_file():
         raise ModelError(f"no model at {model_dir} ({MODEL_FILE} missing); train one with 'silva train'")
     try:
-        description = json.loads(path.read_text())
+        data = path.read_bytes()
+        description = json.loads(data.decode())
     except (ValueError, UnicodeDecodeError) as err:  # JSONDecodeError is a ValueError
         reason = " ".join(str(err).split()) or type(err).__name__
         raise _unusable(path, f"is not valid JSON: {reason}") from None
@@ -75,7 +82,7 @@ def read_description(model_dir: str | Path) -> dict:
         raise ModelError(f"cannot read model description {path}: {err.strerror}") from None
     _check_description(description, path)
     _check_digest(description, path)
-    return description
+    return description, hashlib.sha256(data).hexdigest()
 
 
 def _unusable(path: Path, reason: str) -> ModelError:

@@ -23,11 +23,12 @@ from pathlib import Path
 from pipeline.errors import ConfigError
 from pipeline.features.sets import auto_radius, auto_voxel
 from pipeline.io import read_info
-from pipeline.model import read_description
+from pipeline.model import read_model_file
 from pipeline.tiling import tile_area
 from workflows.config import SilvaConfig, validate_config
 from workflows.config.loading import load_raw
 from workflows.inputs import expand_inputs
+from workflows.run_plan import AppliedModel, RunPlan, check_model, find_inputs
 
 log = logging.getLogger(__name__)
 
@@ -64,8 +65,8 @@ def resolve_auto(cfg: SilvaConfig) -> SilvaConfig:
     return validate_config(raw)
 
 
-def run_config(config, overrides=(), model_dir=None, inputs=()) -> SilvaConfig:
-    """The configuration of a run (:func:`read_run`, then :func:`resolve_run`)."""
+def run_config(config, overrides=(), model_dir=None, inputs=()) -> RunPlan:
+    """The plan of a run (:func:`read_run`, then :func:`resolve_run`)."""
     return resolve_run(read_run(config, overrides, inputs), model_dir)
 
 
@@ -81,12 +82,25 @@ def read_run(config, overrides=(), inputs=()) -> dict:
     return raw
 
 
-def resolve_run(raw: dict, model_dir=None) -> SilvaConfig:
-    """``raw`` with the values of the model it applies (:func:`adopt_model`) and its 'auto'
-    values resolved: the one place a run's configuration is resolved."""
+def resolve_run(raw: dict | SilvaConfig, model_dir=None) -> RunPlan:
+    """The plan of a run of ``raw`` (a configuration as written, or validated when it applies
+    no model): the values of the model it applies (:func:`adopt_model`, the model read and
+    checked once), its 'auto' values resolved and its input files found: the one place a
+    run's configuration is resolved. Raises the errors of :func:`expand_inputs`."""
+    if isinstance(raw, SilvaConfig):
+        if model_dir is not None:  # a validated config holds every default: none is 'auto'
+            raise TypeError("resolve_run applies a model to a configuration as written only")
+        cfg = resolve_auto(raw)
+        return RunPlan(cfg, None, find_inputs(cfg))
+    model = None
     if model_dir is not None:
-        raw = adopt_model(raw, read_description(model_dir), model_dir)
-    return resolve_auto(validate_config(raw))
+        description, digest = read_model_file(model_dir)
+        model = AppliedModel(Path(model_dir), description, digest)
+        raw = adopt_model(raw, description, model_dir)
+    cfg = resolve_auto(validate_config(raw))
+    if model is not None:
+        check_model(cfg, model)
+    return RunPlan(cfg, model, find_inputs(cfg))
 
 
 #: The sections whose recorded keys (model.json's "section.key") a run applying a model takes.

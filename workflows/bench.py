@@ -432,13 +432,14 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
     """Time the runs of ``config`` (see module) ``repeat`` times, the kinds of run taking
     turns; return the figures: medians over the rounds, each ratio taken within a round."""
     from workflows.cluster import open_client
+    from workflows.autoparams import resolve_run
     from workflows.commands import prepare_kernels
     from workflows.config import load_config
     from workflows.run import Run, read_paths
 
     cfg = load_config(config, overrides)  # a bad config or a missing input: now, not later
     read_paths(cfg, config, model)
-    params = Run(cfg, Path("."), quiet=True).features
+    params = Run(resolve_run(cfg), Path("."), quiet=True).features
     # (label, workers, extra overrides), grouped by cluster: the 1-worker runs share one
     plan = {1: [("1 worker", ()), ("1 worker, one chunk per scene", ONE_CHUNK)]}
     if workers > 1:

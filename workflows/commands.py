@@ -207,11 +207,11 @@ def check_before_start(run, steps, in_process: bool = False) -> list[dict]:
     """Check everything a run of ``steps`` can check without workers, before its cluster
     starts and its kernels compile, so that a mistake is refused in seconds: the input globs
     and files and the tiles' headers (as ingest plans them: no file, an empty tile, the same
-    tile in train and test, two tiles of one name, mixed CRS), the output point format, and
-    the saved model a run applies, and that a local cluster's workers have the memory for
-    the largest chunk. Raises the error the step would raise later."""
+    tile in train and test, two tiles of one name, mixed CRS), the output point format,
+    and that a local cluster's workers have the memory for the largest chunk (the saved
+    model a run applies was checked with its plan). Raises the error the step would raise
+    later."""
     from workflows.plan import check_memory
-    from workflows.steps.cascade import check_model
     from workflows.steps.export import check_output_names, check_point_formats
     from workflows.steps.ingest import plan_tiles
 
@@ -219,8 +219,6 @@ def check_before_start(run, steps, in_process: bool = False) -> list[dict]:
     if "export" in steps:
         check_point_formats(run, tiles)
         check_output_names(run, tiles)
-    if run.model_dir is not None:
-        check_model(run)
     if "features" in steps and not in_process:
         check_memory(run, tiles)
     return tiles
@@ -271,10 +269,10 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
     with run_logging(verbose, out / LOG_NAME), lock, _logged_error():
         log.info("start: %s (steps %s)", command, ", ".join(steps))
         try:
-            cfg = resolve_run(raw, model_dir)  # the model's values: a bad model is logged
+            plan = resolve_run(raw, model_dir)  # the model's values: a bad model is logged
             if model_dir is not None:
                 record_applied_model(out, model_dir)
-            run = Run(cfg, out, quiet=quiet, model_dir=model_dir)
+            run = Run(plan, out, quiet=quiet)
             text = run.save_config()
             if verbose:
                 click.echo(f"# resolved configuration (saved to {out / 'config.yaml'})\n"
@@ -284,7 +282,7 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
             with run_progress(steps, quiet=quiet, stages=run.n_stages,
                               weights=weights) as progress, \
                     _kernels_of(run, steps, quiet, kernels) as ready:
-                with _engine(cfg, quiet=quiet, in_process=in_process,
+                with _engine(plan.cfg, quiet=quiet, in_process=in_process,
                              debug=chunk is not None) as engine:
                     summary = execute(run, engine, target, only=chunk, command=command,
                                       kernels=ready)
@@ -387,12 +385,13 @@ def plan(config, overrides, picture):
       silva plan survey.yaml
       silva plan survey.yaml --set tiling.target_points=500000 --picture grid.png
     """
+    from workflows.autoparams import resolve_run
     from workflows.config import load_config
     from workflows.plan import plan as plan_run
     from workflows.plan import plan_workers
     from workflows.run import Run
 
-    run = Run(load_config(config, overrides), Path("."), quiet=True)
+    run = Run(resolve_run(load_config(config, overrides)), Path("."), quiet=True)
     for line in plan_run(run, plan_workers(run), picture):
         click.echo(line)
 

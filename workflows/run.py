@@ -19,20 +19,20 @@ import json
 import logging
 import os
 import shutil
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from pipeline.atomic import atomic_write_text, remove_parts
 from pipeline.cascade import CascadeParams
 from pipeline.errors import ConfigError, SilvaError
-from pipeline.features.sets import FeatureParams, feature_set
+from pipeline.features.sets import FeatureParams
 from pipeline.store import open_store
 from pipeline.terrain import TerrainParams
-from workflows.autoparams import resolve_auto
 from workflows.config import SilvaConfig, dump_config, fingerprint
 from workflows.fingerprint import STEPS as FINGERPRINTED
 from workflows.inputs import expand_inputs
 from workflows.lock import LOCK_NAME, acquire, check_free
+from workflows.run_plan import AppliedModel, RunPlan, feature_description
 
 log = logging.getLogger(__name__)
 
@@ -46,17 +46,27 @@ def has_test_points(layout: dict, split) -> bool:
 
 @dataclass
 class Run:
-    """Everything the steps of one run share."""
+    """The paths and the store of one run, and its plan (:class:`RunPlan`: built once by
+    :func:`workflows.autoparams.resolve_run`), which everything it computes follows."""
 
-    cfg: SilvaConfig
+    plan: RunPlan
     out: Path
     quiet: bool = False
-    model_dir: Path | None = None  # a saved model to apply instead of training
-    inputs_digest: str = ""  # the input files as ingest found them (paths, sizes, times)
     _store: object = field(default=None, repr=False)
 
-    def __post_init__(self):
-        self.cfg = resolve_auto(self.cfg)  # 'auto' radii, once (see workflows.autoparams)
+    @property
+    def cfg(self) -> SilvaConfig:
+        """The resolved configuration."""
+        return self.plan.cfg
+
+    @property
+    def model(self) -> AppliedModel | None:
+        """The saved model the run applies, read and checked (None: it trains its own)."""
+        return self.plan.model
+
+    @property
+    def model_dir(self) -> Path | None:
+        return None if self.plan.model is None else self.plan.model.path
 
     # -- layout ---------------------------------------------------------------------------
     @property
@@ -119,9 +129,7 @@ class Run:
 
     @property
     def n_stages(self) -> int:
-        """The cascade stages the run computes (an applied model's: see
-        :func:`workflows.autoparams.adopt_model`)."""
-        return self.cfg.cascade.stages
+        return self.plan.n_stages
 
     @property
     def classes(self) -> list[str]:
@@ -144,7 +152,8 @@ class Run:
 
     def fingerprint(self, step: str) -> str:
         """Fingerprint of a step: its configuration and the input files it reads."""
-        digest = hashlib.sha256(f"{fingerprint(self.cfg, step)}|{self.inputs_digest}".encode())
+        digest = hashlib.sha256(f"{fingerprint(self.cfg, step)}|{self.plan.inputs_digest}"
+                                .encode())
         return digest.hexdigest()[:16]
 
     def stage_fingerprint(self, stage: int) -> str:
@@ -153,23 +162,7 @@ class Run:
 
     def feature_description(self) -> dict:
         """What a model must agree with to be applied to this run's features."""
-        # keyed by config path, so a mismatch names the key to set
-        params = self.features
-        return {
-            "features.set": params.set,
-            "features.columns": list(feature_set(params).columns),
-            "features.r1": params.r1,
-            "features.r2": params.r2,
-            "features.max_neighbors": params.max_neighbors,
-            "features.context_max_neighbors": params.context_max_neighbors,
-            "features.plane": params.plane,
-            "features.scales": list(params.scales),
-            "features.column": params.column,
-            "features.cell": params.cell,
-            "features.voxel": params.voxel,
-            "cascade.context": self.cfg.cascade.context,
-            **{f"terrain.{k}": v for k, v in asdict(self.terrain).items()},
-        }
+        return feature_description(self.cfg)
 
     # -- housekeeping ---------------------------------------------------------------------
     def save_config(self) -> str:
@@ -186,15 +179,8 @@ class Run:
         """A digest of everything metrics and report follow from: the configuration of
         every step, the number of stages, the input files (paths, sizes, modification times)
         and the description of the applied model."""
-        inputs = []
-        for scene in SCENES:
-            patterns = list(getattr(self.cfg.data, scene))
-            for path in expand_inputs(patterns, key=f"data.{scene}") if patterns else ():
-                stat = path.stat()
-                inputs.append([scene, str(path), stat.st_size, stat.st_mtime_ns])
-        model = None
-        if self.model_dir is not None and (self.model_dir / "model.json").is_file():
-            model = hashlib.sha256((self.model_dir / "model.json").read_bytes()).hexdigest()
+        inputs = [[f.scene, str(f.path), f.size, f.mtime_ns] for f in self.plan.inputs]
+        model = None if self.model is None else self.model.digest
         state = {"steps": [fingerprint(self.cfg, step) for step in FINGERPRINTED],
                  "stages": self.cfg.cascade.stages, "inputs": inputs, "model": model}
         return hashlib.sha256(json.dumps(state).encode()).hexdigest()[:16]

@@ -30,7 +30,6 @@ class RunState:
     kernels: object = None
     summary: dict = field(default_factory=dict)
     stamp: str = ""  # what metrics and report follow from (Run.results_stamp)
-    model_stages: list | None = None  # the stages of the applied model, checked
     layout: dict | None = None  # ingest's chunk layout
     counts: object = None  # the training points per class (features)
     staged: dict | None = None  # the layout's scenes classified stage by stage

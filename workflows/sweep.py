@@ -154,11 +154,12 @@ def run_sweep(config: Path, key: str, values: str, seeds: int, out: Path, overri
 def _run_one(item: SweepRun, engine, quiet: bool, command: str, kernels=None) -> dict:
     """Run ``item`` up to evaluate in its run directory; keep and return its metrics."""
     from pipeline.atomic import atomic_write_text
+    from workflows.autoparams import resolve_run
     from workflows.run import Run
     from workflows.step_table import progress_steps
     from workflows.workflow import execute
 
-    run = Run(item.cfg, item.work, quiet=quiet)
+    run = Run(resolve_run(item.cfg), item.work, quiet=quiet)
     run.save_config()
     steps = progress_steps("evaluate")
     with run_progress(steps, quiet=quiet, stages=int(item.cfg.cascade.stages)) as progress:

@@ -17,7 +17,6 @@ from workflows.progress import say
 from workflows.run import Run
 from workflows.run_state import RunState
 from workflows.step_table import TARGETS, steps_until
-from workflows.steps.cascade import check_model
 
 log = logging.getLogger(__name__)
 
@@ -36,8 +35,6 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     state.stamp = run.forget_stale_results()  # a rerun that changes nothing keeps metrics
     if _already_complete(run, target, only, state.summary, state.stamp):
         return state.summary
-    if run.model_dir is not None:  # before any work: a wrong model must not cost a night
-        state.model_stages = check_model(run)
     try:
         for step in steps_until(target):
             if only is not None and not step.per_chunk:

@@ -11,6 +11,7 @@ from pipeline.io import read_info, read_points
 from pipeline.store import open_store
 from pipeline.tiling import SIZE_SERIES, BalancedLayout, layout_from_dict
 from tests.workflows.conftest import SMALL_PLOT, write_config
+from workflows.autoparams import resolve_run
 from workflows.cli import main
 from workflows.config import load_config
 from workflows.run import Run
@@ -60,7 +61,7 @@ def planned_grids(tmp_path, survey, **tiling) -> dict[str, dict]:
 def planned(tmp_path, survey, **tiling) -> dict[str, dict]:
     tiling = {"layout": "grid", "halo": HALO, **tiling}
     cfg = load_config(write_config(tmp_path / "c.yaml", survey, tiling=tiling))
-    run = Run(cfg, tmp_path / "out", quiet=True)
+    run = Run(resolve_run(cfg), tmp_path / "out", quiet=True)
     return plan_scenes(run, plan_tiles(run))
 
 

@@ -121,6 +121,7 @@ def test_a_memory_limit_too_small_for_the_largest_chunk_is_refused_before_the_cl
 
 
 def test_the_memory_a_worker_needs_follows_its_chunk_and_columns(tmp_path, survey):
+    from workflows.autoparams import resolve_run
     from workflows.config import load_config
     from workflows.plan import (WORKER_BASE_BYTES, check_memory, foreseen_window,
                                 worker_bytes, worker_memory_limit)
@@ -135,7 +136,7 @@ def test_the_memory_a_worker_needs_follows_its_chunk_and_columns(tmp_path, surve
 
     def run_of(*overrides):
         config = write_config(tmp_path / "m.yaml", survey)
-        return Run(load_config(config, list(overrides)), tmp_path / "out", quiet=True)
+        return Run(resolve_run(load_config(config, list(overrides))), tmp_path / "out", quiet=True)
 
     run = run_of("tiling.chunk_size=auto", "tiling.target_points=8000")
     tiles = plan_tiles(run)

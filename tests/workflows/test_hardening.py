@@ -17,6 +17,7 @@ import pytest
 
 from pipeline.errors import ConfigError, InputError
 from tests.workflows.conftest import error_line, silva, write_config
+from workflows.autoparams import resolve_run
 from workflows.config import load_config
 from workflows.lock import LOCK_NAME, LockedError, acquire, read_lock
 from workflows.probe import check_scheduler
@@ -59,13 +60,13 @@ def test_overlap_through_another_name_is_refused(tmp_path, survey):
     cfg = load_config(write_config(tmp_path / "c.yaml", survey),
                       [f"data.test=[{link}/*.laz]"])
     with pytest.raises(ConfigError, match="both in data.test and in data.train"):
-        plan_tiles(Run(cfg, tmp_path / "out"))
+        plan_tiles(Run(resolve_run(cfg), tmp_path / "out"))
 
 
 def test_allowed_overlap_keeps_one_output_per_scene(tmp_path, survey):
     cfg = load_config(write_config(tmp_path / "c.yaml", survey),
                       [f"data.test=[{survey['train']}/*.laz]", "data.allow_overlap=true"])
-    tiles = plan_tiles(Run(cfg, tmp_path / "out"))
+    tiles = plan_tiles(Run(resolve_run(cfg), tmp_path / "out"))
     names = [t["name"] for t in tiles]
     assert len(set(names)) == len(names) == 2 * len(list(survey["train"].glob("*.laz")))
     assert all(n.endswith("-test") for t, n in zip(tiles, names) if t["scene"] == "test")
@@ -139,7 +140,7 @@ def test_ingest_checks_the_points_read_against_the_header(tmp_path, survey):
     from workflows.steps.ingest import IngestTask, ingest_tile
 
     cfg = load_config(write_config(tmp_path / "c.yaml", survey), [])
-    run = Run(cfg, tmp_path / "out")
+    run = Run(resolve_run(cfg), tmp_path / "out")
     tile = dict(plan_tiles(run)[0])
     tile["n_points"] += 5
     from workflows.steps.ingest import plan_scenes
@@ -277,7 +278,7 @@ def test_workers_over_their_memory_limit_stop_the_run_with_the_fix(tmp_path, sur
     with LocalCluster(n_workers=1, threads_per_worker=1, memory_limit="120MiB",
                       host="127.0.0.1", dashboard_address=None, processes=True) as cluster, \
             Client(cluster) as client:
-        run = Run(load_config(config), tmp_path / "out", quiet=True)
+        run = Run(resolve_run(load_config(config)), tmp_path / "out", quiet=True)
         run.save_config()
         with pytest.raises(NoWorkerCanRun, match=r"cluster\.memory_limit \(120\.00 MiB per "
                                                  r"worker\) is too small"):

@@ -10,6 +10,7 @@ import pytest
 
 from pipeline.features.density import capped_halo
 from pipeline.store import open_store
+from workflows.autoparams import resolve_run
 from workflows.config import load_config
 from workflows.run import Run
 from workflows.steps.ingest import plan_scenes, plan_tiles
@@ -168,7 +169,7 @@ def test_auto_leaves_scenes_of_small_chunks_to_the_stored_features(survey, tmp_p
     def planned(keep, size):
         cfg = load_config(write_config(tmp_path / "c.yaml", survey, tiling={"chunk_size": size},
                                        output={"keep_features": keep}))
-        run = Run(cfg, tmp_path / "out", quiet=True)
+        run = Run(resolve_run(cfg), tmp_path / "out", quiet=True)
         scenes = plan_scenes(run, plan_tiles(run))
         return ({scene: info["halo"] for scene, info in scenes.items()},
                 one_pass_scenes({"scenes": scenes}))

@@ -37,6 +37,7 @@ def test_plan_names_a_bad_key_in_one_line(tmp_path, survey):
 
 
 def test_the_forests_training_is_counted_from_rows_trees_folds_and_stages():
+    from workflows.autoparams import resolve_run
     from workflows.config import validate_config
     from workflows.plan import features_tried, training_seconds
     from workflows.run import Run
@@ -48,7 +49,7 @@ def test_the_forests_training_is_counted_from_rows_trees_folds_and_stages():
     def seconds(**cascade):
         cfg = validate_config({"features": {"r1": 0.5}, "cascade": cascade,
                                "data": {"classes": {"a": [1], "b": [2]}}})
-        return training_seconds(Run(cfg, "."), 500_000, cores=2)
+        return training_seconds(Run(resolve_run(cfg), "."), 500_000, cores=2)
 
     base = seconds(stages=2, n_estimators=50, max_train_points=200_000, out_of_fold=False)
     assert seconds(stages=4, n_estimators=50, max_train_points=200_000,
@@ -63,6 +64,7 @@ def test_the_forests_training_is_counted_from_rows_trees_folds_and_stages():
 
 
 def test_the_run_weighs_its_steps_by_their_estimated_seconds(survey, tmp_path):
+    from workflows.autoparams import resolve_run
     from workflows.config import load_config
     from workflows.plan import step_weights
     from workflows.run import Run
@@ -71,7 +73,7 @@ def test_the_run_weighs_its_steps_by_their_estimated_seconds(survey, tmp_path):
     def weights(trees):
         config = write_config(tmp_path / f"c{trees}.yaml", survey,
                               cascade={"n_estimators": trees})
-        run = Run(load_config(config), tmp_path)
+        run = Run(resolve_run(load_config(config)), tmp_path)
         return step_weights(run, plan_tiles(run), workers=2)
 
     few, many = weights(5), weights(200)

@@ -7,6 +7,7 @@ from pkgutil import resolve_name
 import pytest
 
 from workflows import step_table, workflow
+from workflows.autoparams import resolve_run
 from workflows.commands import STEP_COMMANDS
 from workflows.config import load_config
 from workflows.fingerprint import STEPS as FINGERPRINTED, fingerprint
@@ -85,7 +86,7 @@ def fake_table(monkeypatch):
 
 
 def test_execute_runs_the_steps_of_the_table_up_to_the_target(fake_table, tmp_path):
-    run = Run(load_config(DEMO), tmp_path / "out", quiet=True)
+    run = Run(resolve_run(load_config(DEMO)), tmp_path / "out", quiet=True)
     summary = workflow.execute(run, None, "count")
     assert CALLS == ["count", "count"] and summary["out"] == str(tmp_path / "out")
     CALLS.clear()

@@ -222,6 +222,7 @@ def test_changed_config_invalidates_only_what_it_affects(reference, survey, tmp_
 def test_lost_worker_does_not_change_the_result(reference, survey, tmp_path):
     from distributed import Client, LocalCluster
 
+    from workflows.autoparams import resolve_run
     from workflows.config import load_config
     from workflows.engine import Engine
     from workflows.run import Run
@@ -243,7 +244,7 @@ def test_lost_worker_does_not_change_the_result(reference, survey, tmp_path):
         stop_at = time.monotonic() + 240
         thread = threading.Thread(target=kill_when_busy)
         thread.start()
-        run = Run(load_config(config), out, quiet=True)
+        run = Run(resolve_run(load_config(config)), out, quiet=True)
         run.save_config()
         execute(run, Engine(client, quiet=True, retries=2), "report")
         thread.join()

@@ -28,13 +28,11 @@ from pipeline.cascade import (
 from pipeline.errors import ChunkError, ConfigError, ModelError, StoreError
 from pipeline.features.sets import FeatureParams
 from pipeline.model import (
-    check_compatible,
-    check_versions,
     load_forest,
     read_description,
+    read_model_file,
     save_forest,
     stage_file,
-    verify_stage_files,
     write_description,
 )
 from pipeline.store import ROLE_TRAIN, context_array, proba_array, rows_of
@@ -42,6 +40,7 @@ from pipeline.tiling import layout_from_dict
 from workflows.engine import chunk_tasks
 from workflows.progress import say
 from workflows.run import Run
+from workflows.run_plan import AppliedModel, check_model
 
 log = logging.getLogger(__name__)
 FIT_LINE_SECONDS = 60  # with --quiet, a line at most this often while the forests grow
@@ -145,27 +144,16 @@ def check_training_classes(run: Run, counts: np.ndarray) -> None:
         )
 
 
-def check_model(run: Run) -> list[dict]:
-    """The stages of the saved model ``run`` applies; ModelError/ConfigError on a mismatch.
-
-    Called before any work, so that a wrong model never costs an ingest and features.
-    """
-    description = read_description(run.model_path)
-    check_versions(description, run.model_path)
-    check_compatible(description, run.feature_description(), run.model_path)
-    for key in ("classes", "stages"):
-        if not description.get(key):
-            raise ModelError(f"model {run.model_path} records no {key}; retrain it")
-    names = [c["name"] for c in description["classes"]]
-    codes = [c["code"] for c in description["classes"]]
-    if names != run.classes or codes != run.class_codes:
-        raise ConfigError(
-            f"model {run.model_path} predicts classes "
-            f"{dict(zip(names, codes))} but data.classes gives "
-            f"{dict(zip(run.classes, run.class_codes))}; use the model's classes and codes"
-        )
-    verify_stage_files(run.model_path, description)
-    return description["stages"]
+def model_stages(run: Run) -> list[dict]:
+    """The stages of the model ``run`` applies (read and checked by its plan) or, when it
+    trains, of the model it trained (read and checked now: a chunk classified in one pass
+    applies it)."""
+    if run.model is not None:
+        return run.model.stages
+    description, digest = read_model_file(run.model_path)
+    trained = AppliedModel(run.model_path, description, digest)
+    check_model(run.cfg, trained)
+    return trained.stages
 
 
 class StoreCascade:
@@ -186,7 +174,7 @@ class StoreCascade:
             self.stages = previous.get("stages", [])
             self.fractions = tuple(previous.get("training_fractions", ()))
         else:
-            self.stages = check_model(run)
+            self.stages = model_stages(run)
 
     def stage_fingerprint(self, stage: int) -> str:
         if self.fit:

@@ -17,7 +17,7 @@ from workflows.durations import totals
 from workflows.engine import check_chunk
 from workflows.progress import fold_step, say
 from workflows.run_state import RunState
-from workflows.steps.cascade import cascade, check_model
+from workflows.steps.cascade import cascade, model_stages
 from workflows.steps.evaluate import evaluate, write_metrics
 from workflows.steps.export import check_point_formats, export
 from workflows.steps.features import features
@@ -78,7 +78,7 @@ def cascade_step(state: RunState) -> None:
         state.stages = state.timed("train" if state.fits else "apply", cascade, run, engine,
                                    state.staged, state.counts, fit=state.fits, only=only)
     else:  # --chunk of a scene classified in one pass
-        state.stages = state.model_stages or check_model(run)
+        state.stages = model_stages(run)
     if state.one_pass["scenes"]:
         state.timed("apply", classify_in_one_pass, run, engine, state.one_pass, state.stages,
                     only)

@@ -9,8 +9,6 @@ is read in point ranges, a task each, so that the workers share a survey of a fe
 Memory is bounded by the read batch, not by the tile or survey size.
 """
 
-import hashlib
-import json
 import os
 from dataclasses import dataclass
 from functools import cache, partial
@@ -544,17 +542,9 @@ def _ingested(root, scene: str, key: int | str, fingerprint: str) -> bool:
     return path in root and is_done(root[path], "ingest", fingerprint)
 
 
-def inputs_digest(tiles: list[dict]) -> str:
-    """A digest of the input files: a replaced or added file invalidates the stored chunks."""
-    state = [(t["path"], t["scene"], os.stat(t["path"]).st_size, os.stat(t["path"]).st_mtime_ns)
-             for t in tiles]
-    return hashlib.sha256(json.dumps(state).encode()).hexdigest()[:16]
-
-
 def ingest(run: Run, engine) -> dict:
     """Plan the scenes, stream every tile into the store, record the chunk layout."""
     tiles = plan_tiles(run)
-    run.inputs_digest = inputs_digest(tiles)
     fingerprint = run.fingerprint("ingest")
     root = run.store
     layout = root.attrs.get("layout")

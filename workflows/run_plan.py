@@ -1,0 +1,123 @@
+"""A run's plan (:class:`RunPlan`): its resolved configuration, the saved model it
+applies (read and checked once) and its input files, frozen before the first step starts.
+
+:func:`workflows.autoparams.resolve_run` builds it, the one place a run's configuration is
+resolved; :class:`workflows.run.Run` holds it beside the run's paths and store.
+"""
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+from pipeline.errors import ConfigError, ModelError
+from pipeline.features.sets import feature_set
+from pipeline.model import check_compatible, check_versions, verify_stage_files
+from workflows.config import SilvaConfig
+from workflows.inputs import SCENES, expand_inputs
+
+
+@dataclass(frozen=True)
+class AppliedModel:
+    """A saved model a run applies: its directory, its model.json (``description``, checked
+    against the run's configuration) and the SHA-256 of model.json's bytes."""
+
+    path: Path
+    description: dict
+    digest: str
+
+    @property
+    def stages(self) -> list[dict]:
+        """The model's stage records."""
+        return self.description["stages"]
+
+
+@dataclass(frozen=True)
+class InputFile:
+    """An input tile as the run found it: its scene, path, size and modification time."""
+
+    scene: str
+    path: Path
+    size: int
+    mtime_ns: int
+
+
+def find_inputs(cfg: SilvaConfig) -> tuple[InputFile, ...]:
+    """Every input file of ``cfg``, scene by scene in their order (data.train, data.test,
+    data.predict), each scene's files in :func:`expand_inputs` order. Raises its errors."""
+    found = []
+    for scene in SCENES:
+        patterns = list(getattr(cfg.data, scene))
+        for path in expand_inputs(patterns, key=f"data.{scene}") if patterns else ():
+            stat = path.stat()
+            found.append(InputFile(scene, path, stat.st_size, stat.st_mtime_ns))
+    return tuple(found)
+
+
+@dataclass(frozen=True)
+class RunPlan:
+    """What a run computes, resolved: the configuration ('auto' values and an applied
+    model's values set), the applied model (None: the run trains its own) and the input
+    files (:func:`find_inputs`)."""
+
+    cfg: SilvaConfig
+    model: AppliedModel | None = None
+    inputs: tuple[InputFile, ...] = ()
+
+    @property
+    def inputs_digest(self) -> str:
+        """A digest of the input files (paths, scenes, sizes, times): a replaced or added
+        file invalidates the stored chunks; every fingerprint of the run follows it."""
+        state = [(str(f.path), f.scene, f.size, f.mtime_ns) for f in self.inputs]
+        return hashlib.sha256(json.dumps(state).encode()).hexdigest()[:16]
+
+    @property
+    def n_stages(self) -> int:
+        """The cascade stages the run computes (an applied model's: see
+        :func:`workflows.autoparams.adopt_model`)."""
+        return self.cfg.cascade.stages
+
+
+def feature_description(cfg: SilvaConfig) -> dict:
+    """What a model must agree with to be applied to the features of ``cfg`` (resolved)."""
+    # keyed by config path, so a mismatch names the key to set
+    terrain = cfg.terrain.params
+    params = replace(cfg.features.params, terrain=terrain)  # as the steps receive them
+    return {
+        "features.set": params.set,
+        "features.columns": list(feature_set(params).columns),
+        "features.r1": params.r1,
+        "features.r2": params.r2,
+        "features.max_neighbors": params.max_neighbors,
+        "features.context_max_neighbors": params.context_max_neighbors,
+        "features.plane": params.plane,
+        "features.scales": list(params.scales),
+        "features.column": params.column,
+        "features.cell": params.cell,
+        "features.voxel": params.voxel,
+        "cascade.context": cfg.cascade.context,
+        **{f"terrain.{k}": v for k, v in asdict(terrain).items()},
+    }
+
+
+def check_model(cfg: SilvaConfig, model: AppliedModel) -> None:
+    """ModelError/ConfigError unless ``model`` can be applied with ``cfg`` (resolved): its
+    versions, features, classes and stage files.
+
+    Called before any work, so that a wrong model never costs an ingest and features.
+    """
+    description, path = model.description, model.path
+    check_versions(description, path)
+    check_compatible(description, feature_description(cfg), path)
+    for key in ("classes", "stages"):
+        if not description.get(key):
+            raise ModelError(f"model {path} records no {key}; retrain it")
+    names = [c["name"] for c in description["classes"]]
+    codes = [c["code"] for c in description["classes"]]
+    classes, class_codes = cfg.data.class_names, cfg.data.class_codes
+    if names != classes or codes != class_codes:
+        raise ConfigError(
+            f"model {path} predicts classes {dict(zip(names, codes))} but data.classes gives "
+            f"{dict(zip(classes, class_codes))}; use the model's classes and codes"
+        )
+    verify_stage_files(path, description)
