@@ -7,10 +7,11 @@
    variable window, Popescu and Wynne 2004). Cells of one flat top keep one seed, the first
    in row-major order.
 3. Crowns grow from the tops by a marker-controlled watershed of the inverted smoothed CHM
-   (scikit-image), over the cells at least ``min_height`` high and within the largest crown
-   radius ``a + b * h`` of some top; a cell beyond its own top's radius is then left out, as
-   is any part of a crown cut off from its top, so every crown is one piece around its top
-   (Dalponte and Coomes 2016 bound crowns the same way).
+   (scikit-image), over the cells whose CHM (holes filled by the smoothing) is at least
+   ``min_height`` and within the largest crown radius ``a + b * h`` of some top (h the top's
+   CHM height); a cell beyond its own top's radius is then left out, as is any part of a
+   crown cut off from its top, so every crown is one piece around its top (Dalponte and
+   Coomes 2016 bound crowns the same way).
 
 Every step is a deterministic function of the CHM and the parameters.
 """
@@ -124,26 +125,27 @@ def find_tops(smoothed: np.ndarray, raw: np.ndarray, cell: float,
 def _reach(shape, rows, cols, radius_cells) -> np.ndarray:
     """bool (ny, nx): cells within radius_cells[k] (float) of some top (rows[k], cols[k])."""
     reach = np.zeros(shape, dtype=bool)
-    for r in np.unique(np.ceil(radius_cells).astype(int)):
-        group = np.flatnonzero(np.ceil(radius_cells).astype(int) == r)
-        di, dj = np.mgrid[-r:r + 1, -r:r + 1]
-        for k in group:
-            inside = np.hypot(di, dj) <= radius_cells[k]
-            i, j = rows[k] + di[inside], cols[k] + dj[inside]
-            ok = (i >= 0) & (i < shape[0]) & (j >= 0) & (j < shape[1])
-            reach[i[ok], j[ok]] = True
+    whole = np.ceil(radius_cells).astype(int)
+    for r in np.unique(whole):
+        group = np.flatnonzero(whole == r)
+        di, dj = (d.ravel() for d in np.mgrid[-r:r + 1, -r:r + 1])
+        inside = np.hypot(di, dj)[None, :] <= radius_cells[group, None]
+        i = (rows[group, None] + di)[inside]
+        j = (cols[group, None] + dj)[inside]
+        ok = (i >= 0) & (i < shape[0]) & (j >= 0) & (j < shape[1])
+        reach[i[ok], j[ok]] = True
     return reach
 
 
-def grow_crowns(smoothed: np.ndarray, rows: np.ndarray, cols: np.ndarray, cell: float,
-                params: TreeParams) -> np.ndarray:
-    """int32 (ny, nx) crown labels grown from the tops (label k from top k-1), 0 elsewhere."""
+def grow_crowns(smoothed: np.ndarray, canopy: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                top_height: np.ndarray, cell: float, params: TreeParams) -> np.ndarray:
+    """int32 (ny, nx) crown labels grown over the ``canopy`` cells (bool (ny, nx)) from the
+    tops (label k from top k-1, whose CHM height is top_height[k-1]), 0 elsewhere."""
     a, b = params.crown_radius
-    radius_cells = (a + b * smoothed[rows, cols]) / cell
+    radius_cells = (a + b * top_height) / cell
     markers = np.zeros(smoothed.shape, dtype=np.int32)
     markers[rows, cols] = np.arange(1, rows.shape[0] + 1, dtype=np.int32)
-    mask = np.isfinite(smoothed) & (smoothed >= params.min_height)
-    mask &= _reach(smoothed.shape, rows, cols, radius_cells)
+    mask = canopy & _reach(smoothed.shape, rows, cols, radius_cells)
     mask[rows, cols] = True
     relief = -np.where(np.isfinite(smoothed), smoothed, 0.0)
     labels = watershed(relief, markers, connectivity=1, mask=mask).astype(np.int32)
@@ -165,5 +167,8 @@ def segment_crowns(chm: Raster, params: TreeParams) -> Crowns:
     """
     smoothed = smooth_chm(chm.values, params.smoothing)
     rows, cols = find_tops(smoothed, chm.values, chm.cell, params)
-    labels = grow_crowns(smoothed, rows, cols, chm.cell, params)
-    return Crowns(labels, chm.x0, chm.y0, chm.cell, rows, cols, chm.values[rows, cols].copy())
+    top_height = chm.values[rows, cols].copy()
+    # the canopy's extent is the CHM's own; smoothing only fills its holes
+    canopy = np.where(np.isfinite(chm.values), chm.values, smoothed) >= params.min_height
+    labels = grow_crowns(smoothed, canopy, rows, cols, top_height, chm.cell, params)
+    return Crowns(labels, chm.x0, chm.y0, chm.cell, rows, cols, top_height)
