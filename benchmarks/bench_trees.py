@@ -1,7 +1,7 @@
 """Individual trees (pipeline.trees) on the ponderosa-pine patch of ../shared/data/trees.
 
-    python benchmarks/bench_trees.py [--resolution R] [--smoothing S] [--peer-window W]
-                                     [--png PATH]
+    python benchmarks/bench_trees.py [--resolution R] [--smoothing S] [--window A B]
+                                     [--peer-window W] [--png PATH]
 
 The same patch scanned from an aircraft (ALS_Clip) and a drone (UAS_Clip); classes 2 ground,
 3-5 vegetation, 7 noise (dropped). There is no reference list of trees: the bench counts
@@ -103,8 +103,9 @@ def draw(path, chm, table, crowns, peer) -> None:
     extent = (chm.x0, chm.x0 + nx * chm.cell, chm.y0, chm.y0 + ny * chm.cell)
     fig, ax = plt.subplots(figsize=(8, 8))
     shown = ax.imshow(chm.values, origin="lower", extent=extent, cmap="viridis")
-    edges = np.ma.masked_where(~find_boundaries(crowns.labels, mode="inner"), crowns.labels)
-    ax.imshow(edges > 0, origin="lower", extent=extent, cmap="gray_r", alpha=0.6)
+    outline = np.zeros((ny, nx, 4))
+    outline[find_boundaries(crowns.labels, mode="inner") & (crowns.labels > 0)] = (0, 0, 0, 0.7)
+    ax.imshow(outline, origin="lower", extent=extent)
     ax.plot(table["x"], table["y"], "r^", ms=8, label=f"silva ({len(table)})")
     ax.plot(peer[:, 0], peer[:, 1], "wx", ms=7, label=f"lmf peer ({len(peer)})")
     ax.legend(loc="upper right")
@@ -119,10 +120,13 @@ def main(argv=None) -> int:
     defaults = TreeParams()
     parser.add_argument("--resolution", type=float, default=defaults.resolution)
     parser.add_argument("--smoothing", type=float, default=defaults.smoothing)
+    parser.add_argument("--window", type=float, nargs=2, default=defaults.window,
+                        metavar=("A", "B"), help="tops' window diameter A + B * height (m)")
     parser.add_argument("--peer-window", type=float, default=3.0)
     parser.add_argument("--png", type=Path, default=None)
     args = parser.parse_args(argv)
-    params = TreeParams(method="crowns", resolution=args.resolution, smoothing=args.smoothing)
+    params = TreeParams(method="crowns", resolution=args.resolution, smoothing=args.smoothing,
+                        window=tuple(args.window))
     if not DATA.is_dir():
         print(f"no data at {DATA}: nothing to measure", file=sys.stderr)
         return 0

@@ -174,6 +174,38 @@ def test_tops_are_in_the_order_of_their_cell_keys():
     assert np.all(np.diff(crowns.top_keys) > 0)
 
 
+# --- real scans ----------------------------------------------------------------------------
+
+def _scan_tops(path):
+    """Tops (x, y) and heights of the crowns of a scan, classes 3-5 as canopy."""
+    import laspy
+
+    from pipeline.terrain import ground_elevation, terrain_model
+
+    las = laspy.read(path)
+    code = np.asarray(las.classification)
+    xyz = np.column_stack((las.x, las.y, las.z)).astype(np.float64)[code != 7]
+    code = code[code != 7]
+    height = xyz[:, 2] - ground_elevation(terrain_model(xyz).dtm, xyz[:, :2])
+    crowns = crowns_of(xyz, height, np.isin(code, (3, 4, 5)))
+    return crowns.top_xy, crowns.top_height
+
+
+@pytest.mark.data
+def test_the_airborne_and_drone_scans_of_one_patch_find_the_same_trees(shared_data):
+    from scipy.spatial import cKDTree
+
+    als = shared_data / "trees" / "ALS_Clip.laz"
+    uas = shared_data / "trees" / "UAS_Clip.laz"
+    if not (als.is_file() and uas.is_file()):
+        pytest.skip("the trees scans are not in the shared data")
+    (als_xy, als_h), (uas_xy, uas_h) = _scan_tops(als), _scan_tops(uas)
+    assert 12 <= len(als_xy) <= 40 and 12 <= len(uas_xy) <= 40
+    assert 25.0 < als_h.max() < 40.0 and abs(als_h.max() - uas_h.max()) < 1.0
+    distance, _ = cKDTree(uas_xy).query(als_xy)
+    assert np.mean(distance <= 2.0) >= 0.8
+
+
 # --- parameters ----------------------------------------------------------------------------
 
 @pytest.mark.parametrize("key, value", [
