@@ -30,6 +30,8 @@ from pipeline.trees.params import TreeParams
 
 #: Share of a Gaussian's weight an empty CHM cell needs from canopy cells to be filled.
 FILL_WEIGHT = 0.5
+#: Candidate tops whose disks are gathered at once (bounds the memory to ~100 MB at r = 10).
+DISK_BLOCK = 32_768
 
 
 @dataclass(frozen=True)
@@ -89,6 +91,23 @@ def smooth_chm(values: np.ndarray, sigma: float) -> np.ndarray:
     return out
 
 
+def _disk_maxima(height: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                 radius: np.ndarray) -> np.ndarray:
+    """bool (n,): is height[rows[k], cols[k]] the greatest in the disk of radius[k] cells
+    (int) around it? Outside the raster counts as -inf."""
+    is_max = np.zeros(rows.shape[0], dtype=bool)
+    pad = int(radius.max()) if radius.size else 0
+    padded = np.pad(height, pad, constant_values=-np.inf)
+    for r in np.unique(radius):
+        di, dj = np.nonzero(disk(r))
+        di, dj = di + pad - r, dj + pad - r
+        group = np.flatnonzero(radius == r)
+        for block in np.array_split(group, -(-group.size // DISK_BLOCK)):
+            around = padded[rows[block, None] + di, cols[block, None] + dj]
+            is_max[block] = height[rows[block], cols[block]] >= around.max(axis=1)
+    return is_max
+
+
 def find_tops(smoothed: np.ndarray, raw: np.ndarray, cell: float,
               params: TreeParams) -> tuple[np.ndarray, np.ndarray]:
     """Rows and columns (int64, row-major order) of the tops of a smoothed CHM.
@@ -105,14 +124,7 @@ def find_tops(smoothed: np.ndarray, raw: np.ndarray, cell: float,
     rows, cols = np.nonzero(candidates)
     a, b = params.window
     radius = np.maximum(np.rint((a + b * height[rows, cols]) / (2.0 * cell)), 1).astype(int)
-    is_top = np.zeros(rows.shape[0], dtype=bool)
-    pad = int(radius.max()) if radius.size else 0
-    padded = np.pad(height, pad, constant_values=-np.inf)
-    for r in np.unique(radius):
-        di, dj = np.nonzero(disk(r))
-        group = np.flatnonzero(radius == r)
-        around = padded[rows[group, None] + di + pad - r, cols[group, None] + dj + pad - r]
-        is_top[group] = height[rows[group], cols[group]] >= around.max(axis=1)
+    is_top = _disk_maxima(height, rows, cols, radius)
     top_mask = np.zeros(height.shape, dtype=bool)
     top_mask[rows[is_top], cols[is_top]] = True
     flats = connected_regions(top_mask, connectivity=2).ravel()
@@ -146,7 +158,6 @@ def grow_crowns(smoothed: np.ndarray, canopy: np.ndarray, rows: np.ndarray, cols
     markers = np.zeros(smoothed.shape, dtype=np.int32)
     markers[rows, cols] = np.arange(1, rows.shape[0] + 1, dtype=np.int32)
     mask = canopy & _reach(smoothed.shape, rows, cols, radius_cells)
-    mask[rows, cols] = True
     relief = -np.where(np.isfinite(smoothed), smoothed, 0.0)
     labels = watershed(relief, markers, connectivity=1, mask=mask).astype(np.int32)
     ii, jj = np.nonzero(labels)
