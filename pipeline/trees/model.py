@@ -105,43 +105,51 @@ def _stem_crowns(crowns: Crowns, stems) -> np.ndarray:
     return keep
 
 
+def _number_trees(crowns: Crowns | None, stems, params: TreeParams):
+    """The tree IDs (uint32) of the crowns (n,) and of the stems (m,), by the ID rule: the
+    crowns' trees and the stems outside any crown sorted by the cell key of their top or stem,
+    then x, then y; a stem in a crown takes its crown's ID (see :func:`_stem_crowns`)."""
+    n = 0 if crowns is None else len(crowns)
+    m = 0 if stems is None else stems.x.shape[0]
+    in_crown = _stem_crowns(crowns, stems) if n and m else np.zeros(m, np.int64)
+    alone = np.flatnonzero(in_crown == 0)
+    keys, xs, ys = [np.empty(0, np.int64)], [np.empty(0)], [np.empty(0)]
+    if n:
+        keys.append(crowns.top_keys)
+        xs.append(crowns.top_xy[:, 0])
+        ys.append(crowns.top_xy[:, 1])
+    if m:
+        keys.append(cell_keys(stems.x[alone], stems.y[alone], params.resolution))
+        xs.append(stems.x[alone])
+        ys.append(stems.y[alone])
+    order = np.lexsort((np.concatenate(ys), np.concatenate(xs), np.concatenate(keys)))
+    ids = np.empty(order.size, dtype=np.uint32)
+    ids[order] = np.arange(1, order.size + 1, dtype=np.uint32)
+    stem_ids = np.empty(m, dtype=np.uint32)
+    stem_ids[alone] = ids[n:]
+    stem_ids[in_crown > 0] = ids[in_crown[in_crown > 0] - 1]
+    return ids[:n], stem_ids
+
+
 def tree_model(crowns: Crowns | None, stems: Stems | None, params: TreeParams) -> TreeModel:
     """The scene's trees from its crowns and/or stems, numbered by the ID rule.
 
     With both, a stem whose centre lies in a crown gives that crown's tree its DBH (the stem
     nearest the top when several do); other stems are trees of their own.
     """
-    n_crowns = 0 if crowns is None else len(crowns)
-    n_stems = 0 if stems is None else int(np.asarray(stems.x).shape[0])
-    keys, xs, ys = [np.empty(0, np.int64)], [np.empty(0)], [np.empty(0)]
-    stem_tree = np.zeros(n_stems, dtype=np.int64)  # index into the unsorted trees
-    if n_crowns:
-        keys.append(crowns.top_keys)
-        xs.append(crowns.top_xy[:, 0])
-        ys.append(crowns.top_xy[:, 1])
-    if n_stems:
-        in_crown = _stem_crowns(crowns, stems) if n_crowns else np.zeros(n_stems, np.int64)
-        alone = np.flatnonzero(in_crown == 0)
-        stem_tree[in_crown > 0] = in_crown[in_crown > 0] - 1
-        stem_tree[alone] = n_crowns + np.arange(alone.size)
-        keys.append(cell_keys(stems.x[alone], stems.y[alone], params.resolution))
-        xs.append(np.asarray(stems.x, np.float64)[alone])
-        ys.append(np.asarray(stems.y, np.float64)[alone])
-    order = np.lexsort((np.concatenate(ys), np.concatenate(xs), np.concatenate(keys)))
-    tree_id = np.empty(order.size, dtype=np.uint32)
-    tree_id[order] = np.arange(1, order.size + 1, dtype=np.uint32)
-    n = order.size
+    crown_ids, stem_ids = _number_trees(crowns, stems, params)
+    n = int(max(crown_ids.max(initial=0), stem_ids.max(initial=0)))  # IDs are 1..n
     per_tree = {name: np.zeros(n, dtype) for name, dtype in TREE_ARRAYS.items()}
     for name in ("stem_x", "stem_y", "dbh"):
         per_tree[name][:] = np.nan
-    if n_crowns:
-        per_tree["crown_cells"][tree_id[:n_crowns] - 1] = crowns.crown_cells()
-        lookup = np.concatenate(([0], tree_id[:n_crowns])).astype(np.uint32)
+    if crown_ids.size:
+        per_tree["crown_cells"][crown_ids - 1] = crowns.crown_cells()
+        lookup = np.concatenate(([0], crown_ids)).astype(np.uint32)
         labels, grid = lookup[crowns.labels], (crowns.x0, crowns.y0, crowns.cell)
     else:
         labels, grid = np.zeros((0, 0), np.uint32), (0.0, 0.0, params.resolution)
-    if n_stems:
-        at = tree_id[stem_tree] - 1
+    if stem_ids.size:
+        at = stem_ids.astype(np.int64) - 1
         dbh = np.asarray(stems.dbh, np.float64)
         per_tree["stem_x"][at], per_tree["stem_y"][at] = stems.x, stems.y
         per_tree["dbh"][at], per_tree["dbh_quality"][at] = dbh, stems.quality

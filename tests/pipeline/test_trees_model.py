@@ -159,6 +159,22 @@ def test_stem_trees_alone_are_numbered_by_where_they_stand():
     assert _models_equal(tree_model(None, shuffled, PARAMS), model)
 
 
+def test_of_two_stems_in_a_crown_the_one_nearest_the_top_joins_it(forest):
+    xyz, height, canopy = forest
+    crowns = segment_crowns(chm_raster(canopy_cells(xyz, height, canopy, 0.5), 0.5), PARAMS)
+    top = crowns.top_xy[np.argmin(np.hypot(*(crowns.top_xy - 10.0).T))]
+    near, far = (top[0] + 0.2, top[1]), (top[0] - 1.5, top[1] + 0.5)
+    stems = stems_at([far, near], [0.3, 0.5], [2, 2])
+    model = tree_model(crowns, stems, PARAMS)
+    assert len(model) == len(CONES) + 1
+    joined = np.flatnonzero(model.crown_cells > 0)[np.isfinite(model.stem_x[model.crown_cells > 0])]
+    assert joined.size == 1 and model.dbh[joined[0]] == 0.5
+    alone = np.flatnonzero(model.crown_cells == 0)
+    assert alone.size == 1 and model.dbh[alone[0]] == 0.3
+    swapped = tree_model(crowns, stems_at([near, far], [0.5, 0.3], [2, 2]), PARAMS)
+    assert _models_equal(swapped, model)
+
+
 def test_the_model_round_trips_through_plain_arrays(forest):
     stems = stems_at([(10.1, 10.0), (33.0, 3.0)], [0.4, np.nan], [2, 1])
     _, model = scene_model(*forest, [np.arange(forest[0].shape[0])], stems)
