@@ -66,7 +66,7 @@ class TreeModel:
     def to_arrays(self) -> tuple[dict[str, np.ndarray], dict[str, float]]:
         """The model as named arrays and a dict of plain floats (e.g. for zarr)."""
         arrays = {"labels": self.labels, **{name: getattr(self, name) for name in TREE_ARRAYS}}
-        return arrays, {"x0": self.x0, "y0": self.y0, "cell": self.cell}
+        return arrays, {"x0": float(self.x0), "y0": float(self.y0), "cell": float(self.cell)}
 
     @classmethod
     def from_arrays(cls, arrays, attrs) -> TreeModel:
@@ -85,15 +85,27 @@ class TreeModel:
         return cls(labels, **grid, **values)
 
 
+def _label_at(labels: np.ndarray, x0: float, y0: float, cell: float,
+              xy: np.ndarray) -> np.ndarray:
+    """The value of ``labels`` (ny, nx) at the cell holding each point of xy (N, 2), 0 outside
+    the raster. The cell is found as canopy_cells keys it (floor(x / cell) less the raster's
+    first index), so a point lands in the very cell it built."""
+    values = np.zeros(xy.shape[0], dtype=labels.dtype)
+    if labels.size == 0:
+        return values
+    col = np.floor(xy[:, 0] / cell).astype(np.int64) - int(np.rint(x0 / cell))
+    row = np.floor(xy[:, 1] / cell).astype(np.int64) - int(np.rint(y0 / cell))
+    ny, nx = labels.shape
+    inside = (row >= 0) & (row < ny) & (col >= 0) & (col < nx)
+    values[inside] = labels[row[inside], col[inside]]
+    return values
+
+
 def _stem_crowns(crowns: Crowns, stems) -> np.ndarray:
     """int64 (m,) the crown (1..n) holding each stem's centre, 0 when none; a crown keeps
     only the stem nearest its top, the others become trees of their own."""
-    row = np.floor((stems.y - crowns.y0) / crowns.cell).astype(np.int64)
-    col = np.floor((stems.x - crowns.x0) / crowns.cell).astype(np.int64)
-    ny, nx = crowns.labels.shape
-    inside = (row >= 0) & (row < ny) & (col >= 0) & (col < nx)
-    crown = np.zeros(stems.x.shape[0], dtype=np.int64)
-    crown[inside] = crowns.labels[row[inside], col[inside]]
+    crown = _label_at(crowns.labels, crowns.x0, crowns.y0, crowns.cell,
+                      np.column_stack((stems.x, stems.y))).astype(np.int64)
     top = crowns.top_xy
     held = np.flatnonzero(crown)
     distance = np.hypot(*(np.column_stack((stems.x, stems.y))[held] - top[crown[held] - 1]).T)
@@ -157,20 +169,6 @@ def tree_model(crowns: Crowns | None, stems: Stems | None, params: TreeParams) -
     return TreeModel(labels, *grid, **per_tree)
 
 
-def _crown_ids(model: TreeModel, xy: np.ndarray) -> np.ndarray:
-    """uint32 (N,) the crown label of the cell holding each point (0 outside the raster)."""
-    ids = np.zeros(xy.shape[0], dtype=np.uint32)
-    if model.labels.size == 0:
-        return ids
-    # the cell index as canopy_cells keys it, so a point lands in the cell it built
-    col = np.floor(xy[:, 0] / model.cell).astype(np.int64) - int(np.rint(model.x0 / model.cell))
-    row = np.floor(xy[:, 1] / model.cell).astype(np.int64) - int(np.rint(model.y0 / model.cell))
-    ny, nx = model.labels.shape
-    inside = (row >= 0) & (row < ny) & (col >= 0) & (col < nx)
-    ids[inside] = model.labels[row[inside], col[inside]]
-    return ids
-
-
 def _stem_ids(model: TreeModel, xy: np.ndarray, margin: float) -> np.ndarray:
     """uint32 (N,) the tree of the stem whose circle (+ margin) holds each point, else 0."""
     ids = np.zeros(xy.shape[0], dtype=np.uint32)
@@ -198,7 +196,7 @@ def assign_trees(model: TreeModel, xyz: np.ndarray, height: np.ndarray, canopy: 
     xyz = np.asarray(xyz, dtype=np.float64)
     ids = np.zeros(xyz.shape[0], dtype=np.uint32)
     tall = np.flatnonzero(np.asarray(canopy, bool) & (np.asarray(height) >= params.min_height))
-    ids[tall] = _crown_ids(model, xyz[tall, :2])
+    ids[tall] = _label_at(model.labels, model.x0, model.y0, model.cell, xyz[tall, :2])
     if stem_mask is not None:
         loose = np.flatnonzero(np.asarray(stem_mask, bool) & (ids == 0))
         ids[loose] = _stem_ids(model, xyz[loose, :2], params.stem_cluster_eps)
