@@ -36,21 +36,30 @@ def write_tree_csv(path, table: np.ndarray) -> None:
     atomic_write_text(path, "\n".join(lines) + "\n")
 
 
-def crown_polygons(labels: np.ndarray, x0: float, y0: float, cell: float) -> dict:
+def crown_polygons(labels: np.ndarray, x0: float, y0: float, cell: float,
+                   trees: np.ndarray | None = None) -> dict:
     """{tree ID: shapely (Multi)Polygon} of the cells of each tree in ``labels`` (uint (ny, nx),
-    row 0 south, 0 = none) on the grid ``x0, y0, cell``."""
+    row 0 south, 0 = none) on the grid ``x0, y0, cell``; only the trees whose IDs are in
+    ``trees`` when given (e.g. one tile's)."""
     import shapely
     from rasterio.features import shapes
     from rasterio.transform import Affine
 
-    if labels.size == 0 or not labels.any():
+    labels = np.asarray(labels)
+    wanted = labels > 0 if trees is None else np.isin(labels, trees) & (labels > 0)
+    if not wanted.any():
         return {}
-    north_first = np.ascontiguousarray(labels[::-1]).astype(np.int32)
-    top = y0 + labels.shape[0] * cell
+    (r0, r1), (c0, c1) = ((k[0], k[-1] + 1) for k in (np.flatnonzero(wanted.any(axis=1)),
+                                                      np.flatnonzero(wanted.any(axis=0))))
+    crop = np.where(wanted[r0:r1, c0:c1], labels[r0:r1, c0:c1], 0)
+    # small consecutive values for rasterio (int32 at most), mapped back to the tree IDs
+    ids, local = np.unique(crop, return_inverse=True)
+    north_first = np.ascontiguousarray(local.reshape(crop.shape)[::-1], dtype=np.int32)
+    transform = Affine(cell, 0.0, x0 + c0 * cell, 0.0, -cell, y0 + r1 * cell)
     pieces = {}
-    for geometry, value in shapes(north_first, mask=north_first > 0, connectivity=4,
-                                  transform=Affine(cell, 0.0, x0, 0.0, -cell, top)):
-        pieces.setdefault(int(value), []).append(shapely.geometry.shape(geometry))
+    for geometry, value in shapes(north_first, mask=crop[::-1] > 0, connectivity=4,
+                                  transform=transform):
+        pieces.setdefault(int(ids[int(value)]), []).append(shapely.geometry.shape(geometry))
     return {tree: shapely.union_all(parts) for tree, parts in sorted(pieces.items())}
 
 
@@ -74,17 +83,18 @@ def write_tree_gpkg(path, table: np.ndarray, labels: np.ndarray, x0: float, y0: 
                     cell: float, crs_wkt: str | None) -> None:
     """Write the tree tops and crowns as a GeoPackage, atomically.
 
-    ``table`` is the tree table (TABLE_DTYPE, IDs ascending, every ID of ``labels`` in it);
-    ``labels`` (uint (ny, nx), row 0 south) the
-    tree ID of each CHM cell on the grid ``x0, y0, cell`` (a TreeModel's ``labels``); shape
-    (0, 0) gives an empty crowns layer. Trees without a position (no points, no stem) have no
-    top; trees without crown cells no crown. NaN attributes are written as null.
+    ``table`` holds the rows of the tree table (TABLE_DTYPE, IDs ascending) to write, e.g. one
+    tile's; ``labels`` (uint (ny, nx), row 0 south) the tree ID of each CHM cell on the grid
+    ``x0, y0, cell`` (a TreeModel's ``labels``, the whole scene's), of which only the table's
+    trees are traced; shape (0, 0) gives an empty crowns layer. Trees without a position (no
+    points, no stem) have no top; trees without crown cells no crown. NaN attributes are
+    written as null.
     """
     import shapely
 
     located = table[np.isfinite(table["x"]) & np.isfinite(table["y"])]
     tops = shapely.points(located["x"], located["y"])
-    polygons = crown_polygons(np.asarray(labels), x0, y0, cell)
+    polygons = crown_polygons(labels, x0, y0, cell, trees=table["tree_id"])
     rows = np.searchsorted(table["tree_id"], np.asarray(list(polygons), dtype=np.uint32))
     with atomic_path(path) as tmp:
         _layer(tmp, TOPS_LAYER, located, tops, crs_wkt)

@@ -94,3 +94,22 @@ def test_a_model_without_crowns_writes_an_empty_crowns_layer(tmp_path, trees):
     write_tree_gpkg(path, table[2:], np.zeros((0, 0), np.uint32), 0.0, 0.0, 0.5, CRS_WKT)
     assert pyogrio.read_info(path, layer="tops")["features"] == 1
     assert pyogrio.read_info(path, layer="crowns")["features"] == 0
+
+
+def test_a_tiles_rows_get_only_their_own_crowns(tmp_path, trees):
+    table, labels = trees
+    path = tmp_path / "tile.gpkg"
+    write_tree_gpkg(path, table[1:2], labels, 100.0, 200.0, 0.5, CRS_WKT)
+    meta, _, geometry, fields = pyogrio.raw.read(path, layer="crowns")
+    values = dict(zip(meta["fields"], fields))
+    assert values["tree_id"].tolist() == [2] and values["points"].tolist() == [80]
+    assert shapely.from_wkb(geometry[0]).area == pytest.approx(1.0)
+
+
+def test_crown_polygons_keep_ids_beyond_the_int32_range(trees):
+    _, labels = trees
+    big = np.where(labels == 2, np.uint32(3_000_000_000), labels).astype(np.uint32)
+    polygons = crown_polygons(big, 100.0, 200.0, 0.5)
+    assert sorted(polygons) == [1, 3_000_000_000]
+    assert polygons[3_000_000_000].area == pytest.approx(1.0)
+    assert list(crown_polygons(big, 100.0, 200.0, 0.5, trees=np.array([1]))) == [1]
