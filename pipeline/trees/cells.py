@@ -131,12 +131,12 @@ def chm_raster(cells: CanopyCells, cell: float) -> Raster:
 
     The raster spans the cells' bounding box: ``x0 = kx_min * cell``, ``y0 = ky_min * cell``,
     cell (kx, ky) at row ky - ky_min (row 0 south), column kx - kx_min; NaN where no canopy
-    point fell. Raises :class:`~pipeline.errors.InputError` for no cells or a raster of more
-    than :data:`MAX_CELLS` cells.
+    point fell. No cells (a scene without canopy) give one empty cell at the origin, in which
+    no tree is found. Raises :class:`~pipeline.errors.InputError` for a raster of more than
+    :data:`MAX_CELLS` cells.
     """
     if len(cells) == 0:
-        raise InputError("no canopy points above the ground: the scene has no canopy to "
-                         "find trees in")
+        return Raster(np.full((1, 1), np.nan), 0.0, 0.0, float(cell))
     kx, ky = unpack_keys(cells.keys)
     low_x, low_y = int(kx.min()), int(ky.min())
     nx, ny = int(kx.max()) - low_x + 1, int(ky.max()) - low_y + 1

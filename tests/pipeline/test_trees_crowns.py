@@ -155,6 +155,14 @@ def test_a_flat_top_keeps_one_seed():
     assert (crowns.top_row[0], crowns.top_col[0]) == (8, 8)
 
 
+def test_a_scene_without_canopy_has_no_trees():
+    xyz = np.array([[3.0, 4.0, 100.0]])
+    cells = canopy_cells(xyz, np.zeros(1), np.zeros(1, bool), 0.5)
+    chm = chm_raster(cells, 0.5)
+    assert len(cells) == 0 and chm.shape == (1, 1) and np.isnan(chm.values).all()
+    assert len(segment_crowns(chm, TreeParams())) == 0
+
+
 def test_no_canopy_above_min_height_gives_no_crowns():
     crowns = segment_crowns(Raster(np.full((5, 5), 1.0), 0.0, 0.0, 0.5), TreeParams())
     assert len(crowns) == 0 and not crowns.labels.any()
