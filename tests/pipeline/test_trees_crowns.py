@@ -62,6 +62,26 @@ def test_canopy_cells_keep_the_highest_canopy_point_of_each_cell():
     assert cells.x.tolist() == [0.4, 1.2]  # a tie in height and z goes to the smallest x
 
 
+def test_canopy_cells_against_a_loop():
+    rng = np.random.default_rng(8)
+    xyz = rng.uniform([-3.0, 5.0, 0.0], [3.0, 9.0, 4.0], size=(400, 3))
+    xyz[:100, 2] = np.round(xyz[:100, 2])
+    height, canopy = xyz[:, 2] - 0.5, rng.random(400) < 0.7
+    best = {}
+    for (x, y, z), h, c in zip(xyz, height, canopy):
+        if c and h >= 0.0:
+            key = (math.floor(x / 0.7), math.floor(y / 0.7))
+            rank = (h, z, -x, -y)
+            if key not in best or rank > best[key][0]:
+                best[key] = (rank, (x, y, z))
+    cells = canopy_cells(xyz, height, canopy, 0.7)
+    kx, ky = unpack_keys(cells.keys)
+    found = {(int(i), int(j)): (x, y, z) for i, j, x, y, z in zip(kx, ky, cells.x, cells.y,
+                                                                 cells.z)}
+    assert found == {key: point for key, (_, point) in best.items()}
+    assert list(zip(ky.tolist(), kx.tolist())) == sorted(zip(ky.tolist(), kx.tolist()))
+
+
 @pytest.mark.parametrize("n_chunks", [2, 5, 17])
 def test_merged_cells_of_random_chunks_equal_all_at_once(n_chunks):
     xyz, height, canopy = cone_forest(1, density=10.0)
@@ -92,6 +112,27 @@ def _matched_tops(crowns, cones):
     truth = np.array([(x, y) for x, y, _, _ in cones])
     distance = np.hypot(*(found[:, None, :] - truth[None, :, :]).transpose(2, 0, 1))
     return distance.argmin(axis=1), distance.min(axis=1)
+
+
+def test_tops_against_a_loop_over_every_cell():
+    from scipy import ndimage
+
+    rng = np.random.default_rng(9)
+    values = ndimage.gaussian_filter(rng.normal(size=(40, 50)), 2.0) * 60.0 + 8.0
+    values[rng.random(values.shape) < 0.05] = np.nan
+    params = TreeParams(smoothing=0.0, window=(2.0, 0.15))
+    crowns = segment_crowns(Raster(values, 0.0, 0.0, 0.5), params)
+    expected = []
+    for i, j in zip(*np.nonzero(values >= params.min_height)):
+        r = max(int(np.rint((2.0 + 0.15 * values[i, j]) / 1.0)), 1)
+        di, dj = np.mgrid[-r:r + 1, -r:r + 1]
+        disk = (di**2 + dj**2 <= r * r) & (i + di >= 0) & (i + di < 40) & (j + dj >= 0) \
+            & (j + dj < 50)
+        around = values[(i + di)[disk], (j + dj)[disk]]
+        if values[i, j] >= np.nanmax(around):
+            expected.append((i, j))
+    assert len(expected) > 5
+    assert list(zip(crowns.top_row.tolist(), crowns.top_col.tolist())) == expected
 
 
 def test_every_cone_top_is_found_once_and_nothing_else():
