@@ -4,8 +4,9 @@ Pingel, Clarke and McBride (2013), "An improved simple morphological filter for 
 classification of airborne LIDAR data", ISPRS J. 77:21-30; the parameters have the meaning
 and defaults of PDAL's ``filters.smrf``. On the raster of the lowest point of each cell:
 
-1. low outliers (:func:`low_outliers`: a stray point far under the ground) are emptied, so
-   none digs a pit, and the empty cells are filled (:func:`~pipeline.terrain.grid.fill`);
+1. low outliers (:func:`low_outliers`: a stray point or a small cluster of them far under
+   the ground) are emptied, so none digs a pit, and the empty cells are filled
+   (:func:`~pipeline.terrain.grid.fill`);
 2. progressive morphological opening with disks of radius 1 .. ceil(window / cell) cells: a
    cell is an object when the previous surface minus the current opening exceeds
    slope * radius * cell (the opening removes anything narrower than the disk; terrain that
@@ -23,17 +24,21 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, sparse
+from scipy.sparse import csgraph
 
 from pipeline.errors import ConfigError, InputError
 from pipeline.terrain.grid import Raster, cell_minima, fill, minima_raster
 
 logger = logging.getLogger(__name__)
 
-#: A cell whose minimum lies more than LOW_DEPTH metres below the third lowest cell of its
-#: LOW_WINDOW x LOW_WINDOW neighbourhood is a low outlier (multipath or noise under the ground).
+#: Cells within LOW_RADIUS cells of each other and LOW_DEPTH metres in elevation are linked;
+#: a group of at most MAX_CLUSTER linked cells with no other link, lying more than LOW_DEPTH
+#: below every other cell within LOW_RADIUS of it, is a cluster of low outliers (multipath
+#: or noise under the ground) (see :func:`low_outliers`).
 LOW_DEPTH = 1.0
-LOW_WINDOW = 5
+LOW_RADIUS = 5
+MAX_CLUSTER = 8
 #: Rectangles whose union stands for a disk in the opening (see :func:`disk_rectangles`).
 MAX_RECTANGLES = 8
 
@@ -142,20 +147,80 @@ def object_mask(surface: np.ndarray, cell: float, slope: float, window: float) -
     return objects
 
 
-def low_outliers(z: np.ndarray, data: np.ndarray) -> np.ndarray:
-    """bool (ny, nx): data cells more than :data:`LOW_DEPTH` below the third lowest data cell
-    of their :data:`LOW_WINDOW` x :data:`LOW_WINDOW` neighbourhood (themselves included).
+def disk_offsets(radius: int) -> list[tuple[int, int]]:
+    """(di, dj) of every cell of the disk di² + dj² <= radius² but its centre."""
+    return [(di, dj) for di in range(-radius, radius + 1) for dj in range(-radius, radius + 1)
+            if 0 < di * di + dj * dj <= radius * radius]
 
-    One or two stray points under the ground are far below every other cell around them, so
-    they are caught; a ground cell seen through a gap in a canopy is not, as long as a few
-    other ground cells share its neighbourhood (a test against all the neighbours, e.g. a
-    grey closing, takes such cells for pits and empties the ground of a sparse forest). Cells
-    with fewer than three data cells around are never low outliers.
+
+def _shifted(padded: np.ndarray, di: int, dj: int, shape: tuple[int, int]) -> np.ndarray:
+    """The view of a raster padded by :data:`LOW_RADIUS` cells that puts the cell (i + di,
+    j + dj) at (i, j)."""
+    r = LOW_RADIUS
+    return padded[r + di:r + di + shape[0], r + dj:r + dj + shape[1]]
+
+
+def low_outliers(z: np.ndarray, data: np.ndarray) -> np.ndarray:
+    """bool (ny, nx): data cells that, alone or with a few others, lie deep under all the
+    data around them.
+
+    Two data cells within :data:`LOW_RADIUS` cells of each other are linked when their
+    elevations differ by at most :data:`LOW_DEPTH`. A cluster, a group of linked cells, is
+    a low outlier when it holds at most :data:`MAX_CLUSTER` cells, no link leaves it, and
+    every other data cell within :data:`LOW_RADIUS` of it lies more than :data:`LOW_DEPTH`
+    above it (and there is at least one). One stray point or a multipath burst over a few
+    adjacent cells is caught however deep it lies; ground is linked to the ground around
+    it, also when seen through a gap in a canopy as long as other ground lies within
+    :data:`LOW_RADIUS` (a test against all the neighbours, e.g. a grey closing, takes such
+    cells for pits and empties the ground of a sparse forest), and a cell with a lower cell
+    near it is never an outlier, so no slope is cut. A cloud with no other data near is kept.
     """
-    lows = ndimage.rank_filter(np.where(data, z, np.inf), 2, size=LOW_WINDOW, mode="constant",
-                               cval=np.inf)
+    shape = z.shape
+    r = LOW_RADIUS
+    padded = np.pad(np.where(data, z, np.nan), r, constant_values=np.nan)
+    undercut = np.zeros(shape, dtype=bool)
+    links = np.zeros(shape, dtype=np.int64)
+    near = np.zeros(shape, dtype=np.int64)
     with np.errstate(invalid="ignore"):
-        return data & np.isfinite(lows) & (lows - z > LOW_DEPTH)
+        for di, dj in disk_offsets(r):
+            rise = _shifted(padded, di, dj, shape) - z
+            undercut |= rise < -LOW_DEPTH
+            links += np.abs(rise) <= LOW_DEPTH
+            near += np.isfinite(rise)
+    candidate = data & ~undercut & (links < MAX_CLUSTER)
+    return candidate & _closed_clusters(z, candidate, links, near)
+
+
+def _closed_clusters(z: np.ndarray, candidate: np.ndarray, links: np.ndarray,
+                     near: np.ndarray) -> np.ndarray:
+    """bool (ny, nx): candidate cells whose cluster of linked candidates holds at most
+    :data:`MAX_CLUSTER` cells, has no link to a cell outside it (``links``: each cell's
+    link count) and has another data cell near (``near``: data cells within the radius)."""
+    shape = z.shape
+    index = np.full(shape, -1, dtype=np.int64)
+    n = int(candidate.sum())
+    index[candidate] = np.arange(n)
+    padded_z = np.pad(np.where(candidate, z, np.nan), LOW_RADIUS, constant_values=np.nan)
+    padded_index = np.pad(index, LOW_RADIUS, constant_values=-1)
+    heads, tails = [], []
+    with np.errstate(invalid="ignore"):
+        for di, dj in disk_offsets(LOW_RADIUS):
+            if (di, dj) < (0, 0):
+                continue  # each pair once
+            linked = candidate & (np.abs(_shifted(padded_z, di, dj, shape) - z) <= LOW_DEPTH)
+            heads.append(index[linked])
+            tails.append(_shifted(padded_index, di, dj, shape)[linked])
+    heads, tails = np.concatenate(heads), np.concatenate(tails)
+    graph = sparse.coo_matrix((np.ones(heads.size), (heads, tails)), shape=(n, n))
+    _, label = csgraph.connected_components(graph, directed=False)
+    inner = np.bincount(heads, minlength=n) + np.bincount(tails, minlength=n)
+    size = np.bincount(label)
+    leaving = np.bincount(label, weights=links[candidate] - inner)
+    others = np.bincount(label, weights=near[candidate] - inner)
+    outlier = (size <= MAX_CLUSTER) & (leaving == 0) & (others > 0)
+    mask = np.zeros(shape, dtype=bool)
+    mask[candidate] = outlier[label]
+    return mask
 
 
 def local_slope(surface: np.ndarray, cell: float) -> np.ndarray:

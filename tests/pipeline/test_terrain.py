@@ -193,6 +193,28 @@ def test_a_low_outlier_digs_no_pit():
     assert np.abs(error).max() < 0.1
 
 
+@pytest.mark.parametrize("cells", [
+    [(5, 5), (6, 5), (7, 5)],  # a row of three
+    [(5, 5), (6, 5), (5, 6), (6, 6)],  # a square of four
+    [(4, 4), (5, 5), (6, 6), (7, 7), (8, 7), (9, 7)],  # six, diagonal then a row
+    [(10, 10), (11, 10), (12, 10), (10, 11), (11, 11), (12, 11), (10, 12), (11, 12)],  # eight
+])
+@pytest.mark.parametrize("depth", [100.0, 12.0])
+def test_a_cluster_of_low_outliers_digs_no_crater(cells, depth):
+    """A multipath cluster: one point deep under the ground in each of a few adjacent cells of
+    a 20 m plot with trees; every height above ground stays as it was without the cluster."""
+    rng = np.random.default_rng(11)
+    xy = rng.uniform(0.0, 20.0, size=(4000, 2))
+    clean = np.column_stack((xy, 50.0 + 0.1 * xy[:, 0] + rng.normal(0.0, 0.03, len(xy))))
+    crowns = rng.uniform([2.0, 2.0, 5.0], [18.0, 18.0, 15.0], size=(1500, 3))
+    clean = np.vstack((clean, crowns + [0.0, 0.0, 50.0]))
+    noise = np.array([[i + 0.5, j + 0.5, 50.0 + 0.1 * (i + 0.5) - depth] for i, j in cells])
+    noisy = np.vstack((clean, noise))
+    expected = clean[:, 2] - ground_elevation(terrain_model(clean).dtm, clean[:, :2])
+    height = clean[:, 2] - ground_elevation(terrain_model(noisy).dtm, clean[:, :2])
+    assert np.abs(height - expected).max() < 0.2  # a filled cell vs its own lowest point
+
+
 @pytest.mark.parametrize("xyz", [
     np.array([[3.2, -7.9, 12.0]]),
     np.column_stack((np.linspace(0, 50, 80), np.full(80, 0.5), np.linspace(5, 9, 80))),
