@@ -178,19 +178,25 @@ def low_outliers(z: np.ndarray, data: np.ndarray) -> np.ndarray:
     near it is never an outlier, so no slope is cut. A cloud with no other data near is kept.
     """
     shape = z.shape
-    r = LOW_RADIUS
-    padded = np.pad(np.where(data, z, np.nan), r, constant_values=np.nan)
-    undercut = np.zeros(shape, dtype=bool)
-    links = np.zeros(shape, dtype=np.int64)
-    near = np.zeros(shape, dtype=np.int64)
+    padded = np.pad(np.where(data, z, np.nan), LOW_RADIUS, constant_values=np.nan)
+    centre = _shifted(padded, 0, 0, shape)
+    # per cell, padded like the raster: a lower cell near, links, data cells near
+    undercut = np.zeros(padded.shape, dtype=bool)
+    links = np.zeros(padded.shape, dtype=np.int16)
+    near = np.zeros(padded.shape, dtype=np.int16)
     with np.errstate(invalid="ignore"):
-        for di, dj in disk_offsets(r):
-            rise = _shifted(padded, di, dj, shape) - z
-            undercut |= rise < -LOW_DEPTH
-            links += np.abs(rise) <= LOW_DEPTH
-            near += np.isfinite(rise)
+        for di, dj in disk_offsets(LOW_RADIUS):
+            if (di, dj) < (0, 0):
+                continue  # each pair once, counted for both its cells
+            rise = _shifted(padded, di, dj, shape) - centre
+            level, seen = np.abs(rise) <= LOW_DEPTH, np.isfinite(rise)
+            for offset, lower in (((0, 0), rise < -LOW_DEPTH), ((di, dj), rise > LOW_DEPTH)):
+                _shifted(undercut, *offset, shape)[...] |= lower
+                _shifted(links, *offset, shape)[...] += level
+                _shifted(near, *offset, shape)[...] += seen
+    undercut, links, near = (_shifted(a, 0, 0, shape) for a in (undercut, links, near))
     candidate = data & ~undercut & (links < MAX_CLUSTER)
-    return candidate & _closed_clusters(z, candidate, links, near)
+    return candidate & _closed_clusters(z, candidate, links.astype(np.int64), near)
 
 
 def _closed_clusters(z: np.ndarray, candidate: np.ndarray, links: np.ndarray,
