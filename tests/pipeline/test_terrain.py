@@ -281,6 +281,20 @@ def test_a_cluster_of_low_outliers_digs_no_crater(cells, depth):
     assert np.abs(height - expected).max() < 0.2  # a filled cell vs its own lowest point
 
 
+def test_ground_seen_through_a_closed_canopy_in_single_cells_is_kept():
+    """A closed canopy 8-20 m up, the ground seen in one cell of every 3 x 3 (sparse
+    airborne data under trees): no ground cell has another within two cells, yet each is
+    ground, not a pit."""
+    rng = np.random.default_rng(13)
+    xy = rng.uniform(0.0, 45.0, (20_000, 2))
+    gap = (np.floor(xy) % 3 == 1).all(axis=1)
+    z = 100.0 + 0.05 * xy[:, 1] + np.where(gap, 0.0, rng.uniform(8.0, 20.0, len(xy)))
+    xyz = np.column_stack((xy, z))
+    height = z - ground_elevation(terrain_model(xyz).dtm, xy)
+    assert np.abs(height[gap]).max() < 0.2
+    assert height[~gap].min() > 7.0
+
+
 @pytest.mark.parametrize("xyz", [
     np.array([[3.2, -7.9, 12.0]]),
     np.column_stack((np.linspace(0, 50, 80), np.full(80, 0.5), np.linspace(5, 9, 80))),
