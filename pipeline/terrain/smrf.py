@@ -149,10 +149,11 @@ def object_mask(surface: np.ndarray, cell: float, slope: float, window: float) -
     return objects
 
 
-def disk_offsets(radius: int) -> list[tuple[int, int]]:
-    """(di, dj) of every cell of the disk di² + dj² <= radius² but its centre."""
-    return [(di, dj) for di in range(-radius, radius + 1) for dj in range(-radius, radius + 1)
-            if 0 < di * di + dj * dj <= radius * radius]
+def pair_offsets(radius: int) -> list[tuple[int, int]]:
+    """(di, dj) of the cells of the disk di² + dj² <= radius² but its centre, one of each
+    pair (di, dj), (-di, -dj): every pair of cells that near each other is met once."""
+    return [(di, dj) for di in range(radius + 1) for dj in range(-radius, radius + 1)
+            if (di > 0 or dj > 0) and di * di + dj * dj <= radius * radius]
 
 
 def _shifted(padded: np.ndarray, di: int, dj: int, shape: tuple[int, int]) -> np.ndarray:
@@ -185,9 +186,7 @@ def low_outliers(z: np.ndarray, data: np.ndarray) -> np.ndarray:
     links = np.zeros(padded.shape, dtype=np.int16)
     near = np.zeros(padded.shape, dtype=np.int16)
     with np.errstate(invalid="ignore"):
-        for di, dj in disk_offsets(LOW_RADIUS):
-            if (di, dj) < (0, 0):
-                continue  # each pair once, counted for both its cells
+        for di, dj in pair_offsets(LOW_RADIUS):  # each pair counts for both its cells
             rise = _shifted(padded, di, dj, shape) - centre
             level, seen = np.abs(rise) <= LOW_DEPTH, np.isfinite(rise)
             for offset, lower in (((0, 0), rise < -LOW_DEPTH), ((di, dj), rise > LOW_DEPTH)):
@@ -212,9 +211,7 @@ def _closed_clusters(z: np.ndarray, candidate: np.ndarray, links: np.ndarray,
     padded_index = np.pad(index, LOW_RADIUS, constant_values=-1)
     heads, tails = [], []
     with np.errstate(invalid="ignore"):
-        for di, dj in disk_offsets(LOW_RADIUS):
-            if (di, dj) < (0, 0):
-                continue  # each pair once
+        for di, dj in pair_offsets(LOW_RADIUS):
             linked = candidate & (np.abs(_shifted(padded_z, di, dj, shape) - z) <= LOW_DEPTH)
             heads.append(index[linked])
             tails.append(_shifted(padded_index, di, dj, shape)[linked])
@@ -275,6 +272,9 @@ def ground_model(minima: Raster, params: TerrainParams, offsets: np.ndarray | No
     """
     if not isinstance(params, TerrainParams):
         raise ConfigError(f"params must be TerrainParams, got {type(params).__name__}")
+    if offsets is not None and np.shape(offsets) != minima.shape + (2,):
+        raise InputError(f"offsets must have shape {minima.shape + (2,)} (the minima's, then "
+                         f"dx, dy), got {np.shape(offsets)}")
     z = minima.values
     if np.isinf(z).any():
         raise InputError("the minima raster holds infinite elevations; use NaN for empty cells")
