@@ -54,7 +54,8 @@ def _check_returns(return_number, number_of_returns, n_points: int):
     for name, values in (("return_number", return_number),
                          ("number_of_returns", number_of_returns)):  # fmt: skip
         arr = np.asarray(values)
-        if arr.shape != (n_points,) or not (arr.size == 0 or np.issubdtype(arr.dtype, np.integer)):
+        integer = arr.size == 0 or np.issubdtype(arr.dtype, np.integer)
+        if arr.shape != (n_points,) or not integer:
             raise InputError(f"{name} must be integers of shape ({n_points},), got "
                              f"{arr.dtype} {arr.shape}")  # fmt: skip
         arrays.append(arr.astype(np.int64))
@@ -141,7 +142,8 @@ def _shares(sums: np.ndarray) -> np.ndarray:
     out[some, 0] = multi[some] / n
     out[some, 1] = last[some] / n
     # n * S2 - S1^2 >= 0 exactly in integers (rn <= 15, so far from int64's limit)
-    out[some, 2] = np.sqrt((count[some] * s2[some] - s1[some] * s1[some]).astype(np.float64)) / n
+    spread = count[some] * s2[some] - s1[some] * s1[some]
+    out[some, 2] = np.sqrt(spread.astype(np.float64)) / n
     return out
 
 

@@ -1,4 +1,4 @@
-"""Thinned copies: the same points whatever the order or chunking, nested fractions, densities."""
+"""Thinned copies: the same points whatever the order or chunk, nested fractions, densities."""
 
 import numpy as np
 import pytest
