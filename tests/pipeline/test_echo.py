@@ -121,3 +121,21 @@ def test_bad_input(canopy):
     with pytest.raises(ValueError, match="radii"):
         echo_names((1.0, 1.0))
     assert echo_halo(RADII) >= 2.0
+
+
+def test_crowns_return_several_echoes_roofs_one(shared_data):
+    """On IGN LiDAR HD, the sphere around a crown point holds far more multi-return pulses
+    than the sphere around a roof point."""
+    laspy = pytest.importorskip("laspy")
+    las = laspy.read(shared_data / "als" / "StBarth_IGN_LiDARHD_100m.laz")
+    xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
+    classes = np.asarray(las.classification)
+    query = np.arange(0, len(xyz), 25)
+    got = echo_neighbourhood_features(xyz, None, query, np.asarray(las.return_number),
+                                      np.asarray(las.number_of_returns), (1.0,))  # fmt: skip
+    vegetation, building = classes[query] == 5, classes[query] == 6
+    assert not np.isnan(got).any()
+    crowns, roofs = got[vegetation].mean(axis=0), got[building].mean(axis=0)
+    assert crowns[0] > 3 * roofs[0]  # multi-return share: 0.42 against 0.09
+    assert roofs[1] > 0.9 > 0.75 > crowns[1]  # last-return share: 0.94 against 0.66
+    assert crowns[2] > 2 * roofs[2]  # spread of return numbers: 0.22 against 0.06
