@@ -12,8 +12,8 @@ vegetation and building, on the airborne tiles of ../shared/data:
   (:func:`pipeline.features.echo.echo_neighbourhood_features`);
 - ``+ thinned copies``: the same columns, trained on the tile and on copies thinned to 20 % and
   8 % of its points (:mod:`pipeline.cascade.thinning`), the same number of training points;
-- two rows apart: the sphere echoes without the per-point ones, and the thinned copies
-  without echoes (what each family buys on its own).
+- three columns apart: the sphere echoes without the per-point ones, with and without the
+  thinned copies, and the thinned copies without echoes (what each family buys on its own).
 
 Tiles: StBarth (IGN LiDAR HD, 25 pts/m²: ground 2, vegetation 5, building 6), AHN4 Amsterdam
 (58 pts/m²: ground 2, building 6, and 1 taken as vegetation: it also holds cars and street
@@ -85,6 +85,7 @@ VARIANTS = {
     "+ echo per sphere": (FAMILIES, False),
     "+ thinned copies": (FAMILIES, True),
     "echo per sphere only": (("covariance", "echo_sphere"), False),
+    "echo per sphere only + thinned": (("covariance", "echo_sphere"), True),
     "thinned copies only": (("covariance",), True),
 }
 
