@@ -3,6 +3,7 @@
 - :mod:`~pipeline.cascade.params`: the parameters and their defaults (shared with the
   workflow's configuration);
 - :mod:`~pipeline.cascade.sampling`: training rows, folds and seeds from global point ids;
+- :mod:`~pipeline.cascade.thinning`: thinned copies of a cloud, to train at other densities;
 - :mod:`~pipeline.cascade.stage`: one stage's work on the arrays of a chunk;
 - :mod:`~pipeline.cascade.driver`: the one loop over the stages, against a data interface;
 - :mod:`~pipeline.cascade.one_pass`: every stage of a fitted cascade for one chunk at once;
@@ -35,11 +36,18 @@ from pipeline.cascade.stage import (
     stage_input,
     training_rows,
 )
+from pipeline.cascade.thinning import (
+    point_density,
+    thinned_mask,
+    thinned_to_density,
+    thinning_fraction,
+)
 
 __all__ = [
     "CascadeData", "CascadeParams", "CascadedForest", "CloudData", "FittedStage",
     "ForestParams", "chunk_proba", "feature_matrix", "fit_stage", "fit_stage_forest",
-    "fold_of", "id_hash", "labels_from_proba", "one_pass", "one_pass_halo", "predict_stage",
-    "predict_stage_proba", "resolve_seed", "run_cascade", "sampling_fractions",
-    "stage_context", "stage_input", "stage_seed", "training_mask", "training_rows",
+    "fold_of", "id_hash", "labels_from_proba", "one_pass", "one_pass_halo", "point_density",
+    "predict_stage", "predict_stage_proba", "resolve_seed", "run_cascade", "sampling_fractions",
+    "stage_context", "stage_input", "stage_seed", "thinned_mask", "thinned_to_density",
+    "thinning_fraction", "training_mask", "training_rows",
 ]

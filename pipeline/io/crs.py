@@ -112,6 +112,56 @@ def check_same_crs(tiles: Iterable[tuple], where: str) -> str | None:
     return first[1] if first else None
 
 
+def check_metres(wkt: str | None, path, centre=None) -> None:
+    """Refuse (InputError, one line naming ``path``) a CRS whose coordinates are not metres.
+
+    Radii, cells, rasters and heights above ground are in the CRS's units, all taken as
+    metres: a tile in degrees would get one cell of terrain, one in feet wrong radii and
+    heights in feet under a metres label. Refused: a geographic CRS (degrees; the message
+    suggests the UTM zone of ``centre``, the tile's (x, y) centre, when it is a longitude
+    and latitude), a geocentric one, and any axis, the vertical one of a compound CRS
+    included, in another linear unit (US survey feet, feet). A tile without a CRS, or with
+    a WKT pyproj cannot read, is taken as it is.
+    """
+    if not wkt:
+        return
+    try:
+        crs = pyproj.CRS.from_wkt(wkt)
+    except pyproj.exceptions.CRSError:
+        return
+    for part in crs.sub_crs_list or [crs]:
+        if part.is_geographic or part.is_geocentric:
+            kind = "geographic (degrees)" if part.is_geographic else "geocentric (earth-centred)"
+            raise InputError(
+                f"tile {path} is in a {kind} CRS, {_crs_name(part.to_wkt())}, and Silva's radii, "
+                "cells and heights are metres; reproject it to a projected CRS in metres "
+                f"first, {_reprojection(path, _utm_hint(centre))}"
+            )
+        for axis in part.axis_info:
+            if axis.unit_conversion_factor != 1.0:
+                raise InputError(
+                    f"tile {path} has coordinates in {axis.unit_name} ({axis.name}, CRS "
+                    f"{_crs_name(crs.to_wkt())}), and Silva's radii, cells and heights are "
+                    "metres; reproject it to a CRS in metres first, "
+                    f"{_reprojection(path, 'EPSG:<code of a CRS in metres>')}"
+                )
+
+
+def _reprojection(path, target: str) -> str:
+    """The PDAL command that reprojects ``path`` to ``target``, as advice."""
+    return (f"e.g. pdal translate {path} metres.laz reprojection "
+            f"--filters.reprojection.out_srs={target}")
+
+
+def _utm_hint(centre) -> str:
+    """'EPSG:326NN' (or 327NN south) of the UTM zone of a (longitude, latitude) centre, or
+    'EPSG:<code of a projected CRS in metres>' when it is not one."""
+    if centre is None or not (-180.0 <= centre[0] <= 180.0 and -90.0 <= centre[1] <= 90.0):
+        return "EPSG:<code of a projected CRS in metres>"
+    zone = min(int((centre[0] + 180.0) // 6.0) + 1, 60)
+    return f"EPSG:{(32600 if centre[1] >= 0 else 32700) + zone}"
+
+
 def _same_crs(a: str, b: str) -> bool:
     try:
         return pyproj.CRS.from_wkt(a).equals(pyproj.CRS.from_wkt(b), ignore_axis_order=True)

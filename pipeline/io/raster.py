@@ -16,23 +16,48 @@ from pipeline.errors import InputError
 from pipeline.terrain import Raster
 
 NODATA = -9999.0
+#: A coordinate within SNAP cells of a cell boundary is on it (see :func:`cell_coordinate`).
+SNAP = 1e-6
+
+
+def cell_coordinate(values, cell: float) -> np.ndarray:
+    """float64: ``values`` / ``cell``, taken as the nearest integer within :data:`SNAP`: a
+    coordinate on a cell boundary in decimal (LAS stores steps of 0.01 m) divides to within
+    rounding of an integer (500000.3 / 0.1 = 5000002.9999999995) and must count as on it."""
+    u = np.asarray(values, dtype=np.float64) / cell
+    nearest = np.round(u)
+    return np.where(np.abs(u - nearest) <= SNAP, nearest, u)
 
 
 def tile_grid(mins, maxs, cell: float) -> tuple[float, float, int, int]:
-    """(x0, y0, nx, ny) of the cells of side ``cell`` covering the XY box ``mins``-``maxs``,
-    anchored at multiples of ``cell``; at least one cell each way."""
-    kx0, ky0 = math.floor(mins[0] / cell), math.floor(mins[1] / cell)
-    nx = max(math.floor(maxs[0] / cell) - kx0 + 1, 1)
-    ny = max(math.floor(maxs[1] / cell) - ky0 + 1, 1)
-    return kx0 * cell, ky0 * cell, nx, ny
+    """(x0, y0, nx, ny) of the cells of side ``cell`` covering the half-open XY box
+    [``mins``, ``maxs``), anchored at multiples of ``cell``; at least one cell each way.
+
+    Half-open, as the chunk grid: a tile that ends on a cell boundary does not take the next
+    cell, which is its neighbour's first (two tiles' rasters never share a cell, so a mosaic
+    does not depend on their order). Its points on that boundary belong to its last cell
+    (:func:`cell_index`).
+    """
+    k0 = np.floor(cell_coordinate(mins[:2], cell))
+    k1 = np.ceil(cell_coordinate(maxs[:2], cell))
+    nx, ny = (max(int(n), 1) for n in k1 - k0)
+    return float(k0[0]) * cell, float(k0[1]) * cell, nx, ny
 
 
 def cell_index(xy: np.ndarray, x0: float, y0: float, cell: float, shape) -> np.ndarray:
-    """int64 (N,) flat index (row * nx + column) of the cell of each point, -1 outside."""
-    col = np.floor((xy[:, 0] - x0) / cell).astype(np.int64)
-    row = np.floor((xy[:, 1] - y0) / cell).astype(np.int64)
-    inside = (col >= 0) & (col < shape[1]) & (row >= 0) & (row < shape[0])
-    return np.where(inside, row * shape[1] + col, -1)
+    """int64 (N,) flat index (row * nx + column) of the cell of each point of a grid
+    anchored at multiples of ``cell`` (as :func:`tile_grid`'s), -1 outside.
+
+    Cells hold their lower edges; a point on the grid's upper edge belongs to the last
+    cell, so a grid of :func:`tile_grid` holds every point of its box, the highest too.
+    """
+    ny, nx = shape
+    u = cell_coordinate(xy[:, 0], cell) - round(x0 / cell)
+    w = cell_coordinate(xy[:, 1], cell) - round(y0 / cell)
+    col = np.where(u == nx, nx - 1, np.floor(u)).astype(np.int64)
+    row = np.where(w == ny, ny - 1, np.floor(w)).astype(np.int64)
+    inside = (col >= 0) & (col < nx) & (row >= 0) & (row < ny)
+    return np.where(inside, row * nx + col, -1)
 
 
 def max_per_cell(flat: np.ndarray, values: np.ndarray, out: np.ndarray) -> None:

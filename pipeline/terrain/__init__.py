@@ -1,9 +1,11 @@
 """The ground of a scene: a DTM from the lowest point of each raster cell (SMRF).
 
 A scene's ground is a scene-wide fact, so it is computed once per scene: every chunk reduces
-its points to cell minima (:func:`cell_minima`, exact and chunk-invariant), the minima of all
-chunks are merged (:func:`merge_minima`) into one raster (:func:`minima_raster`), the raster is
-filtered into a DTM (:func:`ground_model`), and each chunk reads the DTM back at its points
+its points to cell minima (:func:`cell_minima`, exact and chunk-invariant: each cell's lowest
+point, its z and where it lies), the minima of all chunks are merged (:func:`merge_minima`)
+into one raster (:func:`minima_raster`, and :func:`minima_offsets` for where they lie), the
+raster is filtered into a DTM (:func:`ground_model`), and each chunk reads the DTM back at its
+points
 (:func:`ground_elevation`) to compute heights above ground. :func:`terrain_model` does the
 whole chain on one cloud.
 """
@@ -14,6 +16,7 @@ from pipeline.terrain.grid import (
     fill,
     ground_elevation,
     merge_minima,
+    minima_offsets,
     minima_raster,
 )
 from pipeline.terrain.smrf import (
@@ -26,5 +29,6 @@ from pipeline.terrain.smrf import (
 
 __all__ = [
     "LOW_DEPTH", "GroundModel", "Raster", "TerrainParams", "cell_minima", "fill",
-    "ground_elevation", "ground_model", "merge_minima", "minima_raster", "terrain_model",
+    "ground_elevation", "ground_model", "merge_minima", "minima_offsets", "minima_raster",
+    "terrain_model",
 ]

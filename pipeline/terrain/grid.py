@@ -66,13 +66,16 @@ def _check_cell(cell) -> float:
     return value
 
 
-def _empty_minima() -> tuple[np.ndarray, np.ndarray]:
-    return np.empty((0, 2), dtype=np.int64), np.empty(0, dtype=np.float64)
+def _empty_minima() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return (np.empty((0, 2), dtype=np.int64), np.empty(0, dtype=np.float64),
+            np.empty((0, 2), dtype=np.float64))
 
 
-def _reduce_minima(keys: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The lowest z of each distinct key, keys sorted by kx then ky. Exact: a minimum does not
-    depend on the order of its operands."""
+def _reduce_minima(keys: np.ndarray, z: np.ndarray, xy: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The lowest point of each distinct key (its z and xy; of equally low points the one
+    of lowest x, then y), keys sorted by kx then ky. Exact: the choice does not depend on
+    the order of the points."""
     if keys.shape[0] == 0:
         return _empty_minima()
     order = np.lexsort((keys[:, 1], keys[:, 0]))
@@ -82,10 +85,18 @@ def _reduce_minima(keys: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndar
     new[0] = True
     np.any(keys[1:] != keys[:-1], axis=1, out=new[1:])
     starts = np.flatnonzero(new)
-    return np.ascontiguousarray(keys[starts]), np.minimum.reduceat(z, starts)
+    zmin = np.minimum.reduceat(z, starts)
+    # where the lowest lies: of the points at their cell's minimum, the least x, then y
+    cell_of = np.cumsum(new) - 1
+    at_min = np.flatnonzero(z == zmin[cell_of])
+    tied_xy = xy[order[at_min]]
+    pick = np.lexsort((tied_xy[:, 1], tied_xy[:, 0], cell_of[at_min]))
+    first = np.ones(pick.size, dtype=bool)
+    first[1:] = np.diff(cell_of[at_min][pick]) != 0
+    return np.ascontiguousarray(keys[starts]), zmin, np.ascontiguousarray(tied_xy[pick[first]])
 
 
-def cell_minima(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+def cell_minima(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The lowest point of every occupied cell of a cloud.
 
     Parameters
@@ -102,6 +113,9 @@ def cell_minima(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
         then ky (``np.lexsort((ky, kx))`` order).
     zmin : float64 (M,)
         The lowest z of each cell.
+    xy : float64 (M, 2)
+        Where that lowest point lies (of equally low points, the one of lowest x, then y):
+        on a slope the lowest point sits at the cell's downhill edge, not at its centre.
     """
     cell = _check_cell(cell)
     xyz = np.asarray(xyz, dtype=np.float64)
@@ -121,36 +135,40 @@ def cell_minima(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
             f"coordinates up to {np.abs(xyz[:, :2]).max():.6g} m make cell keys beyond "
             f"{MAX_KEY} at cell {cell} m; recentre the coordinates or use a larger cell"
         )
-    return _reduce_minima(scaled.astype(np.int64), xyz[:, 2].copy())
+    return _reduce_minima(scaled.astype(np.int64), xyz[:, 2].copy(), xyz[:, :2].copy())
 
 
-def merge_minima(parts) -> tuple[np.ndarray, np.ndarray]:
-    """The union of several (keys, zmin) pairs of :func:`cell_minima` (e.g. one per spatial
-    chunk), with the minimum of each key.
+def merge_minima(parts) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The union of several (keys, zmin, xy) triples of :func:`cell_minima` (e.g. one per
+    spatial chunk), with the lowest point of each key.
 
     Exact: the result does not depend on the order of the parts nor on how the cloud was
     split, and equals :func:`cell_minima` of the whole cloud bit for bit. Parts may be empty
-    and keys may repeat across parts; no parts give empty arrays of shapes (0, 2) and (0,).
-    Output order and dtypes as :func:`cell_minima`.
+    and keys may repeat across parts; no parts give empty arrays of shapes (0, 2), (0,) and
+    (0, 2). Output order and dtypes as :func:`cell_minima`.
     """
-    all_keys, all_z = [], []
-    for n, (keys, zmin) in enumerate(parts):
+    all_keys, all_z, all_xy = [], [], []
+    for n, (keys, zmin, xy) in enumerate(parts):
         keys = np.asarray(keys)
         if keys.size == 0:
             keys = keys.astype(np.int64).reshape(0, 2)
         zmin = np.asarray(zmin, dtype=np.float64)
-        if keys.ndim != 2 or keys.shape[1] != 2 or zmin.shape != (keys.shape[0],):
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if (keys.ndim != 2 or keys.shape[1] != 2 or zmin.shape != (keys.shape[0],)
+                or xy.shape != keys.shape):
             raise InputError(
-                f"part {n} of the minima must be keys (M, 2) and zmin (M,), got shapes "
-                f"{keys.shape} and {zmin.shape}"
+                f"part {n} of the minima must be keys (M, 2), zmin (M,) and xy (M, 2), got "
+                f"shapes {keys.shape}, {zmin.shape} and {xy.shape}"
             )
         if not np.issubdtype(keys.dtype, np.integer):
             raise InputError(f"part {n} of the minima has keys of dtype {keys.dtype}, expected integers")
         all_keys.append(keys.astype(np.int64, copy=False))
         all_z.append(zmin)
+        all_xy.append(xy)
     if not all_keys:
         return _empty_minima()
-    return _reduce_minima(np.concatenate(all_keys), np.concatenate(all_z))
+    return _reduce_minima(np.concatenate(all_keys), np.concatenate(all_z),
+                          np.concatenate(all_xy))
 
 
 def minima_raster(keys: np.ndarray, zmin: np.ndarray, cell: float) -> Raster:
@@ -186,6 +204,19 @@ def minima_raster(keys: np.ndarray, zmin: np.ndarray, cell: float) -> Raster:
     return Raster(values, float(low[0]) * cell, float(low[1]) * cell, cell)
 
 
+def minima_offsets(keys: np.ndarray, xy: np.ndarray, minima: Raster) -> np.ndarray:
+    """float64 (ny, nx, 2): where the lowest point of each cell of ``minima`` (the
+    :func:`minima_raster` of ``keys``) lies, as (dx, dy) from the cell's centre; 0 in empty
+    cells."""
+    keys = np.asarray(keys, dtype=np.int64)
+    cell = minima.cell
+    origin = np.array([round(minima.x0 / cell), round(minima.y0 / cell)], dtype=np.int64)
+    offsets = np.zeros(minima.shape + (2,))
+    rows, cols = keys[:, 1] - origin[1], keys[:, 0] - origin[0]
+    offsets[rows, cols] = np.asarray(xy, dtype=np.float64) - (keys + 0.5) * cell
+    return offsets
+
+
 #: Unknown cells above which :func:`fill` starts its solver from a fill of the raster at
 #: half resolution (a coarse solution converges in a fraction of the iterations).
 COARSE_START = 4096
@@ -195,13 +226,15 @@ MAX_ITERATIONS = 20_000
 
 def fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     """``values`` (float64 (ny, nx)) with every cell outside ``known`` (bool (ny, nx), at least
-    one True) replaced by a harmonic interpolation of the known cells.
+    one True) replaced by an interpolation of the known cells.
 
-    The filled cells solve Laplace's equation (each is the mean of its 4 neighbours), the
-    known cells fixed, with no flow across the raster's edges: the smoothest surface through
-    the known cells, exact for a plane inside the known cells' span, and level where it
-    extrapolates beyond them to an edge. A single row or column is interpolated linearly along
-    it (constant beyond its ends).
+    The known cells' least-squares plane (:func:`trend`) is taken out, the rest is filled
+    harmonically (each filled cell the mean of its 4 neighbours, the known cells fixed, no
+    flow across the raster's edges), and the plane is put back: the smoothest surface
+    through the known cells, exact for a plane inside the known cells' span, and continuing
+    their mean slope where it extrapolates beyond them to an edge (a slope cut by the edge
+    of a scene goes on; a level extrapolation would leave it flat). A single row or column
+    is interpolated linearly along it.
 
     The system is solved by conjugate gradients (Jacobi preconditioning) to a residual of
     :math:`10^{-10}` times the elevation range, started from the nearest known cell, or when
@@ -210,8 +243,37 @@ def fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     NumPy's pairwise sum, never a threaded BLAS reduction, so the same input gives the same
     bits on any machine.
     """
+    known = np.asarray(known, dtype=bool)
+    if known.all():
+        return np.array(values, dtype=np.float64)
+    plane = trend(values, known)
+    return _fill_level(np.asarray(values, dtype=np.float64) - plane, known) + plane
+
+
+def trend(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """float64 (ny, nx): the least-squares plane through the ``known`` cells of ``values``
+    (by cell index), level along a direction the known cells do not span (one cell, one
+    row or column)."""
+    i, j = np.nonzero(known)
+    z = np.asarray(values, dtype=np.float64)[i, j]
+    di, dj = i - i.mean(), j - j.mean()
+    sii, sjj, sij = np.sum(di * di), np.sum(dj * dj), np.sum(di * dj)
+    siz, sjz = np.sum(di * (z - z.mean())), np.sum(dj * (z - z.mean()))
+    det = sii * sjj - sij * sij
+    if det > 1e-9 * sii * sjj:
+        slope_i, slope_j = (siz * sjj - sjz * sij) / det, (sjz * sii - siz * sij) / det
+    else:  # collinear cells: a slope along the axis they span, if any
+        slope_i = siz / sii if sii > 0 else 0.0
+        slope_j = sjz / sjj if sjj > 0 and sii == 0 else 0.0
+    ii, jj = np.indices(known.shape)
+    return z.mean() + slope_i * (ii - i.mean()) + slope_j * (jj - j.mean())
+
+
+def _fill_level(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """The harmonic fill of :func:`fill`, level beyond the known cells (no flow across the
+    edges)."""
     out = np.array(values, dtype=np.float64)
-    unknown = ~np.asarray(known, dtype=bool)
+    unknown = ~known
     if not unknown.any():
         return out
     ny, nx = out.shape
@@ -246,7 +308,7 @@ def _coarse_start(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     counts = k.reshape(k.shape[0] // 2, 2, k.shape[1] // 2, 2).sum(axis=(1, 3))
     coarse_known = counts > 0
     coarse = np.divide(sums, counts, out=np.zeros_like(sums), where=coarse_known)
-    coarse = fill(coarse, coarse_known)
+    coarse = _fill_level(coarse, coarse_known)
     return np.repeat(np.repeat(coarse, 2, axis=0), 2, axis=1)[:ny, :nx]
 
 

@@ -4,8 +4,9 @@ Pingel, Clarke and McBride (2013), "An improved simple morphological filter for 
 classification of airborne LIDAR data", ISPRS J. 77:21-30; the parameters have the meaning
 and defaults of PDAL's ``filters.smrf``. On the raster of the lowest point of each cell:
 
-1. low outliers (:func:`low_outliers`: a stray point far under the ground) are emptied, so
-   none digs a pit, and the empty cells are filled (:func:`~pipeline.terrain.grid.fill`);
+1. low outliers (:func:`low_outliers`: a stray point or a small cluster of them far under
+   the ground) are emptied, so none digs a pit, and the empty cells are filled
+   (:func:`~pipeline.terrain.grid.fill`);
 2. progressive morphological opening with disks of radius 1 .. ceil(window / cell) cells: a
    cell is an object when the previous surface minus the current opening exceeds
    slope * radius * cell (the opening removes anything narrower than the disk; terrain that
@@ -13,7 +14,9 @@ and defaults of PDAL's ``filters.smrf``. On the raster of the lowest point of ea
 3. the provisional DTM is the minima of the cells neither object nor low outlier, filled;
 4. a cell is ground when its minimum lies within threshold + scalar * s of the provisional
    DTM, s the DTM's local slope (rise over run): steep terrain cut by the opening is taken
-   back. The DTM is the ground cells' minima, filled over every other cell.
+   back. The DTM is the ground cells' minima, each carried from where its lowest point
+   lies to the cell's centre along the local slope (:func:`recentred`), filled over every
+   other cell.
 
 Every step is a deterministic function of the raster: the same raster gives the same bits.
 """
@@ -23,17 +26,21 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, sparse
+from scipy.sparse import csgraph
 
 from pipeline.errors import ConfigError, InputError
-from pipeline.terrain.grid import Raster, cell_minima, fill, minima_raster
+from pipeline.terrain.grid import Raster, cell_minima, fill, minima_offsets, minima_raster
 
 logger = logging.getLogger(__name__)
 
-#: A cell whose minimum lies more than LOW_DEPTH metres below the third lowest cell of its
-#: LOW_WINDOW x LOW_WINDOW neighbourhood is a low outlier (multipath or noise under the ground).
+#: Cells within LOW_RADIUS cells of each other and LOW_DEPTH metres in elevation are linked;
+#: a group of at most MAX_CLUSTER linked cells with no other link, lying more than LOW_DEPTH
+#: below every other cell within LOW_RADIUS of it, is a cluster of low outliers (multipath
+#: or noise under the ground) (see :func:`low_outliers`).
 LOW_DEPTH = 1.0
-LOW_WINDOW = 5
+LOW_RADIUS = 5
+MAX_CLUSTER = 8
 #: Rectangles whose union stands for a disk in the opening (see :func:`disk_rectangles`).
 MAX_RECTANGLES = 8
 
@@ -142,20 +149,83 @@ def object_mask(surface: np.ndarray, cell: float, slope: float, window: float) -
     return objects
 
 
-def low_outliers(z: np.ndarray, data: np.ndarray) -> np.ndarray:
-    """bool (ny, nx): data cells more than :data:`LOW_DEPTH` below the third lowest data cell
-    of their :data:`LOW_WINDOW` x :data:`LOW_WINDOW` neighbourhood (themselves included).
+def pair_offsets(radius: int) -> list[tuple[int, int]]:
+    """(di, dj) of the cells of the disk di² + dj² <= radius² but its centre, one of each
+    pair (di, dj), (-di, -dj): every pair of cells that near each other is met once."""
+    return [(di, dj) for di in range(radius + 1) for dj in range(-radius, radius + 1)
+            if (di > 0 or dj > 0) and di * di + dj * dj <= radius * radius]
 
-    One or two stray points under the ground are far below every other cell around them, so
-    they are caught; a ground cell seen through a gap in a canopy is not, as long as a few
-    other ground cells share its neighbourhood (a test against all the neighbours, e.g. a
-    grey closing, takes such cells for pits and empties the ground of a sparse forest). Cells
-    with fewer than three data cells around are never low outliers.
+
+def _shifted(padded: np.ndarray, di: int, dj: int, shape: tuple[int, int]) -> np.ndarray:
+    """The view of a raster padded by :data:`LOW_RADIUS` cells that puts the cell (i + di,
+    j + dj) at (i, j)."""
+    r = LOW_RADIUS
+    return padded[r + di:r + di + shape[0], r + dj:r + dj + shape[1]]
+
+
+def low_outliers(z: np.ndarray, data: np.ndarray) -> np.ndarray:
+    """bool (ny, nx): data cells that, alone or with a few others, lie deep under all the
+    data around them.
+
+    Two data cells within :data:`LOW_RADIUS` cells of each other are linked when their
+    elevations differ by at most :data:`LOW_DEPTH`. A cluster, a group of linked cells, is
+    a low outlier when it holds at most :data:`MAX_CLUSTER` cells, no link leaves it, and
+    every other data cell within :data:`LOW_RADIUS` of it lies more than :data:`LOW_DEPTH`
+    above it (and there is at least one). One stray point or a multipath burst over a few
+    adjacent cells is caught however deep it lies; ground is linked to the ground around
+    it, also when seen through a gap in a canopy as long as other ground lies within
+    :data:`LOW_RADIUS` (a test against all the neighbours, e.g. a grey closing, takes such
+    cells for pits and empties the ground of a sparse forest), and a cell with a lower cell
+    near it is never an outlier, so no slope is cut. A cloud with no other data near is kept.
     """
-    lows = ndimage.rank_filter(np.where(data, z, np.inf), 2, size=LOW_WINDOW, mode="constant",
-                               cval=np.inf)
+    shape = z.shape
+    padded = np.pad(np.where(data, z, np.nan), LOW_RADIUS, constant_values=np.nan)
+    centre = _shifted(padded, 0, 0, shape)
+    # per cell, padded like the raster: a lower cell near, links, data cells near
+    undercut = np.zeros(padded.shape, dtype=bool)
+    links = np.zeros(padded.shape, dtype=np.int16)
+    near = np.zeros(padded.shape, dtype=np.int16)
     with np.errstate(invalid="ignore"):
-        return data & np.isfinite(lows) & (lows - z > LOW_DEPTH)
+        for di, dj in pair_offsets(LOW_RADIUS):  # each pair counts for both its cells
+            rise = _shifted(padded, di, dj, shape) - centre
+            level, seen = np.abs(rise) <= LOW_DEPTH, np.isfinite(rise)
+            for offset, lower in (((0, 0), rise < -LOW_DEPTH), ((di, dj), rise > LOW_DEPTH)):
+                _shifted(undercut, *offset, shape)[...] |= lower
+                _shifted(links, *offset, shape)[...] += level
+                _shifted(near, *offset, shape)[...] += seen
+    undercut, links, near = (_shifted(a, 0, 0, shape) for a in (undercut, links, near))
+    candidate = data & ~undercut & (links < MAX_CLUSTER)
+    return candidate & _closed_clusters(z, candidate, links.astype(np.int64), near)
+
+
+def _closed_clusters(z: np.ndarray, candidate: np.ndarray, links: np.ndarray,
+                     near: np.ndarray) -> np.ndarray:
+    """bool (ny, nx): candidate cells whose cluster of linked candidates holds at most
+    :data:`MAX_CLUSTER` cells, has no link to a cell outside it (``links``: each cell's
+    link count) and has another data cell near (``near``: data cells within the radius)."""
+    shape = z.shape
+    index = np.full(shape, -1, dtype=np.int64)
+    n = int(candidate.sum())
+    index[candidate] = np.arange(n)
+    padded_z = np.pad(np.where(candidate, z, np.nan), LOW_RADIUS, constant_values=np.nan)
+    padded_index = np.pad(index, LOW_RADIUS, constant_values=-1)
+    heads, tails = [], []
+    with np.errstate(invalid="ignore"):
+        for di, dj in pair_offsets(LOW_RADIUS):
+            linked = candidate & (np.abs(_shifted(padded_z, di, dj, shape) - z) <= LOW_DEPTH)
+            heads.append(index[linked])
+            tails.append(_shifted(padded_index, di, dj, shape)[linked])
+    heads, tails = np.concatenate(heads), np.concatenate(tails)
+    graph = sparse.coo_matrix((np.ones(heads.size), (heads, tails)), shape=(n, n))
+    _, label = csgraph.connected_components(graph, directed=False)
+    inner = np.bincount(heads, minlength=n) + np.bincount(tails, minlength=n)
+    size = np.bincount(label)
+    leaving = np.bincount(label, weights=links[candidate] - inner)
+    others = np.bincount(label, weights=near[candidate] - inner)
+    outlier = (size <= MAX_CLUSTER) & (leaving == 0) & (others > 0)
+    mask = np.zeros(shape, dtype=bool)
+    mask[candidate] = outlier[label]
+    return mask
 
 
 def local_slope(surface: np.ndarray, cell: float) -> np.ndarray:
@@ -168,16 +238,43 @@ def local_slope(surface: np.ndarray, cell: float) -> np.ndarray:
     return np.sqrt(slope2)
 
 
-def ground_model(minima: Raster, params: TerrainParams) -> GroundModel:
+def local_gradient(surface: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """(dz/dx, dz/dy), float64 (ny, nx) each: the gradient of a filled surface (as
+    :func:`local_slope`), averaged over 3 x 3 cells so the noise of single cells cancels."""
+    slopes = []
+    for axis in (1, 0):
+        g = (np.gradient(surface, cell, axis=axis) if surface.shape[axis] > 1
+             else np.zeros(surface.shape))
+        slopes.append(ndimage.uniform_filter(g, 3, mode="nearest"))
+    return slopes[0], slopes[1]
+
+
+def recentred(z: np.ndarray, dtm: np.ndarray, offsets: np.ndarray, cell: float) -> np.ndarray:
+    """float64 (ny, nx): each cell's lowest elevation ``z`` carried from where its lowest
+    point lies (``offsets``: (dx, dy) from the centre, (ny, nx, 2)) to the cell's centre
+    along the local gradient of ``dtm``. On a 40° slope the lowest point of a 1 m cell lies
+    at its downhill edge, 0.4 m under the ground at the centre, where the DTM is sampled."""
+    gx, gy = local_gradient(dtm, cell)
+    return z - gx * offsets[..., 0] - gy * offsets[..., 1]
+
+
+def ground_model(minima: Raster, params: TerrainParams, offsets: np.ndarray | None = None
+                 ) -> GroundModel:
     """SMRF on a raster of cell minima (see the module docstring).
 
     ``minima`` holds the lowest z of each cell, NaN where a cell is empty; at least one cell
     must have a value (else :class:`~pipeline.errors.InputError`, a ``ValueError``). Its cell
-    is taken from the raster, not from ``params.cell``. The result's ``dtm`` has the raster's
-    shape and origin and no NaN.
+    is taken from the raster, not from ``params.cell``. ``offsets`` (float (ny, nx, 2),
+    :func:`~pipeline.terrain.grid.minima_offsets`): where each cell's lowest point lies;
+    given, the ground cells' values are carried to their centres (:func:`recentred`), so
+    the DTM follows a steep slope instead of its cells' downhill edges. The result's ``dtm``
+    has the raster's shape and origin and no NaN.
     """
     if not isinstance(params, TerrainParams):
         raise ConfigError(f"params must be TerrainParams, got {type(params).__name__}")
+    if offsets is not None and np.shape(offsets) != minima.shape + (2,):
+        raise InputError(f"offsets must have shape {minima.shape + (2,)} (the minima's, then "
+                         f"dx, dy), got {np.shape(offsets)}")
     z = minima.values
     if np.isinf(z).any():
         raise InputError("the minima raster holds infinite elevations; use NaN for empty cells")
@@ -201,6 +298,8 @@ def ground_model(minima: Raster, params: TerrainParams) -> GroundModel:
     with np.errstate(invalid="ignore"):
         ground = data & ~low & (np.abs(z - provisional) <= tolerance)
     dtm = fill(z, ground)
+    if offsets is not None:
+        dtm = fill(recentred(z, dtm, offsets, cell), ground)
     interpolated = 1.0 - float(ground.sum()) / ground.size
     logger.debug(
         "terrain %s cells: %d with points, %d low outliers, %d objects, %d ground",
@@ -214,5 +313,6 @@ def terrain_model(xyz: np.ndarray, params: TerrainParams = TerrainParams()) -> G
     ``params.cell``. ``xyz`` float (N, 3), N >= 1, finite."""
     if not isinstance(params, TerrainParams):
         raise ConfigError(f"params must be TerrainParams, got {type(params).__name__}")
-    keys, zmin = cell_minima(xyz, params.cell)
-    return ground_model(minima_raster(keys, zmin, params.cell), params)
+    keys, zmin, xy = cell_minima(xyz, params.cell)
+    minima = minima_raster(keys, zmin, params.cell)
+    return ground_model(minima, params, minima_offsets(keys, xy, minima))

@@ -36,8 +36,31 @@ def test_without_a_crs(tmp_path):
 
 
 def test_tile_grid_is_anchored_at_multiples_of_the_cell():
-    assert tile_grid((10.2, 20.7), (12.0, 21.1), 1.0) == (10.0, 20.0, 3, 2)
+    assert tile_grid((10.2, 20.7), (12.0, 21.1), 1.0) == (10.0, 20.0, 2, 2)  # x up to 12, open
     assert tile_grid((-0.5, -0.5), (-0.5, -0.5), 2.0) == (-2.0, -2.0, 1, 1)
+    assert tile_grid((4.0, 4.0), (4.0, 4.0), 1.0) == (4.0, 4.0, 1, 1)  # one point on a corner
+
+
+@pytest.mark.parametrize("cell", [0.1, 0.3, 0.5, 1.0, 2.5])
+@pytest.mark.parametrize("first", [0, 5_000_003, -12_345])
+def test_neighbouring_tiles_grids_abut_and_hold_their_own_points(cell, first):
+    """Tiles that end on a cell boundary: the next tile's grid starts where this one's ends
+    (no cell in both), and every point of a tile, its highest on the boundary too, falls in
+    its own grid."""
+    rng = np.random.default_rng(int(cell * 10))
+    edges = cell * (first + np.array([0, 37, 80, 121]))  # tile boundaries, on cell boundaries
+    origin = edges[0]
+    starts = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        xy = np.column_stack((rng.uniform(lo, hi, 300), rng.uniform(origin, origin + 5.0, 300)))
+        xy[0] = (hi, origin + 5.0)  # a tile's highest point on its upper edges
+        xy[1] = (lo, origin)
+        mins, maxs = xy.min(axis=0), xy.max(axis=0)
+        x0, y0, nx, ny = tile_grid(mins, maxs, cell)
+        assert (cell_index(xy, x0, y0, cell, (ny, nx)) >= 0).all()
+        starts.append((round(x0 / cell), round(x0 / cell) + nx))
+    for (_, end), (start, _) in zip(starts[:-1], starts[1:]):
+        assert end == start
 
 
 def test_max_per_cell_in_batches_equals_the_whole():
@@ -57,7 +80,7 @@ def test_max_per_cell_in_batches_equals_the_whole():
         expected[f] = v if np.isnan(expected[f]) else max(expected[f], v)
     assert np.array_equal(whole.ravel(), expected, equal_nan=True)
     # outside points are ignored, empty cells stay NaN
-    outside = cell_index(np.array([[-1.0, 5.0], [5.0, 10.0]]), 0.0, 0.0, 1.0, shape)
+    outside = cell_index(np.array([[-1.0, 5.0], [5.0, 10.5]]), 0.0, 0.0, 1.0, shape)
     assert list(outside) == [-1, -1]
 
 

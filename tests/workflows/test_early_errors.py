@@ -78,6 +78,36 @@ def test_a_model_directory_without_a_model_is_refused_before_the_cluster_starts(
                                                       "--model", model)
 
 
+def _tile_in(path, epsg, x, y):
+    """A LAS 1.4 tile of a few points around (x, y) with the CRS EPSG:``epsg``."""
+    import laspy
+    import numpy as np
+    import pyproj
+
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.add_crs(pyproj.CRS.from_epsg(epsg))
+    header.scales, header.offsets = [1e-7, 1e-7, 0.01], [x, y, 0.0]
+    las = laspy.LasData(header)
+    las.x, las.y = x + np.linspace(0, 1e-4, 20), y + np.linspace(0, 1e-4, 20)
+    las.z = np.linspace(200.0, 230.0, 20)
+    path.parent.mkdir(exist_ok=True)
+    las.write(path)
+    return path
+
+
+@pytest.mark.parametrize("epsg, words", [
+    (4326, ["geographic (degrees)", "EPSG:4326",
+            "pdal translate", "--filters.reprojection.out_srs=EPSG:32632"]),
+    (2227, ["in US survey foot", "EPSG:2227", "--filters.reprojection.out_srs="]),
+])
+def test_a_tile_not_in_metres_is_refused_before_the_cluster_starts(
+        tmp_path, survey, started, epsg, words):
+    tile = _tile_in(tmp_path / "tiles" / "plot.las", epsg, 10.4, 50.1)
+    line = refused_at_start(tmp_path, survey, started, "run", "--set", f"data.test=[{tile}]")
+    assert str(tile) in line and all(w in line for w in words)
+    assert not (tmp_path / "out" / "store.zarr").exists()
+
+
 def test_with_good_inputs_the_cluster_starts(tmp_path, survey, started):
     config = write_config(tmp_path / "c.yaml", survey)
     result = silva("ingest", config, "--out", tmp_path / "out")

@@ -79,8 +79,8 @@ def test_the_same_bits_as_stored_features_and_a_store_without_them(survey_run, t
     # the last stage's probabilities, the first's labels and the flags; the train scene its
     # features
     assert _members(out, "test") == {"xyz", "gid", "label", "role", "halo_xyz", "halo_gid",
-                                     "minima_keys", "minima_z", "undefined", "stage1_labels",
-                                     "stage2_proba"}
+                                     "minima_keys", "minima_z", "minima_xy", "undefined",
+                                     "stage1_labels", "stage2_proba"}
     assert "features" in _members(out, "train") and "features" in _members(kept, "test")
     size = {d: sum(f.stat().st_size for f in (d / "store.zarr/scenes/test").rglob("*")
                    if f.is_file()) for d in (out, kept)}

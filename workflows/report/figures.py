@@ -77,6 +77,15 @@ def marker_side(size: float, data_per_inch: float) -> float:
     return max(math.sqrt(size) / 72.0, 1.0 / DPI) * data_per_inch
 
 
+def span(values) -> float:
+    """The spread (max - min) of ``values``, or 1 (one data unit) when they have none: no
+    value, one, or all equal (a flat tile, a single point), so a scale taken from it is
+    never 0."""
+    values = np.asarray(values, dtype=np.float64)
+    spread = float(np.ptp(values)) if values.size else 0.0
+    return spread if spread > 0.0 else 1.0
+
+
 def draw_points(ax, x, y, rgba, side, **imshow) -> None:
     """Draw points as square markers of ``side`` data units (or (side x, side y)), each
     cell of that side in the colour of the last point in it, as one image: the same
@@ -87,6 +96,9 @@ def draw_points(ax, x, y, rgba, side, **imshow) -> None:
     if x.size == 0:
         return
     sx, sy = np.broadcast_to(np.asarray(side, dtype=np.float64), (2,))
+    if not (np.isfinite([sx, sy]).all() and sx > 0 and sy > 0):
+        raise InputError(f"marker sides must be positive, got ({sx}, {sy}): take them from "
+                         "spans(), which never gives 0")
     x0, y0 = x.min() - sx / 2, y.min() - sy / 2
     i = ((x - x0) / sx).astype(np.int64)
     j = ((y - y0) / sy).astype(np.int64)
@@ -258,9 +270,7 @@ def topdown_figure(topdown: dict) -> Figure:
     order = np.random.default_rng(0).permutation(x.size)
     x, y, label = x[order], y[order], label[order].astype(np.int64)
 
-    span_x = float(np.ptp(x)) if x.size else 1.0
-    span_y = float(np.ptp(y)) if y.size else 1.0
-    span_x, span_y = max(span_x, 1e-9), max(span_y, 1e-9)
+    span_x, span_y = span(x), span(y)
     width = 7.0
     height = float(np.clip(width * span_y / span_x, 2.5, 9.0))
     with matplotlib.rc_context(STYLE):

@@ -14,7 +14,7 @@ from matplotlib.patches import Patch
 from pipeline.atomic import atomic_path, atomic_write_bytes
 from workflows.report.figures import (
     DPI, STYLE, _mpl_text, class_colour, class_colours, draw_points, marker_side, png_bytes,
-    terrain_figure, topdown_figure,
+    span, terrain_figure, topdown_figure,
 )
 from workflows.report.html import CSS, _escape, _format_value
 
@@ -42,9 +42,8 @@ def profile_figure(survey: dict) -> Figure:
             ax = fig.add_subplot(len(scenes), 1, row + 1)
             along, height, label = data["profile"]
             order = np.random.default_rng(0).permutation(len(label))
-            spans = [np.ptp(v) if len(v) else 1.0 for v in (along, height)]
             draw_points(ax, along[order], height[order], class_colours(label[order], len(names)),
-                        (marker_side(1.5, spans[0] / 9.0), marker_side(1.5, spans[1] / 2.2)),
+                        (marker_side(1.5, span(along) / 9.0), marker_side(1.5, span(height) / 2.2)),
                         aspect="auto")
             ax.ticklabel_format(useOffset=False, style="plain")
             ax.set_xlabel(f"{data['profile_axis']} (map units)")
@@ -65,7 +64,7 @@ def uncertain_figure(survey: dict) -> Figure:
             ax = fig.add_subplot(len(scenes), 1, row + 1)
             x, y, _, _, confidence = data["map"]
             uncertain = confidence < low
-            per_inch = max(np.ptp(x), np.ptp(y) * 7.0 / 6.0) / 6.5 if len(x) else 1.0
+            per_inch = max(span(x), span(y) * 7.0 / 6.0) / 6.5
             for chosen, colour, size in ((~uncertain, "#D0D4D8", 0.6),
                                          (uncertain, "#CF222E", 1.2)):  # uncertain on top
                 draw_points(ax, x[chosen], y[chosen],

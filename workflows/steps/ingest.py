@@ -18,7 +18,7 @@ import numpy as np
 
 from pipeline.cascade.one_pass import ring_width
 from pipeline.io import iter_points, labels_from_codes, read_info, reads_ranges
-from pipeline.io.crs import check_same_crs
+from pipeline.io.crs import check_metres, check_same_crs
 from pipeline.errors import ConfigError, InputError, StoreError
 from pipeline.store import (
     ROLE_PREDICT,
@@ -95,6 +95,7 @@ def plan_tiles(run: Run) -> list[dict]:
             info = read_info(path)
             if info.n_points == 0:
                 raise InputError(f"tile {path} holds no points; remove it from data.{scene}")
+            check_metres(info.crs_wkt, path, (np.asarray(info.mins) + info.maxs)[:2] / 2)
             name = tile_name(path)
             if name in seen and _identity(seen[name]) == _identity(path):
                 name = f"{name}-{scene}"  # the same file in two scenes (data.allow_overlap)

@@ -18,7 +18,8 @@ from pipeline.store import (
     write_terrain,
 )
 from pipeline.terrain import (
-    Raster, cell_minima, ground_elevation, ground_model, merge_minima, minima_raster,
+    Raster, cell_minima, ground_elevation, ground_model, merge_minima, minima_offsets,
+    minima_raster,
 )
 from workflows.engine import chunk_tasks, chunk_window
 from workflows.progress import say
@@ -37,10 +38,12 @@ class TerrainTask:
 
 
 def chunk_minima(view, task: TerrainTask):
-    """Worker task: store the lowest core point of each terrain cell of one chunk."""
+    """Worker task: store the lowest core point of each terrain cell of one chunk (its z
+    and where it lies)."""
     core, _, _ = chunk_window(view, task.tiles)
-    keys, zmin = cell_minima(core["xyz"], task.cell)
-    write_arrays(view.group, {"minima_keys": keys, "minima_z": zmin}, pack=PACK)
+    keys, zmin, xy = cell_minima(core["xyz"], task.cell)
+    write_arrays(view.group, {"minima_keys": keys, "minima_z": zmin, "minima_xy": xy},
+                 pack=PACK)
     return {"cells": int(len(zmin))}
 
 
@@ -59,10 +62,11 @@ def terrain(run: Run, engine, layout: dict) -> None:
     engine.map("ingest (terrain)", tasks)  # the end of ingest in the run's progress
     for scene, info in todo.items():
         groups = [root[chunk_path(scene, chunk)] for chunk in info["chunks"]]
-        keys, zmin = merge_minima((read_array(g, "minima_keys"), read_array(g, "minima_z"))
-                                  for g in groups)
+        keys, zmin, xy = merge_minima(
+            tuple(read_array(g, name) for name in ("minima_keys", "minima_z", "minima_xy"))
+            for g in groups)
         minima = minima_raster(keys, zmin, params.cell)
-        model = ground_model(minima, params)
+        model = ground_model(minima, params, minima_offsets(keys, xy, minima))
         # of the cells with points (not the empty space between tiles): those without ground
         occupied = ~np.isnan(minima.values)
         unseen = np.count_nonzero(occupied & ~model.ground) / max(np.count_nonzero(occupied), 1)

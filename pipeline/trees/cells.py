@@ -1,0 +1,149 @@
+"""The canopy of a scene reduced to the highest canopy point of each cell, exactly.
+
+Cells are squares of side ``cell`` anchored at 0, as the terrain's: the point (x, y) falls in
+the cell (floor(x / cell), floor(y / cell)), whose global key is one int64 (:func:`cell_keys`)
+ordering cells by row (ky) then column (kx). The highest point of a cell is chosen by a total
+order (:func:`highest_first`), so :func:`merge_cells` of the cells of any split of a cloud, in
+any order, equals :func:`canopy_cells` of the whole cloud bit for bit; the canopy height model
+of the scene (:func:`chm_raster`) is built from the merged cells.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.errors import InputError
+from pipeline.terrain import Raster
+
+#: Largest cell index magnitude on either axis: two indices pack into one int64 key.
+MAX_INDEX = 2**30
+#: Keys are (ky + MAX_INDEX) * KEY_ROW + (kx + MAX_INDEX).
+KEY_ROW = 2**31
+#: Largest raster :func:`chm_raster` builds (float64 values: 1.6 GB).
+MAX_CELLS = 200_000_000
+
+
+@dataclass(frozen=True)
+class CanopyCells:
+    """The highest canopy point of each occupied cell, cells sorted by key.
+
+    keys int64 (M,) global cell keys (:func:`cell_keys`), each once, ascending; height
+    float64 (M,) height above ground of the point; x, y, z float64 (M,) its coordinates.
+    """
+
+    keys: np.ndarray
+    height: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.keys.shape[0])
+
+
+def cell_keys(x: np.ndarray, y: np.ndarray, cell: float) -> np.ndarray:
+    """int64 global keys of the cells of side ``cell`` holding the points (x, y) (float (N,))."""
+    kx = np.floor(np.asarray(x, dtype=np.float64) / cell)
+    ky = np.floor(np.asarray(y, dtype=np.float64) / cell)
+    if kx.size and max(np.abs(kx).max(), np.abs(ky).max()) >= MAX_INDEX:
+        raise InputError(f"coordinates make cell indices beyond {MAX_INDEX} at cell {cell} m; "
+                         "recentre the coordinates or use a larger trees.resolution")
+    return pack_keys(kx.astype(np.int64), ky.astype(np.int64))
+
+
+def pack_keys(kx: np.ndarray, ky: np.ndarray) -> np.ndarray:
+    """int64 keys of the cell indices (kx, ky) (integers, |k| < MAX_INDEX)."""
+    return (np.asarray(ky, np.int64) + MAX_INDEX) * KEY_ROW + (np.asarray(kx, np.int64)
+                                                                + MAX_INDEX)
+
+
+def unpack_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The cell indices (kx, ky) (int64) of keys made by :func:`pack_keys`."""
+    keys = np.asarray(keys, dtype=np.int64)
+    return keys % KEY_ROW - MAX_INDEX, keys // KEY_ROW - MAX_INDEX
+
+
+def highest_first(groups, height, z, x, y) -> np.ndarray:
+    """The index of the highest point of each group, groups ascending.
+
+    A total order on points decides: greatest height, then greatest z, then smallest x, then
+    smallest y; points equal in all four are the same point. The choice therefore depends only
+    on the set of points, never on their order: the exact reduction behind every merge.
+    """
+    order = np.lexsort((y, x, -z, -height, groups))
+    groups = groups[order]
+    first = np.ones(groups.shape[0], dtype=bool)
+    first[1:] = groups[1:] != groups[:-1]
+    return order[first]
+
+
+def _select(keys, height, x, y, z) -> CanopyCells:
+    keep = highest_first(keys, height, z, x, y)
+    return CanopyCells(keys[keep], height[keep], x[keep], y[keep], z[keep])
+
+
+def canopy_cells(xyz: np.ndarray, height: np.ndarray, canopy: np.ndarray,
+                 cell: float) -> CanopyCells:
+    """The highest canopy point of each cell of side ``cell``.
+
+    Parameters
+    ----------
+    xyz : float (N, 3)
+        Point coordinates. N may be 0.
+    height : float (N,)
+        Height above ground; points with a NaN or negative height are left out.
+    canopy : bool (N,)
+        Points predicted as a canopy class.
+    cell : float
+        Cell side in metres, > 0.
+
+    Returns
+    -------
+    CanopyCells, keys ascending (M may be 0).
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    height = np.asarray(height, dtype=np.float64)
+    canopy = np.asarray(canopy, dtype=bool)
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or height.shape != (xyz.shape[0],) \
+            or canopy.shape != height.shape:
+        raise InputError(f"xyz (N, 3), height (N,) and canopy (N,) expected, got shapes "
+                         f"{xyz.shape}, {height.shape} and {canopy.shape}")
+    take = canopy & (height >= 0.0) & np.isfinite(xyz).all(axis=1)
+    x, y, z = (np.ascontiguousarray(xyz[take, k]) for k in range(3))
+    return _select(cell_keys(x, y, float(cell)), height[take], x, y, z)
+
+
+def merge_cells(parts) -> CanopyCells:
+    """The union of several :class:`CanopyCells` (e.g. one per chunk), the highest point of each
+    key kept. Equals :func:`canopy_cells` of the union of the parts' points, bit for bit,
+    whatever the split and the order of the parts; no parts give empty cells."""
+    parts = list(parts)
+    fields = ("keys", "height", "x", "y", "z")
+    if not parts:
+        return CanopyCells(np.empty(0, np.int64), *(np.empty(0) for _ in fields[1:]))
+    joined = {name: np.concatenate([getattr(p, name) for p in parts]) for name in fields}
+    return _select(joined["keys"].astype(np.int64, copy=False), joined["height"],
+                   joined["x"], joined["y"], joined["z"])
+
+
+def chm_raster(cells: CanopyCells, cell: float) -> Raster:
+    """The canopy height model: the height of each cell's highest canopy point.
+
+    The raster spans the cells' bounding box: ``x0 = kx_min * cell``, ``y0 = ky_min * cell``,
+    cell (kx, ky) at row ky - ky_min (row 0 south), column kx - kx_min; NaN where no canopy
+    point fell. No cells (a scene without canopy) give one empty cell at the origin, in which
+    no tree is found. Raises :class:`~pipeline.errors.InputError` for a raster of more than
+    :data:`MAX_CELLS` cells.
+    """
+    if len(cells) == 0:
+        return Raster(np.full((1, 1), np.nan), 0.0, 0.0, float(cell))
+    kx, ky = unpack_keys(cells.keys)
+    low_x, low_y = int(kx.min()), int(ky.min())
+    nx, ny = int(kx.max()) - low_x + 1, int(ky.max()) - low_y + 1
+    if nx * ny > MAX_CELLS:
+        raise InputError(f"the canopy height model would have {ny} x {nx} cells of {cell} m "
+                         f"(more than {MAX_CELLS}); use a larger trees.resolution or split "
+                         "the scene")
+    values = np.full((ny, nx), np.nan)
+    values[ky - low_y, kx - low_x] = cells.height
+    return Raster(values, low_x * float(cell), low_y * float(cell), float(cell))

@@ -1,0 +1,276 @@
+"""The trees of a scene: their IDs, the model that assigns points to them, and their table.
+
+Tree IDs (uint32, 0 = in no tree) come from where the trees are, never from a counter: the
+scene's trees are sorted by the global cell key (:func:`~pipeline.trees.cells.cell_keys` at
+``trees.resolution``) of their top (crowns) or of their stem (stems), ties by x then y, and
+numbered 1..n in that order. The same scene gives the same IDs however it was chunked.
+
+:class:`TreeModel` holds what a point needs to find its tree (the crowns' label raster, the
+stems' circles); :func:`assign_trees` is a pure per-point function of the model, so the IDs
+of the points and those of the table (:func:`tree_table`, from per-chunk :func:`tree_stats`
+merged exactly by :func:`merge_stats`) always agree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipeline.errors import ModelError
+from pipeline.trees.cells import cell_keys, highest_first
+from pipeline.trees.crowns import Crowns
+from pipeline.trees.params import TreeParams
+
+if TYPE_CHECKING:
+    from pipeline.trees.stems import Stems
+
+#: The tree table's columns, in order (metres, m2; dbh NaN where no stem was fitted).
+TABLE_DTYPE = np.dtype([
+    ("tree_id", np.uint32), ("x", np.float64), ("y", np.float64), ("z", np.float64),
+    ("height", np.float64), ("crown_area", np.float64), ("crown_diameter", np.float64),
+    ("points", np.int64), ("dbh", np.float64), ("dbh_quality", np.uint8),
+])
+#: The model's per-tree arrays (index = tree ID - 1) and their dtypes.
+TREE_ARRAYS = {"crown_cells": np.int64, "stem_x": np.float64, "stem_y": np.float64,
+               "stem_radius": np.float64, "dbh": np.float64, "dbh_quality": np.uint8}
+
+
+@dataclass(frozen=True)
+class TreeModel:
+    """The trees of a scene, as per-point assignment needs them.
+
+    labels uint32 (ny, nx): tree ID of each CHM cell (row 0 south, grid ``x0, y0, cell``), 0
+    in no crown; shape (0, 0) without crowns. Per tree (index = ID - 1, n trees): crown_cells
+    int64 (0 without crown); stem_x, stem_y float64 (stem centre at breast height, NaN without
+    stem); stem_radius float64 (dbh / 2, 0 when no circle was fitted); dbh float64 (NaN when
+    none); dbh_quality uint8 (0 none, 1 fallback section, 2 good fit at breast height).
+    """
+
+    labels: np.ndarray
+    x0: float
+    y0: float
+    cell: float
+    crown_cells: np.ndarray
+    stem_x: np.ndarray
+    stem_y: np.ndarray
+    stem_radius: np.ndarray
+    dbh: np.ndarray
+    dbh_quality: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.crown_cells.shape[0])
+
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+        """The model as named arrays and a dict of plain floats (e.g. for zarr)."""
+        arrays = {"labels": self.labels, **{name: getattr(self, name) for name in TREE_ARRAYS}}
+        return arrays, {"x0": float(self.x0), "y0": float(self.y0), "cell": float(self.cell)}
+
+    @classmethod
+    def from_arrays(cls, arrays, attrs) -> TreeModel:
+        """The model :meth:`to_arrays` gave, from its arrays and attributes."""
+        try:
+            values = {name: np.asarray(arrays[name], dtype=dtype)
+                      for name, dtype in TREE_ARRAYS.items()}
+            labels = np.asarray(arrays["labels"], dtype=np.uint32)
+            grid = {name: float(attrs[name]) for name in ("x0", "y0", "cell")}
+        except KeyError as missing:
+            raise ModelError(f"the stored tree model lacks {missing}; run the tree step "
+                             "again") from None
+        if len({v.shape for v in values.values()}) != 1 or labels.ndim != 2:
+            raise ModelError("the stored tree model's arrays do not fit together; run the "
+                             "tree step again")
+        return cls(labels, **grid, **values)
+
+
+def _label_at(labels: np.ndarray, x0: float, y0: float, cell: float,
+              xy: np.ndarray) -> np.ndarray:
+    """The value of ``labels`` (ny, nx) at the cell holding each point of xy (N, 2), 0 outside
+    the raster. The cell is found as canopy_cells keys it (floor(x / cell) less the raster's
+    first index), so a point lands in the very cell it built."""
+    values = np.zeros(xy.shape[0], dtype=labels.dtype)
+    if labels.size == 0:
+        return values
+    col = np.floor(xy[:, 0] / cell).astype(np.int64) - int(np.rint(x0 / cell))
+    row = np.floor(xy[:, 1] / cell).astype(np.int64) - int(np.rint(y0 / cell))
+    ny, nx = labels.shape
+    inside = (row >= 0) & (row < ny) & (col >= 0) & (col < nx)
+    values[inside] = labels[row[inside], col[inside]]
+    return values
+
+
+def _stem_crowns(crowns: Crowns, stems) -> np.ndarray:
+    """int64 (m,) the crown (1..n) holding each stem's centre, 0 when none; a crown keeps
+    only the stem nearest its top, the others become trees of their own."""
+    crown = _label_at(crowns.labels, crowns.x0, crowns.y0, crowns.cell,
+                      np.column_stack((stems.x, stems.y))).astype(np.int64)
+    top = crowns.top_xy
+    held = np.flatnonzero(crown)
+    distance = np.hypot(*(np.column_stack((stems.x, stems.y))[held] - top[crown[held] - 1]).T)
+    # "highest" of minus the distance: the nearest stem, ties by x then y
+    nearest = held[highest_first(crown[held], -distance, np.zeros_like(distance),
+                                 stems.x[held], stems.y[held])]
+    keep = np.zeros_like(crown)
+    keep[nearest] = crown[nearest]
+    return keep
+
+
+def _number_trees(crowns: Crowns | None, stems, params: TreeParams):
+    """The tree IDs (uint32) of the crowns (n,) and of the stems (m,), by the ID rule: the
+    crowns' trees and the stems outside any crown sorted by the cell key of their top or stem,
+    then x, then y; a stem in a crown takes its crown's ID (see :func:`_stem_crowns`)."""
+    n = 0 if crowns is None else len(crowns)
+    m = 0 if stems is None else stems.x.shape[0]
+    in_crown = _stem_crowns(crowns, stems) if n and m else np.zeros(m, np.int64)
+    alone = np.flatnonzero(in_crown == 0)
+    keys, xs, ys = [np.empty(0, np.int64)], [np.empty(0)], [np.empty(0)]
+    if n:
+        keys.append(crowns.top_keys)
+        xs.append(crowns.top_xy[:, 0])
+        ys.append(crowns.top_xy[:, 1])
+    if m:
+        keys.append(cell_keys(stems.x[alone], stems.y[alone], params.resolution))
+        xs.append(stems.x[alone])
+        ys.append(stems.y[alone])
+    order = np.lexsort((np.concatenate(ys), np.concatenate(xs), np.concatenate(keys)))
+    ids = np.empty(order.size, dtype=np.uint32)
+    ids[order] = np.arange(1, order.size + 1, dtype=np.uint32)
+    stem_ids = np.empty(m, dtype=np.uint32)
+    stem_ids[alone] = ids[n:]
+    stem_ids[in_crown > 0] = ids[in_crown[in_crown > 0] - 1]
+    return ids[:n], stem_ids
+
+
+def tree_model(crowns: Crowns | None, stems: Stems | None, params: TreeParams) -> TreeModel:
+    """The scene's trees from its crowns and/or stems, numbered by the ID rule.
+
+    With both, a stem whose centre lies in a crown gives that crown's tree its DBH (the stem
+    nearest the top when several do); other stems are trees of their own.
+    """
+    crown_ids, stem_ids = _number_trees(crowns, stems, params)
+    n = int(max(crown_ids.max(initial=0), stem_ids.max(initial=0)))  # IDs are 1..n
+    per_tree = {name: np.zeros(n, dtype) for name, dtype in TREE_ARRAYS.items()}
+    for name in ("stem_x", "stem_y", "dbh"):
+        per_tree[name][:] = np.nan
+    if crown_ids.size:
+        per_tree["crown_cells"][crown_ids - 1] = crowns.crown_cells()
+        lookup = np.concatenate(([0], crown_ids)).astype(np.uint32)
+        labels, grid = lookup[crowns.labels], (crowns.x0, crowns.y0, crowns.cell)
+    else:
+        labels, grid = np.zeros((0, 0), np.uint32), (0.0, 0.0, params.resolution)
+    if stem_ids.size:
+        at = stem_ids.astype(np.int64) - 1
+        dbh = np.asarray(stems.dbh, np.float64)
+        per_tree["stem_x"][at], per_tree["stem_y"][at] = stems.x, stems.y
+        per_tree["dbh"][at], per_tree["dbh_quality"][at] = dbh, stems.quality
+        per_tree["stem_radius"][at] = np.where(np.isfinite(dbh), dbh / 2.0, 0.0)
+    return TreeModel(labels, *grid, **per_tree)
+
+
+def _stem_ids(model: TreeModel, xy: np.ndarray, margin: float) -> np.ndarray:
+    """uint32 (N,) the tree of the stem whose circle (+ margin) holds each point, else 0."""
+    ids = np.zeros(xy.shape[0], dtype=np.uint32)
+    has_stem = np.flatnonzero(np.isfinite(model.stem_x))
+    if has_stem.size == 0 or xy.shape[0] == 0:
+        return ids
+    centres = np.column_stack((model.stem_x[has_stem], model.stem_y[has_stem]))
+    reach = model.stem_radius[has_stem] + margin
+    distance, nearest = cKDTree(centres).query(xy, distance_upper_bound=float(reach.max()))
+    found = np.isfinite(distance)
+    found[found] &= distance[found] <= reach[nearest[found]]
+    ids[found] = has_stem[nearest[found]] + 1
+    return ids
+
+
+def assign_trees(model: TreeModel, xyz: np.ndarray, height: np.ndarray, canopy: np.ndarray,
+                 stem_mask: np.ndarray | None, params: TreeParams) -> np.ndarray:
+    """uint32 (N,) the tree ID of each point, 0 for none; each depends only on its point.
+
+    Canopy points (bool (N,) ``canopy``) at least ``min_height`` above ground (``height``
+    float (N,)) get the crown of the cell they fall in. Points of ``stem_mask`` (bool (N,) or
+    None) left without a crown get the stem whose circle, widened by ``stem_cluster_eps``,
+    holds them in XY.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    ids = np.zeros(xyz.shape[0], dtype=np.uint32)
+    tall = np.flatnonzero(np.asarray(canopy, bool) & (np.asarray(height) >= params.min_height))
+    ids[tall] = _label_at(model.labels, model.x0, model.y0, model.cell, xyz[tall, :2])
+    if stem_mask is not None:
+        loose = np.flatnonzero(np.asarray(stem_mask, bool) & (ids == 0))
+        ids[loose] = _stem_ids(model, xyz[loose, :2], params.stem_cluster_eps)
+    return ids
+
+
+@dataclass(frozen=True)
+class TreeStats:
+    """Per tree met in some points: ids uint32 (K,) ascending, no 0; points int64 (K,) point
+    counts; x, y, z, height float64 (K,) of each tree's highest point (greatest height, ties
+    by the total order of :func:`~pipeline.trees.cells.highest_first`)."""
+
+    ids: np.ndarray
+    points: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    height: np.ndarray
+
+
+def _reduce_stats(ids, points, x, y, z, height) -> TreeStats:
+    """Stats per distinct id of rows holding ``points`` points each (int64, or None for 1)."""
+    groups = ids.astype(np.int64)
+    top = highest_first(groups, height, z, x, y)
+    unique, inverse = np.unique(groups, return_inverse=True)
+    counts = np.zeros(unique.size, dtype=np.int64)
+    np.add.at(counts, inverse, 1 if points is None else points)
+    return TreeStats(unique.astype(np.uint32), counts, x[top], y[top], z[top], height[top])
+
+
+def tree_stats(ids: np.ndarray, xyz: np.ndarray, height: np.ndarray) -> TreeStats:
+    """The :class:`TreeStats` of one chunk's points (ids uint32 (N,), xyz (N, 3), height (N,))."""
+    ids = np.asarray(ids)
+    xyz = np.asarray(xyz, dtype=np.float64)
+    tree = np.flatnonzero(ids)
+    return _reduce_stats(ids[tree], None, xyz[tree, 0], xyz[tree, 1], xyz[tree, 2],
+                         np.asarray(height, np.float64)[tree])
+
+
+def merge_stats(parts) -> TreeStats:
+    """The :class:`TreeStats` of the union of several chunks' stats, exact: counts summed,
+    highest points by the total order, the same whatever the split and order of the parts."""
+    parts = list(parts)
+    names = [f.name for f in fields(TreeStats)]
+    if not parts:
+        return TreeStats(np.empty(0, np.uint32), np.empty(0, np.int64),
+                         *(np.empty(0) for _ in names[2:]))
+    joined = [np.concatenate([getattr(p, name) for p in parts]) for name in names]
+    return _reduce_stats(*joined)
+
+
+def tree_table(model: TreeModel, stats: TreeStats) -> np.ndarray:
+    """The tree table, one row per tree of the model in ID order (dtype :data:`TABLE_DTYPE`).
+
+    x, y: the highest point of a crown tree, the stem centre of a tree without crown; z and
+    height: the tree's highest point (NaN for a tree without points); crown_area = crown cells
+    x cell**2 and crown_diameter = 2 sqrt(area / pi) (NaN without crown); points: the points
+    assigned to the tree; dbh and dbh_quality from its stem.
+    """
+    n = len(model)
+    table = np.zeros(n, dtype=TABLE_DTYPE)
+    table["tree_id"] = np.arange(1, n + 1, dtype=np.uint32)
+    at = stats.ids.astype(np.int64) - 1
+    if at.size and (at.max() >= n):
+        raise ModelError(f"points carry tree ID {int(at.max()) + 1} but the model has {n} "
+                         "trees; assign the points with this model")
+    for name in ("x", "y", "z", "height"):
+        table[name] = np.nan
+        table[name][at] = getattr(stats, name)
+    table["points"][at] = stats.points
+    stem_only = (model.crown_cells == 0) & np.isfinite(model.stem_x)
+    table["x"][stem_only], table["y"][stem_only] = (model.stem_x[stem_only],
+                                                    model.stem_y[stem_only])
+    area = np.where(model.crown_cells > 0, model.crown_cells * model.cell**2, np.nan)
+    table["crown_area"], table["crown_diameter"] = area, 2.0 * np.sqrt(area / np.pi)
+    table["dbh"], table["dbh_quality"] = model.dbh, model.dbh_quality
+    return table
