@@ -270,6 +270,7 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
         log.info("start: %s (steps %s)", command, ", ".join(steps))
         try:
             plan = resolve_run(raw, model_dir)  # the model's values: a bad model is logged
+            steps = progress_steps(target, model_dir is not None, plan.cfg)  # asked-for steps
             if model_dir is not None:
                 record_applied_model(out, model_dir)
             run = Run(plan, out, quiet=quiet)

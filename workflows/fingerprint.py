@@ -44,7 +44,9 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
     stage       + features.r2, features.context_max_neighbors, every cascade key except
                 cascade.stages (adding stages keeps the finished ones when tiling.halo
                 is set; unset, it grows with the stages, see below)
-    export      stage + output.* (except output.keep_store and output.keep_features)
+    trees       stage + trees.* and output.canopy_classes (with output.trees)
+    export      stage + output.* (except output.keep_store and output.keep_features),
+                + trees.* and output.canopy_classes with output.trees
     evaluate    stage + data.background
     ==========  ========================================================================
 
@@ -107,6 +109,9 @@ PARTS = {
     "cascade": lambda cfg, d: {k: v for k, v in d["cascade"].items() if k != "stages"},
     # what the store keeps does not change what is written
     "output": lambda cfg, d: {k: v for k, v in d["output"].items()
-                              if k not in ("keep_store", "keep_features")},
+                              if k not in ("keep_store", "keep_features", "trees")},
+    # the trees, with the classes their crowns grow on; nothing when none are found
+    "trees": lambda cfg, d: ({**d["trees"], "canopy_classes": d["output"]["canopy_classes"]}
+                             if cfg.output.trees else None),
     "background": lambda cfg, d: d["data"]["background"],
 }

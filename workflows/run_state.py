@@ -35,6 +35,7 @@ class RunState:
     staged: dict | None = None  # the layout's scenes classified stage by stage
     one_pass: dict | None = None  # and those classified in one pass per chunk
     stages: list | None = None  # the model's stage records
+    trees: dict | None = None  # the trees found per scene (output.trees)
     drawn: tuple | None = None  # an unlabelled run's survey and its figures (a future)
     metrics: dict | None = None
     plots: dict | None = None

@@ -63,7 +63,9 @@ class Step:
     name does not). ``weight``: its share in the progress. ``per_chunk``: a ``--chunk`` run
     (one chunk, in this process) runs it. ``command``: the help of its ``silva`` command,
     which runs every step up to it (None: no command, no line of its own in the progress).
-    ``applying``: its name and weight in a run that applies a saved model.
+    ``applying``: its name and weight in a run that applies a saved model. ``when``: a
+    configuration path (``"output.trees"``) without whose true value the step is not part
+    of the run (no work, no line in the progress).
     """
 
     name: str
@@ -76,6 +78,17 @@ class Step:
     per_stage: bool = False
     command: str | None = None
     applying: tuple[str, Weight] | None = None
+    when: str | None = None
+
+    def active(self, cfg) -> bool:
+        """Whether the step is part of a run with the configuration ``cfg`` (None: every
+        step that may be)."""
+        if self.when is None or cfg is None:
+            return True
+        value = cfg
+        for key in self.when.split("."):
+            value = getattr(value, key)
+        return bool(value)
 
     def run(self, state) -> None:
         resolve_name(self.function)(state)
@@ -114,10 +127,16 @@ STEPS: tuple[Step, ...] = (
          applying=("apply", Weight(0.2, other=0.4)),
          command="Train the cascade and predict every stage (after features); saves "
                  "OUT/model." + examples("silva train survey.yaml --out results/")),
+    Step("trees", "workflows.steps.flow:trees_step", needs=("layout", "stages"),
+         fingerprint=(*CASCADE_PARTS, "trees"), weight=Weight(0.03, other=0.1),
+         per_chunk=False, when="output.trees",
+         command="Find the trees of every scene (after train; with output.trees): "
+                 "PredictedTreeID per point, trees/<tile>.csv and .gpkg." + examples(
+                     "silva trees survey.yaml --out results/ --set output.trees=true")),
     Step("survey", "workflows.steps.flow:survey_step", needs=("layout", "stages"),
          per_chunk=False),
     Step("export", "workflows.steps.flow:export_step", needs=("layout", "stages"),
-         fingerprint=(*CASCADE_PARTS, "output"), weight=Weight(0.04, other=0.2),
+         fingerprint=(*CASCADE_PARTS, "output", "trees"), weight=Weight(0.04, other=0.2),
          per_chunk=False,
          command="Write predictions/<tile>.laz for every input tile (after train)."
          + examples("silva export survey.yaml --out results/ --set output.format=las")),
@@ -139,14 +158,17 @@ TARGETS = tuple(step.name for step in STEPS if step.command is not None)
 FINGERPRINTED = {step.fingerprint_name or step.name: step for step in STEPS if step.fingerprint}
 
 
-def steps_until(target: str) -> tuple[Step, ...]:
-    """The steps a run up to ``target`` (one of :data:`TARGETS`) runs, in order."""
-    return STEPS[: STEPS.index(BY_NAME[target]) + 1]
+def steps_until(target: str, cfg=None) -> tuple[Step, ...]:
+    """The steps a run up to ``target`` (one of :data:`TARGETS`) runs, in order: with ``cfg``
+    only those its configuration asks for (:meth:`Step.active`)."""
+    until = STEPS[: STEPS.index(BY_NAME[target]) + 1]
+    return tuple(step for step in until if step.active(cfg))
 
 
-def progress_steps(target: str, applies_model: bool = False) -> list[str]:
-    """The steps with a line in the progress of a run up to ``target``."""
-    return [step.shown_name(applies_model) for step in steps_until(target)
+def progress_steps(target: str, applies_model: bool = False, cfg=None) -> list[str]:
+    """The steps with a line in the progress of a run up to ``target`` (with ``cfg``: of
+    the steps its configuration asks for)."""
+    return [step.shown_name(applies_model) for step in steps_until(target, cfg)
             if step.command is not None]
 
 

@@ -36,7 +36,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     if _already_complete(run, target, only, state.summary, state.stamp):
         return state.summary
     try:
-        for step in steps_until(target):
+        for step in steps_until(target, run.cfg):
             if only is not None and not step.per_chunk:
                 break
             missing = [need for need in step.needs if getattr(state, need) is None]

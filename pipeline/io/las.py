@@ -616,11 +616,13 @@ def export_las(
     batch_size: int = 1_000_000,
     set_classification: bool = False,
     keep_point_format: bool = False,
+    source_fields: tuple[str, ...] = (),
 ) -> Path:
     """Stream a LAS/LAZ tile to dst with every point and dimension kept, plus extra dims.
 
     See :func:`pipeline.io.tiles.export_with_extra_dims`; the batch given to compute holds
-    ``classification`` and ``withheld`` (bool). With ``keep_point_format`` the output keeps
+    ``classification`` and ``withheld`` (bool), and those of ``source_fields`` the file
+    has. With ``keep_point_format`` the output keeps
     src's LAS version and point format (and its CRS records as they are); a classification
     that format cannot hold (formats 0-5: 0..31) is refused, never truncated.
     """
@@ -634,6 +636,8 @@ def export_las(
             raise empty_tile(src)
         header, same_layout = _export_header(src_header, dims, src, keep_point_format)
         evlrs = without_copc(src_header.evlrs or [])
+        passed = [name for name in source_fields
+                  if name in src_header.point_format.dimension_names]
     with atomic_writer(dst, header) as writer, open_las(src) as reader:
         start = 0
         for chunk in _chunks(reader, src, batch_size):
@@ -642,7 +646,8 @@ def export_las(
             batch = PointBatch(
                 start=start, xyz=real_xyz(chunk, src_header),
                 fields={"classification": np.array(chunk["classification"]),
-                        "withheld": np.array(chunk["withheld"]).astype(bool)},
+                        "withheld": np.array(chunk["withheld"]).astype(bool),
+                        **{name: np.array(chunk[name]) for name in passed}},
             )
             values = check_computed(compute(batch), dims, set_classification, src)
             for name, array in values.items():

@@ -93,6 +93,7 @@ def export_with_extra_dims(
     batch_size: int = 1_000_000,
     set_classification: bool = False,
     keep_point_format: bool = False,
+    source_fields: tuple[str, ...] = (),
 ) -> Path:
     """Copy a tile to a LAS 1.4 file (LAZ when dst ends in .laz) with extra dims added.
 
@@ -110,7 +111,9 @@ def export_with_extra_dims(
     (uint16, or int32 for codes beyond it). The confidence column becomes extra dim
     ``confidence`` (float32). An extra dim that a LAS src already has with the same dtype is
     reused and its values replaced. ``keep_point_format`` keeps a LAS src's version and
-    point format instead (other formats have none to keep).
+    point format instead (other formats have none to keep). ``source_fields``: more
+    dimensions of a LAS src handed to compute in ``batch.fields`` where the file has them
+    (say a reference ``TreeID``).
 
     The file appears at dst only when complete (temporary file + rename); if compute or
     anything else fails, no dst and no temporary file are left. Returns dst.
@@ -120,8 +123,10 @@ def export_with_extra_dims(
         raise InputError(f"compute must be a function batch -> dict, got {type(compute).__name__}")
     fmt = _format_of(src)
     if fmt.export is not None:
-        options = {"keep_point_format": True} if keep_point_format and fmt.name in (
-            "las", "laz") else {}  # text sources have no point format to keep
+        las = fmt.name in ("las", "laz")  # text sources have no point format, no more fields
+        options = {"keep_point_format": True} if keep_point_format and las else {}
+        if source_fields and las:
+            options["source_fields"] = tuple(source_fields)
         return fmt.export(
             src, dst, list(extra_dims), compute, batch_size=batch_size,
             set_classification=set_classification, **options,

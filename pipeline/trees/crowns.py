@@ -170,15 +170,33 @@ def grow_crowns(smoothed: np.ndarray, canopy: np.ndarray, rows: np.ndarray, cols
     return labels
 
 
-def segment_crowns(chm: Raster, params: TreeParams) -> Crowns:
+def seed_cells(chm: Raster, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns (int64) of the distinct CHM cells under the points ``xy`` (n, 2) that
+    lie on the grid, in row-major order (a seed off the canopy grows no crown)."""
+    cols = np.floor((xy[:, 0] - chm.x0) / chm.cell).astype(np.int64)
+    rows = np.floor((xy[:, 1] - chm.y0) / chm.cell).astype(np.int64)
+    ny, nx = chm.values.shape
+    inside = (rows >= 0) & (rows < ny) & (cols >= 0) & (cols < nx)
+    flat = np.unique(rows[inside] * nx + cols[inside])
+    return flat // nx, flat % nx
+
+
+def segment_crowns(chm: Raster, params: TreeParams, seeds: np.ndarray | None = None) -> Crowns:
     """Tops and crowns of a canopy height model (NaN = no canopy), see the module docstring.
 
+    ``seeds`` (n, 2), optional: the XY of the trees, known otherwise (the stems of a
+    terrestrial scan), from which the crowns grow instead of the CHM's local maxima; a seed's
+    crown radius follows the smoothed CHM at its cell (``min_height`` where there is none).
     Returns :class:`Crowns` on the CHM's grid; no tops give an all-zero label raster and empty
     top arrays.
     """
     smoothed = smooth_chm(chm.values, params.smoothing)
-    rows, cols = find_tops(smoothed, chm.values, chm.cell, params)
-    top_height = chm.values[rows, cols].copy()
+    if seeds is None:
+        rows, cols = find_tops(smoothed, chm.values, chm.cell, params)
+        top_height = chm.values[rows, cols].copy()
+    else:
+        rows, cols = seed_cells(chm, np.asarray(seeds, np.float64).reshape(-1, 2))
+        top_height = np.nan_to_num(smoothed[rows, cols], nan=params.min_height)
     # the canopy's extent is the CHM's own; smoothing only fills its holes
     canopy = np.where(np.isfinite(chm.values), chm.values, smoothed) >= params.min_height
     labels = grow_crowns(smoothed, canopy, rows, cols, top_height, chm.cell, params)

@@ -251,7 +251,7 @@ def merge_stats(parts) -> TreeStats:
 def tree_table(model: TreeModel, stats: TreeStats) -> np.ndarray:
     """The tree table, one row per tree of the model in ID order (dtype :data:`TABLE_DTYPE`).
 
-    x, y: the highest point of a crown tree, the stem centre of a tree without crown; z and
+    x, y: the stem centre of a tree with a stem, else its highest point; z and
     height: the tree's highest point (NaN for a tree without points); crown_area = crown cells
     x cell**2 and crown_diameter = 2 sqrt(area / pi) (NaN without crown); points: the points
     assigned to the tree; dbh and dbh_quality from its stem.
@@ -267,9 +267,8 @@ def tree_table(model: TreeModel, stats: TreeStats) -> np.ndarray:
         table[name] = np.nan
         table[name][at] = getattr(stats, name)
     table["points"][at] = stats.points
-    stem_only = (model.crown_cells == 0) & np.isfinite(model.stem_x)
-    table["x"][stem_only], table["y"][stem_only] = (model.stem_x[stem_only],
-                                                    model.stem_y[stem_only])
+    stemmed = np.isfinite(model.stem_x)  # a tree with a stem stands where its stem is
+    table["x"][stemmed], table["y"][stemmed] = model.stem_x[stemmed], model.stem_y[stemmed]
     area = np.where(model.crown_cells > 0, model.crown_cells * model.cell**2, np.nan)
     table["crown_area"], table["crown_diameter"] = area, 2.0 * np.sqrt(area / np.pi)
     table["dbh"], table["dbh_quality"] = model.dbh, model.dbh_quality

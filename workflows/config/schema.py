@@ -20,6 +20,7 @@ from pipeline.features.sets import (
 )
 from pipeline.io.base import LAS_NAME_BYTES
 from pipeline.terrain import TerrainParams
+from pipeline.trees import TreeParams
 from workflows.config.fields import (
     AutoBool,
     AutoLength,
@@ -35,6 +36,7 @@ from workflows.config.messages import fail, field_error, show
 
 _FEATURES, _CASCADE, _FOREST = FeatureParams(), CascadeParams(), ForestParams()
 _TERRAIN = TerrainParams()
+_TREES = TreeParams()
 #: Export writes one extra dimension ``Probability_<class>`` per class; LAS names hold 32 bytes.
 PROBABILITY_PREFIX = "Probability_"
 MAX_CLASS_NAME_BYTES = LAS_NAME_BYTES - len(PROBABILITY_PREFIX)
@@ -412,6 +414,70 @@ class TerrainConfig(Section):
             raise fail(str(err)) from None
 
 
+# -- trees -----------------------------------------------------------------------------------
+class TreesConfig(Section):
+    """Every tree of a scene (with ``output.trees: true``): crowns segmented on the canopy
+    height of the points predicted as ``output.canopy_classes`` (airborne), or stems fitted
+    at breast height among the points of ``trees.stem_classes`` (terrestrial). The values
+    are checked by :class:`pipeline.trees.TreeParams`."""
+
+    method: Literal["auto", "crowns", "stems"] = Field(
+        _TREES.method,
+        description="crowns: tops and crowns from the canopy height (airborne scans); "
+        "stems: stems and DBH from circles fitted at breast height, crowns grown from them "
+        "(terrestrial scans); auto: stems where the scan sees them, crowns otherwise.")
+    min_height: Number = Field(_TREES.min_height,
+                               description="Lowest tree height in metres above ground.")
+    resolution: Number = Field(_TREES.resolution,
+                               description="Side in metres of the canopy height cells.")
+    smoothing: Number = Field(
+        _TREES.smoothing,
+        description="Gaussian smoothing of the canopy height (sigma in cells; 0: none).")
+    window: list[Number] = Field(
+        list(_TREES.window),
+        description="[a, b]: the local-maximum window that finds tree tops is a + b * height "
+        "metres wide (taller trees, wider crowns).")
+    crown_radius: list[Number] = Field(
+        list(_TREES.crown_radius),
+        description="[a, b]: a crown reaches at most a + b * height metres from its top.")
+    breast_height: Number = Field(_TREES.breast_height,
+                                  description="Height in metres of the DBH measurement.")
+    slice_half_width: Number = Field(
+        _TREES.slice_half_width,
+        description="Half the thickness in metres of the section a stem's circle is fitted to.")
+    fallback_offsets: list[Number] = Field(
+        list(_TREES.fallback_offsets),
+        description="Offsets in metres from breast height of the sections tried, in order, "
+        "when the circle at breast height fails.")
+    stem_cluster_eps: Number = Field(
+        _TREES.stem_cluster_eps,
+        description="Largest gap in metres between points of one stem's section.")
+    stem_min_points: Integer = Field(_TREES.stem_min_points,
+                                     description="Fewest points of a stem's section.")
+    stem_voxel: Number = Field(
+        _TREES.stem_voxel,
+        description="Side in metres of the voxels the stem slice is thinned to.")
+    max_dbh: Number = Field(_TREES.max_dbh, description="Largest plausible DBH in metres.")
+    stem_classes: list[str] | None = Field(
+        None,
+        description="The classes whose points make stems; default: output.canopy_classes.")
+
+    @model_validator(mode="after")
+    def _check_params(self) -> "TreesConfig":
+        self.params  # noqa: B018 -- TreeParams checks the values, at load time
+        return self
+
+    @property
+    def params(self) -> TreeParams:
+        """The tree step's parameters (validated by TreeParams)."""
+        values = self.model_dump(exclude={"stem_classes"})
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+        try:
+            return TreeParams(**values)
+        except ValueError as err:
+            raise fail(str(err)) from None
+
+
 # -- cascade ---------------------------------------------------------------------------------
 class CascadeConfig(Section):
     """The cascade of random forests (auto-context)."""
@@ -543,9 +609,14 @@ class OutputConfig(Section):
     )
     raster_resolution: Number = Field(
         1.0, gt=0, description="Side in metres of the cells of output.rasters.")
+    trees: bool = Field(
+        False,
+        description="Find every tree (see the trees section): PredictedTreeID per point, "
+        "and per input tile trees/<tile>.csv and trees/<tile>.gpkg (tops and crowns).")
     canopy_classes: list[str] | None = Field(
         None,
-        description="The classes whose points make the canopy height (chm); default: the "
+        description="The classes whose points make the canopy height (chm) and the crowns "
+        "of output.trees; default: the "
         "classes whose first code is an ASPRS vegetation code (3, 4, 5), or else every "
         "class but the ground's (code 2).",
     )
@@ -574,6 +645,7 @@ class SilvaConfig(Section):
     features: FeaturesConfig = Field(default_factory=FeaturesConfig)
     terrain: TerrainConfig = Field(default_factory=TerrainConfig)
     cascade: CascadeConfig = Field(default_factory=CascadeConfig)
+    trees: TreesConfig = Field(default_factory=TreesConfig)
     cluster: ClusterConfig = Field(default_factory=ClusterConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
 
@@ -654,6 +726,22 @@ class SilvaConfig(Section):
             return [names.index(name) for name in self.output.canopy_classes]
         vegetation = [i for i, code in enumerate(codes) if code in VEGETATION_CODES]
         return vegetation or [i for i, code in enumerate(codes) if code != GROUND_CODE]
+
+    @model_validator(mode="after")
+    def _check_stem_classes(self) -> "SilvaConfig":
+        for name in self.trees.stem_classes or ():
+            if name not in self.data.class_names:
+                raise fail(f"trees.stem_classes: '{name}' is not a class; classes: "
+                           + ", ".join(self.data.class_names))
+        return self
+
+    @property
+    def stem_classes(self) -> list[int]:
+        """Indices of the classes whose points make stems (see
+        :attr:`TreesConfig.stem_classes`)."""
+        if self.trees.stem_classes is None:
+            return self.canopy_classes
+        return [self.data.class_names.index(name) for name in self.trees.stem_classes]
 
     @property
     def feature_dim_columns(self) -> list[str]:

@@ -31,6 +31,7 @@ def write_report(
     importances: list | None = None,
     no_features: dict | None = None,
     terrain: dict | None = None,
+    sections: tuple = (),
 ) -> Path:
     """Write ``out_dir/report.html`` and its plots as ``out_dir/plots/*.png``.
 
@@ -65,6 +66,9 @@ def write_report(
     terrain : dict, optional
         ``{scene: {"dtm": Raster, "x", "y", "height"}}`` for the terrain figure (see
         :func:`workflows.report.figures.terrain_figure`).
+    sections : tuple, optional
+        More sections of the page, each ``(html, {name: png bytes})``: the HTML is placed
+        before the configuration, the PNGs are written to ``plots/`` too.
 
     Returns
     -------
@@ -110,9 +114,13 @@ def write_report(
         png = png_bytes(figure)
         atomic_write_bytes(path, png)
         images[name] = (png, None)
+    for _, pngs in sections:
+        for name, png in pngs.items():
+            atomic_write_bytes(plot_dir / f"{name}.png", png)
 
     page = render_page(metrics, stages, images, title, run_info, config_text,
-                       importances=importances, no_features=no_features)
+                       importances=importances, no_features=no_features,
+                       sections=[html for html, _ in sections])
     target = out_dir / "report.html"
     with atomic_path(target) as tmp:
         tmp.write_text(page, encoding="utf-8")

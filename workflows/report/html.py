@@ -96,7 +96,7 @@ TITLES = {
 
 
 def render_page(metrics, stages, images, title, run_info, config_text, *, importances=None,
-                no_features=None) -> str:
+                no_features=None, sections=()) -> str:
     e = _escape
     names = list(metrics["classes"])
     excluded = list(metrics.get("excluded", ()))
@@ -155,6 +155,7 @@ def render_page(metrics, stages, images, title, run_info, config_text, *, import
                  "predicted class)</summary>")
     parts.append(_confusion_table(metrics))
     parts.append("</details>")
+    parts += list(sections)  # more of the run's results (its trees), as HTML
 
     parts.append("<h2>Configuration</h2>")
     if config_text:

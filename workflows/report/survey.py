@@ -153,7 +153,7 @@ def survey_html(survey: dict, images: dict) -> str:
 
 
 def render_survey_page(survey: dict, images: dict, title: str, run_info: dict | None,
-                       config_text: str | None) -> str:
+                       config_text: str | None, sections=()) -> str:
     """The whole page of an unlabelled run."""
     e = _escape
     n_points = sum(int(np.sum(t["counts"])) for t in survey["tiles"])
@@ -170,6 +170,7 @@ def render_survey_page(survey: dict, images: dict, title: str, run_info: dict | 
                   for k, v in run_info.items()]
         parts.append("</table>")
     parts.append(survey_html(survey, images))
+    parts += list(sections)  # more of the run's results (its trees), as HTML
     if config_text:
         parts.append("<h2>Configuration</h2><details><summary>The resolved configuration"
                      f"</summary><pre>{e(config_text)}</pre></details>")
@@ -178,20 +179,23 @@ def render_survey_page(survey: dict, images: dict, title: str, run_info: dict | 
 
 
 def write_survey_report(out_dir, survey: dict, images: dict, *, title: str = "Silva report",
-                        run_info: dict | None = None, config_text: str | None = None) -> Path:
+                        run_info: dict | None = None, config_text: str | None = None,
+                        sections: tuple = ()) -> Path:
     """Write ``out_dir/report.html`` of an unlabelled run and its figures ``images``
     (:func:`survey_images`) as ``out_dir/plots/*.png`` (atomically, as
     :func:`workflows.report.write_report`)."""
     out_dir = Path(out_dir)
     plot_dir = out_dir / "plots"
     plot_dir.mkdir(parents=True, exist_ok=True)
+    written = {**images, **{name: png for _, pngs in sections for name, png in pngs.items()}}
     for old in plot_dir.glob("*.png"):
-        if old.stem not in images:
+        if old.stem not in written:
             old.unlink(missing_ok=True)  # the plots of an earlier, labelled report
-    for name, png in images.items():
+    for name, png in written.items():
         atomic_write_bytes(plot_dir / f"{name}.png", png)
     target = out_dir / "report.html"
     with atomic_path(target) as tmp:
-        tmp.write_text(render_survey_page(survey, images, title, run_info, config_text),
+        tmp.write_text(render_survey_page(survey, images, title, run_info, config_text,
+                                          [html for html, _ in sections]),
                        encoding="utf-8")
     return target

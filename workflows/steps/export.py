@@ -39,6 +39,7 @@ from workflows.progress import counted, say
 from workflows.run import Run
 from workflows.steps.ingest import excluded_points
 from workflows.steps.terrain import scene_terrain
+from workflows.steps.trees import REFERENCE_TREE_ID, TileTrees, TreeTask
 
 PREDICTED = "PredictedClassification"
 HEIGHT_ABOVE_GROUND = "HeightAboveGround"
@@ -46,6 +47,7 @@ CONFIDENCE = "Confidence"
 ENTROPY = "Entropy"
 NO_FEATURES = "NoFeatures"
 EXCLUDED = "Excluded"
+TREE_ID = "PredictedTreeID"
 #: Largest classification code of LAS point formats 0-5 (a 5-bit field); 6-10 hold 0..255.
 LEGACY_MAX_CLASS = 31
 
@@ -64,9 +66,11 @@ def entropy(proba: np.ndarray) -> np.ndarray:
 
 
 def extra_dims(classes: list[str], codes: list[int], probabilities: bool,
-               excluded: bool = False, features: tuple[str, ...] = ()) -> list[ExtraDim]:
+               excluded: bool = False, features: tuple[str, ...] = (),
+               trees: bool = False) -> list[ExtraDim]:
     """The dimensions Silva adds to every exported point: ``Excluded`` when ``excluded``
-    (ingest filters points out), one float32 dimension per feature column of ``features``."""
+    (ingest filters points out), ``PredictedTreeID`` with ``trees``, one float32 dimension
+    per feature column of ``features``."""
     dtype = "uint8" if max(codes) <= 255 else "uint16"
     dims = [
         ExtraDim(PREDICTED, dtype, "Predicted class code"),
@@ -77,6 +81,8 @@ def extra_dims(classes: list[str], codes: list[int], probabilities: bool,
     ]
     if excluded:
         dims.append(ExtraDim(EXCLUDED, "uint8", "1: left out, not classified"))
+    if trees:
+        dims.append(ExtraDim(TREE_ID, "uint32", "Tree ID (0: in no tree)"))
     if probabilities:
         dims += [ExtraDim(probability_dim(n), "float32", f"Probability of {n}"[:32])
                  for n in classes]
@@ -145,7 +151,8 @@ def prefixed(dims: list[ExtraDim], prefix: str) -> list[ExtraDim]:
 def run_dims(run: Run) -> list[ExtraDim]:
     """Every dimension the export of ``run`` may add, under its written name."""
     dims = extra_dims(run.classes, run.class_codes, run.cfg.output.probabilities,
-                      excluded=True, features=tuple(run.cfg.feature_dim_columns))
+                      excluded=True, features=tuple(run.cfg.feature_dim_columns),
+                      trees=run.cfg.output.trees)
     return prefixed(dims, run.cfg.output.dim_prefix)
 
 
@@ -247,6 +254,8 @@ class ExportTask:
     keep_point_format: bool = False  # the input's LAS version and point format
     rasters: RasterRequest | None = None  # also the tile's rasters
     prefix: str = ""  # starts the name of every dimension Silva adds
+    trees: TreeTask | None = None  # PredictedTreeID from the scene's tree model
+    score_trees: bool = False  # count the points per (reference TreeID, predicted tree)
 
 
 def export_tile(task: ExportTask):
@@ -279,6 +288,7 @@ def export_tile(task: ExportTask):
     canopy = np.zeros(len(classes), dtype=bool)
     if rasters is not None:
         canopy[list(rasters.canopy)] = True
+    trees = TileTrees(task.trees, store_path, tile["scene"], len(classes), task.score_trees)
 
     def compute(batch):
         nonlocal n_undefined, n_excluded
@@ -310,6 +320,8 @@ def export_tile(task: ExportTask):
         }
         if mark_excluded:
             values[EXCLUDED] = (~found).astype(np.uint8)
+        if task.trees is not None:
+            values[TREE_ID] = trees.assign(batch, height, best, found)
         if probabilities:
             for index, name in enumerate(classes):
                 values[probability_dim(name)] = proba[:, index]
@@ -328,11 +340,13 @@ def export_tile(task: ExportTask):
     export_with_extra_dims(
         tile["path"], dst,
         prefixed(extra_dims(classes, codes, probabilities, mark_excluded,
-                            tuple(feature_columns)), prefix),
+                            tuple(feature_columns), task.trees is not None), prefix),
         named, batch_size=read_batch, set_classification=write_classification,
         keep_point_format=keep_point_format,
+        source_fields=(REFERENCE_TREE_ID,) if task.score_trees else (),
     )
     written = tile_rasters.write() if tile_rasters is not None else []
+    trees.store_pairs(marker)
     mark_done(marker, "export", fingerprint, no_features=n_undefined, excluded=n_excluded)
     return {"path": dst, "no_features": n_undefined, "excluded": n_excluded,
             "rasters": written}
@@ -380,6 +394,9 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
     if rasters is not None:
         raster_dir.mkdir(parents=True, exist_ok=True)
         remove_parts(raster_dir)
+    trees = (TreeTask(final_stage, tuple(run.cfg.canopy_classes), tuple(run.cfg.stem_classes),
+                      run.cfg.trees.params, f"{run.fingerprint('trees')}-{stage_fp}")
+             if out.trees else None)
     tasks = []
     for tile in layout["tiles"]:
         dst = out_dir / f"{tile['name']}{suffix}"
@@ -400,6 +417,7 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
                 feature_columns=tuple(feature_columns), feature_index=tuple(feature_index),
                 keep_point_format=out.point_format == "keep",
                 rasters=rasters, prefix=out.dim_prefix,
+                trees=trees, score_trees=trees is not None and tile["scene"] == "test",
             )},
             where=f"export of tile {tile['path']}",
             reproduce=f"silva export CONFIG --out {run.out} --in-process",

@@ -25,6 +25,7 @@ from workflows.steps.ingest import ingest
 from workflows.steps.one_pass import classify_in_one_pass, one_pass_scenes
 from workflows.steps.survey import canopy_samples, survey
 from workflows.steps.terrain import terrain
+from workflows.steps.trees import score_trees, trees
 
 
 def scenes_of(layout: dict, keep, only: str | None = None) -> dict:
@@ -84,6 +85,24 @@ def cascade_step(state: RunState) -> None:
                     only)
 
 
+def trees_step(state: RunState) -> None:
+    """The trees of every scene (output.trees), before the export writes their IDs."""
+    state.trees = state.timed("trees", trees, state.run, state.engine, state.layout,
+                              state.n_stages - 1, state.stages[-1]["fingerprint"])
+
+
+def tree_sections(state: RunState) -> tuple:
+    """The report's trees section (HTML and figures), when the run found trees."""
+    if state.trees is None:
+        return ()
+    from workflows.report.trees import trees_html, trees_images
+
+    scenes = state.trees["scenes"]
+    images = trees_images(scenes)
+    scores = state.metrics.get("trees") if state.metrics else None
+    return ((trees_html(scenes, images, scores), images),)
+
+
 def survey_step(state: RunState) -> None:
     """An unlabelled run's report surveys the predictions before the export, whose progress
     counts its tasks, and draws its figures while the workers export."""
@@ -120,6 +139,10 @@ def evaluate_step(state: RunState) -> None:
     if state.labelled:
         state.metrics, state.plots = state.timed("evaluate", evaluate, run, state.engine,
                                                  state.layout, state.n_stages)
+        if state.trees is not None:
+            scores = score_trees(run, state.layout, state.trees["scenes"])
+            if scores is not None:
+                state.metrics["trees"] = scores
         if state.metrics["n_test_points"] == 0:  # no score over no points: say so
             say(f"warning: the test points carry none of the codes of data.classes in their "
                 f"'{run.cfg.data.label_field}' field: no metrics; check data.label_field and "
@@ -148,7 +171,8 @@ def report_step(state: RunState) -> None:
                  topdown=state.plots["topdown"], run_info=run_info,
                  config_text=(run.out / "config.yaml").read_text(),
                  importances=[s.get("importances") for s in state.stages],
-                 no_features=_no_features(state), terrain=state.plots["terrain"])
+                 no_features=_no_features(state), terrain=state.plots["terrain"],
+                 sections=tree_sections(state))
     write_metrics(run, metrics)
     state.summary.update(metrics=str(run.metrics_path), report=str(run.report_path),
                          macro_f1=metrics["macro"]["f1"])
@@ -162,7 +186,8 @@ def _survey_report(state: RunState) -> None:
     found, images = state.drawn
     run = state.run
     state.timed("report", write_survey_report, run.out, found, images.result(),
-                run_info=_run_info(state), config_text=(run.out / "config.yaml").read_text())
+                run_info=_run_info(state), config_text=(run.out / "config.yaml").read_text(),
+                sections=tree_sections(state))
     state.summary["report"] = str(run.report_path)
 
 

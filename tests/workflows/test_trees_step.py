@@ -1,0 +1,112 @@
+"""The trees step in the workflow (output.trees): one tree, one ID, whatever the chunking or
+the number of workers, the points' IDs agreeing with the tables, the tables per tile as CSV
+and GeoPackage, the instance scores of a labelled run, and a resume after a SIGKILL."""
+
+import csv
+
+import numpy as np
+import pyogrio
+import pytest
+
+from tests.workflows.conftest import read_predictions, sigkill_when, silva, write_config
+
+pytestmark = pytest.mark.slow
+
+FEATURES = {"set": "covariance", "r1": 0.5}
+CASCADE = {"stages": 1, "n_estimators": 6, "min_samples_leaf": 15, "max_train_points": 8000,
+           "seed": 3}
+TREES = {"trees": True}
+
+
+def config_for(tmp_path, survey, name, chunk_size, workers=1, **trees):
+    return write_config(tmp_path / f"{name}.yaml", survey, features=FEATURES,
+                        tiling={"chunk_size": chunk_size}, output=TREES, cascade=CASCADE,
+                        trees=trees,
+                        cluster={"kind": "local", "n_workers": workers,
+                                 "threads_per_worker": 1, "dashboard": False})
+
+
+def run(tmp_path, survey, name, chunk_size, workers=1, **trees):
+    config = config_for(tmp_path, survey, name, chunk_size, workers, **trees)
+    out = tmp_path / name
+    args = ["run", config, "--out", out, "-q"] + (["--in-process"] if workers == 1 else [])
+    result = silva(*args)
+    assert result.exit_code == 0, result.output
+    return out
+
+
+@pytest.fixture(scope="module")
+def runs(survey, tmp_path_factory):
+    root = tmp_path_factory.mktemp("trees")
+    return run(root, survey, "one", 100.0), run(root, survey, "many", 4.0, workers=2)
+
+
+def read_table(path) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_tree_ids_and_tables_do_not_depend_on_chunks_or_workers(runs):
+    one, many = (read_predictions(out) for out in runs)
+    assert one.keys() == many.keys() and one
+    for tile in one:
+        assert np.array_equal(one[tile]["PredictedTreeID"], many[tile]["PredictedTreeID"])
+    tables = [sorted(p.name for p in (out / "trees").iterdir()) for out in runs]
+    assert tables[0] == tables[1] and any(name.endswith(".csv") for name in tables[0])
+    for name in tables[0]:
+        if name.endswith(".csv"):
+            assert (runs[0] / "trees" / name).read_bytes() == (runs[1] / "trees" / name).read_bytes()
+
+
+def test_points_and_tables_agree(runs):
+    out = runs[0]
+    ids = np.concatenate([d["PredictedTreeID"] for d in read_predictions(out).values()])
+    assert ids.dtype == np.uint32
+    rows = [row for path in sorted((out / "trees").glob("*.csv")) for row in read_table(path)]
+    assert rows, "the synthetic plots have trees"
+    table_ids = [int(r["tree_id"]) for r in rows]
+    assert len(set(table_ids)) == len(table_ids)  # one row per tree over all tiles
+    found, counts = np.unique(ids[ids > 0], return_counts=True)
+    assert sorted(table_ids) == found.tolist()
+    by_id = {int(r["tree_id"]): r for r in rows}
+    for tree, count in zip(found, counts):
+        row = by_id[int(tree)]
+        assert int(row["points"]) == count
+        assert float(row["height"]) >= 2.0  # trees.min_height
+        assert float(row["crown_area"]) > 0
+
+
+def test_geopackage_holds_tops_and_crowns(runs):
+    out = runs[0]
+    for path in sorted((out / "trees").glob("*.gpkg")):
+        layers = {name for name, _ in pyogrio.list_layers(path)}
+        assert {"tops", "crowns"} <= layers
+        rows = read_table(path.with_suffix(".csv"))
+        tops = pyogrio.read_info(path, layer="tops")
+        assert tops["features"] == len(rows)
+        assert tops["crs"] is not None
+
+
+def test_labelled_run_scores_the_tree_instances(runs):
+    import json
+
+    metrics = json.loads((runs[0] / "metrics.json").read_text())
+    scores = metrics["trees"]
+    for key in ("precision", "recall", "f1"):
+        assert 0.0 <= scores[key] <= 1.0
+    assert scores["reference_trees"] > 0 and scores["predicted_trees"] > 0
+    assert "Trees" in (runs[0] / "report.html").read_text()
+
+
+def test_a_run_killed_in_the_trees_step_resumes_to_the_same_trees(runs, survey, tmp_path):
+    config = config_for(tmp_path, survey, "killed", 4.0)
+    out = tmp_path / "killed"
+    trees_started = lambda: (out / "store.zarr" / "scenes" / "test" / "trees").exists()  # noqa: E731
+    sigkill_when(["run", config, "--out", out, "-q", "--in-process"], trees_started)
+    result = silva("run", config, "--out", out, "-q", "--in-process")
+    assert result.exit_code == 0, result.output
+    again, reference = read_predictions(out), read_predictions(runs[0])
+    for tile in reference:
+        assert np.array_equal(again[tile]["PredictedTreeID"], reference[tile]["PredictedTreeID"])
+    for path in sorted((runs[0] / "trees").glob("*.csv")):
+        assert (out / "trees" / path.name).read_bytes() == path.read_bytes()

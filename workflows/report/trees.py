@@ -1,0 +1,98 @@
+"""The report's trees section (``output.trees``): tops over the canopy height, histograms of
+height, crown diameter and DBH, trees per hectare, and the instance scores of a labelled run.
+"""
+
+import base64
+
+import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
+
+from workflows.report.figures import DPI, STYLE, _mpl_text, png_bytes
+from workflows.report.html import _escape, _format_value
+
+HECTARE = 10_000.0  # square metres
+
+
+def trees_images(found: dict) -> dict[str, bytes]:
+    """PNG figures of the trees of every scene: ``trees_map`` (tops over the canopy height)
+    and ``trees_histograms``."""
+    scenes = {s: f for s, f in found.items() if f.get("chm") is not None}
+    images = {}
+    if scenes:
+        images["trees_map"] = png_bytes(tops_figure(scenes))
+    if any(len(f["table"]) for f in found.values()):
+        images["trees_histograms"] = png_bytes(histograms_figure(found))
+    return images
+
+
+def tops_figure(scenes: dict) -> Figure:
+    """Per scene, the canopy height model with the tree tops (or stem bases) on it."""
+    with matplotlib.rc_context(STYLE):
+        fig = Figure(figsize=(7.5, 6.2 * len(scenes)), dpi=DPI)
+        for row, (scene, entry) in enumerate(scenes.items()):
+            chm, table = entry["chm"], entry["table"]
+            ny, nx = chm.values.shape
+            extent = (chm.x0, chm.x0 + nx * chm.cell, chm.y0, chm.y0 + ny * chm.cell)
+            ax = fig.add_subplot(len(scenes), 1, row + 1)
+            shown = ax.imshow(chm.values, origin="lower", extent=extent, cmap="viridis",
+                              interpolation="nearest")
+            ax.plot(table["x"], table["y"], "+", color="#d62728", markersize=5, mew=1.0)
+            ax.set_title(f"{_mpl_text(scene)}: {len(table):,} trees ({entry['method']}) over "
+                         f"the canopy height ({chm.cell:g} m cells)")
+            ax.set_aspect("equal")
+            ax.ticklabel_format(useOffset=False, style="plain")
+            fig.colorbar(shown, ax=ax, label="m above ground", shrink=0.8)
+        fig.tight_layout()
+    return fig
+
+
+def histograms_figure(found: dict) -> Figure:
+    """Histograms of the trees' heights, crown diameters and (where fitted) DBH."""
+    table = np.concatenate([f["table"] for f in found.values()])
+    dbh = table["dbh"][np.isfinite(table["dbh"])]
+    panels = [("height", table["height"], "m"), ("crown diameter", table["crown_diameter"], "m")]
+    if len(dbh):
+        panels.append(("DBH", dbh * 100, "cm"))
+    with matplotlib.rc_context(STYLE):
+        fig = Figure(figsize=(4.0 * len(panels), 3.4), dpi=DPI)
+        for i, (name, values, unit) in enumerate(panels):
+            ax = fig.add_subplot(1, len(panels), i + 1)
+            finite = values[np.isfinite(values)]
+            ax.hist(finite, bins=min(30, max(len(finite) // 3, 1)), color="#2ca02c")
+            ax.set_xlabel(f"{name} ({unit})")
+            ax.set_ylabel("trees")
+            ax.set_title(f"{name}: median {np.median(finite):.2f} {unit}" if len(finite)
+                         else name)
+        fig.tight_layout()
+    return fig
+
+
+def trees_html(found: dict, images: dict, scores: dict | None = None) -> str:
+    """The section of the page: a table per scene, the scores, the figures."""
+    e = _escape
+    parts = ["<h2>Trees</h2>", '<table class="info"><tr><th>scene</th><th>method</th>'
+             "<th>trees</th><th>trees per hectare</th><th>median height (m)</th>"
+             "<th>stems with a DBH</th></tr>"]
+    for scene, entry in found.items():
+        table = entry["table"]
+        per_ha = len(table) / (entry["area"] / HECTARE) if entry["area"] > 0 else float("nan")
+        height = float(np.median(table["height"])) if len(table) else float("nan")
+        fitted = int(np.count_nonzero(np.isfinite(table["dbh"])))
+        parts.append(f"<tr><td>{e(scene)}</td><td>{e(entry['method'])}</td>"
+                     f"<td>{len(table):,}</td><td>{per_ha:.0f}</td><td>{height:.1f}</td>"
+                     f"<td>{fitted:,}</td></tr>")
+    parts.append("</table>")
+    if scores:
+        parts.append("<h3>Tree instances against the reference (TreeID)</h3>")
+        parts.append('<table class="info">' + "".join(
+            f"<tr><td>{e(k)}</td><td>{e(_format_value(v))}</td></tr>"
+            for k, v in scores.items() if not isinstance(v, (dict, list))) + "</table>")
+    for name, caption in (("trees_map", "Tree tops (+) over the canopy height model."),
+                          ("trees_histograms", "Heights, crown diameters and DBH of the "
+                                               "trees found.")):
+        if name in images:
+            data = base64.b64encode(images[name]).decode("ascii")
+            parts.append(f'<figure><img src="data:image/png;base64,{data}" alt="{e(name)}">'
+                         f"<figcaption>{e(caption)}</figcaption></figure>")
+    return "\n".join(parts)

@@ -1,0 +1,285 @@
+"""Trees: every tree of a scene, with its ID, top, height, crown and stem (``output.trees``).
+
+Per scene, after the cascade, in two passes over the chunks:
+
+1. every chunk reduces its core points to the highest canopy point of each canopy-height
+   cell and to the thinned breast-height slice of its stem-class points; both reductions are
+   exact and associative, so what the coordinator merges does not depend on the chunking or
+   on the order of the tasks. The coordinator segments the crowns and fits the stems
+   (:mod:`pipeline.trees`), numbers the trees by where they stand and stores the scene's
+   tree model once;
+2. every chunk assigns its core points to trees (:func:`pipeline.trees.assign_trees`, a pure
+   function of the point and the model) and sums per tree; the coordinator merges the sums
+   into the tree table, written per input tile (the tile holding the tree's top or stem
+   base) as ``trees/<tile>.csv`` and ``trees/<tile>.gpkg``.
+
+The export assigns every point with the same function (``PredictedTreeID``), so the points
+and the tables always agree.
+"""
+
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.atomic import remove_parts
+from pipeline.cascade import labels_from_proba
+from pipeline.io.vector import write_tree_csv, write_tree_gpkg
+from pipeline.terrain import Raster
+from pipeline.trees.instances import (
+    instance_scores, match_instances, matched_errors, merge_pairs, pair_counts,
+)
+from pipeline.store import mark_done, open_store, proba_array, read_array, write_arrays
+from pipeline.trees import (
+    TreeModel, TreeParams, assign_trees, canopy_cells, chm_raster, find_stems, merge_cells,
+    merge_slices, merge_stats, segment_crowns, sees_stems, stem_slice, tree_model,
+    tree_stats, tree_table,
+)
+from workflows.engine import chunk_tasks, results_by_scene
+from workflows.progress import counted, say
+from workflows.steps.terrain import ground_under
+
+#: The store group of a scene's tree model.
+MODEL_GROUP = "scenes/{scene}/trees"
+#: The dimension of labelled tiles that holds each point's reference tree (silva synth's).
+REFERENCE_TREE_ID = "TreeID"
+#: The store array of a scene's canopy height model, kept with its tree model.
+CHM = "chm"
+#: The export marker's array of points per (reference tree, predicted tree) pair.
+PAIRS = "tree_pairs"
+
+
+@dataclass(frozen=True)
+class TreeTask:
+    """What a chunk needs to find its part of the trees: the final stage's predictions, the
+    classes that make the canopy and the stems (indices), the parameters."""
+
+    final_stage: int
+    canopy: tuple[int, ...]
+    stems: tuple[int, ...]
+    params: TreeParams
+    fingerprint: str = ""  # of the stored tree model (pass 2 only)
+
+
+def chunk_points(view, task: TreeTask):
+    """The core points of one chunk with their heights above ground and class masks."""
+    xyz = view.read("xyz")
+    label = labels_from_proba(view.read(proba_array(task.final_stage)))
+    height = xyz[:, 2] - ground_under(view, xyz)
+    return xyz, height, np.isin(label, task.canopy), np.isin(label, task.stems)
+
+
+def chunk_tree_inputs(view, task: TreeTask) -> dict:
+    """Worker task (pass 1): the chunk's canopy cells and stem slice."""
+    xyz, height, canopy, stems = chunk_points(view, task)
+    return {"cells": canopy_cells(xyz, height, canopy, task.params.resolution),
+            "slice": stem_slice(xyz, height, stems, task.params)}
+
+
+def chunk_tree_stats(view, task: TreeTask):
+    """Worker task (pass 2): the chunk's points per tree, highest points, sums."""
+    xyz, height, canopy, stems = chunk_points(view, task)
+    model = scene_trees(view.store_path, view.scene, task.fingerprint)
+    ids = assign_trees(model, xyz, height, canopy, stems, task.params)
+    return tree_stats(ids, xyz, height)
+
+
+def model_path(scene: str) -> str:
+    return MODEL_GROUP.format(scene=scene)
+
+
+def stored_fingerprint(root, scene: str) -> str | None:
+    path = model_path(scene)
+    return root[path].attrs.get("done", {}).get("trees") if path in root else None
+
+
+def store_model(root, scene: str, model: TreeModel, chm: Raster, method: str,
+                fingerprint: str) -> None:
+    """Keep the scene's tree model, with its canopy height model (for the report) and the
+    method used, and mark it done with ``fingerprint``."""
+    arrays, attrs = model.to_arrays()
+    group = root.require_group(model_path(scene))
+    write_arrays(group, {**arrays, CHM: np.asarray(chm.values, np.float64)})
+    mark_done(group, "trees", fingerprint, model=attrs, tree_arrays=sorted(arrays), method=method,
+              chm={"x0": float(chm.x0), "y0": float(chm.y0), "cell": float(chm.cell)})
+
+
+def stored_chm(root, scene: str) -> Raster:
+    group = root[model_path(scene)]
+    return Raster(read_array(group, CHM), **group.attrs["chm"])
+
+
+@lru_cache(maxsize=4)
+def scene_trees(store_path: str, scene: str, fingerprint: str) -> TreeModel:
+    """The stored tree model of ``scene`` (read once per worker process and version)."""
+    group = open_store(store_path)[model_path(scene)]
+    arrays = {name: read_array(group, name) for name in group.attrs["tree_arrays"]}
+    return TreeModel.from_arrays(arrays, group.attrs["model"])
+
+
+def scene_area(tiles: list[dict]) -> float:
+    """Square metres the scene's tiles cover (their XY boxes)."""
+    return float(sum(max(t["maxs"][0] - t["mins"][0], 0) * max(t["maxs"][1] - t["mins"][1], 0)
+                     for t in tiles))
+
+
+def build_model(merged: dict, params: TreeParams, area: float):
+    """A scene's tree model from its merged chunk inputs, its canopy height model and the
+    method used."""
+    stems = find_stems(merged["slice"], params) if params.method != "crowns" else None
+    method = params.method
+    if method == "auto":
+        method = "stems" if sees_stems(stems, area) else "crowns"
+    chm = chm_raster(merged["cells"], params.resolution)
+    if method == "stems":  # every stem a tree: the crowns grow from the stems
+        crowns = segment_crowns(chm, params, seeds=np.column_stack([stems.x, stems.y]))
+        return tree_model(crowns, stems, params), chm, method
+    return tree_model(segment_crowns(chm, params), None, params), chm, method
+
+
+def tile_of(table: np.ndarray, tiles: list[dict]) -> np.ndarray:
+    """The index of the tile holding each tree's top or stem base: the first of ``tiles``
+    whose XY box holds it (-1 for none, which cannot happen for a tree of their points)."""
+    owner = np.full(len(table), -1, dtype=np.int64)
+    for tile in tiles:
+        inside = ((owner < 0) & (table["x"] >= tile["mins"][0]) & (table["x"] <= tile["maxs"][0])
+                  & (table["y"] >= tile["mins"][1]) & (table["y"] <= tile["maxs"][1]))
+        owner[inside] = tile["index"]
+    return owner
+
+
+def trees(run, engine, layout: dict, final_stage: int, stage_fp: str) -> dict:
+    """Find the trees of every scene of ``layout`` and write their tables; return, per
+    scene, the method used and the number of trees, and the files written."""
+    cfg = run.cfg
+    fingerprint = f"{run.fingerprint('trees')}-{stage_fp}"
+    task = TreeTask(final_stage, tuple(cfg.canopy_classes), tuple(cfg.stem_classes),
+                    cfg.trees.params)
+    root = run.store
+    todo = {s: info for s, info in layout["scenes"].items()
+            if stored_fingerprint(root, s) != fingerprint}
+    if todo:
+        tasks = chunk_tasks(run, {**layout, "scenes": todo}, "trees", chunk_tree_inputs, task,
+                            fingerprint, "trees", marks=False)
+        for scene, results in results_by_scene(tasks, engine.map("trees", tasks)).items():
+            merged = {"cells": merge_cells([r["cells"] for r in results]),
+                      "slice": merge_slices([r["slice"] for r in results],
+                                            task.params.stem_voxel)}
+            tiles = [t for t in layout["tiles"] if t["scene"] == scene]
+            store_model(root, scene, *build_model(merged, task.params, scene_area(tiles)),
+                        fingerprint)
+    counted_task = TreeTask(**{**task.__dict__, "fingerprint": fingerprint})
+    tasks = chunk_tasks(run, layout, "tree-stats", chunk_tree_stats, counted_task, fingerprint,
+                        "trees", marks=False)
+    out_dir = run.out / "trees"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    remove_parts(out_dir)
+    found, written = {}, []
+    for scene, results in results_by_scene(tasks, engine.map("trees (stats)", tasks)).items():
+        model = scene_trees(str(run.store_path), scene, fingerprint)
+        table = tree_table(model, merge_stats(results))
+        tiles = [t for t in layout["tiles"] if t["scene"] == scene]
+        owner = tile_of(table, tiles)
+        for tile in tiles:
+            rows = table[owner == tile["index"]]
+            written += write_tile_trees(out_dir, tile, rows, model)
+        found[scene] = {"method": root[model_path(scene)].attrs["method"], "table": table,
+                        "chm": stored_chm(root, scene), "area": scene_area(tiles)}
+        say(f"trees: scene '{scene}': {counted(len(table), 'tree')} "
+            f"({found[scene]['method']})", quiet=run.quiet)
+    remove_stale_trees(out_dir, written)
+    return {"scenes": found, "files": written}
+
+
+def write_tile_trees(out_dir: Path, tile: dict, rows: np.ndarray, model: TreeModel) -> list[str]:
+    """trees/<tile>.csv and trees/<tile>.gpkg of the trees whose top or base is in ``tile``."""
+    csv, gpkg = out_dir / f"{tile['name']}.csv", out_dir / f"{tile['name']}.gpkg"
+    write_tree_csv(csv, rows)
+    write_tree_gpkg(gpkg, rows, model.labels, model.x0, model.y0, model.cell,
+                    tile.get("crs_wkt"))
+    return [str(csv), str(gpkg)]
+
+
+def remove_stale_trees(out_dir: Path, keep: list[str]) -> None:
+    """Remove the tables of tiles no longer in the run."""
+    kept = {Path(p).name for p in keep}
+    for path in out_dir.iterdir():
+        if path.suffix in (".csv", ".gpkg") and path.name not in kept:
+            path.unlink(missing_ok=True)
+
+
+class TileTrees:
+    """PredictedTreeID of one tile's points, batch by batch (the export's), and with
+    ``score`` the points counted per pair (reference TreeID, predicted tree ID)."""
+
+    def __init__(self, task: TreeTask | None, store_path: str, scene: str, n_classes: int,
+                 score: bool):
+        self.task, self.score, self.pairs = task, score, []
+        if task is None:
+            return
+        self.model = scene_trees(store_path, scene, task.fingerprint)
+        self.canopy = np.isin(np.arange(n_classes), task.canopy)
+        self.stems = np.isin(np.arange(n_classes), task.stems)
+
+    def assign(self, batch, height, best, found) -> np.ndarray:
+        """uint32 tree IDs of a batch: 0 for the points never classified (``~found``)."""
+        ids = np.zeros(len(best), dtype=np.uint32)
+        label = best[found]
+        ids[found] = assign_trees(self.model, batch.xyz[found], height[found],
+                                  self.canopy[label], self.stems[label], self.task.params)
+        reference = batch.fields.get(REFERENCE_TREE_ID)
+        if self.score and reference is not None:
+            self.pairs.append(pair_counts(reference[found], ids[found]))
+        return ids
+
+    def store_pairs(self, marker) -> None:
+        """Keep the tile's pair counts with its export mark (none: the tile has no
+        reference trees)."""
+        if self.score and self.pairs:
+            write_arrays(marker, {PAIRS: merge_pairs(self.pairs)})
+
+
+
+#: The reference trees of labelled tiles: a table beside them (as silva synth writes it).
+REFERENCE_TABLE = "trees.csv"
+
+
+def score_trees(run, layout: dict, found: dict) -> dict | None:
+    """Instance scores of the trees of the test tiles that carry a reference ``TreeID``, with
+    the height and DBH errors of the matched trees where a reference table (``trees.csv``
+    beside the tiles) gives them; None when no test tile has reference trees."""
+    root = run.store
+    tiles = [t for t in layout["tiles"] if t["scene"] == "test"]
+    parts = [read_array(root[f"exports/{t['index']}"], PAIRS) for t in tiles
+             if f"exports/{t['index']}/{PAIRS}" in root]
+    if not parts or "test" not in found:
+        return None
+    pairs = merge_pairs(parts)
+    scores = instance_scores(pairs)
+    reference = reference_table({Path(t["path"]).parent for t in tiles})
+    if reference is not None:
+        matches, _ = match_instances(pairs)
+        table = found["test"]["table"]
+        scores.update(matched_errors(matches, reference,
+                                     {name: table[name] for name in ("tree_id", "height", "dbh")}))
+    return scores
+
+
+def reference_table(directories) -> dict | None:
+    """The reference trees (``tree_id``, ``height``, ``dbh``) of the tables found in
+    ``directories``, or None."""
+    import csv
+
+    rows = []
+    for directory in sorted(directories):
+        path = Path(directory) / REFERENCE_TABLE
+        if path.is_file():
+            with open(path, newline="") as f:
+                rows += list(csv.DictReader(f))
+    if not rows:
+        return None
+    number = lambda v: float(v) if v not in ("", None) else np.nan  # noqa: E731
+    return {"tree_id": np.array([int(r["tree_id"]) for r in rows]),
+            "height": np.array([number(r.get("height")) for r in rows]),
+            "dbh": np.array([number(r.get("dbh")) for r in rows])}
