@@ -22,6 +22,7 @@ RANSAC draws from a fixed seed, so the same points in any order give the same st
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,11 +37,14 @@ CIRCLE_TOLERANCE = 0.02
 #: RANSAC draws per circle, from a fixed seed.
 RANSAC_TRIALS = 200
 RANSAC_SEED = 0
+#: What scikit-image's RANSAC says when no circle fits (an answer here, not a warning).
+RANSAC_NO_FIT = ("No inliers found", "Estimated model is not valid")
 #: A circle is credible when its inliers cover this share of ARC_SECTORS equal sectors
-#: (a quarter: one scanner sees about half a stem), are this share of the section's points,
-#: and scatter about it by at most this share of its radius (root mean square).
+#: (at least about 120 degrees: one scanner sees about half a stem, and a shorter arc leaves
+#: the radius loose), are this share of the section's points, and scatter about it by at
+#: most this share of its radius (root mean square).
 ARC_SECTORS = 16
-MIN_ARC_COVERAGE = 0.25
+MIN_ARC_COVERAGE = 0.375
 MIN_INLIER_SHARE = 0.5
 MAX_RELATIVE_RESIDUAL = 0.1
 #: ``sees_stems``: well-fitted stems per hectare of a scene whose stems are seen (measured in
@@ -128,9 +132,10 @@ def find_stems(points: np.ndarray, params: TreeParams) -> Stems:
     points = canonical(np.asarray(points, dtype=np.float64).reshape(-1, 4))
     labels = stem_clusters(points, params)
     order = np.argsort(labels, kind="stable")
+    # where each cluster 0..n-1 starts in ``order`` (the noise, -1, comes first)
     bounds = np.searchsorted(labels[order], np.arange(labels.max(initial=-1) + 2))
     rows = []
-    for start, stop in zip(bounds[1:-1], bounds[2:]):  # bounds[0]: noise (label -1)
+    for start, stop in zip(bounds[:-1], bounds[1:]):
         row = fit_stem(points[order[start:stop]], params)
         if row is not None:
             rows.append(row)
@@ -185,9 +190,12 @@ def fit_circle(xy: np.ndarray, params: TreeParams):
     def small_enough(model, *_):
         return 0.0 < model.radius <= params.max_dbh / 2.0
 
-    model, inliers = ransac(local, CircleModel, min_samples=3,
-                            residual_threshold=CIRCLE_TOLERANCE, max_trials=RANSAC_TRIALS,
-                            is_model_valid=small_enough, rng=RANSAC_SEED)
+    with warnings.catch_warnings():
+        for message in RANSAC_NO_FIT:
+            warnings.filterwarnings("ignore", message, UserWarning)
+        model, inliers = ransac(local, CircleModel, min_samples=3,
+                                residual_threshold=CIRCLE_TOLERANCE, max_trials=RANSAC_TRIALS,
+                                is_model_valid=small_enough, rng=RANSAC_SEED)
     if not model or inliers is None or not credible_circle(model, local, inliers, params):
         return None
     cx, cy = np.asarray(model.center, dtype=np.float64) + origin
