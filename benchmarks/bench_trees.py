@@ -2,6 +2,7 @@
 
     python benchmarks/bench_trees.py [--resolution R] [--smoothing S] [--window A B]
                                      [--peer-window W] [--png PATH]
+    python benchmarks/bench_trees.py --stems [--stem-png-dir DIR]
 
 The same patch scanned from an aircraft (ALS_Clip) and a drone (UAS_Clip); classes 2 ground,
 3-5 vegetation, 7 noise (dropped). There is no reference list of trees: the bench counts
@@ -11,6 +12,13 @@ top within 2 m). Heights are above the ground model of pipeline.terrain; the can
 beside a plain peer: lidR's documented ``lmf`` with a fixed circular window of
 ``--peer-window`` metres diameter and hmin = min_height, run with scikit-image on the same
 unsmoothed CHM. ``--png`` draws the ALS CHM with both sets of tops and the crown outlines.
+
+``--stems`` measures the stems instead: on synthetic plots (seeds SYNTH_SEEDS, the true tree
+class as the stem mask, heights above the ground model) the stems found against trees.csv
+(precision, recall, DBH RMSE of the matched stems); on the unclassified terrestrial plots
+TreeLS_pine_plot and tls/LPine1_demo (every point but ground and noise a candidate) the stems
+and their DBH; on the four scans of the patch what sees_stems says. ``--stem-png-dir`` draws
+each plot's breast-height section with the fitted circles.
 """
 
 import argparse
@@ -21,6 +29,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from pipeline.synth import SYNTH_CLASSES
 from pipeline.terrain import ground_elevation, terrain_model
 from pipeline.trees import (
     TreeParams,
@@ -32,6 +41,7 @@ from pipeline.trees import (
     tree_stats,
     tree_table,
 )
+from pipeline.trees.stems import QUALITY_GOOD, find_stems, sees_stems, stem_slice
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "trees"
 PLATFORMS = ("ALS_Clip.laz", "UAS_Clip.laz")
@@ -115,6 +125,125 @@ def draw(path, chm, table, crowns, peer) -> None:
     plt.close(fig)
 
 
+# --- stems ------------------------------------------------------------------------------------
+#: The terrestrial plots whose stems are counted and drawn (unclassified: every point but
+#: ground and noise is a stem candidate), and the scans of one patch sees_stems is asked about.
+STEM_PLOTS = (DATA / "TreeLS_pine_plot.laz", DATA.parent / "tls" / "LPine1_demo.laz")
+PLATFORM_CLIPS = ("ALS_Clip.laz", "UAS_Clip.laz", "TLS_Clip.laz", "MLS_Clip.laz")
+NOT_STEMS = (2, NOISE)  # ground and noise
+SYNTH_SEEDS = (0, 1, 2, 3, 4)
+STEM_MATCH = 0.3  # metres between a true stem base and a fitted centre counted as a match
+
+
+def stem_candidates(path: Path):
+    """xyz (N, 3), height above the ground model (N,) and the stem candidates (N,) bool."""
+    import laspy
+
+    las = laspy.read(path)
+    code = np.asarray(las.classification)
+    xyz = np.column_stack((las.x, las.y, las.z)).astype(np.float64)
+    height = xyz[:, 2] - ground_elevation(terrain_model(xyz).dtm, xyz[:, :2])
+    return xyz, height, ~np.isin(code, NOT_STEMS)
+
+
+def stems_table(stems) -> np.ndarray:
+    """The fitted stems as a table for pipeline.trees.instances (IDs 1..n, height unknown)."""
+    table = np.zeros(len(stems), dtype=[("tree_id", "u4"), ("x", "f8"), ("y", "f8"),
+                                        ("height", "f8"), ("dbh", "f8")])
+    table["tree_id"] = np.arange(1, len(stems) + 1)
+    table["x"], table["y"], table["dbh"] = stems.x, stems.y, stems.dbh
+    table["height"] = np.nan
+    return table
+
+
+def synthetic_stem_scores(params: TreeParams) -> None:
+    """Stems of synthetic plots (true tree class as the stem mask, heights above the ground
+    model) against their trees.csv truth: the trees standing inside the plot."""
+    from pipeline.synth import synthetic_scene
+    from pipeline.trees.instances import match_tables
+
+    print(f"{'seed':>4} {'trees':>6} {'stems':>6} {'good':>5} {'precision':>9} {'recall':>7} "
+          f"{'dbh rmse cm':>11} {'bias cm':>8}")
+    errors = []
+    for seed in SYNTH_SEEDS:
+        scene = synthetic_scene(seed)
+        xyz = scene.xyz
+        height = xyz[:, 2] - ground_elevation(terrain_model(xyz).dtm, xyz[:, :2])
+        stems = find_stems(stem_slice(xyz, height, scene.labels == SYNTH_CLASSES["tree"],
+                                      params), params)
+        ox, oy, _ = scene.origin
+        trees = scene.trees
+        truth = trees[(trees["x"] >= ox) & (trees["x"] < ox + scene.size)
+                      & (trees["y"] >= oy) & (trees["y"] < oy + scene.size)]
+        found = stems_table(stems)
+        matching = match_tables(truth, found, STEM_MATCH)
+        rows = np.searchsorted(truth["tree_id"], matching.true_ids)  # truth is sorted by ID
+        error = found["dbh"][matching.pred_ids - 1] - truth["dbh"][rows]
+        errors.append(error)
+        good = int(np.count_nonzero(stems.quality == QUALITY_GOOD))
+        print(f"{seed:4d} {len(truth):6d} {len(stems):6d} {good:5d} {matching.precision:9.2f} "
+              f"{matching.recall:7.2f} {100 * np.sqrt(np.mean(error**2)):11.2f} "
+              f"{100 * error.mean():8.2f}")
+    every = np.concatenate(errors)
+    print(f" all: {len(every)} matched stems, DBH RMSE {100 * np.sqrt(np.mean(every**2)):.2f} cm, "
+          f"bias {100 * every.mean():.2f} cm, largest error {100 * np.abs(every).max():.1f} cm")
+
+
+def draw_stems(path, points: np.ndarray, stems, title: str) -> None:
+    """The breast-height section of a slice seen from above, with the fitted circles."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle
+
+    section = points[np.abs(points[:, 3] - 1.3) <= 0.15]
+    fig, ax = plt.subplots(figsize=(8, 8))
+    ax.scatter(section[:, 0], section[:, 1], s=0.3, c="0.4")
+    for x, y, dbh, quality in zip(stems.x, stems.y, stems.dbh, stems.quality):
+        colour = "red" if quality == QUALITY_GOOD else "orange"
+        ax.add_patch(Circle((x, y), dbh / 2, fill=False, color=colour, lw=1.2))
+        ax.annotate(f"{100 * dbh:.0f}", (x, y), color=colour, fontsize=7)
+    ax.set_aspect("equal")
+    ax.set_title(f"{title}: 1.15-1.45 m section, circles (red 1.3 m, orange fallback; cm)")
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+
+
+def stems_main(params: TreeParams, png_dir: Path | None) -> int:
+    """The stems section: synthetic truth, real terrestrial plots, sees_stems per platform."""
+    print(params)
+    synthetic_stem_scores(params)
+    print(f"{'plot':18} {'points':>8} {'slice':>6} {'stems':>6} {'good':>5} "
+          f"{'dbh cm p10 p50 p90':>18} {'max':>5} {'time s':>7}")
+    for path in STEM_PLOTS:
+        if not path.is_file():
+            print(f"{path.name}: absent")
+            continue
+        xyz, height, mask = stem_candidates(path)
+        start = time.perf_counter()
+        points = stem_slice(xyz, height, mask, params)
+        stems = find_stems(points, params)
+        seconds = time.perf_counter() - start
+        dbh = 100 * np.percentile(stems.dbh, [10, 50, 90, 100]) if len(stems) else [np.nan] * 4
+        good = int(np.count_nonzero(stems.quality == QUALITY_GOOD))
+        print(f"{path.stem:18} {len(xyz):8d} {len(points):6d} {len(stems):6d} {good:5d} "
+              f"{dbh[0]:6.0f}{dbh[1]:6.0f}{dbh[2]:6.0f} {dbh[3]:5.0f} {seconds:7.2f}")
+        if png_dir is not None:
+            draw_stems(png_dir / f"stems-{path.stem}.png", points, stems, path.stem)
+    for name in PLATFORM_CLIPS:
+        xyz, height, mask = stem_candidates(DATA / name)
+        area = float(np.ptp(xyz[:, 0]) * np.ptp(xyz[:, 1]))
+        points = stem_slice(xyz, height, mask, params)
+        stems = find_stems(points, params)
+        good = int(np.count_nonzero(stems.quality == QUALITY_GOOD))
+        print(f"{name:14} stems {len(stems):3d}, at 1.3 m {good:3d} ({good / area * 1e4:5.0f} "
+              f"per ha): sees_stems {sees_stems(points, area, params)}")
+        if png_dir is not None:
+            draw_stems(png_dir / f"stems-{Path(name).stem}.png", points, stems, name)
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     defaults = TreeParams()
@@ -124,7 +253,16 @@ def main(argv=None) -> int:
                         metavar=("A", "B"), help="tops' window diameter A + B * height (m)")
     parser.add_argument("--peer-window", type=float, default=3.0)
     parser.add_argument("--png", type=Path, default=None)
+    parser.add_argument("--stems", action="store_true",
+                        help="measure the stems instead (synthetic truth, terrestrial plots)")
+    parser.add_argument("--stem-png-dir", type=Path, default=None,
+                        help="draw each plot's section and circles as stems-<plot>.png here")
     args = parser.parse_args(argv)
+    if args.stems:
+        if not DATA.is_dir():
+            print(f"no data at {DATA}: nothing to measure", file=sys.stderr)
+            return 0
+        return stems_main(TreeParams(method="stems"), args.stem_png_dir)
     params = TreeParams(method="crowns", resolution=args.resolution, smoothing=args.smoothing,
                         window=tuple(args.window))
     if not DATA.is_dir():

@@ -90,23 +90,26 @@ def _concatenate(arrays: list, dtype, width: int | None = None) -> np.ndarray:
 
 
 def scan(rng, parts, layout: Layout):
-    """Scan every part: (xyz (N, 3) local, labels (N,) uint8, recording scanner (N,) int32).
+    """Scan every part (points, code, tree ID): xyz (N, 3) local, labels (N,) uint8, tree IDs
+    (N,) uint32 and the recording scanner (N,) int32.
 
-    Memory: the recorded samples once (float64 xyz, 29 bytes per sample in all) plus one
+    Memory: the recorded samples once (float64 xyz, 33 bytes per sample in all) plus one
     batch; occlusion and noise work in place on them.
     """
     scanners = layout.scanners
     kd = cKDTree(scanners)
-    kept, labels, owner = [], [], []
-    for points, code in parts:
+    kept, labels, trees, owner = [], [], [], []
+    for points, code, tree_id in parts:
         for start in range(0, len(points), BATCH):
             batch = points[start : start + BATCH]
             keep, which = capture(rng, batch, scanners, kd)
             kept.append(batch[keep])
             owner.append(which[keep].astype(np.int32))
             labels.append(np.full(int(keep.sum()), code, dtype=np.uint8))
+            trees.append(np.full(int(keep.sum()), tree_id, dtype=np.uint32))
     xyz = _concatenate(kept, np.float64, 3)
     labels = _concatenate(labels, np.uint8)
+    trees = _concatenate(trees, np.uint32)
     owner = _concatenate(owner, np.int32)
 
     # Occlusion: each scanner against the stems, testing only the samples in the sector of
@@ -151,6 +154,7 @@ def scan(rng, parts, layout: Layout):
         n = int(inside.sum())
         xyz[n_out : n_out + n] = batch[inside]
         labels[n_out : n_out + n] = labels[sel][inside]
+        trees[n_out : n_out + n] = trees[sel][inside]
         owner[n_out : n_out + n] = who[inside]
         n_out += n
-    return xyz[:n_out], labels[:n_out], owner[:n_out]
+    return xyz[:n_out], labels[:n_out], trees[:n_out], owner[:n_out]

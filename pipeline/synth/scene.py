@@ -14,6 +14,7 @@ from pipeline.synth.params import DEFAULT_ORIGIN, DEFAULT_SIZE, MAX_SIZE, MIN_SI
 from pipeline.synth.scanner import scan
 from pipeline.synth.surfaces import sample_surfaces
 from pipeline.synth.terrain import Terrain
+from pipeline.synth.truth import tree_truth
 
 log = logging.getLogger(__name__)
 
@@ -25,7 +26,10 @@ class SynthScene:
     ``xyz`` is (N, 3) float64 in the projected CRS, ``labels`` (N,) uint8 LAS codes from
     :data:`SYNTH_CLASSES`, ``scanners`` (K, 3) float64 the scan positions (same CRS),
     ``stems`` (M, 4) float64 the standing stems (trees and snags, also those just outside the
-    plot): x, y, z of the axis at its base and the radius 1.3 m above it.
+    plot): x, y, z of the axis at its base and the radius 1.3 m above it. ``tree_ids`` (N,)
+    uint32 is the living tree each point belongs to (0: terrain, dead wood including snags,
+    shrubs, rocks) and ``trees`` their truth (:data:`~pipeline.synth.truth.TRUTH_DTYPE`, one
+    row per ID found in ``tree_ids``).
     """
 
     xyz: np.ndarray
@@ -36,6 +40,8 @@ class SynthScene:
     origin: tuple[float, float, float]
     size: float
     seed: int
+    tree_ids: np.ndarray
+    trees: np.ndarray
 
     def ground_height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """True ground height (CRS metres) under CRS coordinates ``x``, ``y`` (same shape)."""
@@ -53,10 +59,11 @@ def synthetic_scene(
     Same ``seed``, same points and labels; a different seed gives a different plot.
     """
     seed, size, origin = check_plot_args(seed, size, origin)
-    xyz, labels, order, layout = scanned_plot(seed, size)
+    xyz, labels, ids, order, layout = scanned_plot(seed, size)
     xyz = xyz[order]
     xyz += np.asarray(origin)
     labels = labels[order]
+    ids = ids[order]
     return SynthScene(
         xyz=xyz,
         labels=labels,
@@ -67,24 +74,26 @@ def synthetic_scene(
         origin=origin,
         size=size,
         seed=seed,
+        tree_ids=ids,
+        trees=tree_truth(layout, origin, np.unique(ids[ids > 0])),
     )
 
 
 def scanned_plot(seed: int, size: float):
     """The scanned points of a plot before they are shuffled, and the shuffle.
 
-    Returns xyz (N, 3) float64 in the local frame, labels (N,) uint8, ``order`` (N,) int64
-    (the plot's points are ``xyz[order] + origin``, ``labels[order]``: no spatial or per-class
-    order in the output) and the :class:`~pipeline.synth.layout.Layout`. Arguments are
-    trusted (see :func:`check_plot_args`). Memory: about 37 bytes per point.
+    Returns xyz (N, 3) float64 in the local frame, labels (N,) uint8, tree IDs (N,) uint32,
+    ``order`` (N,) int64 (the plot's points are ``xyz[order] + origin``, ``labels[order]``: no
+    spatial or per-class order in the output) and the :class:`~pipeline.synth.layout.Layout`. Arguments are
+    trusted (see :func:`check_plot_args`). Memory: about 41 bytes per point.
     """
     rng = np.random.default_rng(seed)
     layout = random_layout(rng, size)
     parts = sample_surfaces(rng, layout)
-    xyz, labels, _ = scan(rng, parts, layout)
+    xyz, labels, ids, _ = scan(rng, parts, layout)
     order = rng.permutation(len(xyz))
     log.debug("synthetic plot seed=%d size=%.1f m: %d points", seed, size, len(xyz))
-    return xyz, labels, order, layout
+    return xyz, labels, ids, order, layout
 
 
 def synthetic_plot(

@@ -218,7 +218,11 @@ def _inside_solids(points: np.ndarray, layout: Layout) -> np.ndarray:
 
 
 def sample_surfaces(rng, layout: Layout):
-    """Uniform candidate samples of every object as (points (n, 3), LAS code) pairs."""
+    """Uniform candidate samples of every object as (points (n, 3), LAS code, tree ID).
+
+    The tree ID (see :func:`tree_ids`) is that of the living tree the points belong to, 0 for
+    every other object.
+    """
     size, terrain, density = layout.size, layout.terrain, BASE_DENSITY
     codes = SYNTH_CLASSES
 
@@ -230,14 +234,23 @@ def sample_surfaces(rng, layout: Layout):
         return points[keep]
 
     for part in terrain_surface(rng, terrain, size, density):
-        yield part[~_inside_solids(part, layout)], codes["terrain"]
-    for tree in layout.trees:
-        yield inside(_tree_surfaces(rng, tree, density), True), codes["tree"]
+        yield part[~_inside_solids(part, layout)], codes["terrain"], 0
+    for tree, tree_id in zip(layout.trees, tree_ids(layout)):
+        yield inside(_tree_surfaces(rng, tree, density), True), codes["tree"], tree_id
     for stem, jag in layout.snags:
-        yield inside(_snag_surface(rng, stem, jag, density), True), codes["dead_wood"]
+        yield inside(_snag_surface(rng, stem, jag, density), True), codes["dead_wood"], 0
     for item in layout.logs + layout.fallen:
-        yield inside(_lying_surface(rng, item, density), True), codes["dead_wood"]
+        yield inside(_lying_surface(rng, item, density), True), codes["dead_wood"], 0
     for shrub in layout.shrubs:
-        yield inside(_shrub_surface(rng, shrub, terrain, density), True), codes["misc"]
+        yield inside(_shrub_surface(rng, shrub, terrain, density), True), codes["misc"], 0
     for rock in layout.rocks:
-        yield inside(_rock_surface(rng, rock, density), True), codes["misc"]
+        yield inside(_rock_surface(rng, rock, density), True), codes["misc"], 0
+
+
+def tree_ids(layout: Layout) -> np.ndarray:
+    """uint32 (T,) the tree ID of each of ``layout.trees``: 1..T in placement order.
+
+    Only living trees are instances: a snag is dead wood (its points are of that class, as
+    a field inventory of living trees would leave it out), so its points have the ID 0.
+    """
+    return np.arange(1, len(layout.trees) + 1, dtype=np.uint32)

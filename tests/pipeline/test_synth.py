@@ -214,3 +214,50 @@ def test_writing_again_overwrites_and_another_tiling_is_refused(tmp_path):
         write_synthetic_plot(tmp_path, seed=7, size=8.0, tile_size=8.0)
     with pytest.raises(ConfigError, match="tile_size"):
         write_synthetic_plot(tmp_path / "x", seed=7, size=8.0, tile_size=0.0)
+
+
+def test_every_tree_point_and_only_those_carry_a_tree_id(scene):
+    is_tree = scene.labels == TREE
+    assert scene.tree_ids.dtype == np.uint32 and scene.tree_ids.shape == scene.labels.shape
+    assert np.all(scene.tree_ids[is_tree] > 0)
+    assert np.all(scene.tree_ids[~is_tree] == 0)  # snags are dead wood, in no tree
+    assert np.array_equal(np.unique(scene.tree_ids[is_tree]), scene.trees["tree_id"])
+    assert len(scene.trees) >= 5
+
+
+def test_true_dbh_is_the_bark_circle_at_breast_height(scene):
+    """Each tree's DBH equals the circle fitted to its bark points 1.15-1.45 m above the
+    ground under its base (a least-squares circle, independent of the stem model)."""
+    checked = 0
+    for tree in scene.trees:
+        xyz = scene.xyz[scene.tree_ids == tree["tree_id"]]
+        rel = xyz[:, 2] - tree["z"]
+        near = np.hypot(xyz[:, 0] - tree["x"], xyz[:, 1] - tree["y"]) < tree["dbh"]
+        ring = xyz[(np.abs(rel - 1.3) < 0.15) & near, :2] - [tree["x"], tree["y"]]
+        if len(ring) < 20:
+            continue  # a tree standing outside the plot shows only its crown
+        # x^2 + y^2 = 2 a x + 2 b y + c, r^2 = c + a^2 + b^2
+        design = np.column_stack((2 * ring, np.ones(len(ring))))
+        (a, b, c), *_ = np.linalg.lstsq(design, (ring**2).sum(axis=1), rcond=None)
+        assert np.sqrt(c + a * a + b * b) * 2 == pytest.approx(tree["dbh"], abs=0.006)
+        assert tree["height"] > 7.5 and tree["dbh"] < 0.5
+        checked += 1
+    assert checked >= 5
+
+
+def test_tiles_carry_the_tree_ids_and_trees_csv_their_truth(tmp_path):
+    from pipeline.io import read_points
+
+    seed, size = 5, 12.0
+    scene = synthetic_scene(seed, size)
+    paths = write_synthetic_plot(tmp_path, seed=seed, size=size, tile_size=6.0)
+    batches = [read_points(p, fields=("classification", "TreeID")) for p in paths]
+    xyz = np.concatenate([b.xyz for b in batches])
+    ids = np.concatenate([b.fields["TreeID"] for b in batches])
+    _, idx = cKDTree(scene.xyz).query(xyz)
+    assert np.array_equal(ids, scene.tree_ids[idx])
+    table = np.genfromtxt(tmp_path / "trees.csv", delimiter=",", names=True)
+    assert table.dtype.names == ("tree_id", "x", "y", "z", "height", "dbh")
+    assert np.array_equal(table["tree_id"].astype(np.uint32), np.unique(ids[ids > 0]))
+    for name in table.dtype.names[1:]:
+        assert np.allclose(table[name], scene.trees[name], rtol=0, atol=5.1e-5)

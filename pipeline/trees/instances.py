@@ -1,0 +1,131 @@
+"""Scores of found trees against true ones: point instances, tree tables, height and DBH errors.
+
+Two ways to pair predicted trees with true trees, both one-to-one:
+
+- :func:`match_instances` compares the tree IDs of the same points (0 = in no tree on either
+  side): a predicted tree matches a true tree when their point sets overlap with an
+  intersection over union above 0.5. Above 0.5 each tree can overlap so much with one other
+  tree only, so the matching is unique without any assignment step.
+- :func:`match_tables` compares two tables of trees (as against a field inventory): a pair is
+  possible when the tops (or stem bases) lie within ``max_distance`` in XY and, where both
+  heights are known, the heights differ by at most ``height_tolerance`` of the true height;
+  the most pairs, then the smallest total distance, by ``scipy.optimize.linear_sum_assignment``.
+
+A :class:`Matching` gives instance precision, recall and F1; :func:`matched_errors` gives the
+RMSE and bias (predicted minus true) of the matched trees' heights and DBH.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+#: Overlap above which a predicted tree's points are a true tree's (a unique match).
+MIN_IOU = 0.5
+
+
+@dataclass(frozen=True)
+class Matching:
+    """Pairs of true and predicted trees.
+
+    true_ids, pred_ids uint32 (k,) the matched trees' IDs, by ascending true ID; score
+    float64 (k,) the pair's IoU (instances) or XY distance in metres (tables); n_true, n_pred
+    the trees on each side.
+    """
+
+    true_ids: np.ndarray
+    pred_ids: np.ndarray
+    score: np.ndarray
+    n_true: int
+    n_pred: int
+
+    @property
+    def precision(self) -> float:
+        """Share of the predicted trees matched (NaN without predicted trees)."""
+        return len(self.true_ids) / self.n_pred if self.n_pred else float("nan")
+
+    @property
+    def recall(self) -> float:
+        """Share of the true trees matched (NaN without true trees)."""
+        return len(self.true_ids) / self.n_true if self.n_true else float("nan")
+
+    @property
+    def f1(self) -> float:
+        total = self.n_true + self.n_pred
+        return 2.0 * len(self.true_ids) / total if total else float("nan")
+
+
+def match_instances(true_ids: np.ndarray, pred_ids: np.ndarray) -> Matching:
+    """Match the trees of two labellings of the same points (integer (N,) each, 0 = none) on
+    an intersection over union above MIN_IOU."""
+    true_ids = np.asarray(true_ids).reshape(-1).astype(np.uint64)
+    pred_ids = np.asarray(pred_ids).reshape(-1).astype(np.uint64)
+    if true_ids.shape != pred_ids.shape:
+        raise ValueError(f"true_ids and pred_ids must label the same points, got "
+                         f"{true_ids.shape[0]} and {pred_ids.shape[0]} labels")
+    true_trees, true_sizes = np.unique(true_ids[true_ids > 0], return_counts=True)
+    pred_trees, pred_sizes = np.unique(pred_ids[pred_ids > 0], return_counts=True)
+    both = (true_ids > 0) & (pred_ids > 0)
+    pairs, shared = np.unique((true_ids[both] << np.uint64(32)) | pred_ids[both],
+                              return_counts=True)
+    t, p = pairs >> np.uint64(32), pairs & np.uint64(0xFFFFFFFF)
+    union = (true_sizes[np.searchsorted(true_trees, t)]
+             + pred_sizes[np.searchsorted(pred_trees, p)] - shared)
+    iou = shared / union
+    keep = iou > MIN_IOU
+    return Matching(true_ids=t[keep].astype(np.uint32), pred_ids=p[keep].astype(np.uint32),
+                    score=iou[keep], n_true=len(true_trees), n_pred=len(pred_trees))
+
+
+def match_tables(true_table: np.ndarray, pred_table: np.ndarray, max_distance: float,
+                 height_tolerance: float | None = None) -> Matching:
+    """Match two tree tables (structured arrays with ``tree_id``, ``x``, ``y`` and, for the
+    height rule, ``height``) one-to-one: the most pairs within ``max_distance`` metres in XY
+    (and with |predicted - true| height <= height_tolerance * true height where both are
+    known, when ``height_tolerance`` is given), then the smallest total distance."""
+    distance = np.hypot(true_table["x"][:, None] - pred_table["x"][None, :],
+                        true_table["y"][:, None] - pred_table["y"][None, :])
+    allowed = distance <= max_distance
+    if height_tolerance is not None:
+        true_h, pred_h = true_table["height"][:, None], pred_table["height"][None, :]
+        with np.errstate(invalid="ignore"):
+            close = np.abs(pred_h - true_h) <= height_tolerance * true_h
+        allowed &= close | np.isnan(true_h) | np.isnan(pred_h)
+    # A refused pair costs more than any set of allowed pairs: the most pairs come first.
+    refused = max_distance * (min(distance.shape) + 1) + 1.0
+    rows, cols = linear_sum_assignment(np.where(allowed, distance, refused))
+    ok = allowed[rows, cols]
+    rows, cols = rows[ok], cols[ok]
+    order = np.argsort(true_table["tree_id"][rows], kind="stable")
+    rows, cols = rows[order], cols[order]
+    return Matching(true_ids=true_table["tree_id"][rows].astype(np.uint32),
+                    pred_ids=pred_table["tree_id"][cols].astype(np.uint32),
+                    score=distance[rows, cols], n_true=len(true_table), n_pred=len(pred_table))
+
+
+def matched_errors(matching: Matching, true_table: np.ndarray, pred_table: np.ndarray,
+                   columns=("height", "dbh")) -> dict[str, dict[str, float]]:
+    """RMSE and bias (mean of predicted - true) of ``columns`` over the matched trees whose
+    value is known on both sides: ``{column: {"rmse", "bias", "n"}}`` (NaN when n is 0)."""
+    true_rows = _rows_of(true_table, matching.true_ids)
+    pred_rows = _rows_of(pred_table, matching.pred_ids)
+    errors = {}
+    for name in columns:
+        diff = (np.asarray(pred_table[name], np.float64)[pred_rows]
+                - np.asarray(true_table[name], np.float64)[true_rows])
+        diff = diff[np.isfinite(diff)]
+        n = int(diff.shape[0])
+        errors[name] = {"rmse": float(np.sqrt(np.mean(diff**2))) if n else float("nan"),
+                        "bias": float(np.mean(diff)) if n else float("nan"), "n": n}
+    return errors
+
+
+def _rows_of(table: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """int64 rows of ``table`` holding the tree IDs ``ids`` (each present once)."""
+    order = np.argsort(table["tree_id"], kind="stable")
+    rows = order[np.searchsorted(table["tree_id"], ids, sorter=order)]
+    if not np.array_equal(table["tree_id"][rows], ids):
+        raise ValueError("a matched tree ID is missing from its table")
+    return rows

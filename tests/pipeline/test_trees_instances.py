@@ -1,0 +1,118 @@
+"""Instance scores: IoU matching of point IDs, table matching, height and DBH errors."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from pipeline.trees.instances import match_instances, match_tables, matched_errors
+
+TABLE = [("tree_id", "u4"), ("x", "f8"), ("y", "f8"), ("height", "f8"), ("dbh", "f8")]
+
+
+def table(rows):
+    return np.array([tuple(r) for r in rows], dtype=TABLE)
+
+
+def test_hand_made_instances():
+    true = [0, 1, 1, 1, 2, 2, 0, 3, 0]
+    pred = [0, 5, 5, 0, 7, 7, 7, 9, 9]  # 1~5 (2/3), 2~7 (2/3), 3~9 (1/2: not above 0.5)
+    m = match_instances(true, pred)
+    assert m.true_ids.tolist() == [1, 2] and m.pred_ids.tolist() == [5, 7]
+    assert np.allclose(m.score, [2 / 3, 2 / 3])
+    assert (m.n_true, m.n_pred) == (3, 3)
+    assert m.precision == m.recall == m.f1 == pytest.approx(2 / 3)
+    with pytest.raises(ValueError, match="same points"):
+        match_instances([1, 2], [1])
+    empty = match_instances([0, 0], [0, 0])
+    assert len(empty.true_ids) == 0 and np.isnan(empty.precision) and np.isnan(empty.f1)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_instances_equal_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 60))
+    true = rng.integers(0, 5, n)
+    pred = np.where(rng.random(n) < 0.7, true * 10 + 3, rng.integers(0, 40, n))
+    pred[true == 0] = np.where(rng.random(int((true == 0).sum())) < 0.5, 0, 3)
+    expected = []
+    for t in sorted(set(true.tolist()) - {0}):
+        for p in sorted(set(pred.tolist()) - {0}):
+            inter = np.sum((true == t) & (pred == p))
+            union = np.sum((true == t) | (pred == p))
+            if inter / union > 0.5:
+                expected.append((t, p, inter / union))
+    m = match_instances(true, pred)
+    assert list(zip(m.true_ids.tolist(), m.pred_ids.tolist())) == [e[:2] for e in expected]
+    assert np.allclose(m.score, [e[2] for e in expected])
+    assert len(set(m.pred_ids.tolist())) == len(m.pred_ids)  # one-to-one
+    assert m.n_true == len(set(true.tolist()) - {0})
+    assert m.n_pred == len(set(pred.tolist()) - {0})
+
+
+def brute_force_tables(truth, found, max_distance, tolerance):
+    """(pairs, total distance) of the best matching: most pairs, then least distance."""
+    best = (0, 0.0, [])
+    n, m = len(truth), len(found)
+    for k in range(min(n, m), 0, -1):
+        for rows in itertools.combinations(range(n), k):
+            for cols in itertools.permutations(range(m), k):
+                d = [np.hypot(truth["x"][r] - found["x"][c], truth["y"][r] - found["y"][c])
+                     for r, c in zip(rows, cols)]
+                ok = all(di <= max_distance for di in d) and all(
+                    abs(found["height"][c] - truth["height"][r]) <= tolerance
+                    * truth["height"][r] for r, c in zip(rows, cols))
+                if ok and (k > best[0] or (k == best[0] and sum(d) < best[1] - 1e-12)):
+                    best = (k, sum(d), sorted(zip(rows, cols)))
+        if best[0] == k:
+            break
+    return best
+
+
+@pytest.mark.parametrize("seed", range(15))
+def test_tables_equal_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    n, m = (int(v) for v in rng.integers(1, 6, 2))
+    truth = table([(i + 1, *rng.uniform(0, 3, 2), rng.uniform(10, 20), 0.3)
+                   for i in range(n)])
+    found = table([(50 - i, *rng.uniform(0, 3, 2), rng.uniform(10, 20), 0.3)
+                   for i in range(m)])
+    k, total, pairs = brute_force_tables(truth, found, 1.5, 0.2)
+    got = match_tables(truth, found, 1.5, height_tolerance=0.2)
+    assert len(got.true_ids) == k
+    assert got.score.sum() == pytest.approx(total)
+    assert got.precision == k / m and got.recall == k / n
+    assert np.all(np.diff(got.true_ids.astype(int)) > 0)
+    if k:
+        assert np.all(got.score <= 1.5)
+
+
+def test_table_rules_distance_height_and_unknown_heights():
+    truth = table([(1, 0.0, 0.0, 20.0, 0.30), (2, 5.0, 0.0, 10.0, 0.20)])
+    found = table([(8, 0.4, 0.0, 19.0, 0.32), (9, 5.2, 0.0, 14.0, np.nan)])
+    both = match_tables(truth, found, 1.0)
+    assert both.true_ids.tolist() == [1, 2] and both.pred_ids.tolist() == [8, 9]
+    assert np.allclose(both.score, [0.4, 0.2])
+    strict = match_tables(truth, found, 1.0, height_tolerance=0.3)  # 14 m is 40 % above 10
+    assert strict.true_ids.tolist() == [1]
+    assert match_tables(truth, found, 0.3).true_ids.tolist() == [2]
+    found["height"][1] = np.nan  # an unknown height does not refuse the pair
+    assert match_tables(truth, found, 1.0, height_tolerance=0.3).true_ids.tolist() == [1, 2]
+    # one found tree between two true trees goes to the nearer one
+    one = match_tables(truth, table([(3, 3.0, 0.0, 15.0, 0.3)]), 3.5)
+    assert one.true_ids.tolist() == [2] and one.recall == 0.5 and one.precision == 1.0
+
+
+def test_errors_of_the_matched_trees():
+    truth = table([(1, 0, 0, 20.0, 0.30), (2, 5, 0, 10.0, 0.20), (3, 9, 9, 15.0, 0.25)])
+    found = table([(7, 0, 0, 21.0, 0.34), (8, 5, 0, 8.0, np.nan), (9, 30, 30, 5.0, 0.1)])
+    errors = matched_errors(match_tables(truth, found, 0.5), truth, found)
+    assert errors["height"]["n"] == 2
+    assert errors["height"]["rmse"] == pytest.approx(np.sqrt((1 + 4) / 2))
+    assert errors["height"]["bias"] == pytest.approx(-0.5)
+    assert errors["dbh"]["n"] == 1  # the NaN DBH is left out
+    assert errors["dbh"]["rmse"] == pytest.approx(0.04) and errors["dbh"]["bias"] == pytest.approx(
+        0.04)
+    far = found[2:]  # the tree at (30, 30) only
+    none = matched_errors(match_tables(truth, far, 0.5), truth, far, ("dbh",))
+    assert none["dbh"]["n"] == 0 and np.isnan(none["dbh"]["rmse"])
