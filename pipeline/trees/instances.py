@@ -60,23 +60,54 @@ class Matching:
 def match_instances(true_ids: np.ndarray, pred_ids: np.ndarray) -> Matching:
     """Match the trees of two labellings of the same points (integer (N,) each, 0 = none) on
     an intersection over union above MIN_IOU."""
-    true_ids = np.asarray(true_ids).reshape(-1).astype(np.uint64)
-    pred_ids = np.asarray(pred_ids).reshape(-1).astype(np.uint64)
+    true_ids = np.asarray(true_ids).reshape(-1)
+    pred_ids = np.asarray(pred_ids).reshape(-1)
     if true_ids.shape != pred_ids.shape:
         raise ValueError(f"true_ids and pred_ids must label the same points, got "
                          f"{true_ids.shape[0]} and {pred_ids.shape[0]} labels")
-    true_trees, true_sizes = np.unique(true_ids[true_ids > 0], return_counts=True)
-    pred_trees, pred_sizes = np.unique(pred_ids[pred_ids > 0], return_counts=True)
-    both = (true_ids > 0) & (pred_ids > 0)
-    pairs, shared = np.unique((true_ids[both] << np.uint64(32)) | pred_ids[both],
-                              return_counts=True)
-    t, p = pairs >> np.uint64(32), pairs & np.uint64(0xFFFFFFFF)
-    union = (true_sizes[np.searchsorted(true_trees, t)]
-             + pred_sizes[np.searchsorted(pred_trees, p)] - shared)
-    iou = shared / union
+    return match_pairs(pair_counts(true_ids, pred_ids))
+
+
+def pair_counts(true_ids: np.ndarray, pred_ids: np.ndarray) -> np.ndarray:
+    """int64 (K, 3): each (true ID, predicted ID) pair of the points and its point count;
+    what :func:`match_pairs` needs, summed over batches by :func:`merge_pairs`."""
+    keys = ((np.asarray(true_ids).astype(np.uint64) << np.uint64(32))
+            | np.asarray(pred_ids).astype(np.uint64))
+    pairs, counts = np.unique(keys, return_counts=True)
+    return np.column_stack([(pairs >> np.uint64(32)).astype(np.int64),
+                            (pairs & np.uint64(0xFFFFFFFF)).astype(np.int64),
+                            counts.astype(np.int64)])
+
+
+def merge_pairs(parts) -> np.ndarray:
+    """The pair counts of several batches of points (:func:`pair_counts`) as one, exact in
+    any order."""
+    pairs = np.concatenate([np.asarray(p, np.int64).reshape(-1, 3) for p in parts]
+                           or [np.empty((0, 3), np.int64)])
+    keys, inverse = np.unique(pairs[:, :2], axis=0, return_inverse=True)
+    counts = np.zeros(keys.shape[0], dtype=np.int64)
+    np.add.at(counts, inverse.reshape(-1), pairs[:, 2])
+    return np.column_stack([keys.reshape(-1, 2), counts])
+
+
+def match_pairs(pairs: np.ndarray) -> Matching:
+    """:func:`match_instances` from the points counted per (true ID, predicted ID) pair."""
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 3)
+    true_trees, true_at = np.unique(pairs[:, 0], return_inverse=True)
+    pred_trees, pred_at = np.unique(pairs[:, 1], return_inverse=True)
+    true_sizes = np.bincount(true_at.reshape(-1), weights=pairs[:, 2])
+    pred_sizes = np.bincount(pred_at.reshape(-1), weights=pairs[:, 2])
+    both = (pairs[:, 0] > 0) & (pairs[:, 1] > 0)
+    shared = pairs[both, 2].astype(np.float64)
+    iou = shared / (true_sizes[true_at.reshape(-1)[both]] + pred_sizes[pred_at.reshape(-1)[both]]
+                    - shared)
     keep = iou > MIN_IOU
-    return Matching(true_ids=t[keep].astype(np.uint32), pred_ids=p[keep].astype(np.uint32),
-                    score=iou[keep], n_true=len(true_trees), n_pred=len(pred_trees))
+    matched = pairs[both][keep]
+    order = np.argsort(matched[:, 0], kind="stable")
+    return Matching(true_ids=matched[order, 0].astype(np.uint32),
+                    pred_ids=matched[order, 1].astype(np.uint32), score=iou[keep][order],
+                    n_true=int(np.count_nonzero(true_trees > 0)),
+                    n_pred=int(np.count_nonzero(pred_trees > 0)))
 
 
 def match_tables(true_table: np.ndarray, pred_table: np.ndarray, max_distance: float,

@@ -13,7 +13,7 @@ merged exactly by :func:`merge_stats`) always agree.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from pipeline.errors import ModelError
 from pipeline.trees.cells import cell_keys, highest_first
 from pipeline.trees.crowns import Crowns
+from pipeline.trees.graph import VoxelTrees
 from pipeline.trees.params import TreeParams
 
 if TYPE_CHECKING:
@@ -59,6 +60,7 @@ class TreeModel:
     stem_radius: np.ndarray
     dbh: np.ndarray
     dbh_quality: np.ndarray
+    voxels: VoxelTrees | None = None  # the trees grown from their stems (terrestrial)
 
     def __len__(self) -> int:
         return int(self.crown_cells.shape[0])
@@ -66,7 +68,11 @@ class TreeModel:
     def to_arrays(self) -> tuple[dict[str, np.ndarray], dict[str, float]]:
         """The model as named arrays and a dict of plain floats (e.g. for zarr)."""
         arrays = {"labels": self.labels, **{name: getattr(self, name) for name in TREE_ARRAYS}}
-        return arrays, {"x0": float(self.x0), "y0": float(self.y0), "cell": float(self.cell)}
+        attrs = {"x0": float(self.x0), "y0": float(self.y0), "cell": float(self.cell)}
+        if self.voxels is not None:
+            voxel_arrays, voxel_attrs = self.voxels.to_arrays()
+            arrays, attrs = {**arrays, **voxel_arrays}, {**attrs, **voxel_attrs}
+        return arrays, attrs
 
     @classmethod
     def from_arrays(cls, arrays, attrs) -> TreeModel:
@@ -82,7 +88,8 @@ class TreeModel:
         if len({v.shape for v in values.values()}) != 1 or labels.ndim != 2:
             raise ModelError("the stored tree model's arrays do not fit together; run the "
                              "tree step again")
-        return cls(labels, **grid, **values)
+        voxels = VoxelTrees.from_arrays(arrays, attrs) if "voxel_keys" in arrays else None
+        return cls(labels, **grid, **values, voxels=voxels)
 
 
 def _label_at(labels: np.ndarray, x0: float, y0: float, cell: float,
@@ -195,6 +202,12 @@ def assign_trees(model: TreeModel, xyz: np.ndarray, height: np.ndarray, canopy: 
     """
     xyz = np.asarray(xyz, dtype=np.float64)
     ids = np.zeros(xyz.shape[0], dtype=np.uint32)
+    if model.voxels is not None:  # grown from the stems: a tree point's voxel tells
+        trees = np.asarray(canopy, bool) | (False if stem_mask is None
+                                            else np.asarray(stem_mask, bool))
+        at = np.flatnonzero(trees & (np.asarray(height, np.float64) >= 0.0))
+        ids[at] = model.voxels.lookup(xyz[at])
+        return ids
     tall = np.flatnonzero(np.asarray(canopy, bool) & (np.asarray(height) >= params.min_height))
     ids[tall] = _label_at(model.labels, model.x0, model.y0, model.cell, xyz[tall, :2])
     if stem_mask is not None:
@@ -273,3 +286,24 @@ def tree_table(model: TreeModel, stats: TreeStats) -> np.ndarray:
     table["crown_area"], table["crown_diameter"] = area, 2.0 * np.sqrt(area / np.pi)
     table["dbh"], table["dbh_quality"] = model.dbh, model.dbh_quality
     return table
+
+
+def with_voxels(model: TreeModel, voxels: VoxelTrees) -> TreeModel:
+    """``model`` whose points go to the trees of ``voxels`` (grown from the stems), and whose
+    crowns are those trees seen from above: each cell of the model's grid goes to the tree of
+    the highest voxel over it."""
+    labels = np.zeros(model.labels.shape, dtype=np.uint32)
+    grown = np.flatnonzero(voxels.ids)
+    if labels.size and grown.size:
+        nz, ny_v = voxels.shape[2], voxels.shape[1]
+        keys = voxels.keys[grown]
+        rel = np.column_stack([keys // (ny_v * nz), (keys // nz) % ny_v, keys % nz])
+        centre = (rel + voxels.origin + 0.5) * voxels.size
+        value = _label_at(np.arange(labels.size, dtype=np.int64).reshape(labels.shape) + 1,
+                          model.x0, model.y0, model.cell, centre[:, :2])
+        ok = value > 0  # the voxel's cell of the grid, 1-based
+        order = np.lexsort((rel[ok, 2], value[ok]))  # per cell, the highest voxel last
+        labels.reshape(-1)[value[ok][order] - 1] = voxels.ids[grown][ok][order]  # last wins
+    crown_cells = np.bincount(labels.ravel(), minlength=len(model) + 1)[1:len(model) + 1]
+    return replace(model, labels=labels, crown_cells=crown_cells.astype(np.int64),
+                   voxels=voxels)

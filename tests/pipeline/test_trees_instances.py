@@ -116,3 +116,20 @@ def test_errors_of_the_matched_trees():
     far = found[2:]  # the tree at (30, 30) only
     none = matched_errors(match_tables(truth, far, 0.5), truth, far, ("dbh",))
     assert none["dbh"]["n"] == 0 and np.isnan(none["dbh"]["rmse"])
+
+
+def test_pair_counts_of_batches_merge_to_those_of_all_points():
+    from pipeline.trees.instances import match_pairs, merge_pairs, pair_counts
+
+    rng = np.random.default_rng(5)
+    true_ids = rng.integers(0, 12, 5000)
+    pred_ids = np.where(rng.random(5000) < 0.8, true_ids + 100, rng.integers(0, 150, 5000))
+    whole = pair_counts(true_ids, pred_ids)
+    cuts = np.sort(rng.choice(np.arange(1, 5000), 7, replace=False))
+    parts = [pair_counts(t, p) for t, p in zip(np.split(true_ids, cuts), np.split(pred_ids, cuts))]
+    merged = merge_pairs(parts[::-1])
+    assert np.array_equal(merged, whole)
+    assert merged[:, 2].sum() == 5000
+    a, b = match_pairs(merged), match_instances(true_ids, pred_ids)
+    assert np.array_equal(a.true_ids, b.true_ids) and np.array_equal(a.pred_ids, b.pred_ids)
+    assert len(a.true_ids) == 11  # every tree but 0 keeps most of its points

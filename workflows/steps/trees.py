@@ -17,6 +17,7 @@ The export assigns every point with the same function (``PredictedTreeID``), so 
 and the tables always agree.
 """
 
+import logging
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -27,9 +28,9 @@ from pipeline.atomic import remove_parts
 from pipeline.cascade import labels_from_proba
 from pipeline.io.vector import write_tree_csv, write_tree_gpkg
 from pipeline.terrain import Raster
-from pipeline.trees.instances import (
-    instance_scores, match_instances, matched_errors, merge_pairs, pair_counts,
-)
+from pipeline.trees.graph import grow_from_stems, merge_voxels, tree_voxels
+from pipeline.trees.model import with_voxels
+from pipeline.trees.instances import match_pairs, matched_errors, merge_pairs, pair_counts
 from pipeline.store import mark_done, open_store, proba_array, read_array, write_arrays
 from pipeline.trees import (
     TreeModel, TreeParams, assign_trees, canopy_cells, chm_raster, find_stems, merge_cells,
@@ -39,6 +40,8 @@ from pipeline.trees import (
 from workflows.engine import chunk_tasks, results_by_scene
 from workflows.progress import counted, say
 from workflows.steps.terrain import ground_under
+
+log = logging.getLogger(__name__)
 
 #: The store group of a scene's tree model.
 MODEL_GROUP = "scenes/{scene}/trees"
@@ -71,10 +74,13 @@ def chunk_points(view, task: TreeTask):
 
 
 def chunk_tree_inputs(view, task: TreeTask) -> dict:
-    """Worker task (pass 1): the chunk's canopy cells and stem slice."""
+    """Worker task (pass 1): the chunk's canopy cells, stem slice and (unless the method is
+    crowns) the voxels of its tree points."""
     xyz, height, canopy, stems = chunk_points(view, task)
+    voxels = (tree_voxels(xyz, height, canopy | stems) if task.params.method != "crowns"
+              else np.empty((0, 3), np.int64))
     return {"cells": canopy_cells(xyz, height, canopy, task.params.resolution),
-            "slice": stem_slice(xyz, height, stems, task.params)}
+            "slice": stem_slice(xyz, height, stems, task.params), "voxels": voxels}
 
 
 def chunk_tree_stats(view, task: TreeTask):
@@ -127,15 +133,27 @@ def scene_area(tiles: list[dict]) -> float:
 def build_model(merged: dict, params: TreeParams, area: float):
     """A scene's tree model from its merged chunk inputs, its canopy height model and the
     method used."""
-    stems = find_stems(merged["slice"], params) if params.method != "crowns" else None
     method = params.method
     if method == "auto":
-        method = "stems" if sees_stems(stems, area) else "crowns"
+        method = "stems" if sees_stems(merged["slice"], area, params) else "crowns"
     chm = chm_raster(merged["cells"], params.resolution)
-    if method == "stems":  # every stem a tree: the crowns grow from the stems
+    if method == "stems":  # every stem a tree, grown from it through the tree points
+        stems = find_stems(merged["slice"], params)
         crowns = segment_crowns(chm, params, seeds=np.column_stack([stems.x, stems.y]))
-        return tree_model(crowns, stems, params), chm, method
+        model = tree_model(crowns, stems, params)
+        return with_voxels(model, grow_trees(model, stems, merged["voxels"])), chm, method
     return tree_model(segment_crowns(chm, params), None, params), chm, method
+
+
+def grow_trees(model: TreeModel, stems, voxels: np.ndarray):
+    """The trees of ``model`` grown from its stems' sections through the scene's voxels."""
+    at = {(x, y): i for i, (x, y) in enumerate(zip(stems.x.tolist(), stems.y.tolist()))}
+    trees = np.flatnonzero(np.isfinite(model.stem_x))
+    seeds = [at[(x, y)] for x, y in zip(model.stem_x[trees].tolist(),
+                                         model.stem_y[trees].tolist())]
+    section = stems.z_base[seeds] + np.nan_to_num(stems.fit_height[seeds], nan=1.3)
+    xyz = np.column_stack([model.stem_x[trees], model.stem_y[trees], section])
+    return grow_from_stems(voxels, xyz, (trees + 1).astype(np.uint32))
 
 
 def tile_of(table: np.ndarray, tiles: list[dict]) -> np.ndarray:
@@ -164,8 +182,8 @@ def trees(run, engine, layout: dict, final_stage: int, stage_fp: str) -> dict:
                             fingerprint, "trees", marks=False)
         for scene, results in results_by_scene(tasks, engine.map("trees", tasks)).items():
             merged = {"cells": merge_cells([r["cells"] for r in results]),
-                      "slice": merge_slices([r["slice"] for r in results],
-                                            task.params.stem_voxel)}
+                      "voxels": merge_voxels([r["voxels"] for r in results]),
+                      "slice": merge_slices([r["slice"] for r in results], task.params)}
             tiles = [t for t in layout["tiles"] if t["scene"] == scene]
             store_model(root, scene, *build_model(merged, task.params, scene_area(tiles)),
                         fingerprint)
@@ -255,15 +273,28 @@ def score_trees(run, layout: dict, found: dict) -> dict | None:
              if f"exports/{t['index']}/{PAIRS}" in root]
     if not parts or "test" not in found:
         return None
-    pairs = merge_pairs(parts)
-    scores = instance_scores(pairs)
+    matching = match_pairs(merge_pairs(parts))
+    scores = {"precision": matching.precision, "recall": matching.recall, "f1": matching.f1,
+              "reference_trees": matching.n_true, "predicted_trees": matching.n_pred,
+              "matched_trees": len(matching.true_ids),
+              "mean_iou": float(np.mean(matching.score)) if len(matching.score) else None}
     reference = reference_table({Path(t["path"]).parent for t in tiles})
     if reference is not None:
-        matches, _ = match_instances(pairs)
-        table = found["test"]["table"]
-        scores.update(matched_errors(matches, reference,
-                                     {name: table[name] for name in ("tree_id", "height", "dbh")}))
-    return scores
+        try:
+            scores.update(matched_errors(matching, reference, found["test"]["table"]))
+        except ValueError:  # a matched reference tree the table does not list
+            log.warning("trees: %s beside the test tiles does not list every reference tree; "
+                        "no height or DBH errors", REFERENCE_TABLE)
+    return json_safe(scores)
+
+
+def json_safe(value):
+    """``value`` with every NaN as None (JSON has no NaN)."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
 
 
 def reference_table(directories) -> dict | None:
