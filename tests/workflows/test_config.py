@@ -103,7 +103,9 @@ def test_defaults():
     assert d["output"] == {"format": "laz", "write_classification": False,
                            "probabilities": True, "keep_store": True, "keep_features": "auto",
                            "feature_dims": [], "point_format": "auto", "rasters": [],
-                           "raster_resolution": 1.0, "canopy_classes": None, "dim_prefix": ""}
+                           "raster_resolution": 1.0, "canopy_classes": None, "dim_prefix": "",
+                           "trees": False}
+    assert d["trees"]["method"] == "auto" and d["trees"]["min_height"] == 2.0
     assert d["terrain"] == {"cell": 1.0, "slope": 0.15, "window": 18.0, "threshold": 0.5,
                             "scalar": 1.25}
 

@@ -28,18 +28,37 @@ def test_every_step_runs_a_function_and_needs_what_the_state_holds():
 
 
 def test_the_table_gives_the_commands_the_progress_and_the_fingerprints():
-    assert list(STEP_COMMANDS) == ["run", "ingest", "features", "train", "export", "evaluate",
-                                   "report"]
+    assert list(STEP_COMMANDS) == ["run", "ingest", "features", "train", "trees", "export",
+                                   "evaluate", "report"]
     assert STEP_COMMANDS["run"][0] == "report"
-    assert progress_steps("report") == ["ingest", "features", "train", "export", "evaluate",
-                                        "report"]
+    assert progress_steps("report") == ["ingest", "features", "train", "trees", "export",
+                                        "evaluate", "report"]
     assert progress_steps("train", applies_model=True) == ["ingest", "features", "apply"]
-    assert FINGERPRINTED == ("ingest", "terrain", "features", "stage", "export", "evaluate")
+    assert FINGERPRINTED == ("ingest", "terrain", "features", "stage", "trees", "export",
+                             "evaluate")
     assert STEP_WEIGHTS == {"ingest": 0.1, "features": 0.6, "train": 0.2, "apply": 0.2,
-                            "export": 0.04, "evaluate": 0.02, "report": 0.04}
+                            "trees": 0.03, "export": 0.04, "evaluate": 0.02, "report": 0.04}
     spent = {"features": 10.0, "training": 7.0, "other": 3.0}
     weights = step_table.step_weights(spent)
     assert weights["train"] == 7.0 + 0.4 * 3.0 and weights["apply"] == 0.4 * 3.0
+
+
+def test_a_step_asked_for_by_the_configuration_runs_only_when_it_is():
+    base = load_config(DEMO)
+    trees = load_config(DEMO, ["output.trees=true"])
+    assert "trees" not in progress_steps("report", cfg=base)
+    assert "trees" in progress_steps("report", cfg=trees)
+    assert [s.name for s in steps_until("export", base)] == [
+        "ingest", "terrain", "features", "train", "survey", "export"]
+    assert [s.name for s in steps_until("export", trees)] == [
+        "ingest", "terrain", "features", "train", "trees", "survey", "export"]
+    # the export writes the trees' IDs: its fingerprint follows the trees' settings then only
+    other = load_config(DEMO, ["trees.min_height=3"])
+    assert fingerprint(other, "export") == fingerprint(base, "export")
+    trees_other = load_config(DEMO, ["output.trees=true", "trees.min_height=3"])
+    assert fingerprint(trees_other, "export") != fingerprint(trees, "export")
+    assert fingerprint(trees_other, "trees") != fingerprint(trees, "trees")
+    assert fingerprint(trees_other, "stage") == fingerprint(trees, "stage")
 
 
 def test_a_step_hashes_the_configuration_paths_it_names(monkeypatch):
@@ -80,7 +99,8 @@ def fake_table(monkeypatch):
                   per_chunk=False),
              Step("train", "tests.workflows.test_step_table:_needs_stages", needs=("stages",)))
     monkeypatch.setattr(workflow, "steps_until",
-                        lambda target: steps[: [s.name for s in steps].index(target) + 1])
+                        lambda target, cfg=None:
+                        steps[: [s.name for s in steps].index(target) + 1])
     CALLS.clear()
     return steps
 
