@@ -159,3 +159,16 @@ def test_stems_of_a_synthetic_plot_match_its_trees():
     matching = match_tables(truth, found, max_distance=0.3)
     assert matching.precision == 1.0 and matching.recall >= 0.75
     assert matched_errors(matching, truth, found, ("dbh",))["dbh"]["rmse"] <= 0.01
+
+
+def test_overlapping_circles_keep_the_better_stem():
+    rng = np.random.default_rng(7)
+    # a stem seen at breast height inside a ring of branch ends fitted at 1.9 m (two clusters:
+    # the rings lie 0.3 m apart), and a lone stem seen at 1.9 m only
+    stem = bark(rng, (0.0, 0.0), 0.20, n=600)
+    whorl = bark(rng, (0.05, 0.0), 0.80, heights=(1.75, 2.05), n=600)
+    lone = bark(rng, (3.0, 0.0), 0.20, heights=(1.75, 2.05), n=300)
+    stems = find_stems(as_slice(np.concatenate((stem, whorl, lone))), PARAMS)
+    assert stems.quality.tolist() == [QUALITY_GOOD, QUALITY_FALLBACK]
+    assert stems.dbh == pytest.approx([0.20, 0.20], abs=0.005)
+    assert stems.fit_height.tolist() == pytest.approx([1.3, 1.9])
