@@ -63,10 +63,11 @@ MIN_STEMS_PER_HECTARE = 80.0
 class Stems:
     """Stems of a scene, sorted by x then y; equal-length arrays (S,).
 
-    x, y float64 the circle's centre (m); z_base float64 the ground under the stem (z minus
-    height of its points); dbh float64 diameter (m), NaN when no circle was fitted; quality
-    uint8 (QUALITY_*); fit_height float64 height above ground of the section fitted (NaN
-    without circle).
+    x, y float64 the circle's centre (m, at the section fitted); z_base float64 the ground
+    under the stem (median z minus height of the section's points); dbh float64 diameter (m);
+    quality uint8 (QUALITY_*); fit_height float64 height above ground of the section fitted.
+    :func:`find_stems` keeps only stems with a credible circle, so its quality is never
+    QUALITY_NONE; a stem without circle, built elsewhere, has dbh and fit_height NaN.
     """
 
     x: np.ndarray
