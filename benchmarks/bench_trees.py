@@ -158,19 +158,20 @@ def stems_table(stems) -> np.ndarray:
 
 def synthetic_stem_scores(params: TreeParams) -> None:
     """Stems of synthetic plots (true tree class as the stem mask, heights above the ground
-    model) against their trees.csv truth: the trees standing inside the plot."""
+    model) against their trees.csv truth (the trees standing inside the plot), and the point
+    instances of the whole chain (crowns alone, crowns with stems) against the TreeID of every
+    point (match_instances: IoU above 0.5)."""
     from pipeline.synth import synthetic_scene
-    from pipeline.trees.instances import match_tables
+    from pipeline.trees.instances import match_instances, match_tables
 
     print(f"{'seed':>4} {'trees':>6} {'stems':>6} {'good':>5} {'precision':>9} {'recall':>7} "
-          f"{'dbh rmse cm':>11} {'bias cm':>8}")
+          f"{'dbh rmse cm':>11} {'bias cm':>8}   instance F1: crowns, crowns + stems")
     errors = []
     for seed in SYNTH_SEEDS:
         scene = synthetic_scene(seed)
-        xyz = scene.xyz
+        xyz, tree = scene.xyz, scene.labels == SYNTH_CLASSES["tree"]
         height = xyz[:, 2] - ground_elevation(terrain_model(xyz).dtm, xyz[:, :2])
-        stems = find_stems(stem_slice(xyz, height, scene.labels == SYNTH_CLASSES["tree"],
-                                      params), params)
+        stems = find_stems(stem_slice(xyz, height, tree, params), params)
         ox, oy, _ = scene.origin
         trees = scene.trees
         truth = trees[(trees["x"] >= ox) & (trees["x"] < ox + scene.size)
@@ -181,12 +182,23 @@ def synthetic_stem_scores(params: TreeParams) -> None:
         error = found["dbh"][matching.pred_ids - 1] - truth["dbh"][rows]
         errors.append(error)
         good = int(np.count_nonzero(stems.quality == QUALITY_GOOD))
+        f1 = [match_instances(scene.tree_ids, point_trees(xyz, height, tree, with_stems,
+                                                          params)).f1
+              for with_stems in (None, stems)]
         print(f"{seed:4d} {len(truth):6d} {len(stems):6d} {good:5d} {matching.precision:9.2f} "
               f"{matching.recall:7.2f} {100 * np.sqrt(np.mean(error**2)):11.2f} "
-              f"{100 * error.mean():8.2f}")
+              f"{100 * error.mean():8.2f}   {f1[0]:.2f} {f1[1]:.2f}")
     every = np.concatenate(errors)
     print(f" all: {len(every)} matched stems, DBH RMSE {100 * np.sqrt(np.mean(every**2)):.2f} cm, "
           f"bias {100 * every.mean():.2f} cm, largest error {100 * np.abs(every).max():.1f} cm")
+
+
+def point_trees(xyz, height, tree, stems, params: TreeParams) -> np.ndarray:
+    """uint32 (N,) the tree ID of every point by the whole chain, all points in one chunk:
+    crowns of the tree points' CHM, with the stems when given (the tree class their mask)."""
+    chm = chm_raster(canopy_cells(xyz, height, tree, params.resolution), params.resolution)
+    model = tree_model(segment_crowns(chm, params), stems, params)
+    return assign_trees(model, xyz, height, tree, None if stems is None else tree, params)
 
 
 def draw_stems(path, points: np.ndarray, stems, title: str) -> None:

@@ -84,8 +84,8 @@ def scanned_plot(seed: int, size: float):
 
     Returns xyz (N, 3) float64 in the local frame, labels (N,) uint8, tree IDs (N,) uint32,
     ``order`` (N,) int64 (the plot's points are ``xyz[order] + origin``, ``labels[order]``: no
-    spatial or per-class order in the output) and the :class:`~pipeline.synth.layout.Layout`. Arguments are
-    trusted (see :func:`check_plot_args`). Memory: about 41 bytes per point.
+    spatial or per-class order in the output) and the :class:`~pipeline.synth.layout.Layout`.
+    Arguments are trusted (see :func:`check_plot_args`). Memory: about 41 bytes per point.
     """
     rng = np.random.default_rng(seed)
     layout = random_layout(rng, size)

@@ -60,8 +60,7 @@ class Matching:
 def match_instances(true_ids: np.ndarray, pred_ids: np.ndarray) -> Matching:
     """Match the trees of two labellings of the same points (integer (N,) each, 0 = none) on
     an intersection over union above MIN_IOU."""
-    true_ids = np.asarray(true_ids).reshape(-1)
-    pred_ids = np.asarray(pred_ids).reshape(-1)
+    true_ids, pred_ids = _as_ids(true_ids, "true_ids"), _as_ids(pred_ids, "pred_ids")
     if true_ids.shape != pred_ids.shape:
         raise ValueError(f"true_ids and pred_ids must label the same points, got "
                          f"{true_ids.shape[0]} and {pred_ids.shape[0]} labels")
@@ -108,6 +107,16 @@ def match_pairs(pairs: np.ndarray) -> Matching:
                     pred_ids=matched[order, 1].astype(np.uint32), score=iou[keep][order],
                     n_true=int(np.count_nonzero(true_trees > 0)),
                     n_pred=int(np.count_nonzero(pred_trees > 0)))
+
+
+def _as_ids(ids, name: str) -> np.ndarray:
+    """uint64 (N,) of integer tree IDs in 0..2**32 - 1 (two of them pack into one key)."""
+    ids = np.asarray(ids).reshape(-1)
+    if ids.size and (not np.issubdtype(ids.dtype, np.integer) or ids.min() < 0
+                     or int(ids.max()) >= 2**32):
+        raise ValueError(f"{name} must be integer tree IDs in 0..2**32-1 (0: no tree), got "
+                         f"{ids.dtype} values from {ids.min()} to {ids.max()}")
+    return ids.astype(np.uint64)
 
 
 def match_tables(true_table: np.ndarray, pred_table: np.ndarray, max_distance: float,

@@ -63,10 +63,11 @@ MIN_STEMS_PER_HECTARE = 80.0
 class Stems:
     """Stems of a scene, sorted by x then y; equal-length arrays (S,).
 
-    x, y float64 the circle's centre (m); z_base float64 the ground under the stem (z minus
-    height of its points); dbh float64 diameter (m), NaN when no circle was fitted; quality
-    uint8 (QUALITY_*); fit_height float64 height above ground of the section fitted (NaN
-    without circle).
+    x, y float64 the circle's centre (m, at the section fitted); z_base float64 the ground
+    under the stem (median z minus height of the section's points); dbh float64 diameter (m);
+    quality uint8 (QUALITY_*); fit_height float64 height above ground of the section fitted.
+    :func:`find_stems` keeps only stems with a credible circle, so its quality is never
+    QUALITY_NONE; a stem without circle, built elsewhere, has dbh and fit_height NaN.
     """
 
     x: np.ndarray
@@ -146,10 +147,28 @@ def find_stems(points: np.ndarray, params: TreeParams) -> Stems:
         row = fit_stem(points[order[start:stop]], params)
         if row is not None:
             rows.append(row)
-    table = np.array(rows, dtype=np.float64).reshape(-1, 6)
+    table = distinct_stems(np.array(rows, dtype=np.float64).reshape(-1, 6), params)
     table = table[np.lexsort((table[:, 1], table[:, 0]))]
     return Stems(x=table[:, 0], y=table[:, 1], z_base=table[:, 2], dbh=table[:, 3],
                  quality=table[:, 4].astype(np.uint8), fit_height=table[:, 5])
+
+
+def distinct_stems(table: np.ndarray, params: TreeParams) -> np.ndarray:
+    """The rows (x, y, z_base, dbh, quality, fit_height) of ``table`` (S, 6) whose circles
+    overlap no better one's: better is a higher quality, then a section nearer breast height,
+    then smaller x, y. Two clusters of one stem (split by a shadow, or a branch whorl above a
+    fallback section) would otherwise be two trees."""
+    rank = np.lexsort((table[:, 1], table[:, 0], np.abs(table[:, 5] - params.breast_height),
+                       -table[:, 4]))
+    kept = []
+    for row in table[rank]:
+        if kept:
+            others = np.asarray(kept)
+            gap = np.hypot(others[:, 0] - row[0], others[:, 1] - row[1])
+            if np.any(gap < (others[:, 3] + row[3]) / 2.0):
+                continue
+        kept.append(row)
+    return np.asarray(kept, dtype=np.float64).reshape(-1, 6)
 
 
 def stem_clusters(points: np.ndarray, params: TreeParams) -> np.ndarray:

@@ -24,6 +24,10 @@ def test_hand_made_instances():
     assert m.precision == m.recall == m.f1 == pytest.approx(2 / 3)
     with pytest.raises(ValueError, match="same points"):
         match_instances([1, 2], [1])
+    with pytest.raises(ValueError, match="pred_ids must be integer tree IDs"):
+        match_instances([1, 2], [1, -1])
+    with pytest.raises(ValueError, match="true_ids must be integer tree IDs"):
+        match_instances([1.5, 2.0], [1, 1])
     empty = match_instances([0, 0], [0, 0])
     assert len(empty.true_ids) == 0 and np.isnan(empty.precision) and np.isnan(empty.f1)
 

@@ -159,3 +159,46 @@ def test_stems_of_a_synthetic_plot_match_its_trees():
     matching = match_tables(truth, found, max_distance=0.3)
     assert matching.precision == 1.0 and matching.recall >= 0.75
     assert matched_errors(matching, truth, found, ("dbh",))["dbh"]["rmse"] <= 0.01
+
+
+def test_overlapping_circles_keep_the_better_stem():
+    rng = np.random.default_rng(7)
+    # a stem seen at breast height inside a ring of branch ends fitted at 1.9 m (two clusters:
+    # the rings lie 0.3 m apart), and a lone stem seen at 1.9 m only
+    stem = bark(rng, (0.0, 0.0), 0.20, n=600)
+    whorl = bark(rng, (0.05, 0.0), 0.80, heights=(1.75, 2.05), n=600)
+    lone = bark(rng, (3.0, 0.0), 0.20, heights=(1.75, 2.05), n=300)
+    stems = find_stems(as_slice(np.concatenate((stem, whorl, lone))), PARAMS)
+    assert stems.quality.tolist() == [QUALITY_GOOD, QUALITY_FALLBACK]
+    assert stems.dbh == pytest.approx([0.20, 0.20], abs=0.005)
+    assert stems.fit_height.tolist() == pytest.approx([1.3, 1.9])
+
+
+def _candidates(path):
+    """xyz, heights above the ground model, and every point but ground and noise."""
+    import laspy
+
+    from pipeline.terrain import ground_elevation, terrain_model
+
+    las = laspy.read(path)
+    xyz = np.column_stack((las.x, las.y, las.z)).astype(np.float64)
+    height = xyz[:, 2] - ground_elevation(terrain_model(xyz).dtm, xyz[:, :2])
+    return xyz, height, ~np.isin(np.asarray(las.classification), (2, 7))
+
+
+def test_a_real_terrestrial_plot_in_chunks_and_an_airborne_scan(shared_data):
+    xyz, height, mask = _candidates(shared_data / "trees" / "TreeLS_pine_plot.laz")
+    whole = stem_slice(xyz, height, mask, PARAMS)
+    chunk = np.floor((xyz[:, 0] - xyz[:, 0].min()) / 2.5).astype(int)  # strips of 2.5 m
+    parts = [stem_slice(xyz[chunk == c], height[chunk == c], mask[chunk == c], PARAMS)
+             for c in np.unique(chunk)[::-1]]
+    assert np.array_equal(merge_slices(parts, PARAMS), whole)
+    stems = find_stems(whole, PARAMS)
+    good = stems.quality == QUALITY_GOOD
+    assert good.sum() >= 12  # 17 on the 10 m x 10 m plot when measured
+    assert np.all((stems.dbh[good] > 0.08) & (stems.dbh[good] < 0.45))
+    area = float(np.ptp(xyz[:, 0]) * np.ptp(xyz[:, 1]))
+    assert sees_stems(whole, area, PARAMS)
+    xyz, height, mask = _candidates(shared_data / "trees" / "ALS_Clip.laz")
+    area = float(np.ptp(xyz[:, 0]) * np.ptp(xyz[:, 1]))
+    assert not sees_stems(stem_slice(xyz, height, mask, PARAMS), area, PARAMS)
