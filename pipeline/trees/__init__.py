@@ -28,10 +28,12 @@ from pipeline.trees.model import (
 )
 from pipeline.trees.params import TreeParams
 from pipeline.trees.stems import Stems, find_stems, merge_slices, sees_stems, stem_slice
+from pipeline.trees.scene import TreeInputs, find_trees, merge_inputs, scene_model, tree_inputs
 
 __all__ = [
     "TABLE_DTYPE", "CanopyCells", "Crowns", "TreeModel", "TreeParams", "TreeStats",
     "assign_trees", "canopy_cells", "chm_raster", "merge_cells", "merge_stats",
     "segment_crowns", "tree_model", "tree_stats", "tree_table",
     "Stems", "find_stems", "merge_slices", "sees_stems", "stem_slice",
+    "TreeInputs", "find_trees", "merge_inputs", "scene_model", "tree_inputs",
 ]

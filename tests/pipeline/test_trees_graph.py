@@ -95,3 +95,24 @@ def test_a_model_with_voxels_assigns_tree_points_and_round_trips():
     # the points of each true tree mostly carry one ID
     for tree in (1, 2):
         assert np.bincount(ids[truth == tree]).max() / np.sum(truth == tree) > 0.9
+
+
+def test_the_inputs_of_any_split_give_the_trees_of_the_whole_cloud():
+    from pipeline.trees import find_trees, merge_inputs, scene_model, tree_inputs
+
+    xyz, _ = two_trees()
+    height = xyz[:, 2]
+    trees = np.ones(len(xyz), bool)
+    stem = trees.copy()  # every point may be stem or canopy
+    params = TreeParams(method="auto", stem_min_points=6)
+    ids, table, model, method = find_trees(xyz, height, trees, stem, params, area=100.0)
+    strips = np.floor(xyz[:, 1] * 3.1).astype(int) % 4
+    parts = [tree_inputs(xyz[strips == k], height[strips == k], trees[strips == k],
+                         stem[strips == k], params) for k in (2, 0, 3, 1)]
+    split, _, split_method = scene_model(merge_inputs(parts, params), params, 100.0)
+    assert split_method == method
+    a, b = model.to_arrays()[0], split.to_arrays()[0]
+    assert a.keys() == b.keys()
+    for name in a:
+        assert np.array_equal(a[name], b[name], equal_nan=True), name
+    assert len(table) == len(model) and ids.max() <= len(model)

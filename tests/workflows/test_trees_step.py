@@ -59,21 +59,27 @@ def test_tree_ids_and_tables_do_not_depend_on_chunks_or_workers(runs):
 
 
 def test_points_and_tables_agree(runs):
+    """Within a scene (the survey's train plot is seed 1, its test plot seed 2) every tree
+    has one row, and its count of points is that of the points carrying its ID."""
     out = runs[0]
-    ids = np.concatenate([d["PredictedTreeID"] for d in read_predictions(out).values()])
-    assert ids.dtype == np.uint32
-    rows = [row for path in sorted((out / "trees").glob("*.csv")) for row in read_table(path)]
-    assert rows, "the synthetic plots have trees"
-    table_ids = [int(r["tree_id"]) for r in rows]
-    assert len(set(table_ids)) == len(table_ids)  # one row per tree over all tiles
-    found, counts = np.unique(ids[ids > 0], return_counts=True)
-    assert sorted(table_ids) == found.tolist()
-    by_id = {int(r["tree_id"]): r for r in rows}
-    for tree, count in zip(found, counts):
-        row = by_id[int(tree)]
-        assert int(row["points"]) == count
-        assert float(row["height"]) >= 2.0  # trees.min_height
-        assert float(row["crown_area"]) > 0
+    predictions = read_predictions(out)
+    for scene in ("plot_s1", "plot_s2"):
+        ids = np.concatenate([d["PredictedTreeID"] for tile, d in predictions.items()
+                              if tile.startswith(scene)])
+        assert ids.dtype == np.uint32
+        rows = [row for path in sorted((out / "trees").glob(f"{scene}_*.csv"))
+                for row in read_table(path)]
+        assert rows, "the synthetic plots have trees"
+        table_ids = [int(r["tree_id"]) for r in rows]
+        assert len(set(table_ids)) == len(table_ids)  # one row per tree over all tiles
+        found, counts = np.unique(ids[ids > 0], return_counts=True)
+        assert sorted(table_ids) == found.tolist()
+        by_id = {int(r["tree_id"]): r for r in rows}
+        for tree, count in zip(found, counts):
+            row = by_id[int(tree)]
+            assert int(row["points"]) == count
+            assert float(row["height"]) > 0
+            assert row["dbh"] == "" or 0.04 <= float(row["dbh"]) <= 1.5
 
 
 def test_geopackage_holds_tops_and_crowns(runs):

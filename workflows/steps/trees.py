@@ -27,16 +27,11 @@ import numpy as np
 from pipeline.atomic import remove_parts
 from pipeline.cascade import labels_from_proba
 from pipeline.io.vector import write_tree_csv, write_tree_gpkg
-from pipeline.terrain import Raster
-from pipeline.trees.graph import grow_from_stems, merge_voxels, tree_voxels
-from pipeline.trees.model import with_voxels
-from pipeline.trees.instances import match_pairs, matched_errors, merge_pairs, pair_counts
 from pipeline.store import mark_done, open_store, proba_array, read_array, write_arrays
-from pipeline.trees import (
-    TreeModel, TreeParams, assign_trees, canopy_cells, chm_raster, find_stems, merge_cells,
-    merge_slices, merge_stats, segment_crowns, sees_stems, stem_slice, tree_model,
-    tree_stats, tree_table,
-)
+from pipeline.terrain import Raster
+from pipeline.trees import TreeModel, TreeParams, assign_trees, merge_stats, tree_stats, tree_table
+from pipeline.trees.instances import match_pairs, matched_errors, merge_pairs, pair_counts
+from pipeline.trees.scene import TreeInputs, merge_inputs, scene_model, tree_inputs
 from workflows.engine import chunk_tasks, results_by_scene
 from workflows.progress import counted, say
 from workflows.steps.terrain import ground_under
@@ -73,14 +68,9 @@ def chunk_points(view, task: TreeTask):
     return xyz, height, np.isin(label, task.canopy), np.isin(label, task.stems)
 
 
-def chunk_tree_inputs(view, task: TreeTask) -> dict:
-    """Worker task (pass 1): the chunk's canopy cells, stem slice and (unless the method is
-    crowns) the voxels of its tree points."""
-    xyz, height, canopy, stems = chunk_points(view, task)
-    voxels = (tree_voxels(xyz, height, canopy | stems) if task.params.method != "crowns"
-              else np.empty((0, 3), np.int64))
-    return {"cells": canopy_cells(xyz, height, canopy, task.params.resolution),
-            "slice": stem_slice(xyz, height, stems, task.params), "voxels": voxels}
+def chunk_tree_inputs(view, task: TreeTask) -> TreeInputs:
+    """Worker task (pass 1): what the chunk's points give the scene's trees."""
+    return tree_inputs(*chunk_points(view, task), task.params)
 
 
 def chunk_tree_stats(view, task: TreeTask):
@@ -130,32 +120,6 @@ def scene_area(tiles: list[dict]) -> float:
                      for t in tiles))
 
 
-def build_model(merged: dict, params: TreeParams, area: float):
-    """A scene's tree model from its merged chunk inputs, its canopy height model and the
-    method used."""
-    method = params.method
-    if method == "auto":
-        method = "stems" if sees_stems(merged["slice"], area, params) else "crowns"
-    chm = chm_raster(merged["cells"], params.resolution)
-    if method == "stems":  # every stem a tree, grown from it through the tree points
-        stems = find_stems(merged["slice"], params)
-        crowns = segment_crowns(chm, params, seeds=np.column_stack([stems.x, stems.y]))
-        model = tree_model(crowns, stems, params)
-        return with_voxels(model, grow_trees(model, stems, merged["voxels"])), chm, method
-    return tree_model(segment_crowns(chm, params), None, params), chm, method
-
-
-def grow_trees(model: TreeModel, stems, voxels: np.ndarray):
-    """The trees of ``model`` grown from its stems' sections through the scene's voxels."""
-    at = {(x, y): i for i, (x, y) in enumerate(zip(stems.x.tolist(), stems.y.tolist()))}
-    trees = np.flatnonzero(np.isfinite(model.stem_x))
-    seeds = [at[(x, y)] for x, y in zip(model.stem_x[trees].tolist(),
-                                         model.stem_y[trees].tolist())]
-    section = stems.z_base[seeds] + np.nan_to_num(stems.fit_height[seeds], nan=1.3)
-    xyz = np.column_stack([model.stem_x[trees], model.stem_y[trees], section])
-    return grow_from_stems(voxels, xyz, (trees + 1).astype(np.uint32))
-
-
 def tile_of(table: np.ndarray, tiles: list[dict]) -> np.ndarray:
     """The index of the tile holding each tree's top or stem base: the first of ``tiles``
     whose XY box holds it (-1 for none, which cannot happen for a tree of their points)."""
@@ -181,11 +145,9 @@ def trees(run, engine, layout: dict, final_stage: int, stage_fp: str) -> dict:
         tasks = chunk_tasks(run, {**layout, "scenes": todo}, "trees", chunk_tree_inputs, task,
                             fingerprint, "trees", marks=False)
         for scene, results in results_by_scene(tasks, engine.map("trees", tasks)).items():
-            merged = {"cells": merge_cells([r["cells"] for r in results]),
-                      "voxels": merge_voxels([r["voxels"] for r in results]),
-                      "slice": merge_slices([r["slice"] for r in results], task.params)}
             tiles = [t for t in layout["tiles"] if t["scene"] == scene]
-            store_model(root, scene, *build_model(merged, task.params, scene_area(tiles)),
+            store_model(root, scene, *scene_model(merge_inputs(results, task.params),
+                                                  task.params, scene_area(tiles)),
                         fingerprint)
     counted_task = TreeTask(**{**task.__dict__, "fingerprint": fingerprint})
     tasks = chunk_tasks(run, layout, "tree-stats", chunk_tree_stats, counted_task, fingerprint,

@@ -1,0 +1,95 @@
+"""The trees of one scene, from what its chunks reduced their points to (:class:`TreeInputs`),
+and the same for a cloud in memory (:func:`find_trees`): one implementation, whether the
+workflow's chunks or one process computed the inputs.
+
+The method (``trees.method``): ``crowns`` segments the canopy height model; ``stems`` fits the
+stems, grows each tree from its stem through the voxels of the tree points
+(:mod:`pipeline.trees.graph`) and takes the crowns as those trees seen from above; ``auto``
+takes stems where the scan sees them (:func:`~pipeline.trees.stems.sees_stems`).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.terrain import Raster
+from pipeline.trees.cells import CanopyCells, canopy_cells, chm_raster, merge_cells
+from pipeline.trees.crowns import segment_crowns
+from pipeline.trees.graph import grow_from_stems, merge_voxels, tree_voxels
+from pipeline.trees.model import (
+    TreeModel, assign_trees, tree_model, tree_stats, tree_table, with_voxels,
+)
+from pipeline.trees.params import TreeParams
+from pipeline.trees.stems import Stems, find_stems, merge_slices, sees_stems, stem_slice
+
+
+@dataclass(frozen=True)
+class TreeInputs:
+    """What the trees of a scene are found from, reduced from its points exactly (the inputs
+    of any split of the points, merged by :func:`merge_inputs`, are those of all of them):
+    the highest canopy point per cell, the stems' slice and the voxels of the tree points
+    (none with ``method: crowns``)."""
+
+    cells: CanopyCells
+    slice: np.ndarray
+    voxels: np.ndarray
+
+
+def tree_inputs(xyz: np.ndarray, height: np.ndarray, canopy: np.ndarray, stem_mask: np.ndarray,
+                params: TreeParams) -> TreeInputs:
+    """The inputs of a set of points (a chunk's core points): ``height`` above ground,
+    ``canopy`` and ``stem_mask`` bool masks of the points predicted as those classes."""
+    voxels = (tree_voxels(xyz, height, canopy | stem_mask) if params.method != "crowns"
+              else np.empty((0, 3), np.int64))
+    return TreeInputs(canopy_cells(xyz, height, canopy, params.resolution),
+                      stem_slice(xyz, height, stem_mask, params), voxels)
+
+
+def merge_inputs(parts, params: TreeParams) -> TreeInputs:
+    """The inputs of a scene from those of its chunks, in any order."""
+    parts = list(parts)
+    return TreeInputs(merge_cells([p.cells for p in parts]),
+                      merge_slices([p.slice for p in parts], params),
+                      merge_voxels([p.voxels for p in parts]))
+
+
+def scene_model(inputs: TreeInputs, params: TreeParams, area: float
+                ) -> tuple[TreeModel, Raster, str]:
+    """The scene's tree model, its canopy height model and the method used (``area``: the
+    scene's square metres, for ``method: auto``)."""
+    method = params.method
+    if method == "auto":
+        method = "stems" if sees_stems(inputs.slice, area, params) else "crowns"
+    chm = chm_raster(inputs.cells, params.resolution)
+    if method == "crowns":
+        return tree_model(segment_crowns(chm, params), None, params), chm, method
+    stems = find_stems(inputs.slice, params)
+    crowns = segment_crowns(chm, params, seeds=np.column_stack([stems.x, stems.y]))
+    model = tree_model(crowns, stems, params)
+    return with_voxels(model, grow_trees(model, stems, inputs.voxels)), chm, method
+
+
+def grow_trees(model: TreeModel, stems: Stems, voxels: np.ndarray):
+    """The trees of ``model`` grown from its stems' fitted sections through ``voxels``."""
+    row_of = {(x, y): i for i, (x, y) in enumerate(zip(stems.x.tolist(), stems.y.tolist()))}
+    trees = np.flatnonzero(np.isfinite(model.stem_x))
+    rows = [row_of[(x, y)] for x, y in zip(model.stem_x[trees].tolist(),
+                                            model.stem_y[trees].tolist())]
+    section = stems.z_base[rows] + stems.fit_height[rows]
+    seeds = np.column_stack([model.stem_x[trees], model.stem_y[trees], section])
+    return grow_from_stems(voxels, seeds, (trees + 1).astype(np.uint32))
+
+
+def find_trees(xyz: np.ndarray, height: np.ndarray, canopy: np.ndarray, stem_mask: np.ndarray,
+               params: TreeParams, area: float | None = None):
+    """The trees of a cloud in memory, as the workflow finds them: (tree ID of each point
+    (uint32), the tree table, the model, the method). ``area`` defaults to the cloud's XY
+    bounding box."""
+    xyz = np.asarray(xyz, np.float64)
+    if area is None:
+        span = xyz[:, :2].max(axis=0) - xyz[:, :2].min(axis=0) if len(xyz) else np.zeros(2)
+        area = float(span[0] * span[1])
+    model, _, method = scene_model(tree_inputs(xyz, height, canopy, stem_mask, params),
+                                   params, area)
+    ids = assign_trees(model, xyz, height, canopy, stem_mask, params)
+    return ids, tree_table(model, tree_stats(ids, xyz, height)), model, method
