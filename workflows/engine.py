@@ -16,9 +16,9 @@ from typing import Any, Callable
 import numpy as np
 
 from pipeline.errors import ChunkError, InputError, SilvaError
-from pipeline.store import (
-    chunk_path, chunk_points, is_done, mark_done, open_store, read_array, write_arrays,
-)
+from pipeline.store import is_done, mark_done, open_store, read_array, write_arrays
+from workflows.store.assembly import chunk_points
+from workflows.store.layout import chunk_path
 from workflows.progress import StepProgress
 
 log = logging.getLogger(__name__)

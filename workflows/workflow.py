@@ -5,14 +5,14 @@ Every command is a target: it runs the steps up to and including its own. Steps 
 a previous run finished with the same configuration, so rerunning a killed command resumes it.
 
 With ``output.keep_store: false`` a run that completed removes the chunks of its store and
-records what it completed (:func:`pipeline.store.remove_chunks`); the same run again then
+records what it completed (:func:`workflows.store.retention.remove_chunks`); the same run again then
 only says so, and any other command starts afresh from the input tiles.
 """
 
 import logging
 import os
 
-from pipeline.store import forget_removed, remove_chunks, removed_record
+from workflows.store.retention import forget_removed, remove_chunks, removed_record
 from workflows.progress import say
 from workflows.run import Run
 from workflows.run_state import RunState
