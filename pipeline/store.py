@@ -1,6 +1,6 @@
 """The zarr v3 store's codec: arrays written in packs or appended as record arrays, each
-checked against the checksum written with it, and the done-marks of the groups that hold
-them. Where a run puts what is :mod:`workflows.store`.
+checked against the checksum written with it. Where a run puts what, and which groups are
+done, is :mod:`workflows.store`.
 
 **Packs.** :func:`write_arrays` writes the arrays of one call as one zarr array, a *pack*:
 a (B, R) uint8 array whose B rows are byte planes of its members (R the longest member's
@@ -13,15 +13,12 @@ files (metadata and shard) in one directory whatever it holds; reading one array
 only its planes. The logical names stay: :func:`read_array` finds an array's pack in the
 group's attributes. Coordinates stay float64 and every value is stored exactly.
 
-A step marks a group done only after all its arrays are written (zarr's local store writes
-each file atomically), so a run killed at any moment redoes exactly the unfinished groups.
-
 Every array records the CRC-32 of its values in its pack's attributes (``members``) when it
 is written, and :func:`read_array` checks it: a file that disappeared (which zarr would read
-as fill values) or changed is a :class:`StoreError`, never silently wrong data. The error
-also clears the done-marks that claimed the damaged group complete, so running the same
-command again recomputes it. Chunks are compressed with zstd's own frame checksum too, and
-the shard index carries a CRC-32C.
+as fill values) or changed is a :class:`DamagedArrayError` (a :class:`StoreError`), never
+silently wrong data; it names the group and the array, so that the run's store can clear
+the marks that claimed the group complete. Chunks are compressed with zstd's own frame
+checksum too, and the shard index carries a CRC-32C.
 """
 
 import zlib
@@ -44,11 +41,18 @@ _COMPRESSOR = ZstdCodec(level=0, checksum=True)
 _ZSTD = numcodecs.Zstd(level=0)  # to choose a layout on a sample
 _FLAT_KEYS = {"name": "v2", "separator": "."}  # a pack's shard is <pack>/0.0: no directories
 
-#: The arrays of a chunk's ``points`` pack, assembled from the parts, and their empty forms.
-CORE = ("xyz", "gid", "label", "role")
-HALO = ("xyz", "gid")
-POINTS = "points"
-POINT_ARRAYS = CORE + tuple(f"halo_{name}" for name in HALO)  # the members of the pack
+
+
+class DamagedArrayError(StoreError):
+    """An array that is missing, was never completely written or whose values differ from
+    what was written: ``group`` (the zarr group) and ``name`` (the array) say which."""
+
+    def __init__(self, message: str, group: zarr.Group, name: str):
+        super().__init__(message)
+        self.group, self.name = group, name
+
+    def __reduce__(self):  # pickled as the StoreError it is: a worker's error reaches the client
+        return StoreError, (str(self),)
 
 
 def open_store(path: str | Path, mode: str = "a") -> zarr.Group:
@@ -270,9 +274,7 @@ def read_records(group: zarr.Group, name: str) -> dict[str, np.ndarray]:
 def read_array(group: zarr.Group, name: str) -> np.ndarray:
     """A whole array of a group as NumPy, checked against the checksum written with it.
 
-    A missing, unsealed or damaged array is a :class:`StoreError` that names it; the
-    done-marks of its group (and of the groups above it) are cleared, so that running the
-    command again recomputes the group.
+    A missing, unsealed or damaged array is a :class:`DamagedArrayError` that names it.
     """
     return _read_checked(group, name)[0]
 
@@ -288,10 +290,9 @@ def _read_checked(group: zarr.Group, name: str):
             array, member = found
             expected = member[CHECKSUM]
     except KeyError:
-        forget(group, name)
-        raise StoreError(
+        raise DamagedArrayError(
             f"array '{name}' missing in store group '{group.path}'; the step that writes it did "
-            "not finish: run the same command again to redo it"
+            "not finish: run the same command again to redo it", group, name
         ) from None
     try:
         if found is None:
@@ -307,11 +308,10 @@ def _read_checked(group: zarr.Group, name: str):
         problem = ("it was never completely written" if expected is None else
                    "its values differ from what was written: a chunk file is missing or "
                    "corrupt")
-    forget(group, name)
-    raise StoreError(
+    raise DamagedArrayError(
         f"store array '{group.path}/{name}' is damaged ({problem}); its chunk is marked for "
-        "recomputation: run the same command again (or start afresh with --overwrite)"
-    )
+        "recomputation: run the same command again (or start afresh with --overwrite)",
+        group, name)
 
 
 def _unpack(array, member: dict) -> np.ndarray:
@@ -325,29 +325,6 @@ def _unpack(array, member: dict) -> np.ndarray:
     return _from_planes(array[plane:plane + width, :rows], member["layout"], dtype, shape)
 
 
-def forget(group: zarr.Group, name: str | None = None) -> None:
-    """Clear the done-marks of ``group`` and of every group above it (below the root), and
-    the assembly mark when the array ``name`` that failed holds the chunk's points (None:
-    any): the points of a chunk are kept when only what was computed from them is lost,
-    since its parts are gone once it is assembled."""
-    points = name is None or name in POINT_ARRAYS
-    cleared = {"done": {}, **({"assembled": None} if points else {})}
-    parts = group.path.split("/")
-    for depth in range(len(parts), 0, -1):
-        try:
-            node = zarr.open_group(store=group.store, path="/".join(parts[:depth]), mode="r+")
-            if node.attrs.get("done") or (points and node.attrs.get("assembled")):
-                node.update_attributes(cleared)
-        except Exception:  # noqa: BLE001 - a read-only or half-deleted store: nothing to clear
-            continue
-
-
-def forget_done(group: zarr.Group) -> None:
-    """Clear every done-mark of ``group`` (and its assembly mark): its steps run again."""
-    if group.attrs.get("done") or group.attrs.get("assembled"):
-        group.update_attributes({"done": {}, "assembled": None})
-
-
 def rows_of(sorted_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rows of ``ids`` in a chunk's ``sorted_ids`` (its gid array) and whether each is there.
 
@@ -357,15 +334,3 @@ def rows_of(sorted_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.nda
         return np.zeros(len(ids), np.int64), np.zeros(len(ids), bool)
     pos = np.minimum(np.searchsorted(sorted_ids, ids), len(sorted_ids) - 1)
     return pos, sorted_ids[pos] == ids
-
-
-def is_done(group: zarr.Group, step: str, fingerprint: str) -> bool:
-    """True when ``step`` completed for this group with the same configuration fingerprint."""
-    return group.attrs.get("done", {}).get(step) == fingerprint
-
-
-def mark_done(group: zarr.Group, step: str, fingerprint: str, **attrs) -> None:
-    """Record that ``step`` completed; call only after every output is written."""
-    done = dict(group.attrs.get("done", {}))
-    done[step] = fingerprint
-    group.attrs.update({"done": done, **attrs})

@@ -10,17 +10,9 @@ import pytest
 import zarr
 
 from pipeline.errors import StoreError
-from pipeline.store import (
-    MIN_APPEND_CHUNK,
-    Appender,
-    is_done,
-    mark_done,
-    open_store,
-    read_array,
-    read_records,
-    write_arrays,
-)
+from pipeline.store import MIN_APPEND_CHUNK, Appender, open_store, write_arrays
 from workflows.store.assembly import chunk_points, drop_assembled_parts
+from workflows.store.marks import is_done, mark_done, read_array, read_records
 from workflows.store.retention import forget_removed, remove_chunks, removed_record
 
 

@@ -10,8 +10,10 @@ import numpy as np
 import zarr
 
 from pipeline.errors import StoreError
-from pipeline.store import CORE, HALO, POINTS, forget, read_array, read_records, write_arrays
+from pipeline.store import write_arrays
+from workflows.store.layout import CORE, HALO, POINTS
 from workflows.store.layout import chunk_path, part_path
+from workflows.store.marks import forget, read_array, read_records
 
 _EMPTY = {"xyz": np.empty((0, 3)), "gid": np.empty(0, np.int64),
           "label": np.empty(0, np.int16), "role": np.empty(0, np.int8)}

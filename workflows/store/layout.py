@@ -22,11 +22,17 @@ Layout::
         the cells with points where no ground was seen)
 
 The arrays are written and read by :mod:`pipeline.store` (packs, appended record arrays,
-checksums, done-marks).
+checksums); which groups are done, by :mod:`workflows.store.marks`.
 """
 
 #: Point roles: what a point is used for.
 ROLE_TRAIN, ROLE_TEST, ROLE_PREDICT = 0, 1, 2
+
+#: The arrays of a chunk's ``points`` pack, assembled from the parts, and their empty forms.
+CORE = ("xyz", "gid", "label", "role")
+HALO = ("xyz", "gid")
+POINTS = "points"
+POINT_ARRAYS = CORE + tuple(f"halo_{name}" for name in HALO)  # the members of the pack
 
 
 def chunk_path(scene: str, chunk_name: str) -> str:

@@ -4,9 +4,10 @@ import numpy as np
 import zarr
 
 from pipeline.errors import StoreError
-from pipeline.store import mark_done, read_array, write_arrays
+from pipeline.store import write_arrays
 from pipeline.terrain import Raster
 from workflows.store.layout import terrain_path
+from workflows.store.marks import mark_done, read_array
 
 
 def write_terrain(root: zarr.Group, scene: str, dtm: Raster, interpolated: float,
