@@ -1,24 +1,6 @@
-"""The zarr v3 store of a run: one group per spatial chunk, written step by step.
-
-Layout::
-
-    store.zarr/                      attrs: schema_version, layout (tiles, scenes, chunks)
-      scenes/<scene>/parts/<tile>/           marker of an ingested tile: attrs done, parts
-      scenes/<scene>/parts/<tile>/<chunk>/   points of one tile in one chunk (written by ingest,
-          core (n, 35) u1: records of xyz f8 x 3,  removed once the chunk is assembled)
-              gid i8, label i2, role i1
-          halo (m, 32) u1: records of xyz f8 x 3, gid i8
-      scenes/<scene>/chunks/<chunk>/         one chunk
-          points/   pack: xyz, gid, label, role (core points sorted by global id),
-                          halo_xyz, halo_gid (halo copies sorted by global id)
-          features/ pack: features (n, d) f4, the feature set's columns
-          terrain/  pack: minima_keys (k, 2) i8, minima_z (k,) f8: the lowest core point
-                          of each terrain cell (pipeline.terrain.cell_minima)
-          stage<t>_context (n, 2C) f4, stage<t>_proba (n, C) f4     (t = 1, 2, ...)
-        attrs: done = {step: fingerprint}, results, assembled, arrays = {array: pack}
-      scenes/<scene>/terrain/        the scene's terrain model: dtm (ny, nx) f8, south row
-        first; attrs x0, y0, cell, done = {"terrain": fingerprint}, interpolated (the share of
-        the cells with points where no ground was seen)
+"""The zarr v3 store's codec: arrays written in packs or appended as record arrays, each
+checked against the checksum written with it. Where a run puts what, and which groups are
+done, is :mod:`workflows.store`.
 
 **Packs.** :func:`write_arrays` writes the arrays of one call as one zarr array, a *pack*:
 a (B, R) uint8 array whose B rows are byte planes of its members (R the longest member's
@@ -31,20 +13,12 @@ files (metadata and shard) in one directory whatever it holds; reading one array
 only its planes. The logical names stay: :func:`read_array` finds an array's pack in the
 group's attributes. Coordinates stay float64 and every value is stored exactly.
 
-**Assembly.** The features step assembles a chunk from the parts of every tile
-(:func:`chunk_points`), writes its ``points`` pack, records the ingest fingerprint it was
-built from (``assembled``) and removes those parts: a later features step with another
-configuration reads the chunk's own points, and no intermediate part outlives the step.
-
-A step marks a group done only after all its arrays are written (zarr's local store writes
-each file atomically), so a run killed at any moment redoes exactly the unfinished groups.
-
 Every array records the CRC-32 of its values in its pack's attributes (``members``) when it
 is written, and :func:`read_array` checks it: a file that disappeared (which zarr would read
-as fill values) or changed is a :class:`StoreError`, never silently wrong data. The error
-also clears the done-marks that claimed the damaged group complete, so running the same
-command again recomputes it. Chunks are compressed with zstd's own frame checksum too, and
-the shard index carries a CRC-32C.
+as fill values) or changed is a :class:`DamagedArrayError` (a :class:`StoreError`), never
+silently wrong data; it names the group and the array, so that the run's store can clear
+the marks that claimed the group complete. Chunks are compressed with zstd's own frame
+checksum too, and the shard index carries a CRC-32C.
 """
 
 import zlib
@@ -56,7 +30,6 @@ import zarr
 from zarr.codecs import ZstdCodec
 
 from pipeline.errors import StoreError
-from pipeline.terrain import Raster
 
 SCHEMA_VERSION = 6  # 3: packs of byte planes in one shard per write; parts removed once
 # assembled; 4: a flag per point whose features are undefined, chunks classified in one pass;
@@ -68,16 +41,18 @@ _COMPRESSOR = ZstdCodec(level=0, checksum=True)
 _ZSTD = numcodecs.Zstd(level=0)  # to choose a layout on a sample
 _FLAT_KEYS = {"name": "v2", "separator": "."}  # a pack's shard is <pack>/0.0: no directories
 
-#: Point roles: what a point is used for.
-ROLE_TRAIN, ROLE_TEST, ROLE_PREDICT = 0, 1, 2
 
-#: The arrays of a chunk's ``points`` pack, assembled from the parts, and their empty forms.
-CORE = ("xyz", "gid", "label", "role")
-HALO = ("xyz", "gid")
-POINTS = "points"
-POINT_ARRAYS = CORE + tuple(f"halo_{name}" for name in HALO)  # the members of the pack
-_EMPTY = {"xyz": np.empty((0, 3)), "gid": np.empty(0, np.int64),
-          "label": np.empty(0, np.int16), "role": np.empty(0, np.int8)}
+
+class DamagedArrayError(StoreError):
+    """An array that is missing, was never completely written or whose values differ from
+    what was written: ``group`` (the zarr group) and ``name`` (the array) say which."""
+
+    def __init__(self, message: str, group: zarr.Group, name: str):
+        super().__init__(message)
+        self.group, self.name = group, name
+
+    def __reduce__(self):  # pickled as the StoreError it is: a worker's error reaches the client
+        return StoreError, (str(self),)
 
 
 def open_store(path: str | Path, mode: str = "a") -> zarr.Group:
@@ -299,9 +274,7 @@ def read_records(group: zarr.Group, name: str) -> dict[str, np.ndarray]:
 def read_array(group: zarr.Group, name: str) -> np.ndarray:
     """A whole array of a group as NumPy, checked against the checksum written with it.
 
-    A missing, unsealed or damaged array is a :class:`StoreError` that names it; the
-    done-marks of its group (and of the groups above it) are cleared, so that running the
-    command again recomputes the group.
+    A missing, unsealed or damaged array is a :class:`DamagedArrayError` that names it.
     """
     return _read_checked(group, name)[0]
 
@@ -317,10 +290,9 @@ def _read_checked(group: zarr.Group, name: str):
             array, member = found
             expected = member[CHECKSUM]
     except KeyError:
-        _forget(group, name)
-        raise StoreError(
+        raise DamagedArrayError(
             f"array '{name}' missing in store group '{group.path}'; the step that writes it did "
-            "not finish: run the same command again to redo it"
+            "not finish: run the same command again to redo it", group, name
         ) from None
     try:
         if found is None:
@@ -336,11 +308,10 @@ def _read_checked(group: zarr.Group, name: str):
         problem = ("it was never completely written" if expected is None else
                    "its values differ from what was written: a chunk file is missing or "
                    "corrupt")
-    _forget(group, name)
-    raise StoreError(
+    raise DamagedArrayError(
         f"store array '{group.path}/{name}' is damaged ({problem}); its chunk is marked for "
-        "recomputation: run the same command again (or start afresh with --overwrite)"
-    )
+        "recomputation: run the same command again (or start afresh with --overwrite)",
+        group, name)
 
 
 def _unpack(array, member: dict) -> np.ndarray:
@@ -354,29 +325,6 @@ def _unpack(array, member: dict) -> np.ndarray:
     return _from_planes(array[plane:plane + width, :rows], member["layout"], dtype, shape)
 
 
-def _forget(group: zarr.Group, name: str | None = None) -> None:
-    """Clear the done-marks of ``group`` and of every group above it (below the root), and
-    the assembly mark when the array ``name`` that failed holds the chunk's points (None:
-    any): the points of a chunk are kept when only what was computed from them is lost,
-    since its parts are gone once it is assembled."""
-    points = name is None or name in POINT_ARRAYS
-    cleared = {"done": {}, **({"assembled": None} if points else {})}
-    parts = group.path.split("/")
-    for depth in range(len(parts), 0, -1):
-        try:
-            node = zarr.open_group(store=group.store, path="/".join(parts[:depth]), mode="r+")
-            if node.attrs.get("done") or (points and node.attrs.get("assembled")):
-                node.update_attributes(cleared)
-        except Exception:  # noqa: BLE001 - a read-only or half-deleted store: nothing to clear
-            continue
-
-
-def forget_done(group: zarr.Group) -> None:
-    """Clear every done-mark of ``group`` (and its assembly mark): its steps run again."""
-    if group.attrs.get("done") or group.attrs.get("assembled"):
-        group.update_attributes({"done": {}, "assembled": None})
-
-
 def rows_of(sorted_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rows of ``ids`` in a chunk's ``sorted_ids`` (its gid array) and whether each is there.
 
@@ -386,191 +334,3 @@ def rows_of(sorted_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.nda
         return np.zeros(len(ids), np.int64), np.zeros(len(ids), bool)
     pos = np.minimum(np.searchsorted(sorted_ids, ids), len(sorted_ids) - 1)
     return pos, sorted_ids[pos] == ids
-
-
-def is_done(group: zarr.Group, step: str, fingerprint: str) -> bool:
-    """True when ``step`` completed for this group with the same configuration fingerprint."""
-    return group.attrs.get("done", {}).get(step) == fingerprint
-
-
-def mark_done(group: zarr.Group, step: str, fingerprint: str, **attrs) -> None:
-    """Record that ``step`` completed; call only after every output is written."""
-    done = dict(group.attrs.get("done", {}))
-    done[step] = fingerprint
-    group.attrs.update({"done": done, **attrs})
-
-
-def tile_part(root: zarr.Group, scene: str, tile: int, chunk: str, prefix: str):
-    """The part group of ``tile`` in ``chunk`` holding its ``prefix`` ("core" or "halo")
-    points, or None when the tile has no such points there.
-
-    Ingest records in the tile's marker which parts it wrote (``parts``); a part it wrote
-    that is gone is a :class:`StoreError`, and the tile is marked to be ingested again.
-    """
-    marker = root[f"scenes/{scene}/parts/{tile}"]
-    if prefix not in marker.attrs.get("parts", {}).get(chunk, []):
-        return None
-    path = part_path(scene, tile, chunk)
-    if path not in root:
-        _forget(root[path.rsplit("/", 1)[0]])
-        raise StoreError(f"store group '{path}' is missing; its tile is marked to be ingested "
-                         "again: run the same command again (or start afresh with --overwrite)")
-    return root[path]
-
-
-def proba_array(stage: int) -> str:
-    """Name of the probabilities array of cascade stage ``stage`` (0-based; named from 1)."""
-    return f"stage{stage + 1}_proba"
-
-
-def labels_array(stage: int) -> str:
-    """Name of the predicted labels of cascade stage ``stage`` where its probabilities are
-    not kept (the earlier stages of a chunk classified in one pass)."""
-    return f"stage{stage + 1}_labels"
-
-
-def context_array(stage: int) -> str:
-    """Name of the context array that feeds cascade stage ``stage`` (0-based; named from 1)."""
-    return f"stage{stage + 1}_context"
-
-
-def terrain_path(scene: str) -> str:
-    return f"scenes/{scene}/terrain"
-
-
-def write_terrain(root: zarr.Group, scene: str, dtm: Raster, interpolated: float,
-                  fingerprint: str) -> None:
-    """Store the terrain model of ``scene`` and mark it done with ``fingerprint``."""
-    group = root.require_group(terrain_path(scene))
-    write_arrays(group, {"dtm": np.asarray(dtm.values, dtype=np.float64)})
-    mark_done(group, "terrain", fingerprint, x0=float(dtm.x0), y0=float(dtm.y0),
-              cell=float(dtm.cell), interpolated=float(interpolated))
-
-
-def terrain_done(root: zarr.Group, scene: str) -> str | None:
-    """The fingerprint the stored terrain model of ``scene`` was made with (None: none)."""
-    path = terrain_path(scene)
-    return root[path].attrs.get("done", {}).get("terrain") if path in root else None
-
-
-def read_terrain(root: zarr.Group, scene: str) -> Raster:
-    """The stored terrain model of ``scene``."""
-    if terrain_done(root, scene) is None:
-        raise StoreError(f"the terrain model of scene '{scene}' is missing from the store; "
-                         "run the same command again (or start afresh with --overwrite)")
-    group = root[terrain_path(scene)]
-    attrs = group.attrs
-    return Raster(read_array(group, "dtm"), attrs["x0"], attrs["y0"], attrs["cell"])
-
-
-def chunk_path(scene: str, chunk_name: str) -> str:
-    return f"scenes/{scene}/chunks/{chunk_name}"
-
-
-def part_path(scene: str, tile_index: int, chunk_name: str) -> str:
-    return f"scenes/{scene}/parts/{tile_index}/{chunk_name}"
-
-
-# -- chunks assembled from ingest's parts ---------------------------------------------------
-def chunk_points(root: zarr.Group, scene: str, chunk: str, tiles, group: zarr.Group | None = None
-                 ) -> tuple[dict, dict]:
-    """The core and halo points of a chunk, each a dict of arrays sorted by global id:
-    core ``xyz`` (n, 3) f8, ``gid`` (n,) i8, ``label`` (n,) i2, ``role`` (n,) i1; halo
-    ``xyz`` (m, 3) f8, ``gid`` (m,) i8.
-
-    The first call after an ingest gathers them from the parts of ``tiles`` (tile indices),
-    writes the chunk's ``points`` pack, marks the chunk assembled from that ingest and
-    removes the parts; later calls read the pack. Parts that ingest wrote and that are gone
-    are one :class:`StoreError` naming them, and all their tiles are marked to be ingested
-    again. ``group`` is the chunk's group when the caller holds it open (its attributes are
-    then updated through it, so that the caller's later marks keep them).
-    """
-    group = root.require_group(chunk_path(scene, chunk)) if group is None else group
-    built_from = (root.attrs.get("layout") or {}).get("fingerprint")
-    if built_from is not None and group.attrs.get("assembled") == built_from:
-        core = {name: read_array(group, name) for name in CORE}
-        halo = {name: read_array(group, f"halo_{name}") for name in HALO}
-        return core, halo
-    found, missing = {}, []
-    for tile in tiles:
-        for prefix in ("core", "halo"):
-            try:
-                found[tile, prefix] = tile_part(root, scene, tile, chunk, prefix)
-            except StoreError as err:
-                missing.append(err)
-    if missing:
-        more = f" (and {len(missing) - 1} more tiles)" if len(missing) > 1 else ""
-        raise StoreError(f"{missing[0]}{more}")
-    core = _gather(found, tiles, "core", CORE)
-    halo = _gather(found, tiles, "halo", HALO)
-    write_arrays(group, {**core, **{f"halo_{name}": halo[name] for name in HALO}}, pack=POINTS)
-    if built_from is not None:
-        group.update_attributes({"assembled": built_from})
-        for tile in tiles:
-            drop_part(root, scene, tile, chunk)
-    return core, halo
-
-
-def _gather(found: dict, tiles, prefix: str, names) -> dict:
-    """The ``prefix`` (core or halo) points of a chunk from every tile's part, by global id."""
-    arrays = {name: [] for name in names}
-    for tile in tiles:
-        part = found.get((tile, prefix))
-        if part is not None:
-            records = read_records(part, prefix)
-            for name in names:
-                arrays[name].append(records[name])
-    arrays = {k: np.concatenate(v) if v else _EMPTY[k] for k, v in arrays.items()}
-    order = np.argsort(arrays["gid"], kind="stable")
-    return {k: v[order] for k, v in arrays.items()}
-
-
-def drop_part(root: zarr.Group, scene: str, tile: int, chunk: str) -> None:
-    """Remove the part of ``tile`` in ``chunk`` (nothing when there is none)."""
-    marker = f"scenes/{scene}/parts/{tile}"
-    if part_path(scene, tile, chunk) in root:
-        del root[marker][chunk]
-
-
-def drop_assembled_parts(root: zarr.Group) -> int:
-    """Remove every part whose chunk is assembled from the current ingest (parts a tile
-    ingested again left behind); return how many were removed."""
-    built_from = (root.attrs.get("layout") or {}).get("fingerprint")
-    if built_from is None or "scenes" not in root:
-        return 0
-    removed = 0
-    for scene in list(root["scenes"].group_keys()):
-        if f"scenes/{scene}/parts" not in root:
-            continue
-        for tile in list(root[f"scenes/{scene}/parts"].group_keys()):
-            marker = root[f"scenes/{scene}/parts/{tile}"]
-            for chunk in list(marker.group_keys()):
-                path = chunk_path(scene, chunk)
-                if path in root and root[path].attrs.get("assembled") == built_from:
-                    del marker[chunk]
-                    removed += 1
-    return removed
-
-
-# -- a store removed after its run ----------------------------------------------------------
-def remove_chunks(root: zarr.Group, record: dict) -> None:
-    """Remove every scene (chunks, parts and tile marks: the bulk of the store), keeping the
-    root's attributes and the export marks; ``record`` describes the finished run and is kept
-    as the root's ``removed`` attribute (see :func:`removed_record`)."""
-    root.update_attributes({"removed": record})  # first: a kill in between leaves it marked
-    if "scenes" in root:
-        del root["scenes"]
-
-
-def removed_record(root: zarr.Group) -> dict | None:
-    """What :func:`remove_chunks` recorded, or None when the store holds its chunks."""
-    return root.attrs.get("removed") or None
-
-
-def forget_removed(root: zarr.Group) -> None:
-    """Clear a removed store completely (layout, export marks, record): a run starts afresh."""
-    for key in ("scenes", "exports"):
-        if key in root:
-            del root[key]
-    root.update_attributes({"layout": None, "removed": None})
-

@@ -16,10 +16,11 @@ from typing import Any, Callable
 import numpy as np
 
 from pipeline.errors import ChunkError, InputError, SilvaError
-from pipeline.store import (
-    chunk_path, chunk_points, is_done, mark_done, open_store, read_array, write_arrays,
-)
+from pipeline.store import open_store, write_arrays
 from workflows.progress import StepProgress
+from workflows.store.assembly import chunk_points
+from workflows.store.layout import chunk_path
+from workflows.store.marks import is_done, mark_done, read_array
 
 log = logging.getLogger(__name__)
 

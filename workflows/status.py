@@ -6,11 +6,13 @@ import yaml
 
 from pipeline.errors import ModelError
 from pipeline.model import MODEL_FILE, read_description
-from pipeline.store import chunk_path, open_store, removed_record
+from pipeline.store import open_store
 from pipeline.tiling import layout_from_dict
 from workflows.lock import describe, held_by_other, read_lock
 from workflows.progress import counted
 from workflows.run import has_test_points
+from workflows.store.layout import chunk_path
+from workflows.store.retention import removed_record
 
 
 def run_status(out: Path) -> list[str]:

@@ -12,23 +12,30 @@ the command's help.
 Adding a step (for example ``trees``, per scene after the cascade, before the export):
 
 1. write its function in its own module; it takes the run's state
-   (:class:`workflows.run_state.RunState`) and reads what ``needs`` names from it::
+   (:class:`workflows.run_state.RunState`), reads what its ``needs`` name there and times
+   its work under its name::
 
-       def trees(state):
-           fingerprint = state.run.fingerprint("trees")
-           ...  # read state.layout, state.stages; state.timed("trees", fn, ...) times it
+       def trees_step(state):
+           fingerprint = state.run.fingerprint("trees")  # its parts and the inputs' digest
+           state.timed("trees", find_trees, state.run, state.engine, state.layout,
+                       state.stages, fingerprint)
 
-2. add one row to :data:`STEPS`, at its place in the run::
+2. add one row to :data:`STEPS`, at its place in the run (here after ``train``)::
 
-       Step("trees", "workflows.steps.trees:trees", needs=("layout", "stages"),
+       Step("trees", "workflows.steps.trees:trees_step", needs=("layout", "stages"),
             fingerprint=(*CASCADE_PARTS, "trees", "output.trees"),
             weight=Weight(0.05, other=0.1), per_chunk=False,
-            command="Find the trees of every scene (after train)." + ...)
+            command="Find the trees of every scene (after train)."
+            + examples("silva trees survey.yaml --out results/")),
 
-The fingerprint names :data:`workflows.fingerprint.PARTS` (rules of their own) and, for
-anything else, configuration paths hashed as written (``"trees"``: the whole section,
-``"output.trees"``: one key). A step without ``command`` has no command and no line in the
-progress (its tasks count in the progress of the step they run in).
+The loop then runs it (``silva run`` and every command after it), ``silva trees`` exists,
+the progress shows its line and weighs it (``share`` before a plan, else its estimated
+seconds), and ``run.fingerprint("trees")`` hashes what it names: :data:`PARTS
+<workflows.fingerprint.PARTS>` (rules of their own) and configuration paths as written
+(``"trees"``: the whole section, ``"output.trees"``: one key; the configuration schema
+declares them). A step without ``command`` has no command and no line in the progress (its
+tasks count in the progress of the step they run in); a step with ``per_chunk=False`` is
+left out of a ``--chunk`` run; ``needs`` are checked before it runs.
 """
 
 from collections.abc import Mapping
@@ -61,7 +68,8 @@ class Step:
     attributes the steps before it set and it reads. ``fingerprint``: the configuration parts
     its fingerprint hashes (empty: it has none; ``fingerprint_name`` names it when the step's
     name does not). ``weight``: its share in the progress. ``per_chunk``: a ``--chunk`` run
-    (one chunk, in this process) runs it. ``command``: the help of its ``silva`` command,
+    (one chunk, in this process) runs it. ``per_stage``: its tasks run once per cascade
+    stage (``predict-3``: stage 3 in its progress). ``command``: the help of its ``silva`` command,
     which runs every step up to it (None: no command, no line of its own in the progress).
     ``applying``: its name and weight in a run that applies a saved model. ``when``: a
     configuration path (``"output.trees"``) without whose true value the step is not part

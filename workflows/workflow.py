@@ -5,24 +5,20 @@ Every command is a target: it runs the steps up to and including its own. Steps 
 a previous run finished with the same configuration, so rerunning a killed command resumes it.
 
 With ``output.keep_store: false`` a run that completed removes the chunks of its store and
-records what it completed (:func:`pipeline.store.remove_chunks`); the same run again then
+records what it completed (:func:`workflows.store.retention.remove_chunks`); the same run again then
 only says so, and any other command starts afresh from the input tiles.
 """
 
 import logging
 import os
 
-from pipeline.store import forget_removed, remove_chunks, removed_record
+from workflows.store.retention import forget_removed, remove_chunks, removed_record
 from workflows.progress import say
 from workflows.run import Run
 from workflows.run_state import RunState
 from workflows.step_table import TARGETS, steps_until
 
 log = logging.getLogger(__name__)
-
-#: The command targets, in order (the steps with a command: see the step table).
-STEPS = TARGETS
-
 
 def execute(run: Run, engine, target: str, *, only: str | None = None, command: str = "",
             kernels=None) -> dict:
@@ -66,7 +62,7 @@ def _outputs(run: Run, summary: dict) -> list[str]:
 def _finish(run: Run, target: str, only, summary: dict, stamp: str) -> None:
     """After a complete run (its results stamp ``stamp``): remove the store's chunks unless
     output.keep_store."""
-    if target != STEPS[-1] or only is not None or run.cfg.output.keep_store:
+    if target != TARGETS[-1] or only is not None or run.cfg.output.keep_store:
         return
     record = {"completed": stamp,
               "outputs": _outputs(run, summary),
@@ -85,7 +81,7 @@ def _already_complete(run: Run, target: str, only, summary: dict, stamp: str) ->
     record = removed_record(run.store)
     if record is None:
         return False
-    complete = (target == STEPS[-1] and only is None
+    complete = (target == TARGETS[-1] and only is None
                 and record.get("completed") == stamp
                 and all((run.out / p).is_file() for p in record.get("outputs", ())))
     if complete:

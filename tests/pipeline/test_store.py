@@ -10,21 +10,10 @@ import pytest
 import zarr
 
 from pipeline.errors import StoreError
-from pipeline.store import (
-    MIN_APPEND_CHUNK,
-    Appender,
-    chunk_points,
-    drop_assembled_parts,
-    forget_removed,
-    is_done,
-    mark_done,
-    open_store,
-    read_array,
-    read_records,
-    remove_chunks,
-    removed_record,
-    write_arrays,
-)
+from pipeline.store import MIN_APPEND_CHUNK, Appender, open_store, write_arrays
+from workflows.store.assembly import chunk_points, drop_assembled_parts
+from workflows.store.marks import is_done, mark_done, read_array, read_records
+from workflows.store.retention import forget_removed, remove_chunks, removed_record
 
 
 def _chunk_files(root: Path, name: str) -> list[Path]:
@@ -219,7 +208,7 @@ def test_store_of_an_older_schema_is_refused(tmp_path, version):
 def test_a_part_ingest_wrote_that_is_gone_is_an_error(tmp_path):
     import shutil
 
-    from pipeline.store import tile_part
+    from workflows.store.assembly import tile_part
 
     root = open_store(tmp_path / "s.zarr")
     marker = root.require_group("scenes/train/parts/3")

@@ -81,12 +81,12 @@ def test_a_cold_cache_starts_compiling_with_one_line_and_a_warm_one_does_not(
 
 def _record_steps(events, monkeypatch):
     """Ingest runs and says so in ``events``; features only says so."""
-    from workflows import workflow
+    from workflows.steps import flow
 
-    ingest = workflow.ingest
-    monkeypatch.setattr(workflow, "ingest", lambda *a, **k: events.append("ingest") or
+    ingest = flow.ingest
+    monkeypatch.setattr(flow, "ingest", lambda *a, **k: events.append("ingest") or
                         ingest(*a, **k))
-    monkeypatch.setattr(workflow, "features", lambda *a, **k: events.append("features"))
+    monkeypatch.setattr(flow, "features", lambda *a, **k: events.append("features"))
 
 
 def test_the_run_waits_for_the_kernels_only_before_the_features_step(

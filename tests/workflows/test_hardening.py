@@ -415,7 +415,8 @@ def test_corrupt_root_store_metadata_is_one_line(tmp_path, survey):
 def test_a_done_mark_without_its_summary_runs_the_step_again(tmp_path, survey):
     """A chunk marked done whose stored summary is missing: the step runs again for it (the
     same outputs) instead of handing the coordinator nothing."""
-    from pipeline.store import chunk_path, open_store
+    from pipeline.store import open_store
+    from workflows.store.layout import chunk_path
 
     config = write_config(tmp_path / "c.yaml", survey,
                           cascade={"n_estimators": 4, "max_train_points": 3000})

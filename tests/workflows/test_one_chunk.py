@@ -39,7 +39,8 @@ def _copy(finished, out):
 
 
 def _chunk_arrays(out, scene, chunk):
-    from pipeline.store import chunk_path, open_store, read_array
+    from pipeline.store import open_store, read_array
+    from workflows.store.layout import chunk_path
 
     group = open_store(out / "store.zarr", mode="r")[chunk_path(scene, chunk)]
     return {name: read_array(group, name) for name in sorted(group.attrs["arrays"])}
@@ -47,7 +48,8 @@ def _chunk_arrays(out, scene, chunk):
 
 def _forget_chunk(out, scene, chunk):
     """Remove the done-marks of one chunk, as if its tasks had never finished."""
-    from pipeline.store import chunk_path, open_store
+    from pipeline.store import open_store
+    from workflows.store.layout import chunk_path
 
     group = open_store(out / "store.zarr")[chunk_path(scene, chunk)]
     group.attrs["done"] = {}

@@ -7,9 +7,10 @@ import pytest
 
 from pipeline.io import read_info
 from pipeline.io.raster import read_geotiff
-from pipeline.store import open_store, read_terrain
+from pipeline.store import open_store
 from pipeline.terrain import TerrainParams, ground_elevation, terrain_model
 from tests.workflows.conftest import read_predictions, silva, write_config
+from workflows.store.terrain import read_terrain
 
 pytestmark = pytest.mark.slow
 

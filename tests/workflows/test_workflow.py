@@ -26,7 +26,8 @@ from tests.workflows.conftest import (
     write_config,
 )
 from pipeline.cascade import CascadedForest, labels_from_proba
-from pipeline.store import open_store, proba_array, read_array
+from pipeline.store import open_store, read_array
+from workflows.store.layout import proba_array
 from workflows.cli import main
 
 pytestmark = pytest.mark.slow

@@ -35,12 +35,13 @@ from pipeline.model import (
     stage_file,
     write_description,
 )
-from pipeline.store import ROLE_TRAIN, context_array, proba_array, rows_of
+from pipeline.store import rows_of
 from pipeline.tiling import layout_from_dict
 from workflows.engine import chunk_tasks
 from workflows.progress import say
 from workflows.run import Run
 from workflows.run_plan import AppliedModel, check_model
+from workflows.store.layout import ROLE_TRAIN, context_array, proba_array
 
 log = logging.getLogger(__name__)
 FIT_LINE_SECONDS = 60  # with --quiet, a line at most this often while the forests grow

@@ -18,7 +18,7 @@ import numpy as np
 from pipeline.cascade import id_hash, labels_from_proba
 from pipeline.metrics import confusion_matrix, scores_from_confusion
 from pipeline.atomic import atomic_write_text
-from pipeline.store import ROLE_TEST, labels_array, proba_array
+from workflows.store.layout import ROLE_TEST, labels_array, proba_array
 from workflows.engine import chunk_tasks, results_by_scene
 from workflows.run import Run
 from workflows.steps.one_pass import one_pass_scenes

@@ -28,9 +28,7 @@ from pipeline.features.sets import feature_set
 from pipeline.io import ExtraDim, export_with_extra_dims, read_info
 from pipeline.io.las import extra_dimension_types
 from pipeline.io.raster import cell_index, max_per_cell, tile_grid, write_geotiff
-from pipeline.store import (
-    chunk_path, is_done, mark_done, open_store, proba_array, read_array, rows_of,
-)
+from pipeline.store import open_store, rows_of
 from pipeline.terrain import Raster, ground_elevation
 from pipeline.tiling import global_ids, layout_from_dict
 from workflows.config.schema import feature_dim_name
@@ -40,6 +38,8 @@ from workflows.run import Run
 from workflows.steps.ingest import excluded_points
 from workflows.steps.terrain import scene_terrain
 from workflows.steps.trees import REFERENCE_TREE_ID, TileTrees, TreeTask
+from workflows.store.layout import chunk_path, proba_array
+from workflows.store.marks import is_done, mark_done, read_array
 
 PREDICTED = "PredictedClassification"
 HEIGHT_ABOVE_GROUND = "HeightAboveGround"

@@ -1,7 +1,7 @@
 """Features: assemble each chunk from its parts and compute its core points' feature set.
 
 Core and halo points are sorted by global id, so a chunk's arrays do not depend on the order
-in which tiles and batches were read (:func:`pipeline.store.chunk_points`, which also removes
+in which tiles and batches were read (:func:`workflows.store.assembly.chunk_points`, which also removes
 the parts once the chunk is assembled). The features never change between cascade stages:
 they are computed once here, with a flag for the points whose features are undefined.
 Scenes classified in one pass (:mod:`workflows.steps.one_pass`) are left to that step.
@@ -15,7 +15,7 @@ from pipeline.cascade import id_hash
 from pipeline.features.density import left_out, neighbourhood_members, pile_up_warning
 from pipeline.features.neighbors import RadiusIndex
 from pipeline.features.sets import FeatureParams, feature_set
-from pipeline.store import ROLE_TRAIN
+from workflows.store.layout import ROLE_TRAIN
 from workflows.engine import chunk_tasks, chunk_window
 from workflows.progress import say
 from workflows.run import Run

@@ -17,21 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.cascade.one_pass import ring_width
+from pipeline.errors import ConfigError, InputError, StoreError
 from pipeline.io import iter_points, labels_from_codes, read_info, reads_ranges
 from pipeline.io.crs import check_metres, check_same_crs
-from pipeline.errors import ConfigError, InputError, StoreError
-from pipeline.store import (
-    ROLE_PREDICT,
-    ROLE_TEST,
-    ROLE_TRAIN,
-    Appender,
-    chunk_path,
-    forget_done,
-    is_done,
-    mark_done,
-    open_store,
-    part_path,
-)
+from pipeline.store import Appender, open_store
 from pipeline.tiling import (
     GROUP_SHARE,
     BalancedLayout,
@@ -49,6 +38,8 @@ from workflows.engine import Task
 from workflows.progress import counted, say
 from workflows.run import SCENES, Run
 from workflows.steps.one_pass import MAX_BORDER_SHARE, border_share, wants_one_pass
+from workflows.store.layout import ROLE_PREDICT, ROLE_TEST, ROLE_TRAIN, chunk_path, part_path
+from workflows.store.marks import forget_done, is_done, mark_done
 
 AXES = {"x": 0, "y": 1, "z": 2}
 

@@ -18,13 +18,14 @@ import numpy as np
 
 from pipeline.cascade import labels_from_proba, one_pass, one_pass_halo
 from pipeline.features.sets import FeatureParams, feature_set
-from pipeline.store import labels_array, proba_array, write_arrays
+from pipeline.store import write_arrays
 from pipeline.tiling import layout_from_dict
 from workflows.engine import chunk_tasks, chunk_window
 from workflows.run import Run
 from workflows.steps.cascade import cached_forest
 from workflows.steps.features import neighbourhood_checks, warn_neighbourhoods
 from workflows.steps.terrain import ground_under
+from workflows.store.layout import labels_array, proba_array
 
 #: The pack of a one-pass chunk's results.
 PACK = "predictions"

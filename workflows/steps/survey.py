@@ -13,12 +13,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.cascade import id_hash, labels_from_proba
-from pipeline.store import proba_array, read_terrain
 from pipeline.tiling import split_global_ids
 from workflows.engine import chunk_tasks, results_by_scene
 from workflows.run import Run
 from workflows.steps.export import entropy
 from workflows.steps.terrain import ground_under
+from workflows.store.layout import proba_array
+from workflows.store.terrain import read_terrain
 
 BINS = 20  # of the confidence and entropy histograms
 MAP_POINTS = 200_000  # points drawn in the maps

@@ -13,10 +13,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from pipeline.store import (
-    chunk_path, open_store, read_array, read_terrain, terrain_done, write_arrays,
-    write_terrain,
-)
+from pipeline.store import open_store, write_arrays
 from pipeline.terrain import (
     Raster, cell_minima, ground_elevation, ground_model, merge_minima, minima_offsets,
     minima_raster,
@@ -24,6 +21,9 @@ from pipeline.terrain import (
 from workflows.engine import chunk_tasks, chunk_window
 from workflows.progress import say
 from workflows.run import Run
+from workflows.store.layout import chunk_path
+from workflows.store.marks import read_array
+from workflows.store.terrain import read_terrain, terrain_done, write_terrain
 
 #: The pack of a chunk's cell minima.
 PACK = "terrain"

@@ -27,7 +27,7 @@ import numpy as np
 from pipeline.atomic import remove_parts
 from pipeline.cascade import labels_from_proba
 from pipeline.io.vector import write_tree_csv, write_tree_gpkg
-from pipeline.store import mark_done, open_store, proba_array, read_array, write_arrays
+from pipeline.store import open_store, write_arrays
 from pipeline.terrain import Raster
 from pipeline.trees import TreeModel, TreeParams, assign_trees, merge_stats, tree_stats, tree_table
 from pipeline.trees.instances import match_pairs, matched_errors, merge_pairs, pair_counts
@@ -35,6 +35,8 @@ from pipeline.trees.scene import TreeInputs, merge_inputs, scene_model, tree_inp
 from workflows.engine import chunk_tasks, results_by_scene
 from workflows.progress import counted, say
 from workflows.steps.terrain import ground_under
+from workflows.store.layout import proba_array
+from workflows.store.marks import mark_done, read_array
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,117 @@
+"""Chunks assembled from ingest's parts.
+
+The features step assembles a chunk from the parts of every tile (:func:`chunk_points`),
+writes its ``points`` pack, records the ingest fingerprint it was built from
+(``assembled``) and removes those parts: a later features step with another configuration
+reads the chunk's own points, and no intermediate part outlives the step.
+"""
+
+import numpy as np
+import zarr
+
+from pipeline.errors import StoreError
+from pipeline.store import write_arrays
+from workflows.store.layout import CORE, HALO, POINTS
+from workflows.store.layout import chunk_path, part_path
+from workflows.store.marks import forget, read_array, read_records
+
+_EMPTY = {"xyz": np.empty((0, 3)), "gid": np.empty(0, np.int64),
+          "label": np.empty(0, np.int16), "role": np.empty(0, np.int8)}
+
+
+def tile_part(root: zarr.Group, scene: str, tile: int, chunk: str, prefix: str):
+    """The part group of ``tile`` in ``chunk`` holding its ``prefix`` ("core" or "halo")
+    points, or None when the tile has no such points there.
+
+    Ingest records in the tile's marker which parts it wrote (``parts``); a part it wrote
+    that is gone is a :class:`StoreError`, and the tile is marked to be ingested again.
+    """
+    marker = root[f"scenes/{scene}/parts/{tile}"]
+    if prefix not in marker.attrs.get("parts", {}).get(chunk, []):
+        return None
+    path = part_path(scene, tile, chunk)
+    if path not in root:
+        forget(root[path.rsplit("/", 1)[0]])
+        raise StoreError(f"store group '{path}' is missing; its tile is marked to be ingested "
+                         "again: run the same command again (or start afresh with --overwrite)")
+    return root[path]
+
+
+def chunk_points(root: zarr.Group, scene: str, chunk: str, tiles, group: zarr.Group | None = None
+                 ) -> tuple[dict, dict]:
+    """The core and halo points of a chunk, each a dict of arrays sorted by global id:
+    core ``xyz`` (n, 3) f8, ``gid`` (n,) i8, ``label`` (n,) i2, ``role`` (n,) i1; halo
+    ``xyz`` (m, 3) f8, ``gid`` (m,) i8.
+
+    The first call after an ingest gathers them from the parts of ``tiles`` (tile indices),
+    writes the chunk's ``points`` pack, marks the chunk assembled from that ingest and
+    removes the parts; later calls read the pack. Parts that ingest wrote and that are gone
+    are one :class:`StoreError` naming them, and all their tiles are marked to be ingested
+    again. ``group`` is the chunk's group when the caller holds it open (its attributes are
+    then updated through it, so that the caller's later marks keep them).
+    """
+    group = root.require_group(chunk_path(scene, chunk)) if group is None else group
+    built_from = (root.attrs.get("layout") or {}).get("fingerprint")
+    if built_from is not None and group.attrs.get("assembled") == built_from:
+        core = {name: read_array(group, name) for name in CORE}
+        halo = {name: read_array(group, f"halo_{name}") for name in HALO}
+        return core, halo
+    found, missing = {}, []
+    for tile in tiles:
+        for prefix in ("core", "halo"):
+            try:
+                found[tile, prefix] = tile_part(root, scene, tile, chunk, prefix)
+            except StoreError as err:
+                missing.append(err)
+    if missing:
+        more = f" (and {len(missing) - 1} more tiles)" if len(missing) > 1 else ""
+        raise StoreError(f"{missing[0]}{more}")
+    core = _gather(found, tiles, "core", CORE)
+    halo = _gather(found, tiles, "halo", HALO)
+    write_arrays(group, {**core, **{f"halo_{name}": halo[name] for name in HALO}}, pack=POINTS)
+    if built_from is not None:
+        group.update_attributes({"assembled": built_from})
+        for tile in tiles:
+            drop_part(root, scene, tile, chunk)
+    return core, halo
+
+
+def _gather(found: dict, tiles, prefix: str, names) -> dict:
+    """The ``prefix`` (core or halo) points of a chunk from every tile's part, by global id."""
+    arrays = {name: [] for name in names}
+    for tile in tiles:
+        part = found.get((tile, prefix))
+        if part is not None:
+            records = read_records(part, prefix)
+            for name in names:
+                arrays[name].append(records[name])
+    arrays = {k: np.concatenate(v) if v else _EMPTY[k] for k, v in arrays.items()}
+    order = np.argsort(arrays["gid"], kind="stable")
+    return {k: v[order] for k, v in arrays.items()}
+
+
+def drop_part(root: zarr.Group, scene: str, tile: int, chunk: str) -> None:
+    """Remove the part of ``tile`` in ``chunk`` (nothing when there is none)."""
+    marker = f"scenes/{scene}/parts/{tile}"
+    if part_path(scene, tile, chunk) in root:
+        del root[marker][chunk]
+
+
+def drop_assembled_parts(root: zarr.Group) -> int:
+    """Remove every part whose chunk is assembled from the current ingest (parts a tile
+    ingested again left behind); return how many were removed."""
+    built_from = (root.attrs.get("layout") or {}).get("fingerprint")
+    if built_from is None or "scenes" not in root:
+        return 0
+    removed = 0
+    for scene in list(root["scenes"].group_keys()):
+        if f"scenes/{scene}/parts" not in root:
+            continue
+        for tile in list(root[f"scenes/{scene}/parts"].group_keys()):
+            marker = root[f"scenes/{scene}/parts/{tile}"]
+            for chunk in list(marker.group_keys()):
+                path = chunk_path(scene, chunk)
+                if path in root and root[path].attrs.get("assembled") == built_from:
+                    del marker[chunk]
+                    removed += 1
+    return removed

@@ -1,0 +1,63 @@
+"""The layout of a run's store: where each scene, chunk, part and terrain model lives, the
+names of the cascade's arrays and the roles of the points.
+
+Layout::
+
+    store.zarr/                      attrs: schema_version, layout (tiles, scenes, chunks)
+      scenes/<scene>/parts/<tile>/           marker of an ingested tile: attrs done, parts
+      scenes/<scene>/parts/<tile>/<chunk>/   points of one tile in one chunk (written by ingest,
+          core (n, 35) u1: records of xyz f8 x 3,  removed once the chunk is assembled)
+              gid i8, label i2, role i1
+          halo (m, 32) u1: records of xyz f8 x 3, gid i8
+      scenes/<scene>/chunks/<chunk>/         one chunk
+          points/   pack: xyz, gid, label, role (core points sorted by global id),
+                          halo_xyz, halo_gid (halo copies sorted by global id)
+          features/ pack: features (n, d) f4, the feature set's columns
+          terrain/  pack: minima_keys (k, 2) i8, minima_z (k,) f8: the lowest core point
+                          of each terrain cell (pipeline.terrain.cell_minima)
+          stage<t>_context (n, 2C) f4, stage<t>_proba (n, C) f4     (t = 1, 2, ...)
+        attrs: done = {step: fingerprint}, results, assembled, arrays = {array: pack}
+      scenes/<scene>/terrain/        the scene's terrain model: dtm (ny, nx) f8, south row
+        first; attrs x0, y0, cell, done = {"terrain": fingerprint}, interpolated (the share of
+        the cells with points where no ground was seen)
+
+The arrays are written and read by :mod:`pipeline.store` (packs, appended record arrays,
+checksums); which groups are done, by :mod:`workflows.store.marks`.
+"""
+
+#: Point roles: what a point is used for.
+ROLE_TRAIN, ROLE_TEST, ROLE_PREDICT = 0, 1, 2
+
+#: The arrays of a chunk's ``points`` pack, assembled from the parts, and their empty forms.
+CORE = ("xyz", "gid", "label", "role")
+HALO = ("xyz", "gid")
+POINTS = "points"
+POINT_ARRAYS = CORE + tuple(f"halo_{name}" for name in HALO)  # the members of the pack
+
+
+def chunk_path(scene: str, chunk_name: str) -> str:
+    return f"scenes/{scene}/chunks/{chunk_name}"
+
+
+def part_path(scene: str, tile_index: int, chunk_name: str) -> str:
+    return f"scenes/{scene}/parts/{tile_index}/{chunk_name}"
+
+
+def terrain_path(scene: str) -> str:
+    return f"scenes/{scene}/terrain"
+
+
+def proba_array(stage: int) -> str:
+    """Name of the probabilities array of cascade stage ``stage`` (0-based; named from 1)."""
+    return f"stage{stage + 1}_proba"
+
+
+def labels_array(stage: int) -> str:
+    """Name of the predicted labels of cascade stage ``stage`` where its probabilities are
+    not kept (the earlier stages of a chunk classified in one pass)."""
+    return f"stage{stage + 1}_labels"
+
+
+def context_array(stage: int) -> str:
+    """Name of the context array that feeds cascade stage ``stage`` (0-based; named from 1)."""
+    return f"stage{stage + 1}_context"
