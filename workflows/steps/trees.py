@@ -124,12 +124,16 @@ def scene_area(tiles: list[dict]) -> float:
 
 def tile_of(table: np.ndarray, tiles: list[dict]) -> np.ndarray:
     """The index of the tile holding each tree's top or stem base: the first of ``tiles``
-    whose XY box holds it (-1 for none, which cannot happen for a tree of their points)."""
+    whose XY box holds it, else the nearest box (a stem fitted at a tile's edge may stand
+    just outside the points), so that every tree has its row."""
+    best = np.full(len(table), np.inf)
     owner = np.full(len(table), -1, dtype=np.int64)
     for tile in tiles:
-        inside = ((owner < 0) & (table["x"] >= tile["mins"][0]) & (table["x"] <= tile["maxs"][0])
-                  & (table["y"] >= tile["mins"][1]) & (table["y"] <= tile["maxs"][1]))
-        owner[inside] = tile["index"]
+        dx = np.maximum(np.maximum(tile["mins"][0] - table["x"], table["x"] - tile["maxs"][0]), 0)
+        dy = np.maximum(np.maximum(tile["mins"][1] - table["y"], table["y"] - tile["maxs"][1]), 0)
+        distance = np.hypot(dx, dy)
+        nearer = distance < best
+        owner[nearer], best[nearer] = tile["index"], distance[nearer]
     return owner
 
 
