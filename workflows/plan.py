@@ -13,6 +13,8 @@ import math
 import os
 from pathlib import Path
 
+import numpy as np
+
 from dask.utils import format_bytes
 
 from pipeline.atomic import atomic_path
@@ -204,10 +206,28 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
         "for the forests' training" + (" (from the training tiles' points: labelled ones "
                                         "are fewer)" if training else ""),
     ]
+    if run.cfg.output.trees:
+        lines.append(trees_line(run, tiles))
     if picture is not None:
         _draw(scenes, tiles, picture)
         lines.append(f"picture: {picture}")
     return lines
+
+
+def trees_line(run: Run, tiles: list[dict]) -> str:
+    """What the trees step (output.trees) will do: its method and the size of each scene's
+    canopy height model, which the coordinator holds."""
+    params = run.cfg.trees.params
+    cells = 0.0
+    for scene in {t["scene"] for t in tiles}:
+        members = [t for t in tiles if t["scene"] == scene]
+        lo = np.min([t["mins"][:2] for t in members], axis=0)
+        hi = np.max([t["maxs"][:2] for t in members], axis=0)
+        cells += float(np.prod(np.floor((hi - lo) / params.resolution) + 1))
+    method = {"auto": "auto (stems where the scan sees them, else crowns)",
+              "crowns": "crowns", "stems": "stems"}[params.method]
+    return (f"trees: method {method}; canopy height in {params.resolution:g} m cells, "
+            f"{cells:,.0f} in all (about {cells * 16 / 2**20:,.0f} MiB on the coordinator)")
 
 
 def estimated_seconds(run: Run, tiles: list[dict], workers: int) -> dict[str, float]:

@@ -126,3 +126,13 @@ def test_every_tree_has_the_row_of_one_tile():
     table = np.array([(5.0, 5.0), (10.0, 2.0), (15.0, 9.0), (20.3, 4.0), (-0.2, 11.0)],
                      dtype=[("x", "f8"), ("y", "f8")])
     assert tile_of(table, tiles).tolist() == [0, 0, 1, 1, 0]
+
+
+def test_the_plan_shows_the_trees_step(survey, tmp_path):
+    config = config_for(tmp_path, survey, "plan", 4.0)
+    result = silva("plan", config)
+    assert result.exit_code == 0, result.output
+    line = [x for x in result.output.splitlines() if x.startswith("trees:")]
+    assert len(line) == 1 and "method auto" in line[0] and "0.5 m cells" in line[0]
+    plain = write_config(tmp_path / "plain.yaml", survey)
+    assert "trees:" not in silva("plan", plain).output
