@@ -8,10 +8,10 @@ modelled apart, so the cost follows the points, not the bounding box), each bloc
 (:func:`minima_raster`, and :func:`minima_offsets` for where they lie) is filtered into a DTM
 (:func:`ground_model`), and each chunk reads the blocks' DTMs (:class:`TerrainBlocks`) back at
 its points (:func:`ground_elevation`) to compute heights above ground. :func:`terrain_model`
-does the chain on one cloud as one block.
+does the chain on one cloud as one block, :func:`terrain_blocks` on one cloud as a scene.
 """
 
-from pipeline.terrain.blocks import TerrainBlocks, block_models, block_reach
+from pipeline.terrain.blocks import TerrainBlocks, block_models, block_reach, terrain_blocks
 from pipeline.terrain.grid import (
     Raster,
     cell_minima,
@@ -33,5 +33,5 @@ __all__ = [
     "LOW_DEPTH", "GroundModel", "Raster", "TerrainBlocks", "TerrainParams", "block_models",
     "block_reach", "cell_minima", "fill",
     "ground_elevation", "ground_model", "merge_minima", "minima_offsets", "minima_raster",
-    "terrain_model",
+    "terrain_blocks", "terrain_model",
 ]

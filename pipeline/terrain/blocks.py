@@ -21,7 +21,9 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from pipeline.errors import InputError
-from pipeline.terrain.grid import MAX_CELLS, Raster, bilinear, minima_offsets, minima_raster
+from pipeline.terrain.grid import (
+    MAX_CELLS, Raster, bilinear, cell_minima, minima_offsets, minima_raster,
+)
 from pipeline.terrain.smrf import LOW_RADIUS, GroundModel, TerrainParams, ground_model
 
 #: Offsets to the tiles met once per pair of 8-neighbours.
@@ -178,3 +180,11 @@ class TerrainBlocks:
             if mine.size:
                 out[mine] = bilinear(dtm, xy[mine])
         return out
+
+
+def terrain_blocks(xyz: np.ndarray, params: TerrainParams = TerrainParams()) -> TerrainBlocks:
+    """The terrain model of a cloud taken as a whole scene, as the terrain step makes it:
+    :func:`block_models` of its cell minima at ``params.cell``. ``xyz`` float (N, 3), N >= 1,
+    finite."""
+    keys, zmin, xy = cell_minima(xyz, params.cell)
+    return block_models(keys, zmin, xy, params)[0]

@@ -7,6 +7,7 @@ from scipy.sparse import csgraph, csr_matrix
 
 import pipeline.terrain.blocks as blocks_module
 from pipeline.errors import InputError
+from pipeline.features.sets import scene_ground
 from pipeline.terrain import (
     TerrainBlocks, TerrainParams, block_models, block_reach, cell_minima, ground_elevation,
     merge_minima, minima_raster, terrain_model,
@@ -119,3 +120,10 @@ def test_one_block_needs_no_tiles():
     single = TerrainBlocks((dtm,), np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64), 1)
     xy = np.array([[3.0, 4.0], [-20.0, 50.0]])
     assert np.array_equal(ground_elevation(single, xy), ground_elevation(dtm, xy))
+
+
+def test_heights_of_a_cloud_in_memory_take_its_plots_apart_as_the_terrain_step():
+    a, b = _plot(8, 0.0, 0.0, 12.0), _plot(9, 700.0, 700.0, 12.0)
+    ground = scene_ground(np.concatenate([a, b]), PARAMS)
+    for plot, mine in ((a, ground[:len(a)]), (b, ground[len(a):])):
+        assert np.array_equal(mine, ground_elevation(terrain_model(plot, PARAMS).dtm, plot[:, :2]))
