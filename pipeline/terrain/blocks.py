@@ -14,6 +14,7 @@ chunking and order of the tasks.
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy import sparse
@@ -111,6 +112,13 @@ def _check_cells(keys: np.ndarray, labels: np.ndarray, cell: float) -> None:
         )
 
 
+def _members(labels: np.ndarray, n: int) -> list[np.ndarray]:
+    """The indices of each label 0 .. n-1 of ``labels`` int64 (M,), each in increasing order."""
+    order = np.argsort(labels, kind="stable")
+    starts = np.searchsorted(labels[order], np.arange(n + 1))
+    return [order[starts[b]:starts[b + 1]] for b in range(n)]
+
+
 def block_models(keys: np.ndarray, zmin: np.ndarray, xy: np.ndarray, params: TerrainParams
                  ) -> tuple["TerrainBlocks", list[tuple[Raster, GroundModel]]]:
     """The ground model of each block of a scene's cell minima (:func:`merge_minima`'s keys
@@ -128,11 +136,8 @@ def block_models(keys: np.ndarray, zmin: np.ndarray, xy: np.ndarray, params: Ter
     reach = block_reach(params)
     labels, tiles, blocks = block_labels(keys, reach)
     _check_cells(keys, labels, params.cell)
-    order = np.argsort(labels, kind="stable")
-    starts = np.searchsorted(labels[order], np.arange(int(labels.max()) + 2))
     models = []
-    for b in range(starts.size - 1):
-        mine = order[starts[b]:starts[b + 1]]
+    for mine in _members(labels, int(labels.max()) + 1):
         minima = minima_raster(keys[mine], zmin[mine], params.cell)
         offsets = minima_offsets(keys[mine], xy[mine], minima)
         models.append((minima, ground_model(minima, params, offsets)))
@@ -154,6 +159,10 @@ class TerrainBlocks:
     tile_blocks: np.ndarray
     reach: int
 
+    @cached_property
+    def _index(self) -> _TileIndex:
+        return _TileIndex(self.tiles)
+
     def block_of(self, xy: np.ndarray) -> np.ndarray:
         """int64 (N,): the block that models each position: the block of its tile, else of
         the nearest occupied tile (by tile centres; the same answer for the same point)."""
@@ -161,7 +170,7 @@ class TerrainBlocks:
             return np.zeros(len(xy), dtype=np.int64)
         cell = self.dtms[0].cell
         tiles = np.floor_divide(np.floor(xy / cell).astype(np.int64), self.reach)
-        row = _TileIndex(self.tiles).find(tiles)
+        row = self._index.find(tiles)
         lost = row < 0
         if lost.any():
             centres = (self.tiles + 0.5) * self.reach * cell
@@ -171,12 +180,8 @@ class TerrainBlocks:
     def elevation(self, xy: np.ndarray) -> np.ndarray:
         """float64 (N,): each position's elevation in the DTM of its block (:func:`bilinear`,
         clamped to the block's raster)."""
-        block = self.block_of(xy)
         out = np.empty(len(xy))
-        order = np.argsort(block, kind="stable")
-        starts = np.searchsorted(block[order], np.arange(len(self.dtms) + 1))
-        for b, dtm in enumerate(self.dtms):
-            mine = order[starts[b]:starts[b + 1]]
+        for dtm, mine in zip(self.dtms, _members(self.block_of(xy), len(self.dtms))):
             if mine.size:
                 out[mine] = bilinear(dtm, xy[mine])
         return out
