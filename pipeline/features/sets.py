@@ -36,7 +36,7 @@ from pipeline.features.invariants import INVARIANT_NAMES
 from pipeline.features.local import PLANES, local_surface
 from pipeline.features.voxel import halo as voxel_halo
 from pipeline.features.voxel import representative_of
-from pipeline.terrain import TerrainParams, ground_elevation, terrain_model
+from pipeline.terrain import TerrainParams, ground_elevation, terrain_blocks
 from pipeline.tiling import box_distance, series_ceil
 
 SURFACE_SIZE_NAMES = ("log_neighbors", "log_area")
@@ -145,7 +145,7 @@ class FeatureSet:
 
         ``ground`` (float64, one per row of ``xyz``) is the terrain model's elevation under
         each point; None: the terrain model of ``xyz`` itself, a whole scene
-        (:func:`pipeline.terrain.terrain_model` with the set's terrain parameters).
+        (:func:`pipeline.terrain.terrain_blocks` with the set's terrain parameters).
         """
         xyz = np.asarray(xyz, dtype=np.float64)
         query = np.arange(len(xyz), dtype=np.int64) if query is None else np.asarray(query)
@@ -249,8 +249,8 @@ def query_box(xy: np.ndarray) -> tuple[float, float, float, float]:
 
 def scene_ground(xyz: np.ndarray, terrain: TerrainParams) -> np.ndarray:
     """float64 (N,): the elevation under each point of the terrain model of ``xyz``, taken
-    as a whole scene."""
-    return ground_elevation(terrain_model(xyz, terrain).dtm, xyz[:, :2])
+    as a whole scene, as the terrain step makes it (plots far apart are modelled apart)."""
+    return ground_elevation(terrain_blocks(xyz, terrain), xyz[:, :2])
 
 
 #: name -> builder of the set from its parameters

@@ -20,7 +20,8 @@ logger = logging.getLogger(__name__)
 
 #: Largest cell key magnitude: keys and their differences stay exact in float64 and int64.
 MAX_KEY = 2**50
-#: Largest raster :func:`minima_raster` builds (float64 values: 1.6 GB).
+#: Largest raster :func:`minima_raster` builds, and largest sum of a scene's block rasters
+#: (float64 values: 1.6 GB).
 MAX_CELLS = 200_000_000
 
 
@@ -359,30 +360,38 @@ def _harmonic(values: np.ndarray, unknown: np.ndarray, start: np.ndarray) -> np.
     return x
 
 
-def ground_elevation(dtm: Raster, xy: np.ndarray) -> np.ndarray:
-    """The DTM bilinearly interpolated between cell centres.
+def ground_elevation(dtm, xy: np.ndarray) -> np.ndarray:
+    """The terrain model's elevation under each position.
 
     Parameters
     ----------
-    dtm : Raster
-        A raster without NaN (the ``dtm`` of a :class:`~pipeline.terrain.GroundModel`); NaN
-        cells give NaN at the points they influence.
+    dtm : Raster or TerrainBlocks
+        A raster without NaN (the ``dtm`` of a :class:`~pipeline.terrain.GroundModel`; NaN
+        cells give NaN at the points they influence), read by :func:`bilinear`; or a scene's
+        :class:`~pipeline.terrain.blocks.TerrainBlocks`, each position read from the DTM of
+        the block that holds it.
     xy : float (N, 2)
         Query positions, finite.
 
     Returns
     -------
     float64 (N,)
-        Elevations. Outside the span of the cell centres the position is clamped to it, so a
-        point beyond the raster gets the value of the edge cells. Each point's value depends
-        only on that point and the raster (the same point gives the same bits whatever else
-        is in the call); exact (up to rounding) where the DTM is a plane.
+        Elevations. Each point's value depends only on that point and the model (the same
+        point gives the same bits whatever else is in the call).
     """
     xy = np.asarray(xy, dtype=np.float64)
     if xy.ndim != 2 or xy.shape[1] != 2:
         raise InputError(f"xy must have shape (N, 2), got {xy.shape}")
     if not np.isfinite(xy).all():
         raise InputError("xy holds NaN or infinite coordinates; drop those points first")
+    return bilinear(dtm, xy) if isinstance(dtm, Raster) else dtm.elevation(xy)
+
+
+def bilinear(dtm: Raster, xy: np.ndarray) -> np.ndarray:
+    """float64 (N,): ``dtm`` bilinearly interpolated between cell centres at ``xy`` (float64
+    (N, 2), finite; trusted). Outside the span of the cell centres the position is clamped
+    to it, so a point beyond the raster gets the value of the edge cells; exact (up to
+    rounding) where the DTM is a plane."""
     v = dtm.values
     ny, nx = v.shape
     u = np.clip((xy[:, 0] - dtm.x0) / dtm.cell - 0.5, 0.0, nx - 1.0)

@@ -29,7 +29,7 @@ from pipeline.io import ExtraDim, export_with_extra_dims, read_info
 from pipeline.io.las import extra_dimension_types
 from pipeline.io.raster import cell_index, max_per_cell, tile_grid, write_geotiff
 from pipeline.store import open_store, rows_of
-from pipeline.terrain import Raster, ground_elevation
+from pipeline.terrain import Raster, TerrainBlocks, ground_elevation
 from pipeline.tiling import global_ids, layout_from_dict
 from workflows.config.schema import feature_dim_name
 from workflows.engine import Task
@@ -108,7 +108,7 @@ class RasterRequest:
 class _TileRasters:
     """DSM and canopy height of one tile, accumulated batch by batch (maxima per cell)."""
 
-    def __init__(self, tile: dict, request: RasterRequest, dtm: Raster):
+    def __init__(self, tile: dict, request: RasterRequest, dtm: TerrainBlocks):
         self.tile, self.request, self.dtm = tile, request, dtm
         cell = request.resolution
         self.x0, self.y0, nx, ny = tile_grid(tile["mins"], tile["maxs"], cell)

@@ -2,9 +2,11 @@
 
 Every chunk reduces its core points to the lowest point of each terrain cell (a minimum is
 exact and associative: the scene's raster does not depend on the chunking or on the order of
-the tasks) and stores them; the coordinator merges the chunks' minima into the scene's raster
-and filters it into a terrain model (:func:`pipeline.terrain.ground_model`, SMRF), which it
-stores once per scene. The features, the one pass and export read it back: heights above
+the tasks) and stores them; the coordinator merges the chunks' minima, splits the scene's
+occupied cells into blocks of cells near each other and filters each block's raster into a
+DTM (:func:`pipeline.terrain.block_models`, SMRF), so plots far apart cost no more than each
+alone; it stores the blocks once per scene: the largest as the terrain model's ``dtm`` (the
+whole model of a scene of one block), the others beside it (:data:`BLOCK_ARRAYS`). The features, the one pass and export read it back: heights above
 ground are features, an output dimension and the source of the DTM and canopy rasters.
 """
 
@@ -15,18 +17,21 @@ import numpy as np
 
 from pipeline.store import open_store, write_arrays
 from pipeline.terrain import (
-    Raster, cell_minima, ground_elevation, ground_model, merge_minima, minima_offsets,
-    minima_raster,
+    Raster, TerrainBlocks, block_models, cell_minima, ground_elevation, merge_minima,
 )
 from workflows.engine import chunk_tasks, chunk_window
 from workflows.progress import say
 from workflows.run import Run
-from workflows.store.layout import chunk_path
+from workflows.store.layout import chunk_path, terrain_path
 from workflows.store.marks import read_array
 from workflows.store.terrain import read_terrain, terrain_done, write_terrain
 
 #: The pack of a chunk's cell minima.
 PACK = "terrain"
+#: Beside a scene's ``dtm`` (block 0): every block's (kx0, ky0, nx, ny), its raster's south-west
+#: cell key and shape; the values of blocks 1.. one after another, rows south first; the
+#: occupied tiles, their blocks and the tiles' side in cells (:class:`TerrainBlocks`).
+BLOCK_ARRAYS = ("block_boxes", "block_values", "block_tiles", "tile_blocks", "block_reach")
 #: Warn when more of a scene's terrain model than this is interpolated, not seen.
 INTERPOLATED_WARNING = 0.5
 
@@ -65,24 +70,54 @@ def terrain(run: Run, engine, layout: dict) -> None:
         keys, zmin, xy = merge_minima(
             tuple(read_array(g, name) for name in ("minima_keys", "minima_z", "minima_xy"))
             for g in groups)
-        minima = minima_raster(keys, zmin, params.cell)
-        model = ground_model(minima, params, minima_offsets(keys, xy, minima))
-        # of the cells with points (not the empty space between tiles): those without ground
-        occupied = ~np.isnan(minima.values)
-        unseen = np.count_nonzero(occupied & ~model.ground) / max(np.count_nonzero(occupied), 1)
-        write_terrain(root, scene, model.dtm, unseen, fingerprint)
+        blocks, models = block_models(keys, zmin, xy, params)
+        # of the cells with points (not the empty space between them): those without ground
+        occupied = sum(np.count_nonzero(~np.isnan(minima.values)) for minima, _ in models)
+        unseen = sum(np.count_nonzero(~np.isnan(minima.values) & ~model.ground)
+                     for minima, model in models) / max(occupied, 1)
+        write_blocks(root, scene, blocks, unseen, fingerprint)
         if unseen > INTERPOLATED_WARNING:
             say(f"warning: scene '{scene}': under {unseen:.0%} of its points' {params.cell:g} m "
                 "cells no ground was seen (dense canopy, roofs, or no ground in the scan); "
                 "the terrain model is interpolated there and heights above it are less certain")
 
 
+def write_blocks(root, scene: str, blocks: TerrainBlocks, unseen: float,
+                 fingerprint: str) -> None:
+    """Store a scene's terrain blocks: the others beside it first, then block 0 as the
+    terrain model, which marks it done."""
+    cell = blocks.dtms[0].cell
+    boxes = np.array([(round(d.x0 / cell), round(d.y0 / cell), d.shape[1], d.shape[0])
+                      for d in blocks.dtms], dtype=np.int64)
+    values = np.concatenate([np.zeros(0)] + [d.values.reshape(-1) for d in blocks.dtms[1:]])
+    write_arrays(root.require_group(terrain_path(scene)), dict(zip(BLOCK_ARRAYS, (
+        boxes, values, blocks.tiles, blocks.tile_blocks,
+        np.array([blocks.reach], dtype=np.int64)))), pack="blocks")
+    write_terrain(root, scene, blocks.dtms[0], unseen, fingerprint)
+
+
+def read_blocks(root, scene: str) -> TerrainBlocks:
+    """The terrain blocks of ``scene`` (a model stored without blocks is one block)."""
+    first = read_terrain(root, scene)
+    group = root[terrain_path(scene)]
+    if BLOCK_ARRAYS[0] not in group.attrs.get("arrays", {}):
+        return TerrainBlocks((first,), np.zeros((0, 2), dtype=np.int64),
+                             np.zeros(0, dtype=np.int64), 1)
+    boxes, values, tiles, tile_blocks, reach = (read_array(group, n) for n in BLOCK_ARRAYS)
+    dtms, start = [first], 0
+    for kx0, ky0, nx, ny in boxes[1:].tolist():
+        dtms.append(Raster(values[start:start + nx * ny].reshape(ny, nx), kx0 * first.cell,
+                           ky0 * first.cell, first.cell))
+        start += nx * ny
+    return TerrainBlocks(tuple(dtms), tiles, tile_blocks, int(reach[0]))
+
+
 @lru_cache(maxsize=4)
-def _stored_terrain(store_path: str, scene: str, fingerprint: str) -> Raster:
-    return read_terrain(open_store(store_path), scene)
+def _stored_terrain(store_path: str, scene: str, fingerprint: str) -> TerrainBlocks:
+    return read_blocks(open_store(store_path), scene)
 
 
-def scene_terrain(root, store_path: str, scene: str) -> Raster:
+def scene_terrain(root, store_path: str, scene: str) -> TerrainBlocks:
     """The stored terrain model of ``scene``, read once per worker process and version."""
     return _stored_terrain(str(store_path), scene, terrain_done(root, scene) or "")
 
