@@ -1,10 +1,10 @@
 """The tree model: IDs from where trees are, per-point assignment, exact stats and the table."""
 
-from dataclasses import dataclass
 
 import numpy as np
 import pytest
 
+from pipeline.trees.stems import Stems
 from pipeline.errors import ModelError
 from pipeline.trees import (
     TreeModel,
@@ -25,22 +25,10 @@ from tests.pipeline.test_trees_crowns import CONES, cone_forest
 PARAMS = TreeParams()
 
 
-@dataclass(frozen=True)
-class FakeStems:
-    """The fields of pipeline.trees.stems.Stems the model reads."""
-
-    x: np.ndarray
-    y: np.ndarray
-    z_base: np.ndarray
-    dbh: np.ndarray
-    quality: np.ndarray
-    fit_height: np.ndarray
-
-
 def stems_at(xy, dbh, quality):
     n = len(xy)
     xy = np.asarray(xy, dtype=np.float64).reshape(n, 2)
-    return FakeStems(xy[:, 0], xy[:, 1], np.full(n, 100.0), np.asarray(dbh, np.float64),
+    return Stems(xy[:, 0], xy[:, 1], np.full(n, 100.0), np.asarray(dbh, np.float64),
                      np.asarray(quality, np.uint8), np.full(n, 1.3))
 
 

@@ -710,11 +710,13 @@ class SilvaConfig(Section):
         return self
 
     @model_validator(mode="after")
-    def _check_canopy_classes(self) -> "SilvaConfig":
-        for name in self.output.canopy_classes or ():
-            if name not in self.data.class_names:
-                raise fail(f"output.canopy_classes: '{name}' is not a class; classes: "
-                           + ", ".join(self.data.class_names))
+    def _check_class_lists(self) -> "SilvaConfig":
+        for key, names in (("output.canopy_classes", self.output.canopy_classes),
+                           ("trees.stem_classes", self.trees.stem_classes)):
+            for name in names or ():
+                if name not in self.data.class_names:
+                    raise fail(f"{key}: '{name}' is not a class; classes: "
+                               + ", ".join(self.data.class_names))
         return self
 
     @property
@@ -726,14 +728,6 @@ class SilvaConfig(Section):
             return [names.index(name) for name in self.output.canopy_classes]
         vegetation = [i for i, code in enumerate(codes) if code in VEGETATION_CODES]
         return vegetation or [i for i, code in enumerate(codes) if code != GROUND_CODE]
-
-    @model_validator(mode="after")
-    def _check_stem_classes(self) -> "SilvaConfig":
-        for name in self.trees.stem_classes or ():
-            if name not in self.data.class_names:
-                raise fail(f"trees.stem_classes: '{name}' is not a class; classes: "
-                           + ", ".join(self.data.class_names))
-        return self
 
     @property
     def stem_classes(self) -> list[int]:
