@@ -1,12 +1,11 @@
 """The tree model: IDs from where trees are, per-point assignment, exact stats and the table."""
 
-
 import numpy as np
 import pytest
 
-from pipeline.trees.stems import Stems
 from pipeline.errors import ModelError
 from pipeline.trees import (
+    Stems,
     TreeModel,
     TreeParams,
     assign_trees,
