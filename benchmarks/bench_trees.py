@@ -3,6 +3,7 @@
     python benchmarks/bench_trees.py [--resolution R] [--smoothing S] [--window A B]
                                      [--peer-window W] [--png PATH]
     python benchmarks/bench_trees.py --stems [--stem-png-dir DIR]
+    python benchmarks/bench_trees.py --instances [--peer-window W]
 
 The same patch scanned from an aircraft (ALS_Clip) and a drone (UAS_Clip); classes 2 ground,
 3-5 vegetation, 7 noise (dropped). There is no reference list of trees: the bench counts
@@ -19,6 +20,13 @@ class as the stem mask, heights above the ground model) the stems found against 
 TreeLS_pine_plot and tls/LPine1_demo (every point but ground and noise a candidate) the stems
 and their DBH; on the four scans of the patch what sees_stems says. ``--stem-png-dir`` draws
 each plot's breast-height section with the fitted circles.
+
+``--instances`` scores whole trees on synthetic plots written as ``silva synth`` writes them
+(seeds SYNTH_SEEDS, 30 m, tiles with TreeID and trees.csv), the true tree class as canopy and
+stem mask: find_trees with method stems and crowns beside the peer (lmf tops, crowns by a
+marker watershed of the same CHM): point-level instance precision, recall and F1 against
+TreeID, detection F1 against trees.csv (2 m, height within 40 %), height and DBH RMSE of the
+matched trees, and how many true trees stand outside the plot.
 """
 
 import argparse
@@ -256,6 +264,123 @@ def stems_main(params: TreeParams, png_dir: Path | None) -> int:
     return 0
 
 
+# --- synthetic instances ----------------------------------------------------------------------
+TREE_CLASS = SYNTH_CLASSES["tree"]
+TREE_MATCH = 2.0  # metres between a true stem base and a found tree counted as a match
+HEIGHT_TOLERANCE = 0.4  # a matched tree's height within 40 % of the true height
+INSTANCE_METHODS = ("stems", "crowns", "lmf")
+
+
+def read_synthetic_plot(out_dir: Path, seed: int):
+    """Write the plot of ``seed`` as tiles into ``out_dir`` (as ``silva synth`` does) and read
+    them back: xyz (N, 3), class (N,), TreeID (N,) and the trees.csv truth table."""
+    import laspy
+
+    from pipeline.synth import write_synthetic_plot
+
+    tiles = [laspy.read(path) for path in write_synthetic_plot(out_dir, seed)]
+    xyz = np.concatenate([np.column_stack((t.x, t.y, t.z)) for t in tiles]).astype(np.float64)
+    code = np.concatenate([np.asarray(t.classification) for t in tiles])
+    tree_id = np.concatenate([np.asarray(t["TreeID"]) for t in tiles]).astype(np.uint32)
+    truth = np.genfromtxt(out_dir / "trees.csv", delimiter=",", names=True,
+                          dtype=["u4"] + ["f8"] * 5)
+    return xyz, code, tree_id, np.atleast_1d(truth)
+
+
+def lmf_trees(xyz, height, tree, params: TreeParams, window: float):
+    """The peer's trees: lidR-like lmf tops (fixed window) on the unsmoothed CHM of the tree
+    points, crowns by a marker watershed of the CHM from those tops (cells above min_height),
+    every tree point in its cell's crown. Returns (tree ID per point, table)."""
+    from skimage.segmentation import watershed
+
+    chm = chm_raster(canopy_cells(xyz, height, tree, params.resolution), params.resolution)
+    tops = lmf_tops(chm, window, params.min_height)
+    values = np.where(np.isfinite(chm.values), chm.values, 0.0)
+    markers = np.zeros(chm.shape, np.int32)
+    rows = ((tops[:, 1] - chm.y0) / chm.cell).astype(int)
+    cols = ((tops[:, 0] - chm.x0) / chm.cell).astype(int)
+    markers[rows, cols] = np.arange(1, len(tops) + 1)
+    labels = watershed(-values, markers, mask=values >= params.min_height)
+    row = np.clip(((xyz[:, 1] - chm.y0) // chm.cell).astype(int), 0, chm.shape[0] - 1)
+    col = np.clip(((xyz[:, 0] - chm.x0) // chm.cell).astype(int), 0, chm.shape[1] - 1)
+    ids = np.where(tree, labels[row, col], 0).astype(np.uint32)
+    table = np.zeros(len(tops), dtype=[("tree_id", "u4"), ("x", "f8"), ("y", "f8"),
+                                       ("height", "f8"), ("dbh", "f8")])
+    table["tree_id"] = np.arange(1, len(tops) + 1)
+    table["x"], table["y"], table["height"] = tops[:, 0], tops[:, 1], tops[:, 2]
+    table["dbh"] = np.nan
+    return ids, table
+
+
+def instance_scores(true_ids, pred_ids, truth, table) -> dict:
+    """Point-level instance and detection scores of one method on one plot."""
+    from pipeline.trees.instances import match_instances, match_tables, matched_errors
+
+    points = match_instances(true_ids, pred_ids)
+    detection = match_tables(truth, table, TREE_MATCH, HEIGHT_TOLERANCE)
+    errors = matched_errors(detection, truth, table)
+    return {"precision": points.precision, "recall": points.recall, "f1": points.f1,
+            "detection_f1": detection.f1, "found": len(table),
+            "height": errors["height"], "dbh": errors["dbh"]}
+
+
+def _rmse_cell(error: dict, scale: float) -> str:
+    return "-" if error["n"] == 0 else f"{scale * error['rmse']:.2f} ({error['n']})"
+
+
+def print_instance_row(label: str, method: str, s: dict) -> None:
+    print(f"{label:>4} {method:>6} {s['found']:5d} {s['precision']:9.3f} {s['recall']:6.3f} "
+          f"{s['f1']:6.3f} {s['detection_f1']:7.3f} {_rmse_cell(s['height'], 1.0):>12} "
+          f"{_rmse_cell(s['dbh'], 100.0):>12}")
+
+
+def pooled(scores: list[dict]) -> dict:
+    """Means of the scores over the plots; RMSEs pooled over every matched tree."""
+    def pool(key):
+        n = sum(s[key]["n"] for s in scores)
+        sse = sum(s[key]["n"] * s[key]["rmse"] ** 2 for s in scores if s[key]["n"])
+        return {"rmse": float(np.sqrt(sse / n)) if n else float("nan"), "n": n}
+    mean = {k: float(np.mean([s[k] for s in scores]))
+            for k in ("precision", "recall", "f1", "detection_f1")}
+    return {**mean, "found": sum(s["found"] for s in scores),
+            "height": pool("height"), "dbh": pool("dbh")}
+
+
+def synthetic_instances(peer_window: float) -> int:
+    """Silva stems, Silva crowns and the lmf peer on the synthetic plots SYNTH_SEEDS: point
+    instances against every point's TreeID, detection against trees.csv, and how many true
+    trees stand outside the plot (base outside the square: crowns reach in, stems cannot)."""
+    import tempfile
+
+    from pipeline.synth import DEFAULT_ORIGIN, DEFAULT_SIZE
+    from pipeline.trees import find_trees
+
+    print(f"{'seed':>4} {'method':>6} {'trees':>5} {'precision':>9} {'recall':>6} {'F1':>6} "
+          f"{'det. F1':>7} {'height RMSE m':>12} {'DBH RMSE cm':>12}")
+    scores = {method: [] for method in INSTANCE_METHODS}
+    outside, total = 0, 0
+    for seed in SYNTH_SEEDS:
+        with tempfile.TemporaryDirectory() as tmp:
+            xyz, code, true_ids, truth = read_synthetic_plot(Path(tmp), seed)
+        height = xyz[:, 2] - ground_elevation(terrain_model(xyz).dtm, xyz[:, :2])
+        tree = code == TREE_CLASS
+        ox, oy, _ = DEFAULT_ORIGIN
+        inside = ((truth["x"] >= ox) & (truth["x"] < ox + DEFAULT_SIZE)
+                  & (truth["y"] >= oy) & (truth["y"] < oy + DEFAULT_SIZE))
+        outside, total = outside + int(np.count_nonzero(~inside)), total + len(truth)
+        for method in INSTANCE_METHODS:
+            if method == "lmf":
+                ids, table = lmf_trees(xyz, height, tree, TreeParams(), peer_window)
+            else:
+                ids, table, _, _ = find_trees(xyz, height, tree, tree, TreeParams(method=method))
+            scores[method].append(instance_scores(true_ids, ids, truth, table))
+            print_instance_row(str(seed), method, scores[method][-1])
+    for method in INSTANCE_METHODS:
+        print_instance_row("all", method, pooled(scores[method]))
+    print(f"true trees (trees.csv): {total}, of which {outside} stand outside the plot")
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     defaults = TreeParams()
@@ -267,9 +392,13 @@ def main(argv=None) -> int:
     parser.add_argument("--png", type=Path, default=None)
     parser.add_argument("--stems", action="store_true",
                         help="measure the stems instead (synthetic truth, terrestrial plots)")
+    parser.add_argument("--instances", action="store_true",
+                        help="score stems, crowns and the peer on synthetic plots instead")
     parser.add_argument("--stem-png-dir", type=Path, default=None,
                         help="draw each plot's section and circles as stems-<plot>.png here")
     args = parser.parse_args(argv)
+    if args.instances:
+        return synthetic_instances(args.peer_window)
     if args.stems:
         if not DATA.is_dir():
             print(f"no data at {DATA}: nothing to measure", file=sys.stderr)
