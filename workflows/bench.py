@@ -413,7 +413,7 @@ def one_run(config: Path, overrides, out: Path, model: Path | None, client) -> d
     from workflows.run import Run
     from workflows.workflow import execute
 
-    run = Run(run_config(config, overrides, model), out, quiet=True, model_dir=model)
+    run = Run(run_config(config, overrides, model), out, quiet=True)
     run.save_config()
     started = time.perf_counter()
     summary = execute(run, Engine(client, quiet=True), "report")
