@@ -9,6 +9,7 @@ import yaml
 
 from pipeline.store import open_store
 from tests.workflows.conftest import error_line, read_predictions, silva, write_config
+from workflows.steps.export import export_command
 
 pytestmark = pytest.mark.slow
 
@@ -43,6 +44,11 @@ def test_predict_from_the_model_alone_gives_the_training_runs_bits(one_stage, su
     assert saved["cascade"]["stages"] == len(model["stages"]) == 1
     assert saved["features"]["r1"] == model["features.r1"]
     assert list(saved["data"]["classes"]) == [c["name"] for c in model["classes"]]
+    # the export's hint is a command a run without a configuration can follow
+    hint = export_command(tmp_path / "p").split()
+    assert hint[:2] == ["silva", "export"] and "CONFIG" not in hint
+    again = silva(*hint[1:], "-q")
+    assert again.exit_code == 0, again.output
 
 
 def test_a_config_training_two_stages_is_refused_and_applies_the_models_one_when_set(

@@ -374,6 +374,12 @@ def check_point_formats(run: Run, tiles: list[dict]) -> None:
                 f"in {PREDICTED})")
 
 
+def export_command(out: Path) -> str:
+    """The command that reruns the export of the run in ``out``: with the configuration the
+    run saved there, which a 'silva predict' without a configuration has too."""
+    return f"silva export {Path(out) / 'config.yaml'} --out {out} --in-process"
+
+
 def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> list[str]:
     """Write predictions/<tile>.laz (or .las) for every input tile; remove every other
     file of predictions/ (tiles no longer in the run, the other format, parts of files a
@@ -420,7 +426,7 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
                 trees=trees, score_trees=trees is not None and tile["scene"] == "test",
             )},
             where=f"export of tile {tile['path']}",
-            reproduce=f"silva export CONFIG --out {run.out} --in-process",
+            reproduce=export_command(run.out),
         ))
     results = list(engine.map("export", tasks).values())
     written = [r["path"] for r in results]
