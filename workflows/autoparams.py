@@ -122,13 +122,15 @@ def _same(a, b) -> bool:
 def adopt_model(raw: dict, description: dict, model_path) -> dict:
     """``raw`` (a configuration as written, before validation) with the values the model
     ``description`` (model.json) records for its predictions: its feature, context and
-    terrain keys, ``cascade.stages`` (its stage count, whatever ``raw`` trains with) and
+    terrain keys, ``cascade.stages`` (its stage count) and
     ``data.classes`` (each name with its output code) when ``raw`` names none. ConfigError,
     naming the key, the configured and the model's value, for a recorded key ``raw`` sets
     otherwise ('auto' leaves it to the model)."""
     raw = copy.deepcopy(raw)
     recorded = {k: v for k, v in description.items()
                 if k.partition(".")[0] in MODEL_SECTIONS and k not in DERIVED_KEYS}
+    # the run applies every stage the model has: its stage count is one more recorded value
+    recorded["cascade.stages"] = len(description.get("stages") or ())
     for key, value in recorded.items():
         section, _, name = key.partition(".")
         given = (raw.get(section) or {}).get(name, "auto")
@@ -141,8 +143,6 @@ def adopt_model(raw: dict, description: dict, model_path) -> dict:
         if not isinstance(raw.get(section), dict):
             raw[section] = {}
         raw[section][name] = value
-    # a training setting: the run applies every stage the model has
-    raw["cascade"] = {**(raw.get("cascade") or {}), "stages": len(description.get("stages") or ())}
     data = raw.get("data") if isinstance(raw.get("data"), dict) else {}
     if not data.get("classes") and description.get("classes"):
         data["classes"] = {c["name"]: [c["code"]] for c in description["classes"]}

@@ -41,10 +41,10 @@ def test_voxel_auto_and_a_model_decide_for_an_applied_run(tmp_path):
     resolved = resolve_auto(_config(tile, voxel="auto"))
     assert resolved.features.voxel == pytest.approx(auto_voxel(resolved.features.r1, 64))
     raw = {"data": {"train": [str(tile)], "classes": {"a": [1], "b": [2]}},
-           "features": {"r1": "auto", "voxel": "auto"}, "cascade": {"stages": 3}}
+           "features": {"r1": "auto", "voxel": "auto"}}
     applied = validate_config(adopt_model(raw, MODEL, "m"))
     assert (applied.features.r1, applied.features.voxel) == (1.5, 0.2)
-    assert applied.cascade.stages == 1  # the model's, whatever the configuration trains with
+    assert applied.cascade.stages == 1  # the model's
     assert applied.halo == one_pass_halo(applied.features.params.halo, 1.5, 1)
     assert raw["features"]["r1"] == "auto"  # the configuration itself is left as it was
 
@@ -59,6 +59,7 @@ MODEL = {"features.r1": 1.5, "features.voxel": 0.2, "features.columns": ["I2_22"
     ({"r1": 0.7}, {}, "features.r1"),
     ({"voxel": 0.3}, {}, "features.voxel"),
     ({}, {"context": "soft"}, "cascade.context"),
+    ({}, {"stages": 3}, "cascade.stages"),
 ])
 def test_a_configured_value_other_than_the_models_is_refused(features, cascade, key):
     raw = {"features": features, "cascade": cascade}

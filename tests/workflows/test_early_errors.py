@@ -188,3 +188,11 @@ def test_the_memory_a_worker_needs_follows_its_chunk_and_columns(tmp_path, surve
     assert worker_memory_limit(run_of("cluster.kind=address",
                                       "cluster.address=tcp://127.0.0.1:1")) is None
     check_memory(run_of("cluster.memory_limit=2GiB"), tiles)  # enough: no error
+
+
+def test_a_raster_resolution_too_fine_for_memory_is_refused_before_the_cluster_starts(
+        tmp_path, survey, started):
+    line = refused_at_start(tmp_path, survey, started, "run", "--set", "output.rasters=[chm]",
+                            "--set", "output.raster_resolution=0.0001")
+    assert "output.raster_resolution=0.0001" in line and "cells" in line, line
+    assert "--set output.raster_resolution=1" in line

@@ -9,6 +9,7 @@ import yaml
 
 from pipeline.store import open_store
 from tests.workflows.conftest import error_line, read_predictions, silva, write_config
+from workflows.steps.export import export_command
 
 pytestmark = pytest.mark.slow
 
@@ -43,12 +44,23 @@ def test_predict_from_the_model_alone_gives_the_training_runs_bits(one_stage, su
     assert saved["cascade"]["stages"] == len(model["stages"]) == 1
     assert saved["features"]["r1"] == model["features.r1"]
     assert list(saved["data"]["classes"]) == [c["name"] for c in model["classes"]]
+    # the export's hint is a command a run without a configuration can follow
+    hint = export_command(tmp_path / "p").split()
+    assert hint[:2] == ["silva", "export"] and "CONFIG" not in hint
+    again = silva(*hint[1:], "-q")
+    assert again.exit_code == 0, again.output
 
 
-def test_a_config_training_two_stages_applies_the_models_one_in_one_pass(one_stage, tmp_path):
+def test_a_config_training_two_stages_is_refused_and_applies_the_models_one_when_set(
+        one_stage, tmp_path):
     two, trained = one_stage
+    refused = silva("predict", two, "--model", trained / "model", "--out", tmp_path / "r",
+                    "--set", "data.train=[]", "--in-process", "-q")
+    assert refused.exit_code == 1
+    line = error_line(refused)
+    assert "cascade.stages is 2" in line and "cascade.stages=1" in line, line
     result = silva("predict", two, "--model", trained / "model", "--out", tmp_path / "p",
-                   "--set", "data.train=[]", "--in-process", "-q")
+                   "--set", "data.train=[]", "--set", "cascade.stages=1", "--in-process", "-q")
     assert result.exit_code == 0, result.output
     saved = yaml.safe_load((tmp_path / "p" / "config.yaml").read_text())
     assert saved["cascade"]["stages"] == 1

@@ -17,17 +17,25 @@ def installed_models() -> dict[str, Path]:
 
 
 def model_path(name_or_dir) -> Path:
-    """The model directory ``name_or_dir`` names: a directory, or an installed model's name.
-    ModelError (one line, with the installed names) for neither."""
+    """The model directory ``name_or_dir`` names: an installed model's name, or a directory
+    holding a model.json. A bare name that is both (say an earlier run's ``--out``) is
+    refused: which was meant cannot be told. ModelError (one line) for neither or both."""
+    given = str(name_or_dir)
     path = Path(name_or_dir).expanduser()
-    if path.is_dir():
-        return path
+    holds_model = (path / "model.json").is_file()
     installed = installed_models()
-    if str(name_or_dir) in installed:
-        return installed[str(name_or_dir)]
+    if given in installed:
+        if holds_model:
+            raise ModelError(
+                f"--model {given}: both a model installed with Silva and the model directory "
+                f"{path.absolute()}; write --model ./{given} for the directory, or move it")
+        return installed[given]
+    if holds_model:
+        return path
     known = ", ".join(installed) or "none"
-    raise ModelError(f"--model {name_or_dir}: no such model directory, nor a model installed "
-                     f"with Silva (installed: {known}; 'silva models' lists them)")
+    what = "a directory without a model.json" if path.is_dir() else "no such model directory"
+    raise ModelError(f"--model {given}: {what}, nor a model installed with Silva "
+                     f"(installed: {known}; 'silva models' lists them)")
 
 
 def model_summary(name: str, directory: Path) -> dict:

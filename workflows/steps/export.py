@@ -174,6 +174,27 @@ def check_output_names(run: Run, tiles: list[dict]) -> None:
                     "from the input")
 
 
+#: Cells a tile's raster may hold: a few float64 arrays of 50 M cells each stay within a
+#: worker's memory, where a resolution written in the wrong unit asks for billions.
+MAX_RASTER_CELLS = 50_000_000
+
+
+def check_raster_size(run: Run, tiles: list[dict]) -> None:
+    """Refuse, before any work, an ``output.raster_resolution`` that gives a tile's raster
+    (from its header's XY box) more than :data:`MAX_RASTER_CELLS` cells."""
+    out = run.cfg.output
+    if not out.rasters:
+        return
+    for tile in tiles:
+        _, _, nx, ny = tile_grid(np.asarray(tile["mins"]), np.asarray(tile["maxs"]),
+                                 out.raster_resolution)
+        if nx * ny > MAX_RASTER_CELLS:
+            raise ConfigError(
+                f"config error: output.raster_resolution={out.raster_resolution} gives the "
+                f"rasters of {tile['path']} {nx} x {ny} cells, more than {MAX_RASTER_CELLS:,}; "
+                "set a coarser resolution in map units (e.g. --set output.raster_resolution=1)")
+
+
 class _ChunkPredictions:
     """Final probabilities (and chosen feature columns) of the chunks a tile touches,
     loaded once each."""
@@ -374,6 +395,12 @@ def check_point_formats(run: Run, tiles: list[dict]) -> None:
                 f"in {PREDICTED})")
 
 
+def export_command(out: Path) -> str:
+    """The command that reruns the export of the run in ``out``: with the configuration the
+    run saved there, which a 'silva predict' without a configuration has too."""
+    return f"silva export {Path(out) / 'config.yaml'} --out {out} --in-process"
+
+
 def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> list[str]:
     """Write predictions/<tile>.laz (or .las) for every input tile; remove every other
     file of predictions/ (tiles no longer in the run, the other format, parts of files a
@@ -420,7 +447,7 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
                 trees=trees, score_trees=trees is not None and tile["scene"] == "test",
             )},
             where=f"export of tile {tile['path']}",
-            reproduce=f"silva export CONFIG --out {run.out} --in-process",
+            reproduce=export_command(run.out),
         ))
     results = list(engine.map("export", tasks).values())
     written = [r["path"] for r in results]
