@@ -38,7 +38,7 @@ from workflows.engine import Task
 from workflows.progress import counted, say
 from workflows.run import SCENES, Run
 from workflows.steps.one_pass import MAX_BORDER_SHARE, border_share, wants_one_pass
-from workflows.store.layout import ROLE_PREDICT, ROLE_TEST, ROLE_TRAIN, chunk_path, part_path
+from workflows.store.layout import ROLE_PREDICT, ROLE_TEST, ROLE_TRAIN, chunk_path
 from workflows.store.marks import forget_done, is_done, mark_done
 
 AXES = {"x": 0, "y": 1, "z": 2}
