@@ -103,6 +103,17 @@ def resolve_run(raw: dict | SilvaConfig, model_dir=None) -> RunPlan:
     return RunPlan(cfg, model, find_inputs(cfg))
 
 
+#: The points a model was trained without (noise, withheld), which a run applying it leaves
+#: out too unless its configuration says otherwise.
+FILTER_KEYS = ("data.exclude_codes", "data.exclude_withheld")
+
+
+def data_filters(cfg: SilvaConfig) -> dict:
+    """The data filters of ``cfg`` as a model records them (:data:`FILTER_KEYS`)."""
+    return {"data.exclude_codes": sorted(set(cfg.data.exclude_codes)),
+            "data.exclude_withheld": bool(cfg.data.exclude_withheld)}
+
+
 #: The sections whose recorded keys (model.json's "section.key") a run applying a model takes.
 MODEL_SECTIONS = ("features", "cascade", "terrain")
 #: Recorded keys that are derived, not set: the feature set's column names.
@@ -146,5 +157,9 @@ def adopt_model(raw: dict, description: dict, model_path) -> dict:
     data = raw.get("data") if isinstance(raw.get("data"), dict) else {}
     if not data.get("classes") and description.get("classes"):
         data["classes"] = {c["name"]: [c["code"]] for c in description["classes"]}
-        raw["data"] = data
+    for key in FILTER_KEYS:  # the model's filters, unless the configuration sets its own
+        name = key.partition(".")[2]
+        if key in description and name not in data:
+            data[name] = description[key]
+    raw["data"] = data
     return raw

@@ -88,3 +88,20 @@ def test_an_applied_model_gives_its_classes_to_a_config_without_them(tmp_path):
     listed = {"data": {"predict": [str(tile)], "classes": {"a": [5], "b": [6]}}}
     # listed classes are checked against the model's when the run starts, not replaced
     assert adopt_model(listed, MODEL, "m")["data"]["classes"] == {"a": [5], "b": [6]}
+
+
+def test_an_applied_model_leaves_out_the_points_it_was_trained_without(tmp_path):
+    from workflows.autoparams import read_run, resolve_run
+    from workflows.models import model_path
+
+    described = {"data.exclude_codes": [7, 18], "data.exclude_withheld": True}
+    adopted = adopt_model({}, described, "m")
+    assert adopted["data"] == {"exclude_codes": [7, 18], "exclude_withheld": True}
+    own = adopt_model({"data": {"exclude_codes": []}}, described, "m")
+    assert own["data"]["exclude_codes"] == []  # a configuration may say otherwise
+    assert adopt_model({}, {}, "m").get("data", {}) == {}  # an older model records none
+    # the shipped airborne model: noise (7, 18) was excluded in training, and is when applied
+    tile = _tile(tmp_path / "t.laz", 2.0)
+    plan = resolve_run(read_run(None, (), [str(tile)]),
+                       model_path("als-ground-vegetation-building"))
+    assert plan.cfg.data.exclude_codes == [7, 18]

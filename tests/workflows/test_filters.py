@@ -131,6 +131,10 @@ def test_excluded_points_are_exported_unchanged_and_not_scored(noisy, survey, tm
     labelled = np.isin(np.asarray(src.classification), [2, 5, 64, 1])
     assert int(np.sum(metrics["confusion"])) == int((tested & labelled).sum())
     assert metrics["excluded_points"] == int(added.sum())
+    # the model records the filters, so a run applying it leaves the same points out
+    described = json.loads((tmp_path / "out" / "model" / "model.json").read_text())
+    assert described["data.exclude_codes"] == sorted(NOISE)
+    assert described["data.exclude_withheld"] is True
 
 
 def test_exclude_codes_config():

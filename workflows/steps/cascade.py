@@ -37,6 +37,7 @@ from pipeline.model import (
 )
 from pipeline.store import rows_of
 from pipeline.tiling import layout_from_dict
+from workflows.autoparams import data_filters
 from workflows.engine import chunk_tasks
 from workflows.progress import say
 from workflows.run import Run
@@ -288,6 +289,7 @@ class StoreCascade:
         write_description(run.model_path, {
             **run.feature_description(),
             "classes": [{"name": n, "code": c} for n, c in zip(run.classes, run.class_codes)],
+            **data_filters(run.cfg),
             "seed": self.params.seed,
             "training_fractions": [float(f) for f in self.fractions],
             "stages": stages,
