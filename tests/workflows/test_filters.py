@@ -154,3 +154,18 @@ def test_forest_template_excludes_noise():
     with template_path("forest") as path:
         cfg = load_config(path)
     assert cfg.data.exclude_codes == [7, 18] and cfg.data.exclude_withheld is False
+
+
+def test_a_filter_that_leaves_a_scene_no_point_names_its_tiles_and_the_filter(survey, tmp_path):
+    from pipeline.errors import InputError
+
+    src = laspy.read(min(survey["test"].glob("*.laz"), key=lambda p: p.stat().st_size))
+    tile = tmp_path / "all-noise.laz"
+    write_las(tile, np.c_[src.x, src.y, src.z],
+              fields={"classification": np.full(len(src.x), 7, np.uint8)})
+    config = _config(tmp_path / "c.yaml", survey, tile, exclude_codes=[7])
+    with pytest.raises(InputError) as refused:
+        _run(config, tmp_path / "out", "ingest")
+    message = str(refused.value)
+    assert str(tile) in message and "data.exclude_codes" in message and "[7]" in message
+    assert "\n" not in message

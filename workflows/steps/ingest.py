@@ -348,6 +348,23 @@ def point_roles(scene: str, xyz: np.ndarray, split) -> np.ndarray:
     return np.full(len(xyz), role, dtype=np.int8)
 
 
+def check_something_left(run, tiles: list[dict]) -> None:
+    """InputError (one line naming the tiles and the filters) when the ingest filters left a
+    scene without a single point to classify."""
+    data = run.cfg.data
+    for scene in sorted({t["scene"] for t in tiles}):
+        members = [t for t in tiles if t["scene"] == scene]
+        if all(t["excluded"] >= t["n_points"] for t in members):
+            names = ", ".join(t["path"] for t in members[:3]) + (" ..." if len(members) > 3
+                                                                 else "")
+            raise InputError(
+                f"every point of data.{scene} ({names}) is left out by data.exclude_codes "
+                f"{sorted(set(data.exclude_codes))}"
+                + (" and data.exclude_withheld" if data.exclude_withheld else "")
+                + f": nothing is left to classify; change the filters or the tiles of "
+                f"data.{scene}")
+
+
 def excluded_points(fields: dict, exclude_codes, exclude_withheld: bool) -> np.ndarray | None:
     """bool (n,) mask of the points the ingest filters leave out, from a batch's fields
     (``classification`` for ``exclude_codes``, ``withheld`` for ``exclude_withheld``); None
@@ -604,6 +621,7 @@ def ingest(run: Run, engine) -> dict:
             excluded_by_tile[index] = excluded_by_tile.get(index, 0) + n
     for tile in tiles:  # points the ingest filters left out (data.exclude_*)
         tile["excluded"] = int(excluded_by_tile.get(str(tile["index"]), 0))
+    check_something_left(run, tiles)
     excluded = sum(t["excluded"] for t in tiles)
     if excluded:
         say(f"ingest: {counted(excluded, 'point')} excluded (data.exclude_codes / "
