@@ -74,8 +74,10 @@ def test_a_model_directory_without_a_model_is_refused_before_the_cluster_starts(
         tmp_path, survey, started):
     model = tmp_path / "model"
     model.mkdir()
-    assert f"no model at {model}" in refused_at_start(tmp_path, survey, started, "predict",
-                                                      "--model", model)
+    config = write_config(tmp_path / "c.yaml", survey)
+    line = error_line(silva("predict", config, "--model", model, "--out", tmp_path / "out"))
+    assert f"--model {model}: a directory without a model.json" in line
+    assert started == [] and not (tmp_path / "out").exists()  # refused before anything
 
 
 def _tile_in(path, epsg, x, y):
