@@ -95,6 +95,14 @@ TITLES = {
 }
 
 
+def figure_html(png: bytes, alt: str, caption: str, title: str | None = None) -> str:
+    """A figure of the page: the PNG embedded, its caption, and a heading when ``title``."""
+    data = base64.b64encode(png).decode("ascii")
+    heading = f"<h3>{_escape(title)}</h3>" if title else ""
+    return (f'<figure>{heading}<img src="data:image/png;base64,{data}" alt="{_escape(alt)}">'
+            f"<figcaption>{_escape(caption)}</figcaption></figure>")
+
+
 def render_page(metrics, stages, images, title, run_info, config_text, *, importances=None,
                 no_features=None, sections=()) -> str:
     e = _escape
@@ -142,13 +150,11 @@ def render_page(metrics, stages, images, title, run_info, config_text, *, import
     parts.append("<h2>Plots</h2>")
     for name in PLOT_NAMES:
         png, note = images[name]
-        parts.append(f"<figure><h3>{e(TITLES[name])}</h3>")
         if png is None:
-            parts.append(f'<p class="missing">{e(note)}</p></figure>')
+            parts.append(f"<figure><h3>{e(TITLES[name])}</h3>"
+                         f'<p class="missing">{e(note)}</p></figure>')
             continue
-        data = base64.b64encode(png).decode("ascii")
-        parts.append(f'<img src="data:image/png;base64,{data}" alt="{e(TITLES[name])}">')
-        parts.append(f"<figcaption>{e(CAPTIONS[name])}</figcaption></figure>")
+        parts.append(figure_html(png, TITLES[name], CAPTIONS[name], TITLES[name]))
 
     parts.append("<h2>Confusion counts</h2>")
     parts.append("<details><summary>Exact point counts (rows: true class, columns: "

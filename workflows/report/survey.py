@@ -2,7 +2,6 @@
 points and of the area, per tile; the class map, a side view and where the uncertain points
 are, per scene; confidence and entropy histograms; the terrain model and canopy height."""
 
-import base64
 from pathlib import Path
 
 import matplotlib
@@ -16,7 +15,7 @@ from workflows.report.figures import (
     DPI, STYLE, _mpl_text, class_colour, class_colours, draw_points, marker_side, png_bytes,
     span, terrain_figure, topdown_figure,
 )
-from workflows.report.html import CSS, _escape, _format_value
+from workflows.report.html import CSS, _escape, _format_value, figure_html
 
 CAPTIONS = {
     "topdown": "The predicted class of a sample of the points, seen from above.",
@@ -144,11 +143,8 @@ def survey_html(survey: dict, images: dict) -> str:
                      f"<td>{n:,}</td>{shares}</tr>")
     parts.append("</table>")
     for name, png in images.items():
-        data = base64.b64encode(png).decode("ascii")
         caption = CAPTIONS[name].format(low=survey["low_confidence"])
-        parts.append(f"<figure><h3>{e(TITLES[name])}</h3>"
-                     f'<img src="data:image/png;base64,{data}" alt="{e(TITLES[name])}">'
-                     f"<figcaption>{e(caption)}</figcaption></figure>")
+        parts.append(figure_html(png, TITLES[name], caption, TITLES[name]))
     return "\n".join(parts)
 
 

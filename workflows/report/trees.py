@@ -2,14 +2,12 @@
 height, crown diameter and DBH, trees per hectare, and the instance scores of a labelled run.
 """
 
-import base64
-
 import matplotlib
 import numpy as np
 from matplotlib.figure import Figure
 
 from workflows.report.figures import DPI, STYLE, _mpl_text, png_bytes
-from workflows.report.html import _escape, _format_value
+from workflows.report.html import _escape, _format_value, figure_html
 
 HECTARE = 10_000.0  # square metres
 
@@ -92,7 +90,5 @@ def trees_html(found: dict, images: dict, scores: dict | None = None) -> str:
                           ("trees_histograms", "Heights, crown diameters and DBH of the "
                                                "trees found.")):
         if name in images:
-            data = base64.b64encode(images[name]).decode("ascii")
-            parts.append(f'<figure><img src="data:image/png;base64,{data}" alt="{e(name)}">'
-                         f"<figcaption>{e(caption)}</figcaption></figure>")
+            parts.append(figure_html(images[name], name, caption))
     return "\n".join(parts)
