@@ -4,7 +4,8 @@ Every output file of Silva (model files, LAS/LAZ tiles, metrics, reports, the sa
 configuration) is written through :func:`atomic_path`: the content goes to a hidden
 temporary file beside the target, which replaces the target in one ``os.replace`` only once
 it is complete. A killed process leaves at worst a hidden ``.<name>.<random>.part`` file,
-which :func:`remove_parts` clears.
+which :func:`remove_parts` clears; :func:`remove_stale` clears the outputs of an earlier run
+that this one no longer writes.
 """
 
 import os
@@ -50,3 +51,15 @@ def remove_parts(directory: str | Path) -> int:
     for path in parts:
         path.unlink(missing_ok=True)
     return len(parts)
+
+
+def remove_stale(out_dir: Path, keep: list[str], suffixes=(".las", ".laz")) -> list[Path]:
+    """Remove the files of ``out_dir`` with one of ``suffixes`` (by default point clouds)
+    that are not in ``keep`` (what a run wrote there); return them."""
+    kept = {Path(p).name for p in keep}
+    stale = [p for p in out_dir.iterdir()
+             if p.suffix.lower() in suffixes and p.name not in kept
+             and (p.is_file() or p.is_symlink())]
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return stale

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.atomic import remove_parts
+from pipeline.atomic import remove_parts, remove_stale
 from pipeline.errors import ConfigError, StoreError
 from pipeline.features.sets import feature_set
 from pipeline.io import ExtraDim, export_with_extra_dims, read_info
@@ -463,15 +463,3 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
             f"ones); their predictions are unreliable and marked {NO_FEATURES}=1",
             quiet=run.quiet)  # -q keeps one line per step; the log has it
     return written
-
-
-def remove_stale(out_dir: Path, keep: list[str], suffixes=(".las", ".laz")) -> list[Path]:
-    """Remove the files of ``out_dir`` with one of ``suffixes`` (point clouds) that are not
-    in ``keep``; return them."""
-    kept = {Path(p).name for p in keep}
-    stale = [p for p in out_dir.iterdir()
-             if p.suffix.lower() in suffixes and p.name not in kept
-             and (p.is_file() or p.is_symlink())]
-    for path in stale:
-        path.unlink(missing_ok=True)
-    return stale

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.atomic import remove_parts
+from pipeline.atomic import remove_parts, remove_stale
 from pipeline.cascade import labels_from_proba
 from pipeline.io.vector import write_tree_csv, write_tree_gpkg
 from pipeline.store import open_store, write_arrays
@@ -36,7 +36,7 @@ from workflows.engine import chunk_tasks, results_by_scene
 from workflows.progress import counted, say
 from workflows.steps.terrain import ground_under
 from workflows.store.layout import proba_array
-from workflows.store.marks import mark_done, read_array
+from workflows.store.marks import is_done, mark_done, read_array
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +59,7 @@ class TreeTask:
     canopy: tuple[int, ...]
     stems: tuple[int, ...]
     params: TreeParams
-    fingerprint: str = ""  # of the stored tree model (pass 2 only)
+    fingerprint: str  # of the scene's tree model
 
 
 def chunk_points(view, task: TreeTask):
@@ -85,11 +85,6 @@ def chunk_tree_stats(view, task: TreeTask):
 
 def model_path(scene: str) -> str:
     return MODEL_GROUP.format(scene=scene)
-
-
-def stored_fingerprint(root, scene: str) -> str | None:
-    path = model_path(scene)
-    return root[path].attrs.get("done", {}).get("trees") if path in root else None
 
 
 def store_model(root, scene: str, model: TreeModel, chm: Raster, method: str,
@@ -143,20 +138,19 @@ def trees(run, engine, layout: dict, final_stage: int, stage_fp: str) -> dict:
     cfg = run.cfg
     fingerprint = f"{run.fingerprint('trees')}-{stage_fp}"
     task = TreeTask(final_stage, tuple(cfg.canopy_classes), tuple(cfg.stem_classes),
-                    cfg.trees.params)
+                    cfg.trees.params, fingerprint)
     root = run.store
+    tiles_of = {s: [t for t in layout["tiles"] if t["scene"] == s] for s in layout["scenes"]}
     todo = {s: info for s, info in layout["scenes"].items()
-            if stored_fingerprint(root, s) != fingerprint}
+            if not (model_path(s) in root and is_done(root[model_path(s)], "trees", fingerprint))}
     if todo:
         tasks = chunk_tasks(run, {**layout, "scenes": todo}, "trees", chunk_tree_inputs, task,
                             fingerprint, "trees", marks=False)
         for scene, results in results_by_scene(tasks, engine.map("trees", tasks)).items():
-            tiles = [t for t in layout["tiles"] if t["scene"] == scene]
             store_model(root, scene, *scene_model(merge_inputs(results, task.params),
-                                                  task.params, scene_area(tiles)),
+                                                  task.params, scene_area(tiles_of[scene])),
                         fingerprint)
-    counted_task = TreeTask(**{**task.__dict__, "fingerprint": fingerprint})
-    tasks = chunk_tasks(run, layout, "tree-stats", chunk_tree_stats, counted_task, fingerprint,
+    tasks = chunk_tasks(run, layout, "tree-stats", chunk_tree_stats, task, fingerprint,
                         "trees", marks=False)
     out_dir = run.out / "trees"
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -165,7 +159,7 @@ def trees(run, engine, layout: dict, final_stage: int, stage_fp: str) -> dict:
     for scene, results in results_by_scene(tasks, engine.map("trees (stats)", tasks)).items():
         model = scene_trees(str(run.store_path), scene, fingerprint)
         table = tree_table(model, merge_stats(results))
-        tiles = [t for t in layout["tiles"] if t["scene"] == scene]
+        tiles = tiles_of[scene]
         owner = tile_of(table, tiles)
         for tile in tiles:
             rows = table[owner == tile["index"]]
@@ -174,7 +168,7 @@ def trees(run, engine, layout: dict, final_stage: int, stage_fp: str) -> dict:
                         "chm": stored_chm(root, scene), "area": scene_area(tiles)}
         say(f"trees: scene '{scene}': {counted(len(table), 'tree')} "
             f"({found[scene]['method']})", quiet=run.quiet)
-    remove_stale_trees(out_dir, written)
+    remove_stale(out_dir, written, suffixes=(".csv", ".gpkg"))  # tiles no longer in the run
     return {"scenes": found, "files": written}
 
 
@@ -186,13 +180,6 @@ def write_tile_trees(out_dir: Path, tile: dict, rows: np.ndarray, model: TreeMod
                     tile.get("crs_wkt"))
     return [str(csv), str(gpkg)]
 
-
-def remove_stale_trees(out_dir: Path, keep: list[str]) -> None:
-    """Remove the tables of tiles no longer in the run."""
-    kept = {Path(p).name for p in keep}
-    for path in out_dir.iterdir():
-        if path.suffix in (".csv", ".gpkg") and path.name not in kept:
-            path.unlink(missing_ok=True)
 
 
 class TileTrees:
@@ -224,7 +211,6 @@ class TileTrees:
         reference trees)."""
         if self.score and self.pairs:
             write_arrays(marker, {PAIRS: merge_pairs(self.pairs)})
-
 
 
 #: The reference trees of labelled tiles: a table beside them (as silva synth writes it).
