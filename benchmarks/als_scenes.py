@@ -1,8 +1,11 @@
-"""Write the real airborne tiles of ../shared/data/als as two scenes for training and scoring
+"""Write the real airborne tiles of ../shared/data as two scenes for training and scoring
 a model across sites: each tile cut at its median x, the west halves side by side in one
 scene, the east halves in another.
 
-The tiles come from three sites, three CRSs and three densities (0.9-58 points/m²); a scene
+The tiles: the three of ../shared/data/als (a town, a city, a hillside) and the ponderosa-pine
+patch of ../shared/data/trees seen from a plane and from a drone (ALS_Clip, UAS_Clip), the
+forest among the sites. They come from four sites, four CRSs and densities of 0.9-559
+points/m²; a scene
 is one cloud, so each half is moved (by its header offset: every point keeps its integer
 coordinates and every dimension) to its own place, 1 km apart, in a local frame without a
 CRS. Every feature of Silva is invariant to that move (coordinates are recentred, heights
@@ -18,8 +21,9 @@ from pathlib import Path
 import laspy
 import numpy as np
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "als"
-TILES = ("StBarth_IGN_LiDARHD_100m.laz", "AHN4_Amsterdam_2496_9727.laz", "Topography.laz")
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+TILES = ("als/StBarth_IGN_LiDARHD_100m.laz", "als/AHN4_Amsterdam_2496_9727.laz",
+         "als/Topography.laz", "trees/ALS_Clip.laz", "trees/UAS_Clip.laz")
 SPACING = 1000.0  # metres between the halves in the local frame
 
 
@@ -41,8 +45,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path)
     args = parser.parse_args(argv)
-    if not DATA.is_dir():
-        print(f"no airborne tiles at {DATA}: nothing to write", file=sys.stderr)
+    missing = [name for name in TILES if not (DATA / name).is_file()]
+    if missing:
+        print(f"no {', '.join(missing)} in {DATA}: nothing written", file=sys.stderr)
         return 1
     for side in ("west", "east"):
         (args.out / side).mkdir(parents=True, exist_ok=True)
