@@ -23,8 +23,9 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
     ``fit(X, y)`` with X the (N, 3) coordinates of one cloud; ``predict``, ``predict_proba``,
     ``staged_predict`` and ``staged_predict_proba`` take the coordinates of a cloud to
     classify. With ``echoes``, each of them also takes the cloud's ``returns``:
-    ``(return_number, number_of_returns)``, integer (N,) arrays as LAS files record them. The defaults are the paper's (3 stages of 20-tree forests with at least 15
-    samples per leaf, r1 = 0.5 m, r2 = r1 / 2) and the same as the workflow's: both run
+    ``(return_number, number_of_returns)``, integer (N,) arrays as LAS files record them.
+    The defaults are the paper's (3 stages of 20-tree forests with at least 15 samples per
+    leaf, r1 = 0.5 m, r2 = r1 / 2) and the same as the workflow's: both run
     :func:`pipeline.cascade.driver.run_cascade`, and the same parameters and seed give the
     same probabilities bit for bit.
 

@@ -41,7 +41,8 @@ def model_path(name_or_dir) -> Path:
 
 def model_summary(name: str, directory: Path) -> dict:
     """What 'silva models --json' says of one installed model: its name, kind, classes (with
-    their output codes), whether it uses echo features (``echoes``), and its card (training data, licences, density range, scores)."""
+    their output codes), whether it uses echo features (``echoes``), and its card (training
+    data, licences, density range, scores)."""
     description = json.loads((directory / "model.json").read_text())
     card_path = directory / "card.json"
     card = json.loads(card_path.read_text()) if card_path.is_file() else {}
