@@ -224,13 +224,28 @@ def load_forest(path: Path):
     return sio.load(path, trusted=untrusted)
 
 
+#: Keys a model description gained after models were first saved, with what a model.json
+#: without them means: a model saved before echoes existed was trained without them.
+LATER_KEYS = {"features.echoes": False}
+
+
+def recorded(description: dict, key: str):
+    """The value a model description records for ``key``, with the meaning of
+    :data:`LATER_KEYS` for a model.json saved before the key existed; KeyError for another
+    key it lacks."""
+    if key not in description and key in LATER_KEYS:
+        return LATER_KEYS[key]
+    return description[key]
+
+
 def check_compatible(description: dict, expected: dict, model_dir) -> None:
-    """ModelError unless the model's feature description equals ``expected`` key by key."""
+    """ModelError unless the model's feature description equals ``expected`` key by key
+    (a key of :data:`LATER_KEYS` it lacks has that key's old meaning)."""
     for key, value in expected.items():
-        if key not in description:
+        if key not in description and key not in LATER_KEYS:
             raise ModelError(f"model {model_dir} does not record {key}: it was written by "
                              "another version of Silva; retrain it")
-        trained = description[key]
+        trained = recorded(description, key)
         if trained != value and key == "features.columns":
             # derived from the other keys, not a key to set: another version's columns
             raise ModelError(

@@ -23,7 +23,7 @@ from pathlib import Path
 from pipeline.errors import ConfigError
 from pipeline.features.sets import auto_radius, auto_voxel
 from pipeline.io import read_info
-from pipeline.model import read_model_file
+from pipeline.model import LATER_KEYS, read_model_file
 from pipeline.tiling import tile_area
 from workflows.config import SilvaConfig, validate_config
 from workflows.config.loading import load_raw
@@ -138,7 +138,8 @@ def adopt_model(raw: dict, description: dict, model_path) -> dict:
     naming the key, the configured and the model's value, for a recorded key ``raw`` sets
     otherwise ('auto' leaves it to the model)."""
     raw = copy.deepcopy(raw)
-    recorded = {k: v for k, v in description.items()
+    # a model.json saved before a key existed records its old meaning (LATER_KEYS)
+    recorded = {k: v for k, v in {**LATER_KEYS, **description}.items()
                 if k.partition(".")[0] in MODEL_SECTIONS and k not in DERIVED_KEYS}
     # the run applies every stage the model has: its stage count is one more recorded value
     recorded["cascade.stages"] = len(description.get("stages") or ())

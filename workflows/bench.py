@@ -378,10 +378,15 @@ def feature_seconds(params, n_points: int = SCALING_POINTS) -> float:
     from pipeline.features.sets import feature_set
 
     side = (n_points / 400.0) ** (1 / 3)  # 400 points per m3: S1 and the columns are full
-    xyz = np.random.default_rng(0).uniform(0.0, side, (n_points, 3))
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform(0.0, side, (n_points, 3))
     compute = feature_set(params)
+    returns = None
+    if compute.uses_returns:  # echo columns: pulses of 1 to 4 returns
+        number_of_returns = rng.integers(1, 5, n_points)
+        returns = (rng.integers(0, number_of_returns) + 1, number_of_returns)
     started = time.perf_counter()
-    compute(xyz)
+    compute(xyz, returns=returns)
     return time.perf_counter() - started
 
 

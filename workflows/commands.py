@@ -529,6 +529,8 @@ def models(as_json):
     for model in found:
         classes = ", ".join(f"{name} ({code})" for name, code in model["classes"].items())
         click.echo(f"{model['name']}  [{model['kind']}]  {classes}")
+        click.echo("    echo features: " + ("yes (needs each point's return number and number "
+                                            "of returns)" if model["echoes"] else "no"))
         for key in ("description", "training_data", "licences", "density", "scores"):
             if key in model:
                 value = model[key]

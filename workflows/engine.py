@@ -19,7 +19,7 @@ from pipeline.errors import ChunkError, InputError, SilvaError
 from pipeline.store import open_store, write_arrays
 from workflows.progress import StepProgress
 from workflows.store.assembly import chunk_points
-from workflows.store.layout import chunk_path
+from workflows.store.layout import RETURNS, chunk_path
 from workflows.store.marks import is_done, mark_done, read_array
 
 log = logging.getLogger(__name__)
@@ -170,12 +170,24 @@ class ChunkView:
 def chunk_window(view: ChunkView, tiles) -> tuple[dict, np.ndarray, np.ndarray]:
     """A chunk assembled from the parts of ``tiles``: its core arrays, and the xyz and ids
     of its window, the core points first, then the halo's."""
-    core, halo = chunk_points(view.root, view.scene, view.chunk, tiles, view.group)
+    core, xyz, ids, _ = chunk_window_returns(view, tiles, returns=False)
+    return core, xyz, ids
+
+
+def chunk_window_returns(view: ChunkView, tiles, returns: bool):
+    """:func:`chunk_window` and, with ``returns``, the window's ``(return_number,
+    number_of_returns)`` (uint8, in the window's order) that ingest stored for
+    ``features.echoes`` (None without ``returns``)."""
+    core, halo = chunk_points(view.root, view.scene, view.chunk, tiles, view.group,
+                              returns=returns)
     if not np.isfinite(core["xyz"]).all():
         raise InputError(f"chunk {view.chunk} of scene '{view.scene}' holds non-finite "
                          "coordinates")
+    window = None
+    if returns:
+        window = tuple(np.concatenate([core[name], halo[name]]) for name in RETURNS)
     return (core, np.concatenate([core["xyz"], halo["xyz"]]),
-            np.concatenate([core["gid"], halo["gid"]]))
+            np.concatenate([core["gid"], halo["gid"]]), window)
 
 
 #: The steps that assemble a chunk from ingest's parts, creating its group.

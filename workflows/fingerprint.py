@@ -38,7 +38,8 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
                 data.exclude_codes and data.exclude_withheld (when set);
                 tiling.chunk_size, tiling.halo, tiling.target_points and tiling.layout
                 (only with chunk_size auto), output.keep_features (unless auto: it
-                chooses each scene's halo)
+                chooses each scene's halo), features.echoes (when set: ingest then
+                stores each point's return numbers)
     terrain     + terrain.*
     features    + features.set, r1, max_neighbors, plane, scales, column, cell, voxel
     stage       + features.r2, features.context_max_neighbors, every cascade key except
@@ -93,6 +94,10 @@ def _ingest_part(cfg: SilvaConfig, d: dict) -> dict:
     for key in ("exclude_codes", "exclude_withheld"):
         if data[key]:  # only when set: a config without filters keeps its fingerprint
             part[key] = sorted(set(data[key])) if key == "exclude_codes" else True
+    if cfg.features.echoes:
+        # the store then holds the return numbers; only when set, so a run without echoes
+        # keeps its fingerprint (and the features step, built on it, its own)
+        part["echoes"] = True
     if cfg.tiling.chunk_size == "auto":
         # only then does it matter; an explicit size keeps the fingerprint it always had
         part["target_points"] = cfg.tiling.target_points

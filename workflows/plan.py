@@ -167,7 +167,7 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
     columns = len(feature_set(params).columns)
     lines = [f"features: set {params.set} ({columns} columns), r1 {params.r1:g} m, "
              f"halo {run.halo:g} m" + (f", voxels of {params.voxel:.3g} m" if params.voxel
-                                       else "")]
+                                       else "") + f", {echoes_text(params.echoes)}"]
     largest, disk = 0.0, 0.0
     one_pass = one_pass_scenes({"scenes": scenes})
     for scene, info in scenes.items():
@@ -212,6 +212,12 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
         _draw(scenes, tiles, picture)
         lines.append(f"picture: {picture}")
     return lines
+
+
+def echoes_text(echoes: bool) -> str:
+    """Whether the features use the points' return numbers, for ``silva plan``."""
+    return ("echoes on (the spheres' shares of multi-return pulses and last returns)"
+            if echoes else "echoes off")
 
 
 def trees_line(run: Run, tiles: list[dict]) -> str:

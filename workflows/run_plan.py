@@ -95,6 +95,7 @@ def feature_description(cfg: SilvaConfig) -> dict:
         "features.column": params.column,
         "features.cell": params.cell,
         "features.voxel": params.voxel,
+        "features.echoes": params.echoes,
         "cascade.context": cfg.cascade.context,
         **{f"terrain.{k}": v for k, v in asdict(terrain).items()},
     }

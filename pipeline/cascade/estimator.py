@@ -9,7 +9,9 @@ from sklearn.utils.validation import check_is_fitted
 from pipeline.cascade.driver import CloudData, run_cascade
 from pipeline.cascade.params import CascadeParams, ForestParams, resolve_seed
 from pipeline.cascade.stage import labels_from_proba
+from pipeline.errors import InputError
 from pipeline.features.density import left_out, neighbourhood_members, pile_up_warning
+from pipeline.features.echo import has_returns
 from pipeline.features.sets import FeatureParams, feature_set
 
 _FEATURES, _CASCADE, _FOREST = FeatureParams(), CascadeParams(), ForestParams()
@@ -20,8 +22,10 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
 
     ``fit(X, y)`` with X the (N, 3) coordinates of one cloud; ``predict``, ``predict_proba``,
     ``staged_predict`` and ``staged_predict_proba`` take the coordinates of a cloud to
-    classify. The defaults are the paper's (3 stages of 20-tree forests with at least 15
-    samples per leaf, r1 = 0.5 m, r2 = r1 / 2) and the same as the workflow's: both run
+    classify. With ``echoes``, each of them also takes the cloud's ``returns``:
+    ``(return_number, number_of_returns)``, integer (N,) arrays as LAS files record them.
+    The defaults are the paper's (3 stages of 20-tree forests with at least 15 samples per
+    leaf, r1 = 0.5 m, r2 = r1 / 2) and the same as the workflow's: both run
     :func:`pipeline.cascade.driver.run_cascade`, and the same parameters and seed give the
     same probabilities bit for bit.
 
@@ -39,6 +43,9 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
     context_max_neighbors : int or None
         None (the paper): every point within r1 counts for the context; a number: only that
         many nearest points (see :mod:`pipeline.features.context`).
+    echoes : bool
+        Sets 'covariance' and 'default': add the echo columns of the spheres at the
+        covariance radii (:mod:`pipeline.features.sets`), from ``returns``.
     context : {"hard", "soft"}
         Frequencies of predicted labels (the paper) or mean probabilities.
     out_of_fold : bool
@@ -74,6 +81,7 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
         balanced=_CASCADE.balanced,
         random_state=None,
         n_jobs=_FOREST.n_jobs,
+        echoes=_FEATURES.echoes,
     ):
         self.feature_set = feature_set
         self.stages = stages
@@ -91,11 +99,12 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
         self.balanced = balanced
         self.random_state = random_state
         self.n_jobs = n_jobs
+        self.echoes = echoes
 
     # -- parameters -------------------------------------------------------------------------
     def _feature_params(self) -> FeatureParams:
         return FeatureParams(self.feature_set, self.r1, self.r2, self.max_neighbors,
-                             self.context_max_neighbors)
+                             self.context_max_neighbors, echoes=self.echoes)
 
     def _cascade_params(self, seed: int) -> CascadeParams:
         forest = ForestParams(self.n_estimators, self.min_samples_leaf, self.max_features,
@@ -103,7 +112,7 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
         return CascadeParams(self.stages, self.context, self.out_of_fold, self.folds,
                              self.max_train_points, self.balanced, seed, forest)
 
-    def _cloud(self, X, ids, labels, fitted_stages=None) -> CloudData:
+    def _cloud(self, X, ids, labels, returns=None, fitted_stages=None) -> CloudData:
         """The cloud with its point features, computed once for every stage."""
         xyz = np.asarray(X, dtype=np.float64)
         if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -116,7 +125,7 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
         if piled:  # as the workflow says it: the points are classified, the fix is the input's
             warnings.warn(pile_up_warning(piled, len(xyz), params.r1), UserWarning,
                           stacklevel=3)
-        features = feature_set(params)(xyz, ids=ids)
+        features = feature_set(params)(xyz, ids=ids, returns=_check_returns(params, returns))
         if labels is None:
             labels = np.full(len(xyz), -1, dtype=np.int64)
         return CloudData(xyz, ids, features, labels, len(self.classes_), r1=params.r1,
@@ -125,13 +134,14 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
                          fitted_stages=fitted_stages)
 
     # -- estimator API ----------------------------------------------------------------------
-    def fit(self, X, y, ids=None):
+    def fit(self, X, y, ids=None, returns=None):
         """Fit every stage on one labelled cloud.
 
         ``y`` holds any class labels; entries equal to -1 are unlabelled points that take
         part in the neighbourhoods and the context but not in training. ``ids`` (int64,
         optional) are global point ids used for sampling and tie-breaking (default: row
-        numbers).
+        numbers). ``returns``: ``(return_number, number_of_returns)`` of every point, needed
+        with ``echoes`` (ignored without).
         """
         self.feature_params_ = self._feature_params()
         seed = resolve_seed(self.random_state)
@@ -145,7 +155,7 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
         labels = np.full(len(y), -1, dtype=np.int64)
         known = np.isin(y, self.classes_)
         labels[known] = np.searchsorted(self.classes_, y[known])
-        cloud = self._cloud(X, ids, labels)
+        cloud = self._cloud(X, ids, labels, returns)
         counts = np.bincount(labels[known], minlength=len(self.classes_))
         self.stages_ = run_cascade(cloud, params, counts, predict_last=False)
         self.seed_ = seed
@@ -153,23 +163,40 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
         self.n_features_in_ = 3
         return self
 
-    def staged_predict_proba(self, X, ids=None):
+    def staged_predict_proba(self, X, ids=None, returns=None):
         """Yield float32 (N, C) probabilities after each stage, in order."""
         check_is_fitted(self, "stages_")
-        cloud = self._cloud(X, ids, None, fitted_stages=self.stages_)
+        cloud = self._cloud(X, ids, None, returns, fitted_stages=self.stages_)
         run_cascade(cloud, self._cascade_params(self.seed_), n_stages=len(self.stages_))
         yield from cloud.proba
 
-    def staged_predict(self, X, ids=None):
+    def staged_predict(self, X, ids=None, returns=None):
         """Yield the predicted labels after each stage, in order."""
-        for proba in self.staged_predict_proba(X, ids):
+        for proba in self.staged_predict_proba(X, ids, returns):
             yield self.classes_[labels_from_proba(proba)]
 
-    def predict_proba(self, X, ids=None) -> np.ndarray:
+    def predict_proba(self, X, ids=None, returns=None) -> np.ndarray:
         """float32 (N, C) probabilities of the last stage, columns in ``classes_`` order."""
-        return list(self.staged_predict_proba(X, ids))[-1]
+        return list(self.staged_predict_proba(X, ids, returns))[-1]
 
-    def predict(self, X, ids=None) -> np.ndarray:
+    def predict(self, X, ids=None, returns=None) -> np.ndarray:
         """Labels of the last stage (values from ``classes_``)."""
-        proba = self.predict_proba(X, ids)
+        proba = self.predict_proba(X, ids, returns)
         return self.classes_[labels_from_proba(proba)]
+
+
+def _check_returns(params: FeatureParams, returns):
+    """The ``returns`` the feature set of ``params`` takes: None without echoes; with them,
+    ``(return_number, number_of_returns)`` of a cloud where some point has returns, else
+    InputError (its echo columns would all be NaN)."""
+    if not params.echoes:
+        return None
+    if returns is None:
+        raise InputError("echoes=True needs returns=(return_number, number_of_returns), the "
+                         "points' LAS fields; pass them, or set echoes=False")
+    return_number, number_of_returns = returns
+    if not has_returns(return_number, number_of_returns):
+        raise InputError("echoes=True but no point has returns (1 <= return_number <= "
+                         "number_of_returns nowhere): pass the cloud's LAS fields, or set "
+                         "echoes=False")
+    return return_number, number_of_returns

@@ -16,6 +16,14 @@ and a saved model records the set's name and columns.
 - ``default``: ``covariance`` plus the moment invariants, the size of S1 (log point count)
   and the log area of its triangulated surface — size cues the paper leaves out.
 
+With ``echoes`` on, ``covariance`` and ``default`` end with the echo columns of the spheres
+at the covariance radii (:func:`pipeline.features.echo.echo_neighbourhood_features`: the
+shares of multi-return pulses and of last returns and the spread of return numbers, named by
+:func:`~pipeline.features.echo.echo_names`), computed from each point's return number and
+number of returns (the ``returns`` of :meth:`FeatureSet.__call__`). A point's own flags
+(first, last, single return) are left out: on held-out airborne tiles they lowered the
+scores (docs/BENCHMARKS.md, "Echoes and densities").
+
 With ``voxel`` set, the surface features (invariants, count, area) are computed on one
 representative per voxel of that side (smallest global id; :mod:`pipeline.features.voxel`)
 and every point takes its representative's values: on dense terrestrial scans the 64
@@ -31,6 +39,7 @@ import numpy as np
 from pipeline.features.conditioning import condition_invariants
 from pipeline.features.covariance import multiscale_covariance, multiscale_halo, multiscale_names
 from pipeline.features.density import capped_halo
+from pipeline.features.echo import echo_halo, echo_names, echo_neighbourhood_features
 from pipeline.features.height import HEIGHT_NAMES, height_features, height_halo
 from pipeline.features.invariants import INVARIANT_NAMES
 from pipeline.features.local import PLANES, local_surface
@@ -79,7 +88,9 @@ class FeatureParams:
     ``scales`` the covariance radii as multiples of r1; ``column`` the radius in metres of
     the height column and ``cell`` the side in metres of its cells; ``voxel`` the side in
     metres of the voxels of the surface features, or None for every point; ``terrain``
-    the ground filter of the terrain model when a set computes it from the cloud itself.
+    the ground filter of the terrain model when a set computes it from the cloud itself;
+    ``echoes`` whether the ``covariance`` and ``default`` sets add the echo columns of the
+    spheres at the covariance radii (the ``paper`` set has none: refused).
 
     The column does not grow with r1: the terrain under a point is a matter of metres at any
     density (a wider column on a slope reaches the next hillside's lowest points), and a
@@ -97,11 +108,20 @@ class FeatureParams:
     cell: float = 0.5
     voxel: float | None = None
     terrain: TerrainParams = TerrainParams()
+    echoes: bool = False
 
     def __post_init__(self):
         if self.set not in FEATURE_SETS:
             raise ValueError(f"unknown feature set {self.set!r}; use one of "
                              + ", ".join(repr(s) for s in FEATURE_SETS))
+        if not isinstance(self.echoes, (bool, np.bool_)):
+            raise ValueError(f"echoes must be true or false, got {self.echoes!r}")
+        object.__setattr__(self, "echoes", bool(self.echoes))
+        if self.echoes and self.set not in ECHO_SETS:
+            raise ValueError(
+                f"features.echoes needs features.set {' or '.join(map(repr, ECHO_SETS))}, got "
+                f"{self.set!r} (the published invariants have no echo columns): set "
+                "features.set to 'covariance' or 'default', or features.echoes to false")
         if not self.r1 > 0:
             raise ValueError(f"r1 must be > 0, got {self.r1}")
         if self.r2 is None:
@@ -131,7 +151,8 @@ class FeatureParams:
 
 @dataclass(frozen=True)
 class FeatureSet:
-    """A named feature set; ``compute(xyz, query, ids)`` gives float32 (Q, len(columns))."""
+    """A named feature set; ``compute(xyz, query, ids, ground, returns)`` gives float32
+    (Q, len(columns))."""
 
     name: str
     columns: tuple[str, ...]
@@ -139,23 +160,46 @@ class FeatureSet:
     compute: Callable[..., np.ndarray] = field(repr=False, compare=False)
     uses_ground: bool = False  # whether some columns are heights above the terrain model
     terrain: TerrainParams = TerrainParams()
+    uses_returns: bool = False  # whether some columns come from the points' return numbers
 
-    def __call__(self, xyz, query=None, ids=None, ground=None) -> np.ndarray:
+    def __call__(self, xyz, query=None, ids=None, ground=None, returns=None) -> np.ndarray:
         """Features of the ``query`` rows of ``xyz`` (default all); NaN where undefined.
 
         ``ground`` (float64, one per row of ``xyz``) is the terrain model's elevation under
         each point; None: the terrain model of ``xyz`` itself, a whole scene
         (:func:`pipeline.terrain.terrain_blocks` with the set's terrain parameters).
+        ``returns`` is ``(return_number, number_of_returns)``, integer arrays of one value
+        per row of ``xyz``, for a set that :attr:`uses_returns`; None: a cloud without
+        them, whose echo columns are NaN (:mod:`pipeline.features.echo`). A set without
+        echo columns ignores it.
         """
         xyz = np.asarray(xyz, dtype=np.float64)
         query = np.arange(len(xyz), dtype=np.int64) if query is None else np.asarray(query)
         ids = np.arange(len(xyz), dtype=np.int64) if ids is None else np.asarray(ids)
         if self.uses_ground and ground is None:
             ground = scene_ground(xyz, self.terrain)
-        out = np.asarray(self.compute(xyz, query, ids, ground), dtype=np.float32)
+        returns = _check_returns(returns, len(xyz)) if self.uses_returns else None
+        out = np.asarray(self.compute(xyz, query, ids, ground, returns), dtype=np.float32)
         if out.shape != (len(query), len(self.columns)):
             raise AssertionError(f"feature set {self.name} gave shape {out.shape}")
         return out
+
+
+def _check_returns(returns, n_points: int):
+    """``returns`` as a pair of integer (N,) arrays, or None."""
+    if returns is None:
+        return None
+    try:
+        return_number, number_of_returns = returns
+    except (TypeError, ValueError):
+        raise ValueError("returns must be (return_number, number_of_returns) or None, got "
+                         f"{type(returns).__name__}") from None
+    pair = (np.asarray(return_number), np.asarray(number_of_returns))
+    for name, values in zip(("return_number", "number_of_returns"), pair):
+        if values.shape != (n_points,) or not np.issubdtype(values.dtype, np.integer):
+            raise ValueError(f"returns: {name} must be integers of shape ({n_points},), got "
+                             f"{values.dtype} {values.shape}")
+    return pair
 
 
 # -- the parts a set is made of -------------------------------------------------------------
@@ -207,12 +251,30 @@ def _covariance(params: FeatureParams):
     return columns, reach, describe
 
 
+def _echoes(params: FeatureParams):
+    """Columns, reach and function of the echo columns of the spheres at the covariance
+    radii; a part whose function also takes the rows' returns (:data:`_WITH_RETURNS`)."""
+    radii = tuple(s * params.r1 for s in params.scales)
+
+    def describe(xyz, query, ids, ground, returns):
+        return_number, number_of_returns = (None, None) if returns is None else returns
+        return echo_neighbourhood_features(xyz, ids, query, return_number, number_of_returns,
+                                           radii)
+
+    return echo_names(radii), echo_halo(radii), describe, _WITH_RETURNS
+
+
+#: The fourth member of a part whose function takes the rows' returns as a fifth argument.
+_WITH_RETURNS = "returns"
+
+
 def _combine(name: str, params: FeatureParams, *parts, uses_ground: bool = False
              ) -> FeatureSet:
-    columns = tuple(c for cols, _, _ in parts for c in cols)
-    reach = max(r for _, r, _ in parts)
+    columns = tuple(c for cols, *_ in parts for c in cols)
+    reach = max(r for _, r, *_ in parts)
+    uses_returns = any(rest == [_WITH_RETURNS] for _, _, _, *rest in parts)
 
-    def compute(xyz, query, ids, ground):
+    def compute(xyz, query, ids, ground, returns=None):
         # each part sees only the points within its own reach of the queries' box: a
         # chunk's halo is as wide as the farthest-reaching part, and the structures of the
         # others (voxels, grids) need not cover it
@@ -223,13 +285,16 @@ def _combine(name: str, params: FeatureParams, *parts, uses_ground: bool = False
         # TLS plot the peak memory went from 1,093 to 890 MiB)
         out = np.empty((len(query), len(columns)), dtype=np.float32)
         start = 0
-        for _, part_reach, describe in parts:
+        for _, part_reach, describe, *rest in parts:
             rows = np.flatnonzero(distance <= part_reach)
-            if len(rows) == len(xyz):
-                blocks = describe(xyz, query, ids, ground)
-            else:
-                blocks = describe(xyz[rows], np.searchsorted(rows, query), ids[rows],
-                                  None if ground is None else ground[rows])
+            whole = len(rows) == len(xyz)
+            args = ((xyz, query, ids, ground) if whole else
+                    (xyz[rows], np.searchsorted(rows, query), ids[rows],
+                     None if ground is None else ground[rows]))
+            if rest == [_WITH_RETURNS]:
+                args += (returns if returns is None or whole else
+                         tuple(values[rows] for values in returns),)
+            blocks = describe(*args)
             for block in [blocks] if isinstance(blocks, np.ndarray) else blocks:
                 out[:, start:start + block.shape[1]] = block
                 start += block.shape[1]
@@ -237,7 +302,7 @@ def _combine(name: str, params: FeatureParams, *parts, uses_ground: bool = False
             raise AssertionError(f"feature set {name} gave {start} columns")
         return out
 
-    return FeatureSet(name, columns, reach, compute, uses_ground, params.terrain)
+    return FeatureSet(name, columns, reach, compute, uses_ground, params.terrain, uses_returns)
 
 
 def query_box(xy: np.ndarray) -> tuple[float, float, float, float]:
@@ -253,13 +318,22 @@ def scene_ground(xyz: np.ndarray, terrain: TerrainParams) -> np.ndarray:
     return ground_elevation(terrain_blocks(xyz, terrain), xyz[:, :2])
 
 
+def _with_echoes(params: FeatureParams, *parts) -> tuple:
+    """``parts``, and the echo columns when ``params.echoes``."""
+    return (*parts, _echoes(params)) if params.echoes else parts
+
+
 #: name -> builder of the set from its parameters
 FEATURE_SETS: dict[str, Callable[[FeatureParams], FeatureSet]] = {
     "paper": lambda p: _combine("paper", p, _surface(p, with_size=False)),
-    "covariance": lambda p: _combine("covariance", p, _covariance(p), uses_ground=True),
-    "default": lambda p: _combine("default", p, _covariance(p), _surface(p, with_size=True),
+    "covariance": lambda p: _combine("covariance", p, *_with_echoes(p, _covariance(p)),
+                                     uses_ground=True),
+    "default": lambda p: _combine("default", p, *_with_echoes(p, _covariance(p),
+                                                              _surface(p, with_size=True)),
                                   uses_ground=True),
 }
+#: The sets that take echo columns (``echoes``).
+ECHO_SETS = ("covariance", "default")
 #: name -> the numba kernel groups (:data:`pipeline.features.numba_cache.GROUPS`) its
 #: features call, compiled while a run ingests; every run also calls the neighbour search and
 #: the context, and with ``voxel`` the voxel kernels

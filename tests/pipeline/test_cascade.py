@@ -176,3 +176,32 @@ def test_a_forest_grown_in_rounds_is_the_forest_grown_at_once():
     for a, b in zip([forest, *folds], [plain, *plain_folds]):
         a.set_params(n_jobs=1), b.set_params(n_jobs=1)
         assert np.array_equal(a.predict_proba(x), b.predict_proba(x))
+
+
+def test_echoes_need_returns_in_every_call():
+    """With echoes the estimator takes the clouds' return numbers and refuses a cloud
+    without them (its echo columns would all be undefined)."""
+    from pipeline.errors import InputError
+
+    rng = np.random.default_rng(3)
+    ground = np.c_[rng.uniform(0, 6, (1500, 2)), rng.normal(0, 0.02, 1500)]
+    crown = np.c_[rng.uniform(0, 6, (1500, 2)), rng.uniform(3, 6, 1500)]
+    xyz, y = np.vstack([ground, crown]), np.r_[np.zeros(1500, int), np.ones(1500, int)]
+    number_of_returns = np.r_[np.ones(1500, int), rng.integers(2, 5, 1500)]
+    returns = (rng.integers(0, number_of_returns) + 1, number_of_returns)
+    model = CascadedForest(feature_set="covariance", echoes=True, stages=2, n_estimators=4,
+                           r1=1.0, random_state=0)
+    assert model.get_params()["echoes"] is True
+    with pytest.raises(InputError, match=r"echoes=True needs returns=\(return_number"):
+        model.fit(xyz, y)
+    zeros = (np.zeros(len(xyz), np.uint8), np.zeros(len(xyz), np.uint8))
+    with pytest.raises(InputError, match="no point has returns"):
+        model.fit(xyz, y, returns=zeros)
+    model.fit(xyz, y, returns=returns)
+    assert model.feature_names_[-3:] == ("multi_return_share_r4", "last_return_share_r4",
+                                         "return_number_std_r4")
+    assert (model.predict(xyz, returns=returns) == y).mean() > 0.95
+    with pytest.raises(InputError, match="needs returns"):
+        model.predict(xyz)
+    with pytest.raises(ValueError, match="features.echoes needs features.set"):
+        CascadedForest(echoes=True).fit(xyz, y, returns=returns)

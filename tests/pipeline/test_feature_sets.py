@@ -85,3 +85,79 @@ def test_a_part_giving_fewer_columns_than_it_names_is_refused():
     broken = _combine("broken", FeatureParams(), (("a", "b"), 0.5, describe))
     with pytest.raises(AssertionError, match="broken gave 1 columns"):
         broken(np.random.default_rng(0).random((50, 3)))
+
+
+# -- echo columns (features.echoes) ---------------------------------------------------------
+ECHO_PARAMS = [FeatureParams(set="covariance", echoes=True),
+               FeatureParams(set="default", echoes=True, voxel=0.15, scales=(0.5, 1.5))]
+
+
+@pytest.fixture(scope="module")
+def returns(plot):
+    """Random return numbers of the plot's points; some without returns (rn 0, rn > nr)."""
+    n = len(plot[0])
+    rng = np.random.default_rng(2)
+    number_of_returns = rng.integers(1, 5, n)
+    return_number = rng.integers(0, number_of_returns) + 1
+    return_number[::97] = 0
+    return_number[5::101] = number_of_returns[5::101] + 1
+    return return_number.astype(np.uint8), number_of_returns.astype(np.uint8)
+
+
+@pytest.mark.parametrize("params", ECHO_PARAMS, ids=lambda p: p.set)
+def test_echo_columns_of_a_chunk_with_its_reach_equal_the_whole_cloud(plot, returns, params):
+    xyz, ids = plot
+    fs = feature_set(params)
+    assert fs.uses_returns and params.halo >= fs.reach
+    x0, y0 = xyz[:, 0].min() + 3.0, xyz[:, 1].min() + 3.0
+    core = (xyz[:, 0] >= x0) & (xyz[:, 0] < x0 + 4) & (xyz[:, 1] >= y0) & (xyz[:, 1] < y0 + 4)
+    near = ((xyz[:, 0] >= x0 - fs.reach) & (xyz[:, 0] < x0 + 4 + fs.reach)
+            & (xyz[:, 1] >= y0 - fs.reach) & (xyz[:, 1] < y0 + 4 + fs.reach))
+    rows = np.flatnonzero(near)
+    rows = rows[np.random.default_rng(1).permutation(len(rows))]  # order must not matter
+    query = np.flatnonzero(core[rows])
+    chunk = fs(xyz[rows], query, ids[rows], returns=tuple(r[rows] for r in returns))
+    whole = fs(xyz, np.flatnonzero(core), ids, returns=returns)
+    order = np.argsort(ids[rows][query])
+    echo = slice(-3 * len(params.scales), None)
+    assert np.isfinite(whole[:, echo]).mean() > 0.99  # spheres hold points with returns
+    np.testing.assert_array_equal(chunk[order], whole[np.argsort(ids[core])])
+
+
+def test_echoes_append_the_sphere_columns_at_the_covariance_radii(plot, returns):
+    from pipeline.features.echo import echo_halo, echo_names, echo_neighbourhood_features
+    from pipeline.features.sets import ECHO_SETS
+
+    xyz, ids = plot
+    radii = (0.25, 0.5, 1.0, 2.0)  # scales x r1
+    for name in ECHO_SETS:
+        plain, echo = (feature_set(FeatureParams(set=name, echoes=e)) for e in (False, True))
+        assert echo.columns == plain.columns + echo_names(radii)
+        assert echo.reach == max(plain.reach, echo_halo(radii))
+        assert echo.uses_returns and not plain.uses_returns
+    # values: the columns of the set without echoes, then those of the echo module
+    query = np.arange(0, len(xyz), 13)
+    got = echo(xyz, query, ids, returns=returns)
+    width = len(plain.columns)
+    np.testing.assert_array_equal(got[:, :width], plain(xyz, query, ids))
+    np.testing.assert_array_equal(
+        got[:, width:], echo_neighbourhood_features(xyz, ids, query, *returns, radii))
+    # a cloud without returns: NaN echo columns, the others as ever
+    none = echo(xyz, query, ids)
+    assert np.isnan(none[:, width:]).all()
+    np.testing.assert_array_equal(none[:, :width], got[:, :width])
+
+
+def test_echoes_are_refused_by_the_paper_set_and_returns_must_fit_the_cloud(plot):
+    with pytest.raises(ValueError, match="features.echoes needs features.set 'covariance' or "
+                                         "'default', got 'paper'.*or features.echoes to false"):
+        FeatureParams(set="paper", echoes=True)
+    with pytest.raises(ValueError, match="echoes must be true or false"):
+        FeatureParams(set="default", echoes="yes")
+    xyz, ids = plot
+    fs = feature_set(ECHO_PARAMS[0])
+    ones = np.ones(len(xyz) - 1, dtype=np.uint8)
+    with pytest.raises(ValueError, match=r"return_number must be integers of shape"):
+        fs(xyz, [0], ids, returns=(ones, ones))
+    with pytest.raises(ValueError, match=r"returns must be \(return_number, number_of_returns"):
+        fs(xyz, [0], ids, returns=np.ones(len(xyz), np.uint8))

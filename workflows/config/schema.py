@@ -288,6 +288,14 @@ class FeaturesConfig(Section):
         "dense scans then see all of S1, not a patch of its 64 nearest points. 'auto': the "
         "side at which S1 holds about max_neighbors voxels of a surface.",
     )
+    echoes: bool = Field(
+        _FEATURES.echoes,
+        description="Sets 'covariance' and 'default': add, in the sphere of each covariance "
+        "radius, the share of points of multi-return pulses, the share of last returns and "
+        "the spread of return numbers, from each point's return number and number of "
+        "returns (LAS tiles whose points record them; a tile without them is refused). On "
+        "airborne surveys they tell crowns from roofs.",
+    )
 
     @field_validator("set")
     @classmethod
@@ -301,6 +309,14 @@ class FeaturesConfig(Section):
     def resolved(self) -> bool:
         """False while r1 or voxel is 'auto' (resolved from the data when a run starts)."""
         return "auto" not in (self.r1, self.voxel)
+
+    @model_validator(mode="after")
+    def _check_echoes(self) -> "FeaturesConfig":
+        try:  # FeatureParams says which sets take echoes, at load time (r1 may be 'auto')
+            FeatureParams(self.set, echoes=self.echoes)
+        except ValueError as err:
+            raise fail(str(err)) from None
+        return self
 
     @model_validator(mode="after")
     def _resolve_r2(self) -> "FeaturesConfig":
@@ -326,7 +342,7 @@ class FeaturesConfig(Section):
             int(self.max_neighbors),
             self.context_max_neighbors, self.plane, tuple(float(v) for v in self.scales),
             float(self.column), float(self.cell),
-            None if self.voxel is None else float(self.voxel))
+            None if self.voxel is None else float(self.voxel), echoes=self.echoes)
 
     @property
     def radius2(self) -> float:

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from pipeline.errors import ModelError
+from pipeline.model import recorded
 
 HERE = Path(__file__).resolve().parent
 
@@ -40,7 +41,8 @@ def model_path(name_or_dir) -> Path:
 
 def model_summary(name: str, directory: Path) -> dict:
     """What 'silva models --json' says of one installed model: its name, kind, classes (with
-    their output codes), and its card (training data, licences, density range, scores)."""
+    their output codes), whether it uses echo features (``echoes``), and its card (training
+    data, licences, density range, scores)."""
     description = json.loads((directory / "model.json").read_text())
     card_path = directory / "card.json"
     card = json.loads(card_path.read_text()) if card_path.is_file() else {}
@@ -49,6 +51,8 @@ def model_summary(name: str, directory: Path) -> dict:
         "kind": card.get("kind", "unknown"),
         "classes": {c["name"]: c["code"] for c in description.get("classes", ())},
         "feature_set": description.get("features.set"),
+        # whether it needs each point's return numbers (a model.json without the key: no)
+        "echoes": bool(recorded(description, "features.echoes")),
         "stages": len(description.get("stages", ())),
         "size_bytes": sum(p.stat().st_size for p in directory.iterdir() if p.is_file()),
         "path": str(directory),

@@ -16,7 +16,7 @@ from pipeline.features.density import left_out, neighbourhood_members, pile_up_w
 from pipeline.features.neighbors import RadiusIndex
 from pipeline.features.sets import FeatureParams, feature_set
 from workflows.store.layout import ROLE_TRAIN
-from workflows.engine import chunk_tasks, chunk_window
+from workflows.engine import chunk_tasks, chunk_window_returns
 from workflows.progress import say
 from workflows.run import Run
 from workflows.steps.terrain import ground_under
@@ -36,10 +36,11 @@ class FeatureTask:
 
 def chunk_features(view, task: FeatureTask):
     """Worker task: assemble one chunk and compute its features; return its class counts."""
-    core, xyz, ids = chunk_window(view, task.tiles)
-    query = np.arange(len(core["gid"]), dtype=np.int64)
     compute = feature_set(task.features)
-    features = compute(xyz, query, ids, ground_under(view, xyz) if compute.uses_ground else None)
+    core, xyz, ids, returns = chunk_window_returns(view, task.tiles, compute.uses_returns)
+    query = np.arange(len(core["gid"]), dtype=np.int64)
+    features = compute(xyz, query, ids, ground_under(view, xyz) if compute.uses_ground else None,
+                       returns)
     view.write(features=features, undefined=np.isnan(features).any(axis=1))
     trained = (core["role"] == ROLE_TRAIN) & (core["label"] >= 0)
     return {"train_counts": np.bincount(core["label"][trained],

@@ -204,8 +204,18 @@ def _run_info(state: RunState) -> dict:
         "chunk size (m)": summary["chunk size (m)"],
         **({"excluded points": summary["excluded points"]} if summary["excluded points"]
            else {}),
+        "echo features": echo_features_text(state.run),
         "durations (s)": ", ".join(f"{k} {v:.2f}" for k, v in spent.items()),
     }
+
+
+def echo_features_text(run) -> str:
+    """Whether the model used the points' return numbers (features.echoes), for the
+    report."""
+    if run.features.echoes:
+        return ("yes: the model uses each point's return number and number of returns "
+                "(features.echoes: true)")
+    return "no: the model does not use the return numbers (features.echoes: false)"
 
 
 def _no_features(state: RunState) -> dict:

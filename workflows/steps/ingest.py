@@ -18,6 +18,7 @@ import numpy as np
 
 from pipeline.cascade.one_pass import ring_width
 from pipeline.errors import ConfigError, InputError, StoreError
+from pipeline.features.echo import has_returns
 from pipeline.io import iter_points, labels_from_codes, read_info, reads_ranges
 from pipeline.io.crs import check_metres, check_same_crs
 from pipeline.store import Appender, open_store
@@ -34,11 +35,12 @@ from pipeline.tiling import (
     tile_area,
 )
 from workflows.config import expand_inputs
+from workflows.echoes import EchoNeed, check_return_fields, echo_need
 from workflows.engine import Task
 from workflows.progress import counted, say
 from workflows.run import SCENES, Run
 from workflows.steps.one_pass import MAX_BORDER_SHARE, border_share, wants_one_pass
-from workflows.store.layout import ROLE_PREDICT, ROLE_TEST, ROLE_TRAIN, chunk_path
+from workflows.store.layout import RETURNS, ROLE_PREDICT, ROLE_TEST, ROLE_TRAIN, chunk_path
 from workflows.store.marks import forget_done, is_done, mark_done
 
 AXES = {"x": 0, "y": 1, "z": 2}
@@ -86,6 +88,7 @@ def plan_tiles(run: Run) -> list[dict]:
             info = read_info(path)
             if info.n_points == 0:
                 raise InputError(f"tile {path} holds no points; remove it from data.{scene}")
+            check_return_fields(run, path, info)
             check_metres(info.crs_wkt, path, (np.asarray(info.mins) + info.maxs)[:2] / 2)
             name = tile_name(path)
             if name in seen and _identity(seen[name]) == _identity(path):
@@ -410,6 +413,7 @@ class IngestTask:
     exclude_withheld: bool = False
     key: int | str | None = None  # names the parts in the store; None: the first tile's index
     span: tuple[int, int] | None = None  # (start, stop): a point range of the one tile
+    echoes: EchoNeed | None = None  # set: store each point's return numbers (features.echoes)
 
     def __post_init__(self):
         if isinstance(self.tiles, dict):
@@ -433,6 +437,9 @@ def ingest_tile(task: IngestTask) -> dict:
     ``exclude_withheld``, are left out of every scene (cores and halos): they are in no
     neighbourhood, no training sample and no metric. Their number per tile is recorded in
     the group's marker (``excluded``).
+
+    With ``echoes``, each point's return number and number of returns are stored too
+    (uint8), and a tile (or range) without a point that has returns is refused.
     """
     store_path, scene, tiles, grid = task.store_path, task.scene, task.tiles, task.grid
     label_field, code_to_class, split = task.label_field, task.code_to_class, task.split
@@ -452,9 +459,12 @@ def ingest_tile(task: IngestTask) -> dict:
     labelled = scene != "predict"
     excluded: dict[str, int] = {}
     fields = filter_fields(label_field, labelled, exclude_codes, exclude_withheld)
+    if task.echoes is not None:
+        fields = tuple(dict.fromkeys(fields + RETURNS))
     pending, held = [], 0  # points read and not yet written: less than a read batch
     for tile in tiles:
         n_read = n_excluded = 0
+        seen_returns = False  # some point of the tile has returns (with echoes)
         for batch in iter_points(tile["path"], batch_size=read_batch, fields=fields,
                                  start=start, stop=stop):
             xyz = batch.xyz
@@ -471,11 +481,14 @@ def ingest_tile(task: IngestTask) -> dict:
                 label = labels_from_codes(raw, code_to_class)
                 if keep_codes is not None:
                     kept &= np.isin(raw, keep_codes)
+            returns = () if task.echoes is None else batch_returns(batch.fields)
+            seen_returns = seen_returns or bool(returns) and has_returns(*returns)
             if not kept.all():
                 xyz, gid, label = xyz[kept], gid[kept], label[kept]
+                returns = tuple(values[kept] for values in returns)
                 if len(xyz) == 0:
                     continue
-            pending.append((xyz, gid, label, point_roles(scene, xyz, split)))
+            pending.append((xyz, gid, label, point_roles(scene, xyz, split), *returns))
             held += len(xyz)
             if held >= read_batch:
                 writer.write(*(np.concatenate(column) for column in zip(*pending)))
@@ -484,6 +497,8 @@ def ingest_tile(task: IngestTask) -> dict:
             raise InputError(f"tile {tile['path']}: its header announces {tile['n_points']} "
                              f"points but {n_read} were read; the file is truncated or its "
                              "header is wrong: repair or re-export it")
+        if task.echoes is not None:
+            task.echoes.check_read(tile["path"], seen_returns, task.span)
         excluded[str(tile["index"])] = n_excluded
     if pending:
         writer.write(*(np.concatenate(column) for column in zip(*pending)))
@@ -509,21 +524,24 @@ class _PartWriter:
             self.groups[name] = self.marker.create_group(name)
         return self.groups[name]
 
-    def write(self, xyz, gid, label, role) -> None:
-        """Append points (xyz (n, 3) f8, gid (n,) i8, label (n,) i2, role (n,) i1) to the
-        cores of their chunks and to the halos they fall in."""
+    def write(self, xyz, gid, label, role, *returns) -> None:
+        """Append points (xyz (n, 3) f8, gid (n,) i8, label (n,) i2, role (n,) i1, and
+        with echoes their return_number and number_of_returns (n,) u1) to the cores of
+        their chunks and to the halos they fall in."""
         chunk = self.grid.chunk_of(xyz)
         order = np.argsort(chunk, kind="stable")
         bounds = np.flatnonzero(np.diff(chunk[order])) + 1
         for rows in np.split(order, bounds):
             target = int(chunk[rows[0]])
             self.appender.append(self._part(target), "core", {
-                "xyz": xyz[rows], "gid": gid[rows], "label": label[rows], "role": role[rows]})
+                "xyz": xyz[rows], "gid": gid[rows], "label": label[rows], "role": role[rows],
+                **_returns_of(returns, rows)})
             name = self.grid.chunk_name(target)
             self.counts[name] = self.counts.get(name, 0) + len(rows)
         for target, rows in self.grid.halo_members(xyz, self.halo):
             self.appender.append(self._part(target), "halo", {"xyz": xyz[rows],
-                                                              "gid": gid[rows]})
+                                                              "gid": gid[rows],
+                                                              **_returns_of(returns, rows)})
 
     def seal(self) -> dict[str, list[str]]:
         """Record the checksums; return the kinds of points ("core", "halo") written per
@@ -536,6 +554,17 @@ class _PartWriter:
                                  "store; run one Silva command per output directory and rerun")
             parts.setdefault(group.rsplit("/", 1)[1], set()).add(name)
         return {chunk: sorted(kinds) for chunk, kinds in parts.items()}
+
+
+def batch_returns(fields: dict) -> tuple[np.ndarray, np.ndarray]:
+    """uint8 (n,) return_number and number_of_returns of a batch's ``fields`` (LAS keeps
+    them in 3 or 4 bits)."""
+    return tuple(np.asarray(fields[name]).astype(np.uint8) for name in RETURNS)
+
+
+def _returns_of(returns: tuple, rows) -> dict:
+    """The record members of the return numbers of ``rows`` (none without echoes)."""
+    return {name: values[rows] for name, values in zip(RETURNS, returns)}
 
 
 def _excluded(attrs, tiles) -> dict[str, int]:
@@ -602,6 +631,7 @@ def ingest(run: Run, engine) -> dict:
                     exclude_withheld=run.cfg.data.exclude_withheld,
                     key=unit.key,
                     span=span,
+                    echoes=echo_need(run),
                 )},
                 where=(f"{tiles_text(list(members))}"
                        f"{f' (points {span[0]:,} to {span[1]:,})' if span else ''}"

@@ -20,7 +20,7 @@ from pipeline.cascade import labels_from_proba, one_pass, one_pass_halo
 from pipeline.features.sets import FeatureParams, feature_set
 from pipeline.store import write_arrays
 from pipeline.tiling import layout_from_dict
-from workflows.engine import chunk_tasks, chunk_window
+from workflows.engine import chunk_tasks, chunk_window_returns
 from workflows.run import Run
 from workflows.steps.cascade import cached_forest
 from workflows.steps.features import neighbourhood_checks, warn_neighbourhoods
@@ -49,14 +49,15 @@ def chunk_box(grid, name: str) -> np.ndarray:
 
 def chunk_one_pass(view, task: OnePassTask):
     """Worker task: every stage's probabilities of one chunk's core points."""
-    core, xyz, ids = chunk_window(view, task.tiles)
-    n_core = len(core["gid"])
     params = task.features
     compute = feature_set(params)
+    core, xyz, ids, returns = chunk_window_returns(view, task.tiles, compute.uses_returns)
+    n_core = len(core["gid"])
     ground = ground_under(view, xyz) if compute.uses_ground else None
     probas, undefined = one_pass(
         xyz, ids, n_core, chunk_box(layout_from_dict(task.grid), view.chunk),
-        lambda rows: compute(xyz, rows, ids, ground), [cached_forest(p) for p in task.forest_paths],
+        lambda rows: compute(xyz, rows, ids, ground, returns),
+        [cached_forest(p) for p in task.forest_paths],
         n_classes=task.n_classes, mode=task.context, r1=params.r1, r2=params.r2,
         max_neighbors=params.context_max_neighbors)
     last = len(probas) - 1  # what export and evaluate read: the earlier stages' labels

@@ -11,12 +11,13 @@ import zarr
 
 from pipeline.errors import StoreError
 from pipeline.store import write_arrays
-from workflows.store.layout import CORE, HALO, POINTS
+from workflows.store.layout import CORE, HALO, POINTS, RETURNS
 from workflows.store.layout import chunk_path, part_path
 from workflows.store.marks import forget, read_array, read_records
 
 _EMPTY = {"xyz": np.empty((0, 3)), "gid": np.empty(0, np.int64),
-          "label": np.empty(0, np.int16), "role": np.empty(0, np.int8)}
+          "label": np.empty(0, np.int16), "role": np.empty(0, np.int8),
+          **{name: np.empty(0, np.uint8) for name in RETURNS}}
 
 
 def tile_part(root: zarr.Group, scene: str, tile: int, chunk: str, prefix: str):
@@ -37,11 +38,14 @@ def tile_part(root: zarr.Group, scene: str, tile: int, chunk: str, prefix: str):
     return root[path]
 
 
-def chunk_points(root: zarr.Group, scene: str, chunk: str, tiles, group: zarr.Group | None = None
-                 ) -> tuple[dict, dict]:
+def chunk_points(root: zarr.Group, scene: str, chunk: str, tiles, group: zarr.Group | None = None,
+                 returns: bool = False) -> tuple[dict, dict]:
     """The core and halo points of a chunk, each a dict of arrays sorted by global id:
     core ``xyz`` (n, 3) f8, ``gid`` (n,) i8, ``label`` (n,) i2, ``role`` (n,) i1; halo
     ``xyz`` (m, 3) f8, ``gid`` (m,) i8.
+
+    With ``returns``, both also hold ``return_number`` and ``number_of_returns`` (n,) u1
+    (m,) u1, which ingest stored with ``features.echoes`` (a StoreError when it did not).
 
     The first call after an ingest gathers them from the parts of ``tiles`` (tile indices),
     writes the chunk's ``points`` pack, marks the chunk assembled from that ingest and
@@ -53,8 +57,11 @@ def chunk_points(root: zarr.Group, scene: str, chunk: str, tiles, group: zarr.Gr
     group = root.require_group(chunk_path(scene, chunk)) if group is None else group
     built_from = (root.attrs.get("layout") or {}).get("fingerprint")
     if built_from is not None and group.attrs.get("assembled") == built_from:
-        core = {name: read_array(group, name) for name in CORE}
-        halo = {name: read_array(group, f"halo_{name}") for name in HALO}
+        extra = RETURNS if returns else ()
+        if extra and not set(extra) <= set(group.attrs.get("arrays", {})):
+            raise _without_returns(group)
+        core = {name: read_array(group, name) for name in CORE + extra}
+        halo = {name: read_array(group, f"halo_{name}") for name in HALO + extra}
         return core, halo
     found, missing = {}, []
     for tile in tiles:
@@ -66,9 +73,17 @@ def chunk_points(root: zarr.Group, scene: str, chunk: str, tiles, group: zarr.Gr
     if missing:
         more = f" (and {len(missing) - 1} more tiles)" if len(missing) > 1 else ""
         raise StoreError(f"{missing[0]}{more}")
-    core = _gather(found, tiles, "core", CORE)
-    halo = _gather(found, tiles, "halo", HALO)
-    write_arrays(group, {**core, **{f"halo_{name}": halo[name] for name in HALO}}, pack=POINTS)
+    records = {key: read_records(part, key[1]) for key, part in found.items()
+               if part is not None}
+    # one ingest stores the return numbers in every part or in none (its fingerprint says)
+    extra = (RETURNS if records and all(set(RETURNS) <= set(r) for r in records.values())
+             else ())
+    core = _gather(records, tiles, "core", CORE + extra)
+    halo = _gather(records, tiles, "halo", HALO + extra)
+    write_arrays(group, {**core, **{f"halo_{name}": halo[name] for name in HALO + extra}},
+                 pack=POINTS)
+    if returns and not extra:
+        raise _without_returns(group)
     if built_from is not None:
         group.update_attributes({"assembled": built_from})
         for tile in tiles:
@@ -76,18 +91,24 @@ def chunk_points(root: zarr.Group, scene: str, chunk: str, tiles, group: zarr.Gr
     return core, halo
 
 
-def _gather(found: dict, tiles, prefix: str, names) -> dict:
-    """The ``prefix`` (core or halo) points of a chunk from every tile's part, by global id."""
+def _gather(records: dict, tiles, prefix: str, names) -> dict:
+    """The ``prefix`` (core or halo) points of a chunk from every tile's part (``records``:
+    (tile, prefix) -> its record array's members), by global id."""
     arrays = {name: [] for name in names}
     for tile in tiles:
-        part = found.get((tile, prefix))
+        part = records.get((tile, prefix))
         if part is not None:
-            records = read_records(part, prefix)
             for name in names:
-                arrays[name].append(records[name])
+                arrays[name].append(part[name])
     arrays = {k: np.concatenate(v) if v else _EMPTY[k] for k, v in arrays.items()}
     order = np.argsort(arrays["gid"], kind="stable")
     return {k: v[order] for k, v in arrays.items()}
+
+
+def _without_returns(group: zarr.Group) -> StoreError:
+    return StoreError(f"store group '{group.path}' holds no return numbers, which "
+                      "features.echoes needs: the store was ingested without them; rerun with "
+                      "--overwrite")
 
 
 def drop_part(root: zarr.Group, scene: str, tile: int, chunk: str) -> None:

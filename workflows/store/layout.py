@@ -7,11 +7,14 @@ Layout::
       scenes/<scene>/parts/<tile>/           marker of an ingested tile: attrs done, parts
       scenes/<scene>/parts/<tile>/<chunk>/   points of one tile in one chunk (written by ingest,
           core (n, 35) u1: records of xyz f8 x 3,  removed once the chunk is assembled)
-              gid i8, label i2, role i1
-          halo (m, 32) u1: records of xyz f8 x 3, gid i8
+              gid i8, label i2, role i1 (+ return_number, number_of_returns u1 with
+              features.echoes)
+          halo (m, 32) u1: records of xyz f8 x 3, gid i8 (+ the same two)
       scenes/<scene>/chunks/<chunk>/         one chunk
           points/   pack: xyz, gid, label, role (core points sorted by global id),
-                          halo_xyz, halo_gid (halo copies sorted by global id)
+                          halo_xyz, halo_gid (halo copies sorted by global id); with
+                          features.echoes also return_number, number_of_returns (u1) and
+                          halo_return_number, halo_number_of_returns
           features/ pack: features (n, d) f4, the feature set's columns
           terrain/  pack: minima_keys (k, 2) i8, minima_z (k,) f8: the lowest core point
                           of each terrain cell (pipeline.terrain.cell_minima)
@@ -31,8 +34,12 @@ ROLE_TRAIN, ROLE_TEST, ROLE_PREDICT = 0, 1, 2
 #: The arrays of a chunk's ``points`` pack, assembled from the parts, and their empty forms.
 CORE = ("xyz", "gid", "label", "role")
 HALO = ("xyz", "gid")
+#: Each point's LAS return number and number of returns (uint8), stored beside the core and
+#: halo arrays when the features use them (``features.echoes``).
+RETURNS = ("return_number", "number_of_returns")
 POINTS = "points"
-POINT_ARRAYS = CORE + tuple(f"halo_{name}" for name in HALO)  # the members of the pack
+POINT_ARRAYS = (CORE + tuple(f"halo_{name}" for name in HALO) + RETURNS
+                + tuple(f"halo_{name}" for name in RETURNS))  # the members of the pack
 
 
 def chunk_path(scene: str, chunk_name: str) -> str:
