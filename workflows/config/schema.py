@@ -311,38 +311,25 @@ class FeaturesConfig(Section):
         return "auto" not in (self.r1, self.voxel)
 
     @model_validator(mode="after")
-    def _check_echoes(self) -> "FeaturesConfig":
-        try:  # FeatureParams says which sets take echoes, at load time (r1 may be 'auto')
-            FeatureParams(self.set, echoes=self.echoes)
+    def _check_params(self) -> "FeaturesConfig":
+        # FeatureParams checks the values; while r1 or voxel waits for the data ('auto'),
+        # it checks the others at the paper's radius, and everything once the run resolves
+        try:
+            params = (self.params if self.resolved else
+                      FeatureParams(self.set, plane=self.plane, scales=tuple(self.scales),
+                                    column=self.column, cell=self.cell, echoes=self.echoes))
         except ValueError as err:
             raise fail(str(err)) from None
-        return self
-
-    @model_validator(mode="after")
-    def _resolve_r2(self) -> "FeaturesConfig":
-        if not self.resolved:
-            return self  # checked again once the run has resolved r1 and voxel
-        if self.r2 is not None and not 0 < self.r2 <= self.r1:
-            raise fail(f"features.r2 must be > 0 and <= features.r1 ({show(self.r1)}), "
-                       f"got {show(self.r2)}")
-        if len(set(self.scales)) < len(self.scales) or min(self.scales) <= 0:
-            raise fail(f"features.scales must be distinct numbers > 0, got {show(self.scales)}")
-        if self.cell > self.column:
-            raise fail(f"features.cell ({show(self.cell)}) must not exceed features.column "
-                       f"({show(self.column)}): the column is made of cells")
-        if self.r2 is None:
-            object.__setattr__(self, "r2", self.params.r2)  # FeatureParams' default, r1 / 2
+        if self.resolved and self.r2 is None:
+            object.__setattr__(self, "r2", params.r2)  # FeatureParams' default, r1 / 2
         return self
 
     @property
     def params(self) -> FeatureParams:
         """The resolved parameters the feature and context steps receive."""
-        return FeatureParams(
-            self.set, float(self.r1), None if self.r2 is None else float(self.r2),
-            int(self.max_neighbors),
-            self.context_max_neighbors, self.plane, tuple(float(v) for v in self.scales),
-            float(self.column), float(self.cell),
-            None if self.voxel is None else float(self.voxel), echoes=self.echoes)
+        return FeatureParams(self.set, self.r1, self.r2, self.max_neighbors,
+                             self.context_max_neighbors, self.plane, tuple(self.scales),
+                             self.column, self.cell, self.voxel, echoes=self.echoes)
 
     @property
     def radius2(self) -> float:
@@ -424,8 +411,7 @@ class TerrainConfig(Section):
     def params(self) -> TerrainParams:
         """The resolved parameters of the ground filter."""
         try:
-            return TerrainParams(float(self.cell), float(self.slope), float(self.window),
-                                 float(self.threshold), float(self.scalar))
+            return TerrainParams(self.cell, self.slope, self.window, self.threshold, self.scalar)
         except ValueError as err:
             raise fail(str(err)) from None
 
@@ -531,11 +517,10 @@ class CascadeConfig(Section):
 
     def params(self, n_jobs: int = 1) -> CascadeParams:
         """The resolved parameters of the cascade; ``n_jobs`` threads per forest fit."""
-        forest = ForestParams(int(self.n_estimators), int(self.min_samples_leaf),
-                              self.max_features, n_jobs)
-        return CascadeParams(int(self.stages), self.context, bool(self.out_of_fold),
-                             int(self.folds), int(self.max_train_points), bool(self.balanced),
-                             int(self.seed), forest)
+        forest = ForestParams(self.n_estimators, self.min_samples_leaf, self.max_features,
+                              n_jobs)
+        return CascadeParams(self.stages, self.context, self.out_of_fold, self.folds,
+                             self.max_train_points, self.balanced, self.seed, forest)
 
 
 # -- output ----------------------------------------------------------------------------------
