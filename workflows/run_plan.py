@@ -31,6 +31,18 @@ class AppliedModel:
         """The model's stage records."""
         return self.description["stages"]
 
+    @property
+    def densities(self) -> list[float]:
+        """The densities the model was trained at (:func:`trained_densities`)."""
+        return trained_densities(self.description)
+
+
+def trained_densities(description: dict) -> list[float]:
+    """The ``data.densities`` a model (its model.json ``description``) was trained with:
+    points per m² of the thinned copies of its training scene ([] for a model saved
+    without copies, or before they existed)."""
+    return [float(d) for d in description.get("data.densities", [])]
+
 
 @dataclass(frozen=True)
 class InputFile:

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from pipeline.errors import ModelError
+from workflows.run_plan import trained_densities
 
 HERE = Path(__file__).resolve().parent
 
@@ -50,6 +51,7 @@ def model_summary(name: str, directory: Path) -> dict:
         "classes": {c["name"]: c["code"] for c in description.get("classes", ())},
         "feature_set": description.get("features.set"),
         "stages": len(description.get("stages", ())),
+        "densities": trained_densities(description),
         "size_bytes": sum(p.stat().st_size for p in directory.iterdir() if p.is_file()),
         "path": str(directory),
         **{k: v for k, v in card.items() if k != "kind"},
