@@ -31,11 +31,6 @@ class AppliedModel:
         """The model's stage records."""
         return self.description["stages"]
 
-    @property
-    def densities(self) -> list[float]:
-        """The densities the model was trained at (:func:`trained_densities`)."""
-        return trained_densities(self.description)
-
 
 def trained_densities(description: dict) -> list[float]:
     """The ``data.densities`` a model (its model.json ``description``) was trained with:
