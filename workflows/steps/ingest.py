@@ -6,7 +6,9 @@ they fall in. Small tiles of one chunk are read by one task, up to a share of a 
 points (:func:`~pipeline.tiling.group_tiles`), and stored as one part per chunk: the cost
 follows the points, not the number of files. A LAS/LAZ tile of more than a chunk's points
 is read in point ranges, a task each, so that the workers share a survey of a few big files.
-Memory is bounded by the read batch, not by the tile or survey size.
+Memory is bounded by the read batch, not by the tile or survey size. The thinned copies of
+the training scene (``data.densities``, :mod:`workflows.steps.copies`) are written in the
+same read, each of the points it keeps.
 """
 
 import os
