@@ -19,7 +19,7 @@ from pipeline.errors import ChunkError, InputError, SilvaError
 from pipeline.store import open_store, write_arrays
 from workflows.progress import StepProgress
 from workflows.store.assembly import chunk_points
-from workflows.store.layout import RETURNS, chunk_path
+from workflows.store.layout import RETURNS, chunk_path, source_scene
 from workflows.store.marks import is_done, mark_done, read_array
 
 log = logging.getLogger(__name__)
@@ -225,7 +225,8 @@ def chunk_tasks(run, layout: dict, step: str, fn, params, fingerprint: str, verb
     """
     tasks = []
     for scene, info in layout["scenes"].items():
-        names = [t["name"] for t in layout["tiles"] if t["scene"] == scene]
+        source = source_scene(scene)  # a thinned copy: its scene's tiles
+        names = [t["name"] for t in layout["tiles"] if t["scene"] == source]
         for chunk in info["chunks"]:
             if only is not None and only != f"{scene}/{chunk}":
                 continue

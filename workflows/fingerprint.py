@@ -36,6 +36,7 @@ def fingerprint(cfg: SilvaConfig, step: str) -> str:
     ingest      data.train/test/predict (patterns, order ignored), data.label_field,
                 data.classes, data.ignore, data.split, data.drop_unlisted,
                 data.exclude_codes and data.exclude_withheld (when set);
+                data.densities with cascade.seed, which seeds the copies (when set);
                 tiling.chunk_size, tiling.halo, tiling.target_points and tiling.layout
                 (only with chunk_size auto), output.keep_features (unless auto: it
                 chooses each scene's halo), features.echoes (when set: ingest then
@@ -98,6 +99,9 @@ def _ingest_part(cfg: SilvaConfig, d: dict) -> dict:
         # the store then holds the return numbers; only when set, so a run without echoes
         # keeps its fingerprint (and the features step, built on it, its own)
         part["echoes"] = True
+    if data["densities"]:  # only when set: a config without copies keeps its fingerprint
+        part["densities"] = sorted(set(data["densities"]))
+        part["thinning_seed"] = cfg.cascade.seed
     if cfg.tiling.chunk_size == "auto":
         # only then does it matter; an explicit size keeps the fingerprint it always had
         part["target_points"] = cfg.tiling.target_points

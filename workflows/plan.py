@@ -24,8 +24,10 @@ from pipeline.tiling import MIN_CHUNK_HALOS, Grid, layout_from_dict, tile_area
 from workflows.progress import clock, counted
 from workflows.run import Run
 from workflows.step_table import step_weights as table_weights
+from workflows.steps.copies import copy_lines
 from workflows.steps.ingest import plan_scenes, plan_tiles, scene_chunk_size
 from workflows.steps.one_pass import one_pass_scenes
+from workflows.store.layout import is_copy
 
 log = logging.getLogger(__name__)
 
@@ -171,6 +173,9 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
     largest, disk = 0.0, 0.0
     one_pass = one_pass_scenes({"scenes": scenes})
     for scene, info in scenes.items():
+        if is_copy(scene):  # a thinned copy (data.densities): its line follows
+            disk += info["expected"] * (STORE_BYTES_PER_POINT + 4 * columns)
+            continue
         grid = layout_from_dict(info["grid"])
         members = [t for t in tiles if t["scene"] == scene]
         points = sum(t["n_points"] for t in members)
@@ -193,13 +198,17 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
         largest = max(largest, per_chunk)
         disk += points * (ONE_PASS_BYTES_PER_POINT if scene in one_pass
                           else STORE_BYTES_PER_POINT + 4 * columns)
+    lines += copy_lines(scenes, run.cfg.data.densities, run.cfg.cascade.seed,
+                        run.model is not None)
     memory = worker_bytes(largest, columns)
-    spent = estimated_seconds(run, tiles, workers)
+    spent = estimated_seconds(run, tiles, workers, sum(
+        info["expected"] for scene, info in scenes.items() if is_copy(scene)))
     seconds, training = spent["features"] + spent["other"], spent["training"]
     lines += [
         f"memory: about {memory / 2**30:.2f} GiB per worker in the largest chunk" + (
             " at the mean density (dense parts of a chunk hold more; tiling.target_points "
-            "bounds it)" if any("estimate" not in info for info in scenes.values()) else ""),
+            "bounds it)" if any("estimate" not in info for scene, info in scenes.items()
+                                if not is_copy(scene)) else ""),
         f"disk: about {disk / 2**30:.2f} GiB for store.zarr",
         f"time: about {clock(seconds + training)} on {counted(workers, 'worker')}: "
         f"{clock(seconds)} for the features, context and predictions, {clock(training)} "
@@ -209,7 +218,7 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
     if run.cfg.output.trees:
         lines.append(trees_line(run, tiles))
     if picture is not None:
-        _draw(scenes, tiles, picture)
+        _draw({s: info for s, info in scenes.items() if not is_copy(s)}, tiles, picture)
         lines.append(f"picture: {picture}")
     return lines
 
@@ -236,12 +245,14 @@ def trees_line(run: Run, tiles: list[dict]) -> str:
             f"{cells:,.0f} in all (about {cells * 16 / 2**20:,.0f} MiB on the coordinator)")
 
 
-def estimated_seconds(run: Run, tiles: list[dict], workers: int) -> dict[str, float]:
+def estimated_seconds(run: Run, tiles: list[dict], workers: int,
+                      copies: int = 0) -> dict[str, float]:
     """The seconds a run of ``tiles`` (:func:`plan_tiles`) spends on ``workers``: on the
     features, on the rest of the chunk work (ingest, context and predictions, export) and on
-    the forests' training."""
-    points = sum(t["n_points"] for t in tiles)
-    train_points = sum(t["n_points"] for t in tiles if t["scene"] == "train")
+    the forests' training; ``copies``: the points of the thinned copies of the training
+    scene (data.densities), which are computed and trained on too."""
+    points = sum(t["n_points"] for t in tiles) + copies
+    train_points = sum(t["n_points"] for t in tiles if t["scene"] == "train") + copies
     return {"features": points / workers / FEATURE_RATES[run.features.set],
             "other": points / workers / OTHER_RATE,
             "training": training_seconds(run, train_points, os.cpu_count() or 1)}

@@ -10,6 +10,7 @@ from pipeline.errors import StoreError
 from workflows.durations import accumulate
 from workflows.run import Run, has_test_points
 from workflows.step_table import BY_NAME, steps_until
+from workflows.store.layout import without_copies
 
 
 @dataclass
@@ -53,6 +54,12 @@ class RunState:
     def fits(self) -> bool:
         """Whether the run trains its own model (else it applies a saved one)."""
         return self.run.model_dir is None
+
+    @property
+    def outputs(self) -> dict:
+        """The layout without the thinned copies of the training scene (data.densities):
+        the scenes the steps after the cascade export, score and survey."""
+        return without_copies(self.layout)
 
     @property
     def labelled(self) -> bool:

@@ -70,6 +70,34 @@ def point_density(xy, cell: float = DEFAULT_DENSITY_CELL) -> float:
     return len(xy) / (occupied * cell * cell)
 
 
+#: :func:`cell_keys` packs a cell's two int32 indices into one int64.
+_KEY_BITS = 32
+
+
+def cell_keys(xy, cell: float = DEFAULT_DENSITY_CELL) -> np.ndarray:
+    """int64 (N,): one key per point of ``xy`` (float64 (N, 2+)) for the XY cell of side
+    ``cell`` metres it falls in, as :func:`point_density` counts the cells: the cells a cloud
+    read in pieces occupies are the union of its pieces' keys (``np.union1d``)."""
+    cell = _check_positive(cell, "cell")
+    xy = np.asarray(xy, dtype=np.float64)
+    if xy.ndim != 2 or xy.shape[1] < 2:
+        raise InputError(f"xy must be of shape (N, 2) or (N, 3), got {xy.shape}")
+    if not np.isfinite(xy[:, :2]).all():
+        raise InputError("xy holds NaN or infinite coordinates")
+    keys = np.floor(xy[:, :2] / cell)
+    if len(keys) and np.abs(keys).max() >= 2.0 ** (_KEY_BITS - 1):
+        raise InputError(f"coordinates too far from 0 to count {cell:g} m cells; recentre them")
+    keys = keys.astype(np.int64)
+    return (keys[:, 0] << _KEY_BITS) | (keys[:, 1] & ((1 << _KEY_BITS) - 1))
+
+
+def cells_density(n_points: int, n_cells: int, cell: float = DEFAULT_DENSITY_CELL) -> float:
+    """Points per m² of ``n_points`` in ``n_cells`` occupied cells of side ``cell`` metres
+    (:func:`point_density` of a cloud counted in pieces); 0.0 for no points."""
+    cell = _check_positive(cell, "cell")
+    return n_points / (n_cells * cell * cell) if n_points else 0.0
+
+
 def thinning_fraction(density: float, target: float) -> float:
     """The fraction of points that brings a cloud of ``density`` points/m² to ``target``
     points/m²: target / density, at most 1 (a copy is never denser than its cloud)."""

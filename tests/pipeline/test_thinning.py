@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 from pipeline.cascade.sampling import id_hash, training_mask
-from pipeline.cascade.thinning import (point_density, thinned_mask, thinned_to_density,
-                                       thinning_fraction, thinning_seed)  # fmt: skip
+from pipeline.cascade.thinning import (cell_keys, cells_density, point_density, thinned_mask,
+                                       thinned_to_density, thinning_fraction,
+                                       thinning_seed)  # fmt: skip
 from pipeline.errors import InputError
 
 
@@ -74,3 +75,22 @@ def test_bad_input(survey):
         point_density(xyz[:, 0])
     with pytest.raises(InputError, match="one entry per point"):
         thinned_to_density(xyz, ids[:-1], 5.0)
+
+
+@pytest.mark.parametrize("pieces", [1, 3, 17])
+def test_density_counted_in_pieces_equals_the_whole(survey, pieces):
+    """The union of the pieces' cell keys (a scene read tile by tile, batch by batch) gives
+    point_density of the whole cloud, also around 0 and with negative coordinates."""
+    xyz, _ = survey
+    for shift in ([0.0, 0.0, 0.0], [-700_025.0, -5_000_020.0, 0.0]):
+        cloud = xyz + shift
+        cells = np.zeros(0, dtype=np.int64)
+        for rows in np.array_split(np.arange(len(cloud)), pieces):
+            cells = np.union1d(cells, cell_keys(cloud[rows]))
+        assert cells_density(len(cloud), len(cells)) == point_density(cloud)
+    # distinct cells get distinct keys: x and y never mix
+    assert len(set(cell_keys(np.array([[0.0, 2.0], [2.0, 0.0], [-2.0, 0.0], [0.0, -2.0]]))
+                   .tolist())) == 4
+    assert cells_density(0, 0) == 0.0
+    with pytest.raises(InputError):
+        cell_keys(np.array([[1e10, 0.0]]))

@@ -81,7 +81,7 @@ def test_defaults():
     assert d["data"] == {"train": [], "test": [], "predict": [], "label_field": "classification",
                          "classes": {}, "ignore": [], "background": [], "split": None,
                          "exclude_codes": [], "exclude_withheld": False,
-                         "drop_unlisted": False, "allow_overlap": False}
+                         "drop_unlisted": False, "allow_overlap": False, "densities": []}
     assert d["tiling"] == {"chunk_size": "auto", "layout": "balanced",
                            "target_points": 1_000_000, "halo": 1.685, "read_batch": 1_000_000}
     assert d["features"] == {"set": "paper", "r1": 0.5, "r2": 0.25, "max_neighbors": 64,

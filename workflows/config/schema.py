@@ -110,6 +110,16 @@ class DataConfig(Section):
         description="Accept a tile that is both in data.train and in data.test (the same "
         "file); its test scores are then scores on training points. Refused by default.",
     )
+    densities: list[Number] = Field(
+        default_factory=list,
+        description="Point densities (points per m²) to train at, e.g. [5, 2]: besides "
+        "itself, the training scene (data.train) gets one thinned copy per density below "
+        "its own (points per occupied 2 m cell), of the points a hash of their id keeps "
+        "(seeded by cascade.seed: the same points every run, whatever the chunking), with "
+        "its own terrain model and features; copies are trained on, never exported nor "
+        "scored. A density at or above the scene's makes no copy (silva plan says so); a "
+        "run applying a saved model makes none.",
+    )
 
     @field_validator("classes", mode="before")
     @classmethod
@@ -130,6 +140,20 @@ class DataConfig(Section):
             result[name] = [codes] if isinstance(codes, int) and not isinstance(codes, bool) \
                 else codes
         return result
+
+    @field_validator("densities")
+    @classmethod
+    def _densities_positive(cls, value: list[float]) -> list[float]:
+        names = set()
+        for i, density in enumerate(value):
+            if not density > 0:
+                raise fail(f"data.densities[{i}] must be a number of points per m² > 0, got "
+                           f"{show(density)}")
+            if f"{density:g}" in names:
+                raise fail(f"data.densities lists {density:g} points/m² twice; list each "
+                           "density once")
+            names.add(f"{density:g}")
+        return value
 
     @field_validator("ignore", mode="before")
     @classmethod

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from pipeline.errors import ModelError
 from pipeline.model import recorded
+from workflows.run_plan import trained_densities
 
 HERE = Path(__file__).resolve().parent
 
@@ -54,6 +55,7 @@ def model_summary(name: str, directory: Path) -> dict:
         # whether it needs each point's return numbers (a model.json without the key: no)
         "echoes": bool(recorded(description, "features.echoes")),
         "stages": len(description.get("stages", ())),
+        "densities": trained_densities(description),
         "size_bytes": sum(p.stat().st_size for p in directory.iterdir() if p.is_file()),
         "path": str(directory),
         **{k: v for k, v in card.items() if k != "kind"},

@@ -42,6 +42,7 @@ from workflows.engine import chunk_tasks
 from workflows.progress import say
 from workflows.run import Run
 from workflows.run_plan import AppliedModel, check_model
+from workflows.steps.copies import trained_copies
 from workflows.store.layout import ROLE_TRAIN, context_array, proba_array
 
 log = logging.getLogger(__name__)
@@ -188,10 +189,14 @@ class StoreCascade:
         return f"{self.run.fingerprint('features')}-{self.stage_fingerprint(stage)}"
 
     def _map(self, step: str, fn, params, stage: int, *, marks: bool = True):
+        """The tasks' results, in task order (scene by scene), not in the order they
+        finished: a point and its thinned copies share a global id, and the stable sort by
+        id before fitting keeps their rows in scene order, whatever the chunking."""
         tasks = chunk_tasks(self.run, self.layout, step, fn, params,
                             self._chunk_fingerprint(stage),
                             "train" if self.fit else "predict", only=self.only, marks=marks)
-        return self.engine.map(step, tasks)
+        results = self.engine.map(step, tasks)
+        return {task.key: results[task.key] for task in tasks}
 
     def _stage_task(self, stage, fractions, seed) -> StageTask:
         folds = ()
@@ -292,8 +297,18 @@ class StoreCascade:
             **data_filters(run.cfg),
             "seed": self.params.seed,
             "training_fractions": [float(f) for f in self.fractions],
+            **self._densities(),
             "stages": stages,
         })
+
+    def _densities(self) -> dict:
+        """What model.json records of the thinned copies it was trained on (data.densities
+        and each copy made; nothing without data.densities)."""
+        densities = self.run.cfg.data.densities
+        if not densities:
+            return {}
+        return {"data.densities": [float(d) for d in densities],
+                "training_copies": trained_copies(self.layout)}
 
 
 def cascade(run: Run, engine, layout: dict, train_counts: np.ndarray | None, *, fit: bool,

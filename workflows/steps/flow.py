@@ -4,7 +4,9 @@ what it found on the state for the steps after it.
 
 The features and the stage-by-stage cascade cover the scenes the forests train on (and
 every scene with ``output.keep_features``); the other scenes are classified afterwards, in
-one pass per chunk (:mod:`workflows.steps.one_pass`), which stores no features. A run
+one pass per chunk (:mod:`workflows.steps.one_pass`), which stores no features. The thinned
+copies of the training scene (``data.densities``) are scenes the forests train on, which
+the steps after the cascade leave out (:attr:`RunState.outputs`). A run
 without labelled test points surveys its predictions before the export, so that its report's
 figures are drawn while the workers write the tiles.
 """
@@ -87,7 +89,7 @@ def cascade_step(state: RunState) -> None:
 
 def trees_step(state: RunState) -> None:
     """The trees of every scene (output.trees), before the export writes their IDs."""
-    state.trees = state.timed("trees", trees, state.run, state.engine, state.layout,
+    state.trees = state.timed("trees", trees, state.run, state.engine, state.outputs,
                               state.n_stages - 1, state.stages[-1]["fingerprint"])
 
 
@@ -113,7 +115,7 @@ def survey_step(state: RunState) -> None:
 def draw_survey(state: RunState, counted_in: str) -> None:
     """The survey of the predictions (its tasks counted in the progress of step
     ``counted_in``) and a future of its figures, which the state's painter draws."""
-    found = state.timed("report", survey, state.run, state.engine, state.layout,
+    found = state.timed("report", survey, state.run, state.engine, state.outputs,
                         state.n_stages - 1, counted_in=counted_in)
     maps = {scene: data["map"] for scene, data in found["scenes"].items()}
     images = state.painter().submit(_survey_images, found, canopy_samples(state.run, maps))
@@ -128,7 +130,7 @@ def _survey_images(found: dict, terrain: dict) -> dict:
 
 def export_step(state: RunState) -> None:
     state.summary["predictions"] = state.timed(
-        "export", export, state.run, state.engine, state.layout, state.n_stages - 1,
+        "export", export, state.run, state.engine, state.outputs, state.n_stages - 1,
         state.stages[-1]["fingerprint"])
 
 
@@ -138,9 +140,9 @@ def evaluate_step(state: RunState) -> None:
     run = state.run
     if state.labelled:
         state.metrics, state.plots = state.timed("evaluate", evaluate, run, state.engine,
-                                                 state.layout, state.n_stages)
+                                                 state.outputs, state.n_stages)
         if state.trees is not None:
-            scores = score_trees(run, state.layout, state.trees["scenes"])
+            scores = score_trees(run, state.outputs, state.trees["scenes"])
             if scores is not None:
                 state.metrics["trees"] = scores
         if state.metrics["n_test_points"] == 0:  # no score over no points: say so

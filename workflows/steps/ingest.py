@@ -6,7 +6,9 @@ they fall in. Small tiles of one chunk are read by one task, up to a share of a 
 points (:func:`~pipeline.tiling.group_tiles`), and stored as one part per chunk: the cost
 follows the points, not the number of files. A LAS/LAZ tile of more than a chunk's points
 is read in point ranges, a task each, so that the workers share a survey of a few big files.
-Memory is bounded by the read batch, not by the tile or survey size.
+Memory is bounded by the read batch, not by the tile or survey size. The thinned copies of
+the training scene (``data.densities``, :mod:`workflows.steps.copies`) are written in the
+same read, each of the points it keeps.
 """
 
 import os
@@ -17,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.cascade.one_pass import ring_width
+from pipeline.cascade.thinning import DEFAULT_DENSITY_CELL, cell_keys
 from pipeline.errors import ConfigError, InputError, StoreError
 from pipeline.features.echo import has_returns
 from pipeline.io import iter_points, labels_from_codes, read_info, reads_ranges
@@ -39,8 +42,13 @@ from workflows.echoes import EchoNeed, check_return_fields, echo_need
 from workflows.engine import Task
 from workflows.progress import counted, say
 from workflows.run import SCENES, Run
+from workflows.steps.copies import (
+    copies_done, copies_of, copy_counts, copy_lines, plan_copies, with_copies,
+)
 from workflows.steps.one_pass import MAX_BORDER_SHARE, border_share, wants_one_pass
-from workflows.store.layout import RETURNS, ROLE_PREDICT, ROLE_TEST, ROLE_TRAIN, chunk_path
+from workflows.store.layout import (
+    RETURNS, ROLE_PREDICT, ROLE_TEST, ROLE_TRAIN, chunk_path, is_copy,
+)
 from workflows.store.marks import forget_done, is_done, mark_done
 
 AXES = {"x": 0, "y": 1, "z": 2}
@@ -140,6 +148,10 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
     borders of its chunks would hold too many of its points; every other scene the
     features' reach, all that the cascade stage by stage needs. Each scene's entry records
     the decision (``one_pass``): every step reads it there.
+
+    With ``data.densities`` (and no model applied), a pass counts the training scene's
+    density (:func:`scene_density`) and its thinned copies follow it, scenes of their own
+    (:func:`~workflows.steps.copies.plan_copies`).
     """
     scenes, by_index = {}, {t["index"]: t for t in tiles}
     for scene in SCENES:
@@ -161,6 +173,9 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
                   for group in ingest_groups(run, members, info["grid"])]
         entry = {**read_entry(run, groups), **info, "halo": halo, "one_pass": one_pass}
         scenes[scene] = {"tiles": [unit.key for unit in read_units(entry)], **entry}
+    if run.model is None:  # thinned copies of the training scene (data.densities)
+        scenes = plan_copies(scenes, run.cfg.data.densities, lambda scene: scene_density(
+            run, scene, [t for t in tiles if t["scene"] == scene], engine))
     return scenes
 
 
@@ -316,6 +331,61 @@ def scene_counts(run: Run, scene: str, members: list[dict], engine=None) -> Cell
     return total
 
 
+def occupied_cells(paths, read_batch: int, span=None, *, label_field: str = "classification",
+                   keep_codes=None, exclude_codes=(), exclude_withheld: bool = False) -> dict:
+    """Worker task: the points of some tiles (or of the point range ``span`` of one) that
+    ingest keeps (the filters of :func:`ingest_tile`, as for a labelled scene), and the
+    keys of the 2 m cells they occupy: {"points": int, "cells": int64 (k,) unique,
+    :func:`~pipeline.cascade.thinning.cell_keys`}."""
+    start, stop = span or (0, None)
+    fields = filter_fields(label_field, keep_codes is not None, exclude_codes,
+                           exclude_withheld)
+    points, cells = 0, np.zeros(0, dtype=np.int64)
+    for path in paths:
+        for batch in iter_points(path, batch_size=read_batch, fields=fields, start=start,
+                                 stop=stop):
+            kept = np.ones(len(batch.xyz), dtype=bool)
+            dropped = excluded_points(batch.fields, exclude_codes, exclude_withheld)
+            if dropped is not None:
+                kept &= ~dropped
+            if keep_codes is not None:
+                kept &= np.isin(np.asarray(batch.fields[label_field]).astype(np.int64),
+                                keep_codes)
+            points += int(np.count_nonzero(kept))
+            cells = np.union1d(cells, cell_keys(batch.xyz[kept], DEFAULT_DENSITY_CELL))
+    return {"points": points, "cells": cells}
+
+
+def scene_density(run: Run, scene: str, members: list[dict], engine=None) -> tuple[int, int]:
+    """The points ingest keeps of a scene's tiles and the 2 m cells they occupy, over all
+    its tiles (a scene's density, never a chunk's: the union of the tasks' cells); small
+    tiles read together, big ones by point ranges (:func:`point_ranges`), a task each."""
+    groups = [[members[i] for i in group] for group in
+              group_tiles([t["n_points"] for t in members], np.zeros(len(members), np.int64),
+                          group_budget(run))]
+    by_index = {t["index"]: t for t in members}
+    units = [(unit, [by_index[i] for i in unit.tiles])
+             for unit in read_units(read_entry(run, groups))]
+    data = run.cfg.data
+    filters = dict(label_field=data.label_field,
+                   keep_codes=data.listed_codes if data.drop_unlisted else None,
+                   exclude_codes=tuple(data.exclude_codes),
+                   exclude_withheld=data.exclude_withheld)
+    kwargs = [dict(paths=[t["path"] for t in tiles], read_batch=run.cfg.tiling.read_batch,
+                   span=unit.span(tiles[0]["n_points"]), **filters) for unit, tiles in units]
+    if engine is None:
+        parts = [occupied_cells(**kw) for kw in kwargs]
+    else:
+        tasks = [Task(key=f"density-{scene}-{unit.key}", fn=occupied_cells, kwargs=kw,
+                      where=f"{tiles_text(tiles)} (scene '{scene}')",
+                      reproduce=f"silva plan CONFIG (reads {tiles_text(tiles)})")
+                 for (unit, tiles), kw in zip(units, kwargs)]
+        results = engine.map("ingest (density)", tasks)
+        parts = [results[task.key] for task in tasks]
+    cells = np.unique(np.concatenate([np.zeros(0, np.int64)] + [p["cells"] for p in parts]))
+    return sum(p["points"] for p in parts), len(cells)
+
+
 def tiles_text(tiles: list[dict]) -> str:
     """The tiles of a task, for messages: "tile a.laz", "3 tiles a.laz ... c.laz"."""
     if len(tiles) == 1:
@@ -414,6 +484,8 @@ class IngestTask:
     key: int | str | None = None  # names the parts in the store; None: the first tile's index
     span: tuple[int, int] | None = None  # (start, stop): a point range of the one tile
     echoes: EchoNeed | None = None  # set: store each point's return numbers (features.echoes)
+    copies: tuple = ()  # (copy, fraction): the thinned copies written beside (data.densities)
+    seed: int = 0  # of the copies' thinning hash (cascade.seed)
 
     def __post_init__(self):
         if isinstance(self.tiles, dict):
@@ -447,14 +519,19 @@ def ingest_tile(task: IngestTask) -> dict:
     exclude_codes, exclude_withheld = task.exclude_codes, task.exclude_withheld
     root = open_store(store_path)
     marker = root.require_group(f"scenes/{scene}/parts/{task.key}")
-    if is_done(marker, "ingest", fingerprint):
+    if is_done(marker, "ingest", fingerprint) and copies_done(root, task.key, task.copies,
+                                                               fingerprint):
         return {"core_counts": marker.attrs["core_counts"],
-                "excluded": _excluded(marker.attrs, tiles)}
+                "excluded": _excluded(marker.attrs, tiles),
+                **copy_counts(root, task.key, task.copies)}
+    forget_done(marker)  # done only when a copy is not: written again with it
     for name in list(marker.group_keys()):  # a half-written or damaged earlier attempt
         if chunk_path(scene, name) in root:  # chunks built from it are built again
             forget_done(root[chunk_path(scene, name)])
         del marker[name]
-    writer = _PartWriter(marker, layout_from_dict(grid), task.halo)
+    chunks = layout_from_dict(grid)
+    writer = with_copies(_PartWriter(marker, chunks, task.halo), root, task.key, task.copies,
+                         task.seed, fingerprint, lambda part: _PartWriter(part, chunks, task.halo))
     start, stop = task.span or (0, None)
     labelled = scene != "predict"
     excluded: dict[str, int] = {}
@@ -505,7 +582,8 @@ def ingest_tile(task: IngestTask) -> dict:
     parts = writer.seal()
     mark_done(marker, "ingest", fingerprint, core_counts=writer.counts, excluded=excluded,
               parts=parts)
-    return {"core_counts": writer.counts, "excluded": excluded}
+    return {"core_counts": writer.counts, "excluded": excluded,
+            **copy_counts(root, task.key, task.copies)}
 
 
 class _PartWriter:
@@ -580,6 +658,27 @@ def _ingested(root, scene: str, key: int | str, fingerprint: str) -> bool:
     return path in root and is_done(root[path], "ingest", fingerprint)
 
 
+def say_scenes(run: Run, scenes: dict) -> None:
+    """The ingest log's line of each scene's layout, and of the thinned copies."""
+    for scene, info in scenes.items():
+        if not is_copy(scene):
+            say(f"ingest: scene {scene} {layout_text(info['grid'])}", quiet=run.quiet)
+    for line in copy_lines(scenes, run.cfg.data.densities, run.cfg.cascade.seed,
+                           run.model is not None):
+        say(f"ingest: {line}", quiet=run.quiet)
+
+
+def scene_chunks(scene: str, tasks: list[Task], results: dict) -> list[str]:
+    """The chunks in which the ingest ``tasks`` wrote core points of ``scene`` (of a
+    thinned copy: its scene's tasks, of the points it keeps)."""
+    names = set()
+    for task in tasks:
+        if task.kwargs["task"].scene == scene:
+            names.update(results[task.key]["core_counts"])
+        names.update(results[task.key].get("copies", {}).get(scene, {}))
+    return sorted(names)
+
+
 def ingest(run: Run, engine) -> dict:
     """Plan the scenes, stream every tile into the store, record the chunk layout."""
     tiles = plan_tiles(run)
@@ -603,11 +702,12 @@ def ingest(run: Run, engine) -> dict:
             root.attrs["layout"] = None
         scenes = plan_scenes(run, tiles, engine)
         root.attrs["planned"] = {"fingerprint": fingerprint, "scenes": scenes}
-    for scene, info in scenes.items():
-        say(f"ingest: scene {scene} {layout_text(info['grid'])}", quiet=run.quiet)
+    say_scenes(run, scenes)
     by_index = {tile["index"]: tile for tile in tiles}
     tasks = []
     for scene, info in scenes.items():
+        if is_copy(scene):  # written by its scene's tasks
+            continue
         for unit in read_units(info):
             members = tuple(by_index[index] for index in unit.tiles)
             span = unit.span(members[0]["n_points"])
@@ -632,6 +732,8 @@ def ingest(run: Run, engine) -> dict:
                     key=unit.key,
                     span=span,
                     echoes=echo_need(run),
+                    copies=copies_of(scenes, scene),
+                    seed=run.cfg.cascade.seed,
                 )},
                 where=(f"{tiles_text(list(members))}"
                        f"{f' (points {span[0]:,} to {span[1]:,})' if span else ''}"
@@ -640,11 +742,7 @@ def ingest(run: Run, engine) -> dict:
             ))
     results = engine.map("ingest", tasks)
     for scene, info in scenes.items():
-        names = set()
-        for task in tasks:
-            if task.kwargs["task"].scene == scene:
-                names.update(results[task.key]["core_counts"])
-        info["chunks"] = sorted(names)
+        info["chunks"] = scene_chunks(scene, tasks, results)
     excluded_by_tile: dict[str, int] = {}  # a tile read in ranges: the sum of its ranges'
     for task in tasks:
         for index, n in results[task.key]["excluded"].items():

@@ -24,6 +24,10 @@ Layout::
         first; attrs x0, y0, cell, done = {"terrain": fingerprint}, interpolated (the share of
         the cells with points where no ground was seen)
 
+A thinned copy of a training scene (``data.densities``) is a scene of its own,
+``<scene>@<density>ppm`` (:func:`copy_scene`), laid out as every scene: its parts hold the
+kept points of the same tiles, under the same keys and global ids.
+
 The arrays are written and read by :mod:`pipeline.store` (packs, appended record arrays,
 checksums); which groups are done, by :mod:`workflows.store.marks`.
 """
@@ -40,6 +44,33 @@ RETURNS = ("return_number", "number_of_returns")
 POINTS = "points"
 POINT_ARRAYS = (CORE + tuple(f"halo_{name}" for name in HALO) + RETURNS
                 + tuple(f"halo_{name}" for name in RETURNS))  # the members of the pack
+
+
+#: Between a scene's name and the density of a thinned copy of it.
+COPY_MARK = "@"
+
+
+def copy_scene(scene: str, density: float) -> str:
+    """The name of the copy of ``scene`` thinned to ``density`` points per m²:
+    ``train@5ppm``."""
+    return f"{scene}{COPY_MARK}{density:g}ppm"
+
+
+def source_scene(scene: str) -> str:
+    """The scene a copy was thinned from (a scene that is no copy: itself)."""
+    return scene.split(COPY_MARK, 1)[0]
+
+
+def is_copy(scene: str) -> bool:
+    """Whether ``scene`` is a thinned copy of another (:func:`copy_scene`)."""
+    return COPY_MARK in scene
+
+
+def without_copies(layout: dict) -> dict:
+    """``layout`` without its thinned copies: the scenes that are exported, scored and
+    surveyed."""
+    return {**layout, "scenes": {s: info for s, info in layout["scenes"].items()
+                                 if not is_copy(s)}}
 
 
 def chunk_path(scene: str, chunk_name: str) -> str:
