@@ -180,8 +180,9 @@ MAX_RASTER_CELLS = 50_000_000
 
 
 def check_raster_size(run: Run, tiles: list[dict]) -> None:
-    """Refuse, before any work, an ``output.raster_resolution`` that gives a tile's raster
-    (from its header's XY box) more than :data:`MAX_RASTER_CELLS` cells."""
+    """Refuse an ``output.raster_resolution`` that gives a tile's raster (of its XY box:
+    its header's before any work, that of its points as read once ingested) more than
+    :data:`MAX_RASTER_CELLS` cells."""
     out = run.cfg.output
     if not out.rasters:
         return
@@ -414,6 +415,7 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
     all_columns = list(feature_set(run.features).columns)
     feature_index = [all_columns.index(c) for c in feature_columns]
     out = run.cfg.output
+    check_raster_size(run, layout["tiles"])  # points beyond a stale header widen a raster
     raster_dir = run.out / "rasters"
     rasters = (RasterRequest(tuple(out.rasters), out.raster_resolution,
                              tuple(run.cfg.canopy_classes), str(raster_dir))
