@@ -31,9 +31,11 @@ from zarr.codecs import ZstdCodec
 
 from pipeline.errors import StoreError
 
-SCHEMA_VERSION = 6  # 3: packs of byte planes in one shard per write; parts removed once
+SCHEMA_VERSION = 7  # 3: packs of byte planes in one shard per write; parts removed once
 # assembled; 4: a flag per point whose features are undefined, chunks classified in one pass;
-# 5: a terrain model per scene; 6: a part's core and halo points as one record array each
+# 5: a terrain model per scene; 6: a part's core and halo points as one record array each;
+# 7: a scene's terrain blocks beside its terrain model, the position of each cell minimum,
+# each tile's box as its points were read
 CHECKSUM = "crc32"
 #: Rows of the zarr chunks of an appended array: its first write's rows, within these bounds.
 MIN_APPEND_CHUNK, MAX_APPEND_CHUNK = 1 << 14, 1 << 18

@@ -60,18 +60,6 @@ def cell_index(xy: np.ndarray, x0: float, y0: float, cell: float, shape) -> np.n
     return np.where(inside, row * nx + col, -1)
 
 
-def max_per_cell(flat: np.ndarray, values: np.ndarray, out: np.ndarray) -> None:
-    """``out`` (flattened view, NaN = empty) takes the maximum of ``values`` per cell index of
-    ``flat`` (-1 ignored), in place; order-independent, so batches can come in any order."""
-    keep = flat >= 0
-    flat, values = flat[keep], np.asarray(values, dtype=np.float64)[keep]
-    current = out.reshape(-1)
-    empty = np.isnan(current[flat])
-    current[flat[empty]] = -np.inf
-    np.maximum.at(current, flat, values)
-    current[np.isneginf(current)] = np.nan
-
-
 def write_geotiff(path, raster: Raster, crs_wkt: str | None, nodata: float = NODATA) -> None:
     """Write ``raster`` (south row first, NaN = no data) as a float32 north-up GeoTIFF."""
     import rasterio

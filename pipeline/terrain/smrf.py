@@ -5,8 +5,9 @@ classification of airborne LIDAR data", ISPRS J. 77:21-30; the parameters have t
 and defaults of PDAL's ``filters.smrf``. On the raster of the lowest point of each cell:
 
 1. low outliers (:func:`low_outliers`: a stray point or a small cluster of them far under
-   the ground) are emptied, so none digs a pit, and the empty cells are filled
-   (:func:`~pipeline.terrain.grid.fill`);
+   the ground, and :func:`~pipeline.terrain.pits.deep_pits`: a group of cells of any size
+   far deeper under all the data around it than it is wide) are emptied, so none digs a
+   pit, and the empty cells are filled (:func:`~pipeline.terrain.grid.fill`);
 2. progressive morphological opening with disks of radius 1 .. ceil(window / cell) cells: a
    cell is an object when the previous surface minus the current opening exceeds
    slope * radius * cell (the opening removes anything narrower than the disk; terrain that
@@ -31,6 +32,7 @@ from scipy.sparse import csgraph
 
 from pipeline.errors import ConfigError, InputError
 from pipeline.terrain.grid import Raster, cell_minima, fill, minima_offsets, minima_raster
+from pipeline.terrain.pits import deep_pits
 
 logger = logging.getLogger(__name__)
 
@@ -284,7 +286,7 @@ def ground_model(minima: Raster, params: TerrainParams, offsets: np.ndarray | No
         raise InputError("the minima raster has no cell with a value: no terrain to model")
     cell = minima.cell
 
-    low = low_outliers(z, data)
+    low = low_outliers(z, data) | deep_pits(z, data, cell, LOW_RADIUS)
     surface = fill(z, data & ~low)
     objects = object_mask(surface, cell, params.slope, params.window)
     keep = data & ~low & ~objects

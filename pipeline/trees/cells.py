@@ -3,9 +3,11 @@
 Cells are squares of side ``cell`` anchored at 0, as the terrain's: the point (x, y) falls in
 the cell (floor(x / cell), floor(y / cell)), whose global key is one int64 (:func:`cell_keys`)
 ordering cells by row (ky) then column (kx). The highest point of a cell is chosen by a total
-order (:func:`highest_first`), so :func:`merge_cells` of the cells of any split of a cloud, in
-any order, equals :func:`canopy_cells` of the whole cloud bit for bit; the canopy height model
-of the scene (:func:`chm_raster`) is built from the merged cells.
+order (:func:`highest_first`), and the height of its second highest point kept beside it, so
+:func:`merge_cells` of the cells of any split of a cloud, in any order, equals
+:func:`canopy_cells` of the whole cloud bit for bit; the canopy height model of the scene
+(:func:`chm_raster`) is built from the merged cells, without the spikes of stray points high
+above the canopy (:func:`pipeline.surface.despike`).
 """
 
 from dataclasses import dataclass
@@ -13,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.errors import InputError
+from pipeline.surface import despike
 from pipeline.terrain import Raster
 
 #: Largest cell index magnitude on either axis: two indices pack into one int64 key.
@@ -28,7 +31,9 @@ class CanopyCells:
     """The highest canopy point of each occupied cell, cells sorted by key.
 
     keys int64 (M,) global cell keys (:func:`cell_keys`), each once, ascending; height
-    float64 (M,) height above ground of the point; x, y, z float64 (M,) its coordinates.
+    float64 (M,) height above ground of the point; x, y, z float64 (M,) its coordinates;
+    second float64 (M,) the height of the cell's second highest canopy point (NaN when the
+    cell holds one).
     """
 
     keys: np.ndarray
@@ -36,6 +41,7 @@ class CanopyCells:
     x: np.ndarray
     y: np.ndarray
     z: np.ndarray
+    second: np.ndarray
 
     def __len__(self) -> int:
         return int(self.keys.shape[0])
@@ -70,16 +76,31 @@ def highest_first(groups, height, z, x, y) -> np.ndarray:
     smallest y; points equal in all four are the same point. The choice therefore depends only
     on the set of points, never on their order: the exact reduction behind every merge.
     """
+    order, first = _highest_order(groups, height, z, x, y)
+    return order[first]
+
+
+def _highest_order(groups, height, z, x, y) -> tuple[np.ndarray, np.ndarray]:
+    """The rows by group, highest first (the order of :func:`highest_first`), and a bool
+    mask of the first row of each group in that order."""
     order = np.lexsort((y, x, -z, -height, groups))
     groups = groups[order]
     first = np.ones(groups.shape[0], dtype=bool)
     first[1:] = groups[1:] != groups[:-1]
-    return order[first]
+    return order, first
 
 
-def _select(keys, height, x, y, z) -> CanopyCells:
-    keep = highest_first(keys, height, z, x, y)
-    return CanopyCells(keys[keep], height[keep], x[keep], y[keep], z[keep])
+def _select(keys, height, x, y, z, second=None) -> CanopyCells:
+    """The highest row of each key and the second highest height of the key's rows (of
+    ``height`` but the highest row's, and of ``second``: rows that are cells already)."""
+    order, first = _highest_order(keys, height, z, x, y)
+    keep = order[first]
+    others = np.where(first, np.nan, height[order])
+    if second is not None:
+        others = np.fmax(others, second[order])
+    runner = (np.fmax.reduceat(others, np.flatnonzero(first)) if order.size
+              else np.empty(0))
+    return CanopyCells(keys[keep], height[keep], x[keep], y[keep], z[keep], runner)
 
 
 def canopy_cells(xyz: np.ndarray, height: np.ndarray, canopy: np.ndarray,
@@ -118,16 +139,18 @@ def merge_cells(parts) -> CanopyCells:
     key kept. Equals :func:`canopy_cells` of the union of the parts' points, bit for bit,
     whatever the split and the order of the parts; no parts give empty cells."""
     parts = list(parts)
-    fields = ("keys", "height", "x", "y", "z")
+    fields = ("keys", "height", "x", "y", "z", "second")
     if not parts:
         return CanopyCells(np.empty(0, np.int64), *(np.empty(0) for _ in fields[1:]))
     joined = {name: np.concatenate([getattr(p, name) for p in parts]) for name in fields}
     return _select(joined["keys"].astype(np.int64, copy=False), joined["height"],
-                   joined["x"], joined["y"], joined["z"])
+                   joined["x"], joined["y"], joined["z"], joined["second"])
 
 
 def chm_raster(cells: CanopyCells, cell: float) -> Raster:
-    """The canopy height model: the height of each cell's highest canopy point.
+    """The canopy height model: the height of each cell's highest canopy point, unless
+    nothing supports that point (a stray point far above the canopy near it, see
+    :func:`pipeline.surface.despike`): then the height of the cell's second point, or NaN.
 
     The raster spans the cells' bounding box: ``x0 = kx_min * cell``, ``y0 = ky_min * cell``,
     cell (kx, ky) at row ky - ky_min (row 0 south), column kx - kx_min; NaN where no canopy
@@ -144,6 +167,8 @@ def chm_raster(cells: CanopyCells, cell: float) -> Raster:
         raise InputError(f"the canopy height model would have {ny} x {nx} cells of {cell} m "
                          f"(more than {MAX_CELLS}); use a larger trees.resolution or split "
                          "the scene")
-    values = np.full((ny, nx), np.nan)
+    values, second = np.full((ny, nx), np.nan), np.full((ny, nx), np.nan)
     values[ky - low_y, kx - low_x] = cells.height
-    return Raster(values, low_x * float(cell), low_y * float(cell), float(cell))
+    second[ky - low_y, kx - low_x] = cells.second
+    return Raster(despike(values, second, cell, floor=0.0), low_x * float(cell),
+                  low_y * float(cell), float(cell))

@@ -20,6 +20,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.errors import ModelError
+from pipeline.surface import spike_gap
+from pipeline.terrain import Raster
 from pipeline.trees.cells import cell_keys, highest_first
 from pipeline.trees.crowns import Crowns
 from pipeline.trees.graph import VoxelTrees
@@ -61,6 +63,10 @@ class TreeModel:
     dbh: np.ndarray
     dbh_quality: np.ndarray
     voxels: VoxelTrees | None = None  # the trees grown from their stems (terrestrial)
+    #: float32 (ny, nx) on the labels' grid: the canopy height model the crowns were found
+    #: in (NaN where no canopy); a point higher than a cell's canopy by the spike gap is a
+    #: stray point, in no tree. None: no bound (no crowns, or a model stored without it).
+    top: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.crown_cells.shape[0])
@@ -72,6 +78,8 @@ class TreeModel:
         if self.voxels is not None:
             voxel_arrays, voxel_attrs = self.voxels.to_arrays()
             arrays, attrs = {**arrays, **voxel_arrays}, {**attrs, **voxel_attrs}
+        if self.top is not None:
+            arrays["top"] = np.asarray(self.top, dtype=np.float32)
         return arrays, attrs
 
     @classmethod
@@ -89,15 +97,19 @@ class TreeModel:
             raise ModelError("the stored tree model's arrays do not fit together; run the "
                              "tree step again")
         voxels = VoxelTrees.from_arrays(arrays, attrs) if "voxel_keys" in arrays else None
-        return cls(labels, **grid, **values, voxels=voxels)
+        top = np.asarray(arrays["top"], dtype=np.float32) if "top" in arrays else None
+        if top is not None and top.shape != labels.shape:
+            raise ModelError("the stored tree model's arrays do not fit together; run the "
+                             "tree step again")
+        return cls(labels, **grid, **values, voxels=voxels, top=top)
 
 
 def _label_at(labels: np.ndarray, x0: float, y0: float, cell: float,
-              xy: np.ndarray) -> np.ndarray:
-    """The value of ``labels`` (ny, nx) at the cell holding each point of xy (N, 2), 0 outside
-    the raster. The cell is found as canopy_cells keys it (floor(x / cell) less the raster's
-    first index), so a point lands in the very cell it built."""
-    values = np.zeros(xy.shape[0], dtype=labels.dtype)
+              xy: np.ndarray, outside=0) -> np.ndarray:
+    """The value of ``labels`` (ny, nx) at the cell holding each point of xy (N, 2),
+    ``outside`` beyond the raster. The cell is found as canopy_cells keys it (floor(x / cell)
+    less the raster's first index), so a point lands in the very cell it built."""
+    values = np.full(xy.shape[0], outside, dtype=labels.dtype)
     if labels.size == 0:
         return values
     col = np.floor(xy[:, 0] / cell).astype(np.int64) - int(np.rint(x0 / cell))
@@ -150,11 +162,14 @@ def _number_trees(crowns: Crowns | None, stems, params: TreeParams):
     return ids[:n], stem_ids
 
 
-def tree_model(crowns: Crowns | None, stems: Stems | None, params: TreeParams) -> TreeModel:
+def tree_model(crowns: Crowns | None, stems: Stems | None, params: TreeParams,
+               chm: Raster | None = None) -> TreeModel:
     """The scene's trees from its crowns and/or stems, numbered by the ID rule.
 
     With both, a stem whose centre lies in a crown gives that crown's tree its DBH (the stem
-    nearest the top when several do); other stems are trees of their own.
+    nearest the top when several do); other stems are trees of their own. ``chm``: the
+    canopy height model the crowns were segmented in, which bounds the points of a crown
+    (see :attr:`TreeModel.top`).
     """
     crown_ids, stem_ids = _number_trees(crowns, stems, params)
     n = int(max(crown_ids.max(initial=0), stem_ids.max(initial=0)))  # IDs are 1..n
@@ -173,7 +188,9 @@ def tree_model(crowns: Crowns | None, stems: Stems | None, params: TreeParams) -
         per_tree["stem_x"][at], per_tree["stem_y"][at] = stems.x, stems.y
         per_tree["dbh"][at], per_tree["dbh_quality"][at] = dbh, stems.quality
         per_tree["stem_radius"][at] = np.where(np.isfinite(dbh), dbh / 2.0, 0.0)
-    return TreeModel(labels, *grid, **per_tree)
+    top = (np.asarray(chm.values, np.float32) if crown_ids.size and chm is not None
+           else None)
+    return TreeModel(labels, *grid, **per_tree, top=top)
 
 
 def _stem_ids(model: TreeModel, xy: np.ndarray, margin: float) -> np.ndarray:
@@ -196,9 +213,11 @@ def assign_trees(model: TreeModel, xyz: np.ndarray, height: np.ndarray, canopy: 
     """uint32 (N,) the tree ID of each point, 0 for none; each depends only on its point.
 
     Canopy points (bool (N,) ``canopy``) at least ``min_height`` above ground (``height``
-    float (N,)) get the crown of the cell they fall in. Points of ``stem_mask`` (bool (N,) or
-    None) left without a crown get the stem whose circle, widened by ``stem_cluster_eps``,
-    holds them in XY.
+    float (N,)) get the crown of the cell they fall in, unless they stand above the cell's
+    canopy height (:attr:`TreeModel.top`) by more than
+    :func:`~pipeline.surface.spike_gap`: a stray point (a bird) is in no tree. Points of
+    ``stem_mask`` (bool (N,) or None) left without a crown get the stem whose circle, widened
+    by ``stem_cluster_eps``, holds them in XY.
     """
     xyz = np.asarray(xyz, dtype=np.float64)
     ids = np.zeros(xyz.shape[0], dtype=np.uint32)
@@ -208,7 +227,12 @@ def assign_trees(model: TreeModel, xyz: np.ndarray, height: np.ndarray, canopy: 
         at = np.flatnonzero(trees & (np.asarray(height, np.float64) >= 0.0))
         ids[at] = model.voxels.lookup(xyz[at])
         return ids
-    tall = np.flatnonzero(np.asarray(canopy, bool) & (np.asarray(height) >= params.min_height))
+    height = np.asarray(height, np.float64)
+    tall = np.flatnonzero(np.asarray(canopy, bool) & (height >= params.min_height))
+    if model.top is not None:
+        ceiling = _label_at(model.top, model.x0, model.y0, model.cell, xyz[tall, :2],
+                            np.nan) + spike_gap(model.cell)
+        tall = tall[~(height[tall] > ceiling)]  # NaN: no canopy height there, no bound
     ids[tall] = _label_at(model.labels, model.x0, model.y0, model.cell, xyz[tall, :2])
     if stem_mask is not None:
         loose = np.flatnonzero(np.asarray(stem_mask, bool) & (ids == 0))

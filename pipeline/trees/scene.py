@@ -62,10 +62,10 @@ def scene_model(inputs: TreeInputs, params: TreeParams, area: float
         method = "stems" if sees_stems(inputs.slice, area, params) else "crowns"
     chm = chm_raster(inputs.cells, params.resolution)
     if method == "crowns":
-        return tree_model(segment_crowns(chm, params), None, params), chm, method
+        return tree_model(segment_crowns(chm, params), None, params, chm), chm, method
     stems = find_stems(inputs.slice, params)
     crowns = segment_crowns(chm, params, seeds=np.column_stack([stems.x, stems.y]))
-    model = tree_model(crowns, stems, params)
+    model = tree_model(crowns, stems, params, chm)
     return with_voxels(model, grow_trees(model, stems, inputs.voxels)), chm, method
 
 

@@ -1,10 +1,10 @@
-"""GeoTIFF rasters: write-then-read round trip, orientation, maxima per cell, hillshade."""
+"""GeoTIFF rasters: write-then-read round trip, orientation, cells of the points, hillshade."""
 
 import numpy as np
 import pytest
 
 from pipeline.io.raster import (
-    NODATA, cell_index, hillshade, max_per_cell, read_geotiff, tile_grid, write_geotiff,
+    NODATA, cell_index, hillshade, read_geotiff, tile_grid, write_geotiff,
 )
 from pipeline.terrain import Raster
 
@@ -63,24 +63,8 @@ def test_neighbouring_tiles_grids_abut_and_hold_their_own_points(cell, first):
         assert end == start
 
 
-def test_max_per_cell_in_batches_equals_the_whole():
-    rng = np.random.default_rng(1)
-    xy = rng.uniform(0, 10, (500, 2))
-    z = rng.normal(size=500)
-    shape = (10, 10)
-    flat = cell_index(xy, 0.0, 0.0, 1.0, shape)
-    whole = np.full(shape, np.nan)
-    max_per_cell(flat, z, whole)
-    batched = np.full(shape, np.nan)
-    for part in np.array_split(rng.permutation(500), 7):
-        max_per_cell(flat[part], z[part], batched)
-    assert np.array_equal(whole, batched, equal_nan=True)
-    expected = np.full(100, np.nan)
-    for f, v in zip(flat, z):
-        expected[f] = v if np.isnan(expected[f]) else max(expected[f], v)
-    assert np.array_equal(whole.ravel(), expected, equal_nan=True)
-    # outside points are ignored, empty cells stay NaN
-    outside = cell_index(np.array([[-1.0, 5.0], [5.0, 10.5]]), 0.0, 0.0, 1.0, shape)
+def test_points_outside_the_grid_have_no_cell():
+    outside = cell_index(np.array([[-1.0, 5.0], [5.0, 10.5]]), 0.0, 0.0, 1.0, (10, 10))
     assert list(outside) == [-1, -1]
 
 

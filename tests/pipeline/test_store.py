@@ -197,7 +197,7 @@ def test_unreadable_root_metadata_is_one_store_error(tmp_path):
         open_store(tmp_path / "s.zarr")
 
 
-@pytest.mark.parametrize("version", [1, 2])
+@pytest.mark.parametrize("version", [1, 2, 6])  # 6: before the terrain blocks
 def test_store_of_an_older_schema_is_refused(tmp_path, version):
     root = open_store(tmp_path / "s.zarr")
     root.attrs["schema_version"] = version

@@ -8,6 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import pipeline.terrain.pits as pits
 import pipeline.terrain.smrf as smrf
 from pipeline.errors import ConfigError, InputError
 from pipeline.terrain import (
@@ -279,6 +280,93 @@ def test_a_cluster_of_low_outliers_digs_no_crater(cells, depth):
     expected = clean[:, 2] - ground_elevation(terrain_model(clean).dtm, clean[:, :2])
     height = clean[:, 2] - ground_elevation(terrain_model(noisy).dtm, clean[:, :2])
     assert np.abs(height - expected).max() < 0.2  # a filled cell vs its own lowest point
+
+
+def _plot_with_trees(seed=11):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0.0, 20.0, size=(4000, 2))
+    clean = np.column_stack((xy, 50.0 + 0.1 * xy[:, 0] + rng.normal(0.0, 0.03, len(xy))))
+    crowns = rng.uniform([2.0, 2.0, 5.0], [18.0, 18.0, 15.0], size=(1500, 3))
+    return np.vstack((clean, crowns + [0.0, 0.0, 50.0])), rng
+
+
+@pytest.mark.parametrize("corner, side, n, depths", [
+    ((8.0, 8.0), 4.0, 200, (50.0, 100.0)),  # 4 x 4 m, points 50-100 m down
+    ((8.0, 8.0), 4.0, 16, (50.0, 100.0)),  # a point or so a cell, each at its own depth
+    ((8.0, 8.0), 3.0, 300, (100.0, 100.5)),  # 3 x 3 m, all about as deep
+    ((7.0, 7.0), 6.0, 400, (50.0, 100.0)),  # 6 x 6 m
+    ((0.0, 0.0), 4.0, 200, (50.0, 100.0)),  # in the plot's corner
+    ((16.0, 9.0), 4.0, 200, (20.0, 25.0)),  # at its edge, 20 m down
+])
+def test_a_burst_of_many_cells_far_below_the_ground_digs_no_crater(corner, side, n, depths):
+    """A multipath burst over more than the few cells low_outliers catches, at one depth or
+    at many: every height above ground of a 20 m plot with trees stays as without it."""
+    clean, rng = _plot_with_trees()
+    xy = rng.uniform(corner, np.add(corner, side), size=(n, 2))
+    burst = np.column_stack((xy, 50.0 + 0.1 * xy[:, 0] - rng.uniform(*depths, n)))
+    expected = clean[:, 2] - ground_elevation(terrain_model(clean).dtm, clean[:, :2])
+    height = clean[:, 2] - ground_elevation(terrain_model(np.vstack((clean, burst))).dtm,
+                                            clean[:, :2])
+    assert np.abs(height - expected).max() < 0.2
+
+
+def _deep_pits_by_definition(z, cell, radius):
+    """Every cell's group, grown over the whole raster, judged as the pits module defines
+    it (no pruning of the cells that may top a pit, no box around them)."""
+    from scipy import ndimage
+
+    data = np.isfinite(z)
+    a, b = np.mgrid[-radius:radius + 1, -radius:radius + 1]
+    link = a * a + b * b <= radius * radius
+    out = np.zeros(z.shape, bool)
+    for i, j in zip(*np.nonzero(data)):
+        seed = np.zeros(z.shape, bool)
+        seed[i, j] = True
+        below = data & (np.nan_to_num(z, nan=np.inf) <= z[i, j])
+        group = ndimage.binary_dilation(seed, structure=link, iterations=0, mask=below)
+        ring = ndimage.binary_dilation(group, structure=link) & data & ~group
+        rows, cols = np.nonzero(group)
+        extent = max(np.ptp(rows) + 1, np.ptp(cols) + 1) * cell
+        gap = z[ring].min() - z[i, j] if ring.any() else 0.0
+        if gap > pits.DEEP_GAP and gap > pits.DEEP_RATIO * extent \
+                and extent <= pits.DEEP_EXTENT:
+            out |= group
+    return out
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_deep_pits_are_the_groups_the_definition_gives(seed):
+    """Rough terrain with empty cells, a canopy and pits of 1-25 cells, 3-120 m deep at one
+    depth or many: the pits found from their possible tops are every group that, grown
+    cell by cell from each cell, has a gap over its bound."""
+    rng = np.random.default_rng(seed)
+    cell = (0.5, 1.0, 2.0)[seed % 3]
+    i, j = np.mgrid[:34, :30]
+    z = 10.0 + 0.3 * j * cell + rng.normal(0.0, 0.3, i.shape)
+    canopy = rng.random(z.shape) < 0.3
+    z[canopy] += rng.uniform(3.0, 25.0, canopy.sum())  # a canopy's lowest points
+    for _ in range(4):
+        a, b, h, w = rng.integers(0, 30), rng.integers(0, 26), rng.integers(1, 6), \
+            rng.integers(1, 6)
+        low = rng.uniform(2.0, 40.0) * (1.0 + cell)
+        z[a:a + h, b:b + w] -= low + rng.uniform(0.0, low / 2, (min(h, 34 - a), min(w, 30 - b)))
+    z[rng.random(z.shape) < 0.25] = np.nan
+    found = pits.deep_pits(z, np.isfinite(z), cell, 5)
+    assert found.any()
+    np.testing.assert_array_equal(found, _deep_pits_by_definition(z, cell, 5))
+
+
+def test_hollows_wider_than_deep_are_no_pits():
+    """A pond 12 m across and 3 m deep with steep banks, a ditch 2 m wide and 4 m deep, and
+    ground seen in one cell of nine under a closed canopy 30 m up: none is a deep pit."""
+    i, j = np.mgrid[:60, :60]
+    z = 100.0 + 0.02 * j
+    z[20:32, 20:32] -= 3.0
+    z[45:47, :] -= 4.0
+    canopy = np.full((30, 30), 130.0)
+    canopy[1::3, 1::3] = 100.0
+    for raster in (z, canopy):
+        assert not pits.deep_pits(raster, np.isfinite(raster), 1.0, 5).any()
 
 
 def test_ground_seen_through_a_closed_canopy_in_single_cells_is_kept():

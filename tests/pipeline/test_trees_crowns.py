@@ -11,6 +11,7 @@ from pipeline.trees import (
     TreeParams,
     canopy_cells,
     chm_raster,
+    find_trees,
     merge_cells,
     segment_crowns,
 )
@@ -43,8 +44,8 @@ def crowns_of(xyz, height, canopy, params=TreeParams()):
 
 
 def _fields_equal(a, b):
-    return all(np.array_equal(getattr(a, f), getattr(b, f))
-               for f in ("keys", "height", "x", "y", "z"))
+    return all(np.array_equal(getattr(a, f), getattr(b, f), equal_nan=f == "second")
+               for f in ("keys", "height", "x", "y", "z", "second"))
 
 
 # --- canopy cells --------------------------------------------------------------------------
@@ -67,11 +68,12 @@ def test_canopy_cells_against_a_loop():
     xyz = rng.uniform([-3.0, 5.0, 0.0], [3.0, 9.0, 4.0], size=(400, 3))
     xyz[:100, 2] = np.round(xyz[:100, 2])
     height, canopy = xyz[:, 2] - 0.5, rng.random(400) < 0.7
-    best = {}
+    best, heights = {}, {}
     for (x, y, z), h, c in zip(xyz, height, canopy):
         if c and h >= 0.0:
             key = (math.floor(x / 0.7), math.floor(y / 0.7))
             rank = (h, z, -x, -y)
+            heights.setdefault(key, []).append(h)
             if key not in best or rank > best[key][0]:
                 best[key] = (rank, (x, y, z))
     cells = canopy_cells(xyz, height, canopy, 0.7)
@@ -79,6 +81,10 @@ def test_canopy_cells_against_a_loop():
     found = {(int(i), int(j)): (x, y, z) for i, j, x, y, z in zip(kx, ky, cells.x, cells.y,
                                                                  cells.z)}
     assert found == {key: point for key, (_, point) in best.items()}
+    seconds = {(int(i), int(j)): s for i, j, s in zip(kx, ky, cells.second)}
+    for key, hs in heights.items():  # the second highest height of the cell, NaN for one
+        want = sorted(hs)[-2] if len(hs) > 1 else None
+        assert (np.isnan(seconds[key]) if want is None else seconds[key] == want), key
     assert list(zip(ky.tolist(), kx.tolist())) == sorted(zip(ky.tolist(), kx.tolist()))
 
 
@@ -272,3 +278,37 @@ def test_tree_params_take_lists_from_a_config_file():
     params = TreeParams(window=[4, 0.1], fallback_offsets=[0.2], resolution=1)
     assert params.window == (4.0, 0.1) and params.fallback_offsets == (0.2,)
     assert params.resolution == 1.0 and isinstance(params.resolution, float)
+
+
+# --- stray points above the canopy ------------------------------------------------------
+
+def test_a_bird_over_the_canopy_sets_no_cell_and_makes_no_tree():
+    """Two stray points 60 m above the canopy (one over a crown, one over open ground),
+    predicted as canopy: the CHM is that of the forest without them, cell for cell, and the
+    trees are the same."""
+    xyz, height, canopy = cone_forest(3)
+    birds = np.array([[10.2, 10.3, 190.0], [30.0, 5.0, 160.0]])
+    with_birds = (np.vstack([xyz, birds]), np.concatenate([height, birds[:, 2] - 100.0]),
+                  np.concatenate([canopy, [True, True]]))
+    params = TreeParams(method="crowns")
+    clean = chm_raster(canopy_cells(xyz, height, canopy, params.resolution), params.resolution)
+    chm = chm_raster(canopy_cells(*with_birds, params.resolution), params.resolution)
+    assert np.nanmax(chm.values) <= max(h for _, _, h, _ in CONES)
+    # cell for cell (the bird over the ground widens the raster by empty cells)
+    i0, j0 = round((clean.y0 - chm.y0) / chm.cell), round((clean.x0 - chm.x0) / chm.cell)
+    inner = chm.values[i0:i0 + clean.shape[0], j0:j0 + clean.shape[1]]
+    np.testing.assert_array_equal(inner, clean.values)
+    assert np.isfinite(chm.values).sum() == np.isfinite(clean.values).sum()
+    # chunked: the birds in one chunk, the canopy under them in another
+    parts = [canopy_cells(xyz, height, canopy, params.resolution),
+             canopy_cells(birds, birds[:, 2] - 100.0, np.ones(2, bool), params.resolution)]
+    merged = chm_raster(merge_cells(parts), params.resolution)
+    np.testing.assert_array_equal(merged.values, chm.values)
+    # the same trees, and the birds in none (the one over a crown stands far above it)
+    ids, table, _, _ = find_trees(*with_birds, np.zeros(len(with_birds[0]), bool), params)
+    want_ids, want, _, _ = find_trees(xyz, height, canopy, np.zeros(len(xyz), bool), params)
+    assert len(table) == len(CONES) and table.dtype == want.dtype
+    for name in want.dtype.names:
+        np.testing.assert_array_equal(table[name], want[name])
+    np.testing.assert_array_equal(ids[:len(xyz)], want_ids)
+    assert (ids[len(xyz):] == 0).all() and table["height"].max() <= 30.0

@@ -412,6 +412,24 @@ def test_corrupt_root_store_metadata_is_one_line(tmp_path, survey):
         assert f"store {out / 'store.zarr'} is damaged" in line and "--overwrite" in line
 
 
+def test_a_store_of_the_schema_before_terrain_blocks_is_refused_then_redone(tmp_path, survey):
+    """A store written before the terrain blocks (schema 6: one terrain raster per scene, cell
+    minima without positions, tiles' boxes from their headers) is never read as if it had
+    them: one line asks for --overwrite, which makes it again."""
+    from pipeline.store import SCHEMA_VERSION, open_store
+
+    out = tmp_path / "out"
+    open_store(out / "store.zarr").attrs["schema_version"] = 6
+    assert SCHEMA_VERSION > 6
+    config = write_config(tmp_path / "c.yaml", survey)
+    for args in (("status", out), ("ingest", config, "--out", out, "-q", "--in-process")):
+        line = error_line(silva(*args))
+        assert "schema version 6" in line and "--overwrite" in line, line
+    result = silva("ingest", config, "--out", out, "-q", "--in-process", "--overwrite")
+    assert result.exit_code == 0, result.output
+    assert open_store(out / "store.zarr").attrs["schema_version"] == SCHEMA_VERSION
+
+
 def test_a_done_mark_without_its_summary_runs_the_step_again(tmp_path, survey):
     """A chunk marked done whose stored summary is missing: the step runs again for it (the
     same outputs) instead of handing the coordinator nothing."""

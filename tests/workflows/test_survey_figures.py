@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from pipeline.terrain import Raster
-from workflows.report.figures import terrain_figure, topdown_figure
+from workflows.report.figures import raster_extent, scene_rasters, terrain_figure, topdown_figure
 from workflows.report.survey import survey_images
 
 
@@ -47,3 +47,47 @@ def test_topdown_and_terrain_figures_of_one_point():
                     "class_names": ["ground"]})
     terrain_figure({"a": {"dtm": Raster(np.full((1, 1), 7.0), 0.0, 0.0, 1.0),
                           "x": np.array([0.5]), "y": np.array([0.5]), "height": np.array([0.0])}})
+
+
+def _two_plots_a_kilometre_apart():
+    from pipeline.terrain import TerrainParams, block_models, cell_minima
+
+    rng = np.random.default_rng(4)
+    xy = np.concatenate([rng.uniform(0.0, 15.0, (2000, 2)),
+                         rng.uniform(0.0, 15.0, (2000, 2)) + (1000.0, 400.0)])
+    xyz = np.column_stack([xy, 80.0 + 0.05 * xy[:, 0]])
+    blocks = block_models(*cell_minima(xyz, 1.0), TerrainParams())[0]
+    assert len(blocks.dtms) == 2
+    return blocks
+
+
+def test_the_terrain_figure_shows_every_block_of_a_scene_at_its_place():
+    blocks = _two_plots_a_kilometre_apart()
+    figure = terrain_figure({"a": {"dtm": blocks, "x": np.array([5.0, 1005.0]),
+                                   "y": np.array([5.0, 405.0]), "height": np.array([9.0, 12.0])}})
+    hillshade_axes = figure.axes[0]
+    drawn = sorted(tuple(image.get_extent()) for image in hillshade_axes.get_images())
+    assert drawn == sorted(raster_extent(dtm) for dtm in blocks.dtms)
+    (x0, x1), (y0, y1) = hillshade_axes.get_xlim(), hillshade_axes.get_ylim()
+    for left, right, bottom, top in drawn:
+        assert x0 <= left and right <= x1 and y0 <= bottom and top <= y1
+    assert len(hillshade_axes.patches) == 2  # each block outlined
+
+
+def test_the_survey_hands_the_figure_every_terrain_block(tmp_path):
+    from types import SimpleNamespace
+
+    from pipeline.store import open_store
+    from workflows.steps.survey import canopy_samples
+    from workflows.steps.terrain import write_blocks
+
+    blocks = _two_plots_a_kilometre_apart()
+    root = open_store(tmp_path / "store.zarr")
+    write_blocks(root, "predict", blocks, 0.0, "fp")
+    run = SimpleNamespace(store=root, cfg=SimpleNamespace(canopy_classes=[1]))
+    maps = {"predict": (np.array([5.0, 1005.0]), np.array([5.0, 405.0]), np.array([1, 1]),
+                        np.array([9.0, 12.0]), np.array([0.9, 0.8]))}
+    dtms = scene_rasters(canopy_samples(run, maps)["predict"]["dtm"])
+    assert len(dtms) == 2
+    assert sorted(raster_extent(d) for d in dtms) == sorted(raster_extent(d)
+                                                            for d in blocks.dtms)

@@ -630,7 +630,8 @@ class OutputConfig(Section):
         description="GeoTIFF rasters written per input tile as rasters/<tile>_<name>.tif "
         "(float32, the tile's CRS): dtm, the terrain model; dsm, the highest point of each "
         "cell; chm, the canopy height, the highest height above ground of the points "
-        "predicted as output.canopy_classes (0 in cells with points but no canopy).",
+        "predicted as output.canopy_classes (0 in cells with points but no canopy). A "
+        "stray point 15 m or more above every point near it (a bird) sets no cell.",
     )
     raster_resolution: Number = Field(
         1.0, gt=0, description="Side in metres of the cells of output.rasters.")

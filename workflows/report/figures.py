@@ -16,7 +16,7 @@ import matplotlib.colors
 import matplotlib.ticker
 import numpy as np
 from matplotlib.figure import Figure
-from matplotlib.patches import Patch
+from matplotlib.patches import Patch, Rectangle
 
 from pipeline.errors import InputError
 from pipeline.metrics import precision_recall_curve_data
@@ -363,15 +363,50 @@ def _compact_count(count) -> str:
     return f"{count / 1e6:.2f}M" if count < 100_000_000 else f"{count / 1e6:.0f}M"
 
 
+def scene_rasters(dtm) -> tuple:
+    """The rasters of a scene's terrain model: ``dtm`` itself (a
+    :class:`pipeline.terrain.Raster`), or every block of a
+    :class:`pipeline.terrain.TerrainBlocks` or of a sequence of Rasters."""
+    if hasattr(dtm, "dtms"):
+        return tuple(dtm.dtms)
+    if hasattr(dtm, "values"):
+        return (dtm,)
+    return tuple(dtm)
+
+
+def raster_extent(raster) -> tuple[float, float, float, float]:
+    """(x0, x1, y0, y1): the box a raster covers, as imshow's ``extent``."""
+    ny, nx = raster.values.shape
+    return (raster.x0, raster.x0 + nx * raster.cell, raster.y0, raster.y0 + ny * raster.cell)
+
+
+def draw_hillshades(ax, rasters) -> tuple[float, float, float, float]:
+    """Draw the hillshade of each raster at its place, each outlined (a block far from the
+    others stays visible however small it is drawn); return the box of them all."""
+    from pipeline.io.raster import hillshade
+
+    boxes = np.array([raster_extent(r) for r in rasters])
+    for raster, (x0, x1, y0, y1) in zip(rasters, boxes):
+        ax.imshow(hillshade(raster.values, raster.cell), cmap="gray", origin="lower",
+                  extent=(x0, x1, y0, y1), vmin=0, vmax=1, interpolation="nearest")
+        if len(rasters) > 1:
+            ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, linewidth=0.8,
+                                   edgecolor="#CF222E"))
+    extent = (boxes[:, 0].min(), boxes[:, 1].max(), boxes[:, 2].min(), boxes[:, 3].max())
+    ax.set_xlim(extent[0], extent[1])
+    ax.set_ylim(extent[2], extent[3])
+    return extent
+
+
 def terrain_figure(terrain: dict) -> Figure:
     """Per scene, the terrain model's hillshade and the canopy height of the sampled points.
 
-    ``terrain`` maps a scene name to ``{"dtm": Raster, "x", "y", "height"}``: the scene's
-    terrain model (:class:`pipeline.terrain.Raster`) and the map coordinates and heights
-    above it of the sampled points predicted as a canopy class.
+    ``terrain`` maps a scene name to ``{"dtm": ..., "x", "y", "height"}``: the scene's
+    terrain model (a :class:`pipeline.terrain.Raster`, or its blocks, see
+    :func:`scene_rasters`: every block is drawn at its place, so plots far apart are all
+    seen) and the map coordinates and heights above it of the sampled points predicted as a
+    canopy class.
     """
-    from pipeline.io.raster import hillshade
-
     scenes = list(terrain)
     if not scenes:
         raise InputError("terrain holds no scene: pass {scene: {dtm, x, y, height}}")
@@ -379,15 +414,14 @@ def terrain_figure(terrain: dict) -> Figure:
         fig = Figure(figsize=(11.0, 4.6 * len(scenes)), dpi=DPI)
         for row, scene in enumerate(scenes):
             entry = terrain[scene]
-            dtm = entry["dtm"]
-            ny, nx = dtm.values.shape
-            extent = (dtm.x0, dtm.x0 + nx * dtm.cell, dtm.y0, dtm.y0 + ny * dtm.cell)
+            rasters = scene_rasters(entry["dtm"])
             ax = fig.add_subplot(len(scenes), 2, 2 * row + 1)
-            ax.imshow(hillshade(dtm.values, dtm.cell), cmap="gray", origin="lower",
-                      extent=extent, vmin=0, vmax=1, interpolation="nearest")
-            low, high = np.nanmin(dtm.values), np.nanmax(dtm.values)
+            extent = draw_hillshades(ax, rasters)
+            low = min(np.nanmin(r.values) for r in rasters)
+            high = max(np.nanmax(r.values) for r in rasters)
+            blocks = f", {len(rasters)} blocks" if len(rasters) > 1 else ""
             ax.set_title(f"{_mpl_text(scene)}: terrain model, {low:.1f}-{high:.1f} m "
-                         f"({dtm.cell:g} m cells)")
+                         f"({rasters[0].cell:g} m cells{blocks})")
             ax.ticklabel_format(useOffset=False, style="plain")
             ax = fig.add_subplot(len(scenes), 2, 2 * row + 2)
             x, y = np.asarray(entry["x"]), np.asarray(entry["y"])

@@ -81,8 +81,9 @@ CAPTIONS = {
     "topdown": "Final predicted class of a sample of the points, seen from above.",
     "terrain": (
         "Left: the hillshade of each scene's terrain model (SMRF ground filter on the lowest "
-        "point of each cell). Right: the height above it of the sampled points predicted as "
-        "a canopy class (output.canopy_classes)."
+        "point of each cell), every block of points far from the others at its place and "
+        "outlined. Right: the height above it of the sampled points predicted as a canopy "
+        "class (output.canopy_classes)."
     ),
 }
 TITLES = {

@@ -25,8 +25,9 @@ CAPTIONS = {
                  "probability below {low} (red) among all sampled points (grey).",
     "histograms": "Confidence (probability of the predicted class) and entropy of the class "
                   "probabilities of every classified point.",
-    "terrain": "Left: the hillshade of each scene's terrain model. Right: the height above it "
-               "of the sampled points predicted as a canopy class (output.canopy_classes).",
+    "terrain": "Left: the hillshade of each scene's terrain model, every block of points far "
+               "from the others at its place and outlined. Right: the height above it of the "
+               "sampled points predicted as a canopy class (output.canopy_classes).",
 }
 TITLES = {"topdown": "Class map", "profile": "Side view", "uncertain": "Low confidence",
           "histograms": "Confidence and entropy", "terrain": "Terrain model and canopy height"}

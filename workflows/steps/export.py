@@ -6,7 +6,8 @@ predicted class, one probability per class, a confidence, an entropy, ``NoFeatur
 where the point's features could not be computed: too few neighbours, or collinear ones; its
 prediction then rests on what the forests make of missing values) and ``HeightAboveGround``
 (metres above the scene's terrain model). Files are written atomically. With
-``output.rasters`` the same pass writes the tile's DTM, DSM and canopy height as GeoTIFF.
+``output.rasters`` the same pass writes the tile's DTM, DSM and canopy height as GeoTIFF
+(the highest point of each cell, unless it is a stray point far above everything near it).
 
 When ingest leaves points out (``data.exclude_codes``, ``data.exclude_withheld``,
 ``data.drop_unlisted``) a dimension ``Excluded`` is added: 1 for those points, which were in
@@ -27,8 +28,9 @@ from pipeline.errors import ConfigError, StoreError
 from pipeline.features.sets import feature_set
 from pipeline.io import ExtraDim, export_with_extra_dims, read_info
 from pipeline.io.las import extra_dimension_types
-from pipeline.io.raster import cell_index, max_per_cell, tile_grid, write_geotiff
+from pipeline.io.raster import cell_index, tile_grid, write_geotiff
 from pipeline.store import open_store, rows_of
+from pipeline.surface import despike, top_two
 from pipeline.terrain import Raster, TerrainBlocks, ground_elevation
 from pipeline.tiling import global_ids, layout_from_dict
 from workflows.config.schema import feature_dim_name
@@ -106,33 +108,35 @@ class RasterRequest:
 
 
 class _TileRasters:
-    """DSM and canopy height of one tile, accumulated batch by batch (maxima per cell)."""
+    """DSM and canopy height of one tile, accumulated batch by batch (the two highest values
+    per cell), without the spikes of stray points (:func:`pipeline.surface.despike`)."""
 
     def __init__(self, tile: dict, request: RasterRequest, dtm: TerrainBlocks):
         self.tile, self.request, self.dtm = tile, request, dtm
         cell = request.resolution
         self.x0, self.y0, nx, ny = tile_grid(tile["mins"], tile["maxs"], cell)
-        self.dsm = np.full((ny, nx), np.nan)
-        self.chm = np.full((ny, nx), np.nan)
+        self.dsm = (np.full((ny, nx), np.nan), np.full((ny, nx), np.nan))  # top, second
+        self.chm = (np.full((ny, nx), np.nan), np.full((ny, nx), np.nan))
 
     def add(self, xyz, height, kept, canopy) -> None:
         """``kept``: the points classified (not excluded); ``canopy``: those of them
         predicted as a canopy class; ``height`` their heights above ground."""
         flat = cell_index(xyz[kept, :2], self.x0, self.y0, self.request.resolution,
-                          self.dsm.shape)
-        max_per_cell(flat, xyz[kept, 2], self.dsm)
-        max_per_cell(flat[canopy[kept]], height[kept][canopy[kept]], self.chm)
+                          self.dsm[0].shape)
+        top_two(flat, xyz[kept, 2], *self.dsm)
+        top_two(flat[canopy[kept]], height[kept][canopy[kept]], *self.chm)
 
     def write(self) -> list[str]:
-        cell, (ny, nx) = self.request.resolution, self.dsm.shape
+        cell, (ny, nx) = self.request.resolution, self.dsm[0].shape
         centres = np.stack(np.meshgrid(self.x0 + (np.arange(nx) + 0.5) * cell,
                                        self.y0 + (np.arange(ny) + 0.5) * cell), axis=-1)
+        dsm = despike(*self.dsm, cell)
+        chm = despike(*self.chm, cell, floor=0.0)  # an empty cell: no canopy
         rasters = {
             "dtm": ground_elevation(self.dtm, centres.reshape(-1, 2)).reshape(ny, nx),
-            "dsm": self.dsm,
+            "dsm": dsm,
             # 0 where points but no canopy; heights below the terrain model are 0
-            "chm": np.where(np.isnan(self.dsm), np.nan,
-                            np.maximum(np.nan_to_num(self.chm, nan=0.0), 0.0)),
+            "chm": np.where(np.isnan(dsm), np.nan, np.maximum(np.nan_to_num(chm, nan=0.0), 0.0)),
         }
         written = []
         for name in self.request.names:
@@ -180,8 +184,9 @@ MAX_RASTER_CELLS = 50_000_000
 
 
 def check_raster_size(run: Run, tiles: list[dict]) -> None:
-    """Refuse, before any work, an ``output.raster_resolution`` that gives a tile's raster
-    (from its header's XY box) more than :data:`MAX_RASTER_CELLS` cells."""
+    """Refuse an ``output.raster_resolution`` that gives a tile's raster (of its XY box:
+    its header's before any work, that of its points as read once ingested) more than
+    :data:`MAX_RASTER_CELLS` cells."""
     out = run.cfg.output
     if not out.rasters:
         return
@@ -414,6 +419,7 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
     all_columns = list(feature_set(run.features).columns)
     feature_index = [all_columns.index(c) for c in feature_columns]
     out = run.cfg.output
+    check_raster_size(run, layout["tiles"])  # points beyond a stale header widen a raster
     raster_dir = run.out / "rasters"
     rasters = (RasterRequest(tuple(out.rasters), out.raster_resolution,
                              tuple(run.cfg.canopy_classes), str(raster_dir))

@@ -2,7 +2,9 @@
 
 The grid of a scene comes from the tiles' headers (no point read); then one task per tile
 streams it in batches and appends each batch's points to the parts of the chunks (and halos)
-they fall in. Small tiles of one chunk are read by one task, up to a share of a chunk's
+they fall in, and records the box of the points it read, which replaces the header's in the
+layout (the rasters and the trees of a tile cover its points, not a stale header's box).
+Small tiles of one chunk are read by one task, up to a share of a chunk's
 points (:func:`~pipeline.tiling.group_tiles`), and stored as one part per chunk: the cost
 follows the points, not the number of files. A LAS/LAZ tile of more than a chunk's points
 is read in point ranges, a task each, so that the workers share a survey of a few big files.
@@ -523,6 +525,7 @@ def ingest_tile(task: IngestTask) -> dict:
                                                                fingerprint):
         return {"core_counts": marker.attrs["core_counts"],
                 "excluded": _excluded(marker.attrs, tiles),
+                "bounds": marker.attrs.get("bounds", {}),
                 **copy_counts(root, task.key, task.copies)}
     forget_done(marker)  # done only when a copy is not: written again with it
     for name in list(marker.group_keys()):  # a half-written or damaged earlier attempt
@@ -535,6 +538,7 @@ def ingest_tile(task: IngestTask) -> dict:
     start, stop = task.span or (0, None)
     labelled = scene != "predict"
     excluded: dict[str, int] = {}
+    bounds: dict[str, list] = {}  # tile index -> [mins, maxs] of the points read
     fields = filter_fields(label_field, labelled, exclude_codes, exclude_withheld)
     if task.echoes is not None:
         fields = tuple(dict.fromkeys(fields + RETURNS))
@@ -546,6 +550,7 @@ def ingest_tile(task: IngestTask) -> dict:
                                  start=start, stop=stop):
             xyz = batch.xyz
             n_read += len(xyz)
+            bounds[str(tile["index"])] = widened(bounds.get(str(tile["index"])), xyz)
             gid = global_ids(tile["index"], batch.start, len(xyz))
             label = np.full(len(xyz), -1, dtype=np.int16)
             kept = np.ones(len(xyz), dtype=bool)
@@ -581,9 +586,32 @@ def ingest_tile(task: IngestTask) -> dict:
         writer.write(*(np.concatenate(column) for column in zip(*pending)))
     parts = writer.seal()
     mark_done(marker, "ingest", fingerprint, core_counts=writer.counts, excluded=excluded,
-              parts=parts)
-    return {"core_counts": writer.counts, "excluded": excluded,
+              parts=parts, bounds=bounds)
+    return {"core_counts": writer.counts, "excluded": excluded, "bounds": bounds,
             **copy_counts(root, task.key, task.copies)}
+
+
+def widened(box: list | None, xyz: np.ndarray) -> list:
+    """[mins, maxs] (lists of 3 floats) of ``box`` (None: no point yet) and the points
+    ``xyz`` (N, 3), N >= 1."""
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    if box is not None:
+        lo, hi = np.minimum(lo, box[0]), np.maximum(hi, box[1])
+    return [[float(v) for v in lo], [float(v) for v in hi]]
+
+
+def take_seen_bounds(tiles: list[dict], results: list[dict]) -> None:
+    """Set each tile's ``mins`` and ``maxs`` (from its header) to the box of the points its
+    ingest tasks read (``results``' ``bounds``): a stale header would clip the rasters and
+    misplace the tile's trees."""
+    seen: dict[str, list] = {}
+    for result in results:
+        for index, (lo, hi) in result.get("bounds", {}).items():
+            box = seen.get(index)
+            seen[index] = widened(box, np.array([lo, hi], dtype=np.float64))
+    for tile in tiles:
+        if str(tile["index"]) in seen:
+            tile["mins"], tile["maxs"] = seen[str(tile["index"])]
 
 
 class _PartWriter:
@@ -749,6 +777,7 @@ def ingest(run: Run, engine) -> dict:
             excluded_by_tile[index] = excluded_by_tile.get(index, 0) + n
     for tile in tiles:  # points the ingest filters left out (data.exclude_*)
         tile["excluded"] = int(excluded_by_tile.get(str(tile["index"]), 0))
+    take_seen_bounds(tiles, [results[task.key] for task in tasks])
     check_something_left(run, tiles)
     excluded = sum(t["excluded"] for t in tiles)
     if excluded:

@@ -17,9 +17,8 @@ from pipeline.tiling import split_global_ids
 from workflows.engine import chunk_tasks, results_by_scene
 from workflows.run import Run
 from workflows.steps.export import entropy
-from workflows.steps.terrain import ground_under
+from workflows.steps.terrain import ground_under, read_blocks
 from workflows.store.layout import proba_array
-from workflows.store.terrain import read_terrain
 
 BINS = 20  # of the confidence and entropy histograms
 MAP_POINTS = 200_000  # points drawn in the maps
@@ -133,13 +132,13 @@ def survey(run: Run, engine, layout: dict, final_stage: int, *,
 
 
 def canopy_samples(run: Run, maps: dict) -> dict:
-    """The terrain figure's data of each scene: its terrain model, and those of its map
-    samples ``maps[scene]`` = (x, y, label, height above ground, ...) predicted as a canopy
-    class."""
+    """The terrain figure's data of each scene: its terrain model (every block, see
+    :func:`~workflows.steps.terrain.read_blocks`), and those of its map samples
+    ``maps[scene]`` = (x, y, label, height above ground, ...) predicted as a canopy class."""
     canopy = list(run.cfg.canopy_classes)
     samples = {}
     for scene, (x, y, label, height, *_) in maps.items():
         keep = np.isin(label, canopy)
-        samples[scene] = {"dtm": read_terrain(run.store, scene), "x": x[keep], "y": y[keep],
+        samples[scene] = {"dtm": read_blocks(run.store, scene), "x": x[keep], "y": y[keep],
                           "height": height[keep]}
     return samples
