@@ -33,6 +33,7 @@ from workflows.config.fields import (
 )
 from workflows.config.cluster import ClusterConfig
 from workflows.config.messages import fail, field_error, show
+from workflows.config.point_filter import PointFilter
 
 _FEATURES, _CASCADE, _FOREST = FeatureParams(), CascadeParams(), ForestParams()
 _TERRAIN = TerrainParams()
@@ -215,6 +216,17 @@ class DataConfig(Section):
                        "give data.train or remove data.split")
         return self
 
+    @property
+    def points_filter(self) -> PointFilter:
+        """The points ingest leaves out (exclude_codes, exclude_withheld, drop_unlisted)."""
+        return PointFilter(tuple(self.exclude_codes), self.exclude_withheld,
+                           tuple(self.listed_codes) if self.drop_unlisted else None)
+
+    @property
+    def excludes(self) -> bool:
+        """Whether ingest leaves points out: the export then marks them (``Excluded``)."""
+        return self.points_filter.excludes
+
     # -- class helpers ----------------------------------------------------------------------
     @property
     def class_names(self) -> list[str]:
@@ -242,12 +254,6 @@ class DataConfig(Section):
         """Every source code named by a class or by ignore (kept by drop_unlisted)."""
         codes = {code for codes in self.classes.values() for code in codes}
         return sorted(codes | {c for c in self.ignore if isinstance(c, int)})
-
-    @property
-    def excludes(self) -> bool:
-        """Whether ingest leaves points out (exclude_codes, exclude_withheld, drop_unlisted):
-        the export then marks them in the ``Excluded`` dimension."""
-        return bool(self.exclude_codes or self.exclude_withheld or self.drop_unlisted)
 
     @property
     def background_indices(self) -> list[int]:

@@ -33,11 +33,11 @@ from pipeline.store import open_store, rows_of
 from pipeline.surface import despike, top_two
 from pipeline.terrain import Raster, TerrainBlocks, ground_elevation
 from pipeline.tiling import global_ids, layout_from_dict
+from workflows.config.point_filter import PointFilter
 from workflows.config.schema import feature_dim_name
 from workflows.engine import Task
 from workflows.progress import counted, say
 from workflows.run import Run
-from workflows.steps.ingest import excluded_points
 from workflows.steps.terrain import scene_terrain
 from workflows.steps.trees import REFERENCE_TREE_ID, TileTrees, TreeTask
 from workflows.store.layout import chunk_path, proba_array
@@ -257,86 +257,110 @@ class _ChunkPredictions:
 
 
 @dataclass(frozen=True)
-class ExportTask:
-    """What the export of one input tile needs (see :func:`export_tile`)."""
+class ExportSpec:
+    """What every exported tile of a run gets, resolved once from the run (:meth:`of`)."""
 
-    store_path: str
-    tile: dict
-    grid: dict
     stage: int  # the final stage, whose probabilities are written
     classes: tuple[str, ...]
     codes: tuple[int, ...]
-    dst: str
     probabilities: bool
     write_classification: bool
     read_batch: int
-    fingerprint: str
-    allow_missing: bool = False  # points left out at ingest (data.drop_unlisted)
-    exclude_codes: tuple[int, ...] = ()  # the ingest filters: their points are not looked up
-    exclude_withheld: bool = False
-    mark_excluded: bool = False  # add the Excluded dimension
+    points_filter: PointFilter = PointFilter()  # ingest's: the points it left out
     feature_columns: tuple[str, ...] = ()  # written from the stored features' columns
     feature_index: tuple[int, ...] = ()  # ... at these indices
     keep_point_format: bool = False  # the input's LAS version and point format
     rasters: RasterRequest | None = None  # also the tile's rasters
     prefix: str = ""  # starts the name of every dimension Silva adds
     trees: TreeTask | None = None  # PredictedTreeID from the scene's tree model
+
+    @classmethod
+    def of(cls, run: Run, final_stage: int, stage_fp: str) -> "ExportSpec":
+        out = run.cfg.output
+        feature_columns = tuple(run.cfg.feature_dim_columns)
+        all_columns = list(feature_set(run.features).columns)
+        rasters = (RasterRequest(tuple(out.rasters), out.raster_resolution,
+                                 tuple(run.cfg.canopy_classes), str(run.out / "rasters"))
+                   if out.rasters else None)
+        trees = (TreeTask(final_stage, tuple(run.cfg.canopy_classes),
+                          tuple(run.cfg.stem_classes), run.cfg.trees.params,
+                          f"{run.fingerprint('trees')}-{stage_fp}")
+                 if out.trees else None)
+        return cls(final_stage, tuple(run.classes), tuple(run.class_codes), out.probabilities,
+                   out.write_classification, run.cfg.tiling.read_batch,
+                   run.cfg.data.points_filter, feature_columns,
+                   tuple(all_columns.index(c) for c in feature_columns),
+                   out.point_format == "keep", rasters, out.dim_prefix, trees)
+
+    def dims(self) -> list:
+        """The extra dimensions of an exported tile, under their prefixed names."""
+        return prefixed(extra_dims(self.classes, self.codes, self.probabilities,
+                                   self.points_filter.excludes, self.feature_columns,
+                                   self.trees is not None), self.prefix)
+
+
+@dataclass(frozen=True)
+class ExportTask:
+    """What the export of one input tile needs (see :func:`export_tile`)."""
+
+    store_path: str
+    tile: dict
+    grid: dict
+    dst: str
+    fingerprint: str
+    spec: ExportSpec
     score_trees: bool = False  # count the points per (reference TreeID, predicted tree)
 
 
-def export_tile(task: ExportTask):
-    """Worker task: write the classified copy of one input tile; return its path and the
-    number of its points without features and of its points excluded at ingest. Every point
-    gets its height above the terrain model of its scene."""
-    store_path, tile, grid, stage = task.store_path, task.tile, task.grid, task.stage
-    classes, codes, dst, prefix = task.classes, task.codes, task.dst, task.prefix
-    probabilities, write_classification = task.probabilities, task.write_classification
-    read_batch, fingerprint, allow_missing = task.read_batch, task.fingerprint, task.allow_missing
-    exclude_codes, exclude_withheld = task.exclude_codes, task.exclude_withheld
-    mark_excluded, keep_point_format = task.mark_excluded, task.keep_point_format
-    feature_columns, feature_index, rasters = (task.feature_columns, task.feature_index,
-                                               task.rasters)
-    root = open_store(store_path)
-    marker = root.require_group(f"exports/{tile['index']}")
-    raster_paths = ([rasters.path(tile["name"], name) for name in rasters.names]
-                    if rasters is not None else [])
-    if (is_done(marker, "export", fingerprint) and Path(dst).is_file()
-            and all(p.is_file() for p in raster_paths)):
-        return {"path": dst, "no_features": marker.attrs.get("no_features", 0),
-                "excluded": marker.attrs.get("excluded", 0),
-                "rasters": [str(p) for p in raster_paths]}
-    predictions = _ChunkPredictions(root, tile["scene"], layout_from_dict(grid), stage,
-                                    allow_missing, feature_index)
-    codes_array = np.asarray(codes)
-    n_undefined = n_excluded = 0
-    dtm = scene_terrain(root, store_path, tile["scene"])  # read once per worker process
-    tile_rasters = _TileRasters(tile, rasters, dtm) if rasters is not None else None
-    canopy = np.zeros(len(classes), dtype=bool)
-    if rasters is not None:
-        canopy[list(rasters.canopy)] = True
-    trees = TileTrees(task.trees, store_path, tile["scene"], len(classes), task.score_trees)
+class _TileExport:
+    """The values of the dimensions export adds to one tile, batch by batch (``values``),
+    and its counts of points without features and excluded at ingest."""
 
-    def compute(batch):
-        nonlocal n_undefined, n_excluded
-        n = len(batch.xyz)
-        gid = global_ids(tile["index"], batch.start, n)
-        filtered = excluded_points(batch.fields, exclude_codes, exclude_withheld)
+    def __init__(self, root, store_path: str, tile: dict, grid: dict, spec: ExportSpec,
+                 score_trees: bool):
+        self.tile, self.spec = tile, spec
+        # a labelled scene's unlisted codes were left out at ingest: their points are missing
+        allow_missing = spec.points_filter.keep_codes is not None and tile["scene"] != "predict"
+        self.predictions = _ChunkPredictions(root, tile["scene"], layout_from_dict(grid),
+                                             spec.stage, allow_missing, spec.feature_index)
+        self.dtm = scene_terrain(root, store_path, tile["scene"])  # once per worker process
+        rasters = spec.rasters
+        self.rasters = _TileRasters(tile, rasters, self.dtm) if rasters is not None else None
+        self.canopy = np.zeros(len(spec.classes), dtype=bool)
+        if rasters is not None:
+            self.canopy[list(rasters.canopy)] = True
+        self.trees = TileTrees(spec.trees, store_path, tile["scene"], len(spec.classes),
+                               score_trees)
+        self.n_undefined = self.n_excluded = 0
+
+    def _lookup(self, batch, gid):
+        """Probabilities, found, undefined and feature columns of a batch's points; the
+        points ingest left out by code or flag are not looked up."""
+        spec, n = self.spec, len(batch.xyz)
+        filtered = spec.points_filter.excluded(batch.fields)
         if filtered is None:
             filtered = np.zeros(n, dtype=bool)
         look = np.flatnonzero(~filtered)  # the points ingest stored (or dropped if unlisted)
-        proba = np.zeros((n, len(classes)), dtype=np.float32)
+        proba = np.zeros((n, len(spec.classes)), dtype=np.float32)
         found = np.zeros(n, dtype=bool)
         undefined = np.zeros(n, dtype=bool)
-        columns = np.full((n, len(feature_columns)), np.nan, dtype=np.float32)
-        proba[look], found[look], undefined[look], columns[look] = predictions.lookup(
-            batch.xyz[look], gid[look], len(classes))
-        n_undefined += int(np.count_nonzero(undefined))
-        n_excluded += int(np.count_nonzero(filtered))
+        columns = np.full((n, len(spec.feature_columns)), np.nan, dtype=np.float32)
+        proba[look], found[look], undefined[look], columns[look] = self.predictions.lookup(
+            batch.xyz[look], gid[look], len(spec.classes))
+        self.n_undefined += int(np.count_nonzero(undefined))
+        self.n_excluded += int(np.count_nonzero(filtered))
+        return proba, found, undefined, columns
+
+    def values(self, batch) -> dict:
+        """The added dimensions of a read batch, by their unprefixed names."""
+        spec = self.spec
+        gid = global_ids(self.tile["index"], batch.start, len(batch.xyz))
+        proba, found, undefined, columns = self._lookup(batch, gid)
         best = np.argmax(proba, axis=1)
-        predicted = np.where(found, codes_array[best], 0)  # 0: never classified (LAS)
-        height = batch.xyz[:, 2] - ground_elevation(dtm, batch.xyz[:, :2])
-        if tile_rasters is not None:
-            tile_rasters.add(batch.xyz, height, found, canopy[best])
+        predicted = np.where(found, np.asarray(spec.codes)[best], 0)  # 0: never classified
+        height = batch.xyz[:, 2] - ground_elevation(self.dtm, batch.xyz[:, :2])
+        if self.rasters is not None:
+            self.rasters.add(batch.xyz, height, found, self.canopy[best])
         values = {
             PREDICTED: predicted,
             CONFIDENCE: proba[np.arange(len(best)), best],
@@ -344,38 +368,54 @@ def export_tile(task: ExportTask):
             NO_FEATURES: undefined.astype(np.uint8),
             HEIGHT_ABOVE_GROUND: height.astype(np.float32),
         }
-        if mark_excluded:
+        if spec.points_filter.excludes:
             values[EXCLUDED] = (~found).astype(np.uint8)
-        if task.trees is not None:
-            values[TREE_ID] = trees.assign(batch, height, best, found)
-        if probabilities:
-            for index, name in enumerate(classes):
+        if spec.trees is not None:
+            values[TREE_ID] = self.trees.assign(batch, height, best, found)
+        if spec.probabilities:
+            for index, name in enumerate(spec.classes):
                 values[probability_dim(name)] = proba[:, index]
-        for index, column in enumerate(feature_columns):
+        for index, column in enumerate(spec.feature_columns):
             values[feature_dim_name(column)] = columns[:, index]
-        if write_classification:
+        if spec.write_classification:
             original = batch.fields.get("classification")  # None for Oakland text
             values["classification"] = (predicted if original is None
                                         else np.where(found, predicted, original))
         return values
 
-    def named(batch):  # the added dimensions under their prefixed names
-        return {(name if name == "classification" else prefix + name): values
-                for name, values in compute(batch).items()}
+    def named(self, batch) -> dict:
+        """:meth:`values` under the prefixed names of the dimensions."""
+        return {(name if name == "classification" else self.spec.prefix + name): values
+                for name, values in self.values(batch).items()}
 
+
+def export_tile(task: ExportTask):
+    """Worker task: write the classified copy of one input tile; return its path and the
+    number of its points without features and of its points excluded at ingest. Every point
+    gets its height above the terrain model of its scene."""
+    tile, spec, dst = task.tile, task.spec, task.dst
+    root = open_store(task.store_path)
+    marker = root.require_group(f"exports/{tile['index']}")
+    raster_paths = ([spec.rasters.path(tile["name"], name) for name in spec.rasters.names]
+                    if spec.rasters is not None else [])
+    if (is_done(marker, "export", task.fingerprint) and Path(dst).is_file()
+            and all(p.is_file() for p in raster_paths)):
+        return {"path": dst, "no_features": marker.attrs.get("no_features", 0),
+                "excluded": marker.attrs.get("excluded", 0),
+                "rasters": [str(p) for p in raster_paths]}
+    tile_export = _TileExport(root, task.store_path, tile, task.grid, spec, task.score_trees)
     export_with_extra_dims(
-        tile["path"], dst,
-        prefixed(extra_dims(classes, codes, probabilities, mark_excluded,
-                            tuple(feature_columns), task.trees is not None), prefix),
-        named, batch_size=read_batch, set_classification=write_classification,
-        keep_point_format=keep_point_format,
+        tile["path"], dst, spec.dims(), tile_export.named, batch_size=spec.read_batch,
+        set_classification=spec.write_classification,
+        keep_point_format=spec.keep_point_format,
         source_fields=(REFERENCE_TREE_ID,) if task.score_trees else (),
     )
-    written = tile_rasters.write() if tile_rasters is not None else []
-    trees.store_pairs(marker)
-    mark_done(marker, "export", fingerprint, no_features=n_undefined, excluded=n_excluded)
-    return {"path": dst, "no_features": n_undefined, "excluded": n_excluded,
-            "rasters": written}
+    written = tile_export.rasters.write() if tile_export.rasters is not None else []
+    tile_export.trees.store_pairs(marker)
+    mark_done(marker, "export", task.fingerprint, no_features=tile_export.n_undefined,
+              excluded=tile_export.n_excluded)
+    return {"path": dst, "no_features": tile_export.n_undefined,
+            "excluded": tile_export.n_excluded, "rasters": written}
 
 
 def check_point_formats(run: Run, tiles: list[dict]) -> None:
@@ -415,21 +455,12 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
     out_dir.mkdir(parents=True, exist_ok=True)
     remove_parts(out_dir)
     suffix = "." + run.cfg.output.format
-    feature_columns = run.cfg.feature_dim_columns
-    all_columns = list(feature_set(run.features).columns)
-    feature_index = [all_columns.index(c) for c in feature_columns]
-    out = run.cfg.output
     check_raster_size(run, layout["tiles"])  # points beyond a stale header widen a raster
+    spec = ExportSpec.of(run, final_stage, stage_fp)
     raster_dir = run.out / "rasters"
-    rasters = (RasterRequest(tuple(out.rasters), out.raster_resolution,
-                             tuple(run.cfg.canopy_classes), str(raster_dir))
-               if out.rasters else None)
-    if rasters is not None:
+    if spec.rasters is not None:
         raster_dir.mkdir(parents=True, exist_ok=True)
         remove_parts(raster_dir)
-    trees = (TreeTask(final_stage, tuple(run.cfg.canopy_classes), tuple(run.cfg.stem_classes),
-                      run.cfg.trees.params, f"{run.fingerprint('trees')}-{stage_fp}")
-             if out.trees else None)
     tasks = []
     for tile in layout["tiles"]:
         dst = out_dir / f"{tile['name']}{suffix}"
@@ -437,21 +468,9 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
             key=f"export-{tile['index']}-{fingerprint[:8]}",
             fn=export_tile,
             kwargs={"task": ExportTask(
-                store_path=str(run.store_path), tile=tile,
-                grid=layout["scenes"][tile["scene"]]["grid"], stage=final_stage,
-                classes=tuple(run.classes), codes=tuple(run.class_codes), dst=str(dst),
-                probabilities=out.probabilities,
-                write_classification=out.write_classification,
-                read_batch=run.cfg.tiling.read_batch, fingerprint=fingerprint,
-                allow_missing=run.cfg.data.drop_unlisted and tile["scene"] != "predict",
-                exclude_codes=tuple(run.cfg.data.exclude_codes),
-                exclude_withheld=run.cfg.data.exclude_withheld,
-                mark_excluded=run.cfg.data.excludes,
-                feature_columns=tuple(feature_columns), feature_index=tuple(feature_index),
-                keep_point_format=out.point_format == "keep",
-                rasters=rasters, prefix=out.dim_prefix,
-                trees=trees, score_trees=trees is not None and tile["scene"] == "test",
-            )},
+                str(run.store_path), tile, layout["scenes"][tile["scene"]]["grid"], str(dst),
+                fingerprint, spec,
+                score_trees=spec.trees is not None and tile["scene"] == "test")},
             where=f"export of tile {tile['path']}",
             reproduce=export_command(run.out),
         ))

@@ -40,6 +40,7 @@ from pipeline.tiling import (
     tile_area,
 )
 from workflows.config import expand_inputs
+from workflows.config.point_filter import PointFilter
 from workflows.echoes import EchoNeed, check_return_fields, echo_need
 from workflows.engine import Task
 from workflows.progress import counted, say
@@ -334,25 +335,18 @@ def scene_counts(run: Run, scene: str, members: list[dict], engine=None) -> Cell
 
 
 def occupied_cells(paths, read_batch: int, span=None, *, label_field: str = "classification",
-                   keep_codes=None, exclude_codes=(), exclude_withheld: bool = False) -> dict:
+                   points_filter: PointFilter = PointFilter()) -> dict:
     """Worker task: the points of some tiles (or of the point range ``span`` of one) that
     ingest keeps (the filters of :func:`ingest_tile`, as for a labelled scene), and the
     keys of the 2 m cells they occupy: {"points": int, "cells": int64 (k,) unique,
     :func:`~pipeline.cascade.thinning.cell_keys`}."""
     start, stop = span or (0, None)
-    fields = filter_fields(label_field, keep_codes is not None, exclude_codes,
-                           exclude_withheld)
+    labels = label_field if points_filter.keep_codes is not None else None
     points, cells = 0, np.zeros(0, dtype=np.int64)
     for path in paths:
-        for batch in iter_points(path, batch_size=read_batch, fields=fields, start=start,
-                                 stop=stop):
-            kept = np.ones(len(batch.xyz), dtype=bool)
-            dropped = excluded_points(batch.fields, exclude_codes, exclude_withheld)
-            if dropped is not None:
-                kept &= ~dropped
-            if keep_codes is not None:
-                kept &= np.isin(np.asarray(batch.fields[label_field]).astype(np.int64),
-                                keep_codes)
+        for batch in iter_points(path, batch_size=read_batch, fields=points_filter.fields(labels),
+                                 start=start, stop=stop):
+            kept = _kept(points_filter, batch, labels)
             points += int(np.count_nonzero(kept))
             cells = np.union1d(cells, cell_keys(batch.xyz[kept], DEFAULT_DENSITY_CELL))
     return {"points": points, "cells": cells}
@@ -369,10 +363,7 @@ def scene_density(run: Run, scene: str, members: list[dict], engine=None) -> tup
     units = [(unit, [by_index[i] for i in unit.tiles])
              for unit in read_units(read_entry(run, groups))]
     data = run.cfg.data
-    filters = dict(label_field=data.label_field,
-                   keep_codes=data.listed_codes if data.drop_unlisted else None,
-                   exclude_codes=tuple(data.exclude_codes),
-                   exclude_withheld=data.exclude_withheld)
+    filters = dict(label_field=data.label_field, points_filter=data.points_filter)
     kwargs = [dict(paths=[t["path"] for t in tiles], read_batch=run.cfg.tiling.read_batch,
                    span=unit.span(tiles[0]["n_points"]), **filters) for unit, tiles in units]
     if engine is None:
@@ -440,29 +431,18 @@ def check_something_left(run, tiles: list[dict]) -> None:
                 f"data.{scene}")
 
 
-def excluded_points(fields: dict, exclude_codes, exclude_withheld: bool) -> np.ndarray | None:
-    """bool (n,) mask of the points the ingest filters leave out, from a batch's fields
-    (``classification`` for ``exclude_codes``, ``withheld`` for ``exclude_withheld``); None
-    when no filter is set. Export uses the same mask to mark the points it finds excluded."""
-    if not exclude_codes and not exclude_withheld:
-        return None
-    mask = None
-    if exclude_codes:
-        mask = np.isin(np.asarray(fields["classification"]), list(exclude_codes))
-    if exclude_withheld:
-        withheld = np.asarray(fields["withheld"]).astype(bool)
-        mask = withheld if mask is None else mask | withheld
-    return mask
-
-
-def filter_fields(label_field, labelled: bool, exclude_codes, exclude_withheld) -> tuple:
-    """The point dimensions ingest reads: the labels, and what the filters look at."""
-    fields = [label_field] if labelled else []
-    if exclude_codes:
-        fields.append("classification")
-    if exclude_withheld:
-        fields.append("withheld")
-    return tuple(dict.fromkeys(fields))
+def _kept(points_filter: PointFilter, batch, label_field: str | None) -> np.ndarray:
+    """bool (n,): the points of a read ``batch`` that ``points_filter`` keeps; the unlisted
+    codes are looked at only in a labelled scene (``label_field`` not None)."""
+    kept = np.ones(len(batch.xyz), dtype=bool)
+    excluded = points_filter.excluded(batch.fields)
+    if excluded is not None:
+        kept &= ~excluded
+    if label_field is not None:
+        unlisted = points_filter.unlisted(np.asarray(batch.fields[label_field]).astype(np.int64))
+        if unlisted is not None:
+            kept &= ~unlisted
+    return kept
 
 
 @dataclass(frozen=True)
@@ -480,9 +460,7 @@ class IngestTask:
     split: object  # data.split, or None
     read_batch: int
     fingerprint: str
-    keep_codes: object = None  # data.drop_unlisted: the listed codes, else None
-    exclude_codes: tuple[int, ...] = ()
-    exclude_withheld: bool = False
+    points_filter: PointFilter = PointFilter()  # the points left out (data.exclude_*, ...)
     key: int | str | None = None  # names the parts in the store; None: the first tile's index
     span: tuple[int, int] | None = None  # (start, stop): a point range of the one tile
     echoes: EchoNeed | None = None  # set: store each point's return numbers (features.echoes)
@@ -506,19 +484,17 @@ def ingest_tile(task: IngestTask) -> dict:
     of small tiles costs about what one tile of all their points costs. A point range of a
     big tile (``span``) is stored under its own ``key``.
 
-    With ``keep_codes`` (data.drop_unlisted), labelled points with other codes are left out.
-    Points with a classification in ``exclude_codes``, or with the withheld flag when
-    ``exclude_withheld``, are left out of every scene (cores and halos): they are in no
-    neighbourhood, no training sample and no metric. Their number per tile is recorded in
-    the group's marker (``excluded``).
+    The points ``points_filter`` leaves out (:mod:`workflows.steps.point_filter`) are in no
+    chunk (cores and halos): in no neighbourhood, no training sample and no metric. The
+    number of those excluded by code or withheld flag is recorded per tile in the group's
+    marker (``excluded``).
 
     With ``echoes``, each point's return number and number of returns are stored too
     (uint8), and a tile (or range) without a point that has returns is refused.
     """
     store_path, scene, tiles, grid = task.store_path, task.scene, task.tiles, task.grid
     label_field, code_to_class, split = task.label_field, task.code_to_class, task.split
-    read_batch, fingerprint, keep_codes = task.read_batch, task.fingerprint, task.keep_codes
-    exclude_codes, exclude_withheld = task.exclude_codes, task.exclude_withheld
+    read_batch, fingerprint, points_filter = task.read_batch, task.fingerprint, task.points_filter
     root = open_store(store_path)
     marker = root.require_group(f"scenes/{scene}/parts/{task.key}")
     if is_done(marker, "ingest", fingerprint) and copies_done(root, task.key, task.copies,
@@ -539,7 +515,7 @@ def ingest_tile(task: IngestTask) -> dict:
     labelled = scene != "predict"
     excluded: dict[str, int] = {}
     bounds: dict[str, list] = {}  # tile index -> [mins, maxs] of the points read
-    fields = filter_fields(label_field, labelled, exclude_codes, exclude_withheld)
+    fields = points_filter.fields(label_field if labelled else None)
     if task.echoes is not None:
         fields = tuple(dict.fromkeys(fields + RETURNS))
     pending, held = [], 0  # points read and not yet written: less than a read batch
@@ -553,16 +529,12 @@ def ingest_tile(task: IngestTask) -> dict:
             bounds[str(tile["index"])] = widened(bounds.get(str(tile["index"])), xyz)
             gid = global_ids(tile["index"], batch.start, len(xyz))
             label = np.full(len(xyz), -1, dtype=np.int16)
-            kept = np.ones(len(xyz), dtype=bool)
-            dropped = excluded_points(batch.fields, exclude_codes, exclude_withheld)
-            if dropped is not None:
-                n_excluded += int(np.count_nonzero(dropped))
-                kept &= ~dropped
             if labelled:
                 raw = np.asarray(batch.fields[label_field]).astype(np.int64)
                 label = labels_from_codes(raw, code_to_class)
-                if keep_codes is not None:
-                    kept &= np.isin(raw, keep_codes)
+            dropped = points_filter.excluded(batch.fields)
+            n_excluded += 0 if dropped is None else int(np.count_nonzero(dropped))
+            kept = _kept(points_filter, batch, label_field if labelled else None)
             returns = () if task.echoes is None else batch_returns(batch.fields)
             seen_returns = seen_returns or bool(returns) and has_returns(*returns)
             if not kept.all():
@@ -753,10 +725,7 @@ def ingest(run: Run, engine) -> dict:
                     split=run.cfg.data.split,
                     read_batch=run.cfg.tiling.read_batch,
                     fingerprint=fingerprint,
-                    keep_codes=(run.cfg.data.listed_codes if run.cfg.data.drop_unlisted
-                                else None),
-                    exclude_codes=tuple(run.cfg.data.exclude_codes),
-                    exclude_withheld=run.cfg.data.exclude_withheld,
+                    points_filter=run.cfg.data.points_filter,
                     key=unit.key,
                     span=span,
                     echoes=echo_need(run),
