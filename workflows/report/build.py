@@ -83,6 +83,25 @@ def write_report(
     plot_dir = out_dir / "plots"
     plot_dir.mkdir(parents=True, exist_ok=True)
 
+    images = _write_figures(plot_dir, metrics, stages, pr_data, importances, topdown,
+                            terrain)
+    for _, pngs in sections:
+        for name, png in pngs.items():
+            atomic_write_bytes(plot_dir / f"{name}.png", png)
+
+    page = render_page(metrics, stages, images, title, run_info, config_text,
+                       importances=importances, no_features=no_features,
+                       sections=[html for html, _ in sections])
+    target = out_dir / "report.html"
+    with atomic_path(target) as tmp:
+        tmp.write_text(page, encoding="utf-8")
+    return target
+
+
+def _write_figures(plot_dir: Path, metrics, stages, pr_data, importances, topdown,
+                   terrain) -> dict:
+    """Draw the report's figures into ``plot_dir`` (a figure that cannot be drawn removes
+    its PNG); name -> (png bytes or None, the note that replaces a missing figure)."""
     figures = {
         "confusion": (confusion_figure(metrics), None),
         "precision_recall": _optional_figure(
@@ -114,17 +133,7 @@ def write_report(
         png = png_bytes(figure)
         atomic_write_bytes(path, png)
         images[name] = (png, None)
-    for _, pngs in sections:
-        for name, png in pngs.items():
-            atomic_write_bytes(plot_dir / f"{name}.png", png)
-
-    page = render_page(metrics, stages, images, title, run_info, config_text,
-                       importances=importances, no_features=no_features,
-                       sections=[html for html, _ in sections])
-    target = out_dir / "report.html"
-    with atomic_path(target) as tmp:
-        tmp.write_text(page, encoding="utf-8")
-    return target
+    return images
 
 
 def _check_metrics(metrics: dict) -> dict:
