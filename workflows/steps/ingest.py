@@ -493,8 +493,7 @@ def ingest_tile(task: IngestTask) -> dict:
     (uint8), and a tile (or range) without a point that has returns is refused.
     """
     store_path, scene, tiles, grid = task.store_path, task.scene, task.tiles, task.grid
-    label_field, code_to_class, split = task.label_field, task.code_to_class, task.split
-    read_batch, fingerprint, points_filter = task.read_batch, task.fingerprint, task.points_filter
+    read_batch, fingerprint = task.read_batch, task.fingerprint
     root = open_store(store_path)
     marker = root.require_group(f"scenes/{scene}/parts/{task.key}")
     if is_done(marker, "ingest", fingerprint) and copies_done(root, task.key, task.copies,
@@ -515,7 +514,7 @@ def ingest_tile(task: IngestTask) -> dict:
     labelled = scene != "predict"
     excluded: dict[str, int] = {}
     bounds: dict[str, list] = {}  # tile index -> [mins, maxs] of the points read
-    fields = points_filter.fields(label_field if labelled else None)
+    fields = task.points_filter.fields(task.label_field if labelled else None)
     if task.echoes is not None:
         fields = tuple(dict.fromkeys(fields + RETURNS))
     pending, held = [], 0  # points read and not yet written: less than a read batch
@@ -524,26 +523,15 @@ def ingest_tile(task: IngestTask) -> dict:
         seen_returns = False  # some point of the tile has returns (with echoes)
         for batch in iter_points(tile["path"], batch_size=read_batch, fields=fields,
                                  start=start, stop=stop):
-            xyz = batch.xyz
-            n_read += len(xyz)
-            bounds[str(tile["index"])] = widened(bounds.get(str(tile["index"])), xyz)
-            gid = global_ids(tile["index"], batch.start, len(xyz))
-            label = np.full(len(xyz), -1, dtype=np.int16)
-            if labelled:
-                raw = np.asarray(batch.fields[label_field]).astype(np.int64)
-                label = labels_from_codes(raw, code_to_class)
-            dropped = points_filter.excluded(batch.fields)
-            n_excluded += 0 if dropped is None else int(np.count_nonzero(dropped))
-            kept = _kept(points_filter, batch, label_field if labelled else None)
-            returns = () if task.echoes is None else batch_returns(batch.fields)
-            seen_returns = seen_returns or bool(returns) and has_returns(*returns)
-            if not kept.all():
-                xyz, gid, label = xyz[kept], gid[kept], label[kept]
-                returns = tuple(values[kept] for values in returns)
-                if len(xyz) == 0:
-                    continue
-            pending.append((xyz, gid, label, point_roles(scene, xyz, split), *returns))
-            held += len(xyz)
+            n_read += len(batch.xyz)
+            bounds[str(tile["index"])] = widened(bounds.get(str(tile["index"])), batch.xyz)
+            columns, n_dropped, some_returns = _stored_columns(task, tile, batch, labelled)
+            n_excluded += n_dropped
+            seen_returns = seen_returns or some_returns
+            if len(columns[0]) == 0:
+                continue
+            pending.append(columns)
+            held += len(columns[0])
             if held >= read_batch:
                 writer.write(*(np.concatenate(column) for column in zip(*pending)))
                 pending, held = [], 0
@@ -562,6 +550,29 @@ def ingest_tile(task: IngestTask) -> dict:
     return {"core_counts": writer.counts, "excluded": excluded, "bounds": bounds,
             **copy_counts(root, task.key, task.copies)}
 
+
+
+def _stored_columns(task: IngestTask, tile: dict, batch, labelled: bool):
+    """What ingest stores of a read ``batch`` of ``tile``: the columns of its kept points
+    (xyz, gid, label, role, and with echoes the return numbers), the number of its points
+    excluded by code or flag, and whether some point has returns."""
+    xyz = batch.xyz
+    gid = global_ids(tile["index"], batch.start, len(xyz))
+    label = np.full(len(xyz), -1, dtype=np.int16)
+    if labelled:
+        raw = np.asarray(batch.fields[task.label_field]).astype(np.int64)
+        label = labels_from_codes(raw, task.code_to_class)
+    dropped = task.points_filter.excluded(batch.fields)
+    n_dropped = 0 if dropped is None else int(np.count_nonzero(dropped))
+    returns = () if task.echoes is None else batch_returns(batch.fields)
+    some_returns = bool(returns) and has_returns(*returns)
+    kept = _kept(task.points_filter, batch, task.label_field if labelled else None)
+    columns = (xyz, gid, label, *returns)
+    if not kept.all():
+        columns = tuple(values[kept] for values in columns)
+    xyz, gid, label, *returns = columns
+    return ((xyz, gid, label, point_roles(task.scene, xyz, task.split), *returns), n_dropped,
+            some_returns)
 
 def widened(box: list | None, xyz: np.ndarray) -> list:
     """[mins, maxs] (lists of 3 floats) of ``box`` (None: no point yet) and the points
