@@ -302,32 +302,39 @@ def count_tiles(paths, cell: float, read_batch: int, span=None) -> CellCounts:
     return counts
 
 
-def scene_counts(run: Run, scene: str, members: list[dict], engine=None) -> CellCounts:
-    """The points of a scene's tiles counted on one lattice (the balanced layout's first
-    pass: XY only, streamed in read batches); small tiles counted together, big ones by
-    point ranges (:func:`point_ranges`), a task each."""
-    area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
-    n_points = sum(t["n_points"] for t in members)
-    cell = count_cell_size(run.halo, area, area * run.cfg.tiling.target_points / n_points)
-    batch = run.cfg.tiling.read_batch
-    # small tiles counted together (the layout that groups them by chunk is not known yet)
+def _pass_over_tiles(run: Run, scene: str, members: list[dict], engine, name: str, key: str,
+                     fn, **kwargs) -> list:
+    """The results of the worker task ``fn`` over a scene's tiles, in order: small tiles
+    read together (the layout that groups them by chunk is not known yet), big ones by point
+    ranges (:func:`point_ranges`), a task each (in this process without ``engine``). Each
+    call gets ``paths``, ``read_batch``, ``span`` and ``kwargs``; ``name`` is the pass's,
+    ``key`` ends its tasks' keys."""
     groups = [[members[i] for i in group] for group in
               group_tiles([t["n_points"] for t in members], np.zeros(len(members), np.int64),
                           group_budget(run))]
     by_index = {t["index"]: t for t in members}
     units = [(unit, [by_index[i] for i in unit.tiles])
              for unit in read_units(read_entry(run, groups))]
-    kwargs = [dict(paths=[t["path"] for t in tiles], cell=cell, read_batch=batch,
-                   span=unit.span(tiles[0]["n_points"])) for unit, tiles in units]
+    calls = [dict(paths=[t["path"] for t in tiles], read_batch=run.cfg.tiling.read_batch,
+                  span=unit.span(tiles[0]["n_points"]), **kwargs) for unit, tiles in units]
     if engine is None:
-        parts = [count_tiles(**kw) for kw in kwargs]
-    else:
-        tasks = [Task(key=f"count-{scene}-{unit.key}-{cell:g}", fn=count_tiles, kwargs=kw,
-                      where=f"{tiles_text(tiles)} (scene '{scene}')",
-                      reproduce=f"silva plan CONFIG (reads {tiles_text(tiles)})")
-                 for (unit, tiles), kw in zip(units, kwargs)]
-        results = engine.map("ingest (count)", tasks)
-        parts = [results[task.key] for task in tasks]
+        return [fn(**call) for call in calls]
+    tasks = [Task(key=f"{name}-{scene}-{unit.key}{key}", fn=fn, kwargs=call,
+                  where=f"{tiles_text(tiles)} (scene '{scene}')",
+                  reproduce=f"silva plan CONFIG (reads {tiles_text(tiles)})")
+             for (unit, tiles), call in zip(units, calls)]
+    results = engine.map(f"ingest ({name})", tasks)
+    return [results[task.key] for task in tasks]
+
+
+def scene_counts(run: Run, scene: str, members: list[dict], engine=None) -> CellCounts:
+    """The points of a scene's tiles counted on one lattice (the balanced layout's first
+    pass: XY only, streamed in read batches)."""
+    area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
+    n_points = sum(t["n_points"] for t in members)
+    cell = count_cell_size(run.halo, area, area * run.cfg.tiling.target_points / n_points)
+    parts = _pass_over_tiles(run, scene, members, engine, "count", f"-{cell:g}", count_tiles,
+                             cell=cell)
     total = CellCounts.empty(cell)
     for part in parts:
         total = total + part
@@ -354,27 +361,10 @@ def occupied_cells(paths, read_batch: int, span=None, *, label_field: str = "cla
 
 def scene_density(run: Run, scene: str, members: list[dict], engine=None) -> tuple[int, int]:
     """The points ingest keeps of a scene's tiles and the 2 m cells they occupy, over all
-    its tiles (a scene's density, never a chunk's: the union of the tasks' cells); small
-    tiles read together, big ones by point ranges (:func:`point_ranges`), a task each."""
-    groups = [[members[i] for i in group] for group in
-              group_tiles([t["n_points"] for t in members], np.zeros(len(members), np.int64),
-                          group_budget(run))]
-    by_index = {t["index"]: t for t in members}
-    units = [(unit, [by_index[i] for i in unit.tiles])
-             for unit in read_units(read_entry(run, groups))]
+    its tiles (a scene's density, never a chunk's: the union of the tasks' cells)."""
     data = run.cfg.data
-    filters = dict(label_field=data.label_field, points_filter=data.points_filter)
-    kwargs = [dict(paths=[t["path"] for t in tiles], read_batch=run.cfg.tiling.read_batch,
-                   span=unit.span(tiles[0]["n_points"]), **filters) for unit, tiles in units]
-    if engine is None:
-        parts = [occupied_cells(**kw) for kw in kwargs]
-    else:
-        tasks = [Task(key=f"density-{scene}-{unit.key}", fn=occupied_cells, kwargs=kw,
-                      where=f"{tiles_text(tiles)} (scene '{scene}')",
-                      reproduce=f"silva plan CONFIG (reads {tiles_text(tiles)})")
-                 for (unit, tiles), kw in zip(units, kwargs)]
-        results = engine.map("ingest (density)", tasks)
-        parts = [results[task.key] for task in tasks]
+    parts = _pass_over_tiles(run, scene, members, engine, "density", "", occupied_cells,
+                             label_field=data.label_field, points_filter=data.points_filter)
     cells = np.unique(np.concatenate([np.zeros(0, np.int64)] + [p["cells"] for p in parts]))
     return sum(p["points"] for p in parts), len(cells)
 
