@@ -233,9 +233,9 @@ def test_toggling_echoes_changes_the_ingest_and_every_later_step():
 
 
 def test_a_model_json_without_the_key_is_a_model_without_echoes(echo_survey):
-    """The shipped models were saved before the key: they apply as before, without echoes,
-    and a configuration asking for echoes with them is refused naming the key."""
-    name = "als-ground-vegetation-building"
+    """The shipped forest model was saved before the key: it applies as before, without
+    echoes, and a configuration asking for echoes with it is refused naming the key."""
+    name = "forest-tls-synthetic"
     description = json.loads((installed_models()[name] / "model.json").read_text())
     assert "features.echoes" not in description
     tile = sorted(echo_survey["test"].glob("*.laz"))[0]
@@ -249,7 +249,10 @@ def test_a_model_json_without_the_key_is_a_model_without_echoes(echo_survey):
 
 
 def test_silva_models_says_which_models_use_echoes():
-    listed = json.loads(silva("models", "--json").output)
-    assert listed and all(model["echoes"] is False for model in listed)
+    listed = {model["name"]: model["echoes"] for model in
+              json.loads(silva("models", "--json").output)}
+    # the airborne model reads each point's returns; the terrestrial one was saved without
+    assert listed == {"als-ground-vegetation-building": True, "forest-tls-synthetic": False}
     text = silva("models").output
-    assert text.count("    echo features: no\n") == len(listed)
+    assert text.count("    echo features: yes (needs each point") == 1
+    assert text.count("    echo features: no\n") == 1
