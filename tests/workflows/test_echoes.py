@@ -256,3 +256,24 @@ def test_silva_models_says_which_models_use_echoes():
     text = silva("models").output
     assert text.count("    echo features: yes (needs each point") == 1
     assert text.count("    echo features: no\n") == 1
+
+
+
+def test_a_thinned_copy_keeps_the_return_numbers_of_its_points(echo_survey, tmp_path):
+    """data.densities with echoes: a copy stores, for each point it keeps, the return numbers
+    its source stores, so its echo columns are those of the thinned cloud."""
+    from pipeline.cascade.thinning import thinned_mask
+
+    config = echo_config(tmp_path / "copies.yaml", echo_survey, data={"densities": [50]},
+                         cascade={"stages": 1})
+    result = silva("run", config, "--out", tmp_path / "out", "--in-process", "-q")
+    assert result.exit_code == 0, result.output
+    layout = open_store(tmp_path / "out" / "store.zarr", mode="r").attrs["layout"]
+    copy = layout["scenes"]["train@50ppm"]
+    names = ("return_number", "number_of_returns")
+    source = scene_arrays(tmp_path / "out", "train", names)
+    thinned = scene_arrays(tmp_path / "out", "train@50ppm", names)
+    kept = thinned_mask(source["gid"], copy["fraction"], 3)  # the config's cascade.seed
+    assert 0 < kept.sum() < len(kept)
+    for name in ("gid", *names):
+        assert np.array_equal(thinned[name], source[name][kept])
