@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 import yaml
 
+from pipeline.store import open_store, read_array
+
 SMALL_PLOT = 14.0  # metres: a few tens of thousands of points
 SMALL_TILE = 7.0
 
@@ -57,6 +59,20 @@ def write_config(path: Path, survey: dict, **sections) -> Path:
         config[section] = {**config.get(section, {}), **values}
     path.write_text(yaml.safe_dump(config, sort_keys=False))
     return path
+
+
+def scene_arrays(out: Path, scene: str, names=("xyz", "label", "role", "features")
+                 ) -> dict[str, np.ndarray]:
+    """The core arrays ``names`` (and ``gid``) of every chunk of a run's ``scene``, over its
+    chunks, ordered by global id."""
+    chunks = open_store(out / "store.zarr", mode="r")[f"scenes/{scene}/chunks"]
+    parts = {name: [] for name in ("gid", *names)}
+    for chunk in sorted(chunks.group_keys()):
+        for name in parts:
+            parts[name].append(read_array(chunks[chunk], name))
+    arrays = {name: np.concatenate(values) for name, values in parts.items()}
+    order = np.argsort(arrays["gid"])
+    return {name: values[order] for name, values in arrays.items()}
 
 
 def read_predictions(out: Path) -> dict[str, dict[str, np.ndarray]]:

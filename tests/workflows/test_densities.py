@@ -11,8 +11,8 @@ import pytest
 
 from pipeline.cascade.thinning import point_density, thinned_mask
 from pipeline.io import read_info
-from pipeline.store import open_store, read_array
-from tests.workflows.conftest import assert_same_predictions, silva, write_config
+from pipeline.store import open_store
+from tests.workflows.conftest import assert_same_predictions, scene_arrays, silva, write_config
 from workflows.config import fingerprint, validate_config
 from workflows.engine import Engine
 from workflows.fingerprint import STEPS
@@ -63,18 +63,6 @@ def chunked(survey, tmp_path_factory) -> Path:
         cluster={"kind": "local", "n_workers": 2, "threads_per_worker": 1, "dashboard": False})
     run_ok("run", config, "--out", root / "out", "-q")
     return root / "out"
-
-
-def scene_arrays(out: Path, scene: str, names=("xyz", "gid", "label", "role", "features")):
-    """The named arrays of every core point of ``scene``, over its chunks, by global id."""
-    chunks = open_store(out / "store.zarr", mode="r")[f"scenes/{scene}/chunks"]
-    parts = {name: [] for name in names}
-    for chunk in sorted(chunks.group_keys()):
-        for name in names:
-            parts[name].append(read_array(chunks[chunk], name))
-    arrays = {k: np.concatenate(v) for k, v in parts.items()}
-    order = np.argsort(arrays["gid"])
-    return {k: v[order] for k, v in arrays.items()}
 
 
 def layout_of(out: Path) -> dict:

@@ -12,11 +12,12 @@ import pytest
 
 from pipeline.cascade import CascadedForest
 from pipeline.errors import ConfigError
-from pipeline.store import open_store, read_array
+from pipeline.store import open_store
 from tests.workflows.conftest import (
     assert_same_predictions,
     error_line,
     read_predictions,
+    scene_arrays,
     silva,
     write_config,
 )
@@ -87,19 +88,6 @@ def many_chunks(echo_survey, tmp_path_factory) -> Path:
     result = silva("run", config, "--out", root / "out", "-q")
     assert result.exit_code == 0, result.output
     return root / "out"
-
-
-def scene_arrays(out: Path, scene: str, names) -> dict[str, np.ndarray]:
-    """The core arrays ``names`` of every chunk of a scene, by global id."""
-    root = open_store(out / "store.zarr", mode="r")
-    chunks = root[f"scenes/{scene}/chunks"]
-    parts = {name: [] for name in ("gid", *names)}
-    for chunk in sorted(chunks.group_keys()):
-        for name in parts:
-            parts[name].append(read_array(chunks[chunk], name))
-    arrays = {name: np.concatenate(values) for name, values in parts.items()}
-    order = np.argsort(arrays["gid"])
-    return {name: values[order] for name, values in arrays.items()}
 
 
 def test_the_store_keeps_each_points_return_numbers(reference, echo_survey):
