@@ -37,6 +37,27 @@ def tile_area(mins, maxs) -> float:
     return max((float(maxs[0]) - float(mins[0])) * (float(maxs[1]) - float(mins[1])), 1.0)
 
 
+def _checked_extent(n_points, area, halo, target_points, extent) -> float:
+    """The larger side of the box for :func:`auto_chunk_size` (``extent``, or the side of a
+    square of ``area``), once its arguments are checked (ValueError naming the one wrong)."""
+    if not is_integer(n_points) or n_points < 0:
+        raise ValueError(f"n_points must be an integer >= 0, got {n_points!r}")
+    if not is_integer(target_points) or target_points < 1:
+        raise ValueError(f"target_points must be an integer >= 1, got {target_points!r}")
+    if not (math.isfinite(halo) and halo > 0):
+        raise ValueError(f"halo must be a finite number > 0, got {halo!r}")
+    if not (math.isfinite(area) and area >= 0):
+        raise ValueError(f"area must be a finite number >= 0, got {area!r}")
+    if extent is None:
+        extent = math.sqrt(area)
+    elif not (math.isfinite(extent) and extent >= 0):
+        raise ValueError(f"extent must be a finite number >= 0, got {extent!r}")
+    elif area > extent * extent * (1 + 1e-9):
+        raise ValueError(f"extent {extent!r} is smaller than the side of a square of area "
+                         f"{area!r}; give the larger side of the bounding box")
+    return extent
+
+
 def auto_chunk_size(
     n_points: int, area: float, halo: float, target_points: int, *, extent: float | None = None
 ) -> float:
@@ -94,21 +115,7 @@ def auto_chunk_size(
     ValueError
         A negative, non-finite or inconsistent argument (naming it and its value).
     """
-    if not is_integer(n_points) or n_points < 0:
-        raise ValueError(f"n_points must be an integer >= 0, got {n_points!r}")
-    if not is_integer(target_points) or target_points < 1:
-        raise ValueError(f"target_points must be an integer >= 1, got {target_points!r}")
-    if not (math.isfinite(halo) and halo > 0):
-        raise ValueError(f"halo must be a finite number > 0, got {halo!r}")
-    if not (math.isfinite(area) and area >= 0):
-        raise ValueError(f"area must be a finite number >= 0, got {area!r}")
-    if extent is None:
-        extent = math.sqrt(area)
-    elif not (math.isfinite(extent) and extent >= 0):
-        raise ValueError(f"extent must be a finite number >= 0, got {extent!r}")
-    elif area > extent * extent * (1 + 1e-9):
-        raise ValueError(f"extent {extent!r} is smaller than the side of a square of area "
-                         f"{area!r}; give the larger side of the bounding box")
+    extent = _checked_extent(n_points, area, halo, target_points, extent)
     n_points, target_points = int(n_points), int(target_points)
     lower = series_ceil(MIN_CHUNK_HALOS * halo)
     if extent == 0:  # every point at one XY location
