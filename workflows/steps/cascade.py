@@ -21,6 +21,7 @@ import numpy as np
 from pipeline.cascade import (
     FittedStage,
     chunk_proba,
+    labels_from_proba,
     run_cascade,
     stage_context,
     training_rows,
@@ -43,7 +44,7 @@ from workflows.progress import say
 from workflows.run import Run
 from workflows.run_plan import AppliedModel, check_model
 from workflows.steps.copies import trained_copies
-from workflows.store.layout import ROLE_TRAIN, context_array, proba_array
+from workflows.store.layout import ROLE_TRAIN, context_array, labels_array, proba_array
 
 log = logging.getLogger(__name__)
 FIT_LINE_SECONDS = 60  # with --quiet, a line at most this often while the forests grow
@@ -126,12 +127,14 @@ def cached_forest(path: str):
 
 
 def chunk_predict(view, task: StageTask):
-    """Worker task: stage probabilities of one chunk's core points."""
+    """Worker task: stage probabilities of one chunk's core points, and its labels, which a
+    chunk classified in one pass keeps too (evaluate reads them whatever the mode)."""
     features, context, labels, gid = _chunk_inputs(view, task)
     proba = chunk_proba(cached_forest(task.forest_path),
                         [cached_forest(p) for p in task.fold_paths], features, context, labels,
                         gid, np.asarray(task.fractions), task.seed, task.n_classes)
-    view.write(**{proba_array(task.stage): proba})
+    view.write(**{proba_array(task.stage): proba,
+                  labels_array(task.stage): labels_from_proba(proba)})
 
 
 # -- coordinator side -----------------------------------------------------------------------

@@ -21,7 +21,6 @@ from pipeline.atomic import atomic_write_text
 from workflows.store.layout import ROLE_TEST, labels_array, proba_array
 from workflows.engine import chunk_tasks, results_by_scene
 from workflows.run import Run
-from workflows.steps.one_pass import one_pass_scenes
 from workflows.steps.survey import canopy_samples
 from workflows.steps.terrain import ground_under
 
@@ -33,7 +32,6 @@ class EvaluationTask:
     n_stages: int
     n_classes: int
     sample_fraction: float  # of the points drawn in the report's plots
-    one_pass_scenes: tuple[str, ...] = ()  # scenes classified in one pass
 
 
 def chunk_evaluation(view, task: EvaluationTask):
@@ -42,8 +40,8 @@ def chunk_evaluation(view, task: EvaluationTask):
     test = (role == ROLE_TEST) & (label >= 0)
     undefined = view.read("undefined")
     final = view.read(proba_array(task.n_stages - 1))
-    one_pass = view.scene in task.one_pass_scenes
-    confusions = [confusion_matrix(label[test], _stage_labels(view, stage, one_pass)[test],
+    # both modes keep every stage's labels (a chunk classified in one pass no more)
+    confusions = [confusion_matrix(label[test], view.read(labels_array(stage))[test],
                                    task.n_classes) for stage in range(task.n_stages - 1)]
     confusions.append(confusion_matrix(label[test], labels_from_proba(final[test]),
                                        task.n_classes))
@@ -62,21 +60,12 @@ def chunk_evaluation(view, task: EvaluationTask):
     }
 
 
-def _stage_labels(view, stage: int, one_pass: bool):
-    """A stage's predicted labels of a chunk's points: kept as labels when its scene is
-    classified in one pass, else from the stage's probabilities."""
-    if one_pass:
-        return view.read(labels_array(stage))
-    return labels_from_proba(view.read(proba_array(stage)))
-
-
 def evaluate(run: Run, engine, layout: dict, n_stages: int) -> dict:
     """Return the metrics dict (metrics.json) and the report's plot data."""
     total = sum(t["n_points"] for t in layout["tiles"])
     fraction = min(1.0, PLOT_POINTS / max(total, 1))
     tasks = chunk_tasks(run, layout, "evaluate", chunk_evaluation,
-                        EvaluationTask(n_stages, run.n_classes, fraction,
-                                       tuple(sorted(one_pass_scenes(layout)))),
+                        EvaluationTask(n_stages, run.n_classes, fraction),
                         run.fingerprint("evaluate"), "evaluate", marks=False)
     by_scene = results_by_scene(tasks, engine.map("evaluate", tasks))
     results = [r for scene_results in by_scene.values() for r in scene_results]
