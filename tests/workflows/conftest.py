@@ -27,6 +27,18 @@ def survey(tmp_path_factory) -> dict[str, Path]:
 
 
 @pytest.fixture(scope="session")
+def tiny_survey(tmp_path_factory) -> dict[str, Path]:
+    """A 6 m training and test plot (a few thousand points each), as 3 m tiles: for tests
+    of what a run shows or how it goes, not of what it finds."""
+    from pipeline.synth import write_synthetic_plot
+
+    root = tmp_path_factory.mktemp("tiny")
+    for role, seed in (("train", 1), ("test", 2)):
+        write_synthetic_plot(root / role, seed=seed, size=6.0, tile_size=3.0)
+    return {"train": root / "train", "test": root / "test"}
+
+
+@pytest.fixture(scope="session")
 def survey_run(survey, tmp_path_factory):
     """A complete run of ``survey`` with the defaults of :func:`write_config`, in this
     process: its config and output directory (read it; copy it before changing it)."""

@@ -28,14 +28,9 @@ def _positive(value) -> bool:
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory) -> dict:
+def tiny(tiny_survey) -> dict:
     """A 6 m training and test plot (a few thousand points each), as 3 m tiles."""
-    from pipeline.synth import write_synthetic_plot
-
-    root = tmp_path_factory.mktemp("tiny")
-    for role, seed in (("train", 1), ("test", 2)):
-        write_synthetic_plot(root / role, seed=seed, size=6.0, tile_size=3.0)
-    return {"train": root / "train", "test": root / "test"}
+    return tiny_survey
 
 
 @pytest.fixture(scope="module")
