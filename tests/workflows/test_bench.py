@@ -88,7 +88,7 @@ def test_bench_features_of_a_missing_file_is_one_line(tmp_path):
 
 # -- pipeline ----------------------------------------------------------------------------------
 def test_bench_pipeline_gives_every_figure(tiny, tmp_path):
-    config = write_config(tmp_path / "tiny.yaml", tiny, tiling={"chunk_size": 3.0},
+    config = write_config(tmp_path / "tiny.yaml", tiny, tiling={"chunk_size": 4.0},
                           cascade={"stages": 1, "n_estimators": 4, "max_train_points": 2000})
     result = silva("bench", "pipeline", config, "--workers", 1, "--repeat", 2, "--json", "-q")
     figures = _last_json(result)
