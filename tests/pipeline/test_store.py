@@ -296,3 +296,25 @@ def test_removed_chunks_keep_the_record_and_a_fresh_start_clears_it(tmp_path):
     again = open_store(tmp_path / "s.zarr")
     assert removed_record(again) is None and "exports" not in again
     assert again.attrs["layout"] is None
+
+
+def test_a_done_mark_and_its_attributes_are_one_metadata_write(tmp_path, monkeypatch):
+    """A kill between two writes would leave a mark without its summary, and the resumed
+    run would redo a finished chunk."""
+    root = open_store(tmp_path / "s.zarr")
+    group = root.require_group("scenes/test/chunks/0_0")
+    mark_done(group, "terrain", "t", results={"terrain": None})
+    writes = []
+    save = zarr.core.group.AsyncGroup._save_metadata
+
+    async def counted(self, *args, **kwargs):
+        writes.append(dict(self.metadata.attributes))
+        return await save(self, *args, **kwargs)
+
+    monkeypatch.setattr(zarr.core.group.AsyncGroup, "_save_metadata", counted)
+    mark_done(group, "features", "f", results={"terrain": None, "features": {"rows": 3}})
+    assert len(writes) == 1
+    assert writes[0]["done"] == {"terrain": "t", "features": "f"}
+    assert writes[0]["results"] == {"terrain": None, "features": {"rows": 3}}
+    group = zarr.open_group(str(tmp_path / "s.zarr"), mode="r")["scenes/test/chunks/0_0"]
+    assert is_done(group, "features", "f") and group.attrs["results"]["features"] == {"rows": 3}

@@ -29,6 +29,18 @@ def survey(tmp_path_factory) -> dict[str, Path]:
 
 
 @pytest.fixture(scope="session")
+def tiny_survey(tmp_path_factory) -> dict[str, Path]:
+    """A 6 m training and test plot (a few thousand points each), as 3 m tiles: for tests
+    of what a run shows or how it goes, not of what it finds."""
+    from pipeline.synth import write_synthetic_plot
+
+    root = tmp_path_factory.mktemp("tiny")
+    for role, seed in (("train", 1), ("test", 2)):
+        write_synthetic_plot(root / role, seed=seed, size=6.0, tile_size=3.0)
+    return {"train": root / "train", "test": root / "test"}
+
+
+@pytest.fixture(scope="session")
 def survey_run(survey, tmp_path_factory):
     """A complete run of ``survey`` with the defaults of :func:`write_config`, in this
     process: its config and output directory (read it; copy it before changing it)."""
@@ -37,6 +49,34 @@ def survey_run(survey, tmp_path_factory):
     result = silva("run", config, "--out", root / "out", "--in-process", "-q")
     assert result.exit_code == 0, result.output
     return config, root / "out"
+
+
+@pytest.fixture(scope="session")
+def survey_run_kept(survey_run, tmp_path_factory):
+    """The run of :func:`survey_run` with ``output.keep_features: true`` (every scene's
+    features stored, the test scene's classified stage by stage), in this process: its
+    output directory (read it; copy it before changing it)."""
+    config, _ = survey_run
+    out = tmp_path_factory.mktemp("survey_run_kept") / "out"
+    result = silva("run", config, "--out", out, "--in-process", "-q",
+                   "--set", "output.keep_features=true")
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def run_layout(out: Path) -> dict:
+    """The chunk layout ingest recorded in the store of the run in ``out``."""
+    from pipeline.store import open_store
+
+    return open_store(out / "store.zarr", mode="r").attrs["layout"]
+
+
+def assert_chunked(out: Path, minimum: int) -> None:
+    """Every scene of the run in ``out`` was cut into at least ``minimum`` chunks, each
+    read with a halo reaching into its neighbours: the results crossed chunk borders."""
+    for scene, info in run_layout(out)["scenes"].items():
+        assert len(info["chunks"]) >= minimum, (scene, len(info["chunks"]))
+        assert info["halo"] > 0, (scene, info["halo"])
 
 
 def write_config(path: Path, survey: dict, **sections) -> Path:

@@ -28,14 +28,9 @@ def _positive(value) -> bool:
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory) -> dict:
+def tiny(tiny_survey) -> dict:
     """A 6 m training and test plot (a few thousand points each), as 3 m tiles."""
-    from pipeline.synth import write_synthetic_plot
-
-    root = tmp_path_factory.mktemp("tiny")
-    for role, seed in (("train", 1), ("test", 2)):
-        write_synthetic_plot(root / role, seed=seed, size=6.0, tile_size=3.0)
-    return {"train": root / "train", "test": root / "test"}
+    return tiny_survey
 
 
 @pytest.fixture(scope="module")
@@ -93,7 +88,7 @@ def test_bench_features_of_a_missing_file_is_one_line(tmp_path):
 
 # -- pipeline ----------------------------------------------------------------------------------
 def test_bench_pipeline_gives_every_figure(tiny, tmp_path):
-    config = write_config(tmp_path / "tiny.yaml", tiny, tiling={"chunk_size": 3.0},
+    config = write_config(tmp_path / "tiny.yaml", tiny, tiling={"chunk_size": 4.0},
                           cascade={"stages": 1, "n_estimators": 4, "max_train_points": 2000})
     result = silva("bench", "pipeline", config, "--workers", 1, "--repeat", 2, "--json", "-q")
     figures = _last_json(result)

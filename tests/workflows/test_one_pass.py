@@ -66,12 +66,9 @@ def _same_test_tiles(a: Path, b: Path) -> None:
             assert np.array_equal(pa[tile][dim], pb[tile][dim]), (tile, dim)
 
 
-def test_the_same_bits_as_stored_features_and_a_store_without_them(survey_run, tmp_path):
-    config, out = survey_run  # its test scene classified in one pass
-    kept = tmp_path / "kept"
-    result = silva("run", config, "--out", kept, "--quiet", "--in-process",
-                   "--set", "output.keep_features=true")
-    assert result.exit_code == 0, result.output
+def test_the_same_bits_as_stored_features_and_a_store_without_them(survey_run, survey_run_kept):
+    _, out = survey_run  # its test scene classified in one pass
+    kept = survey_run_kept  # the same config with output.keep_features true
     assert_same_predictions(out, kept)
     assert json.loads((out / "metrics.json").read_text()) == json.loads(
         (kept / "metrics.json").read_text())
@@ -89,8 +86,8 @@ def test_the_same_bits_as_stored_features_and_a_store_without_them(survey_run, t
 
 def test_predict_in_one_pass_over_many_chunks(survey_run, survey, tmp_path):
     """A saved model applied to balanced chunks in one pass, on two workers, gives what the
-    stage-by-stage cascade gives with the features kept; one chunk recomputed alone
-    (--chunk) gives its bits again."""
+    stage-by-stage cascade gives with the features kept (in this process); one chunk
+    recomputed alone (--chunk) gives its bits again."""
     _, out = survey_run
     config = write_config(tmp_path / "p.yaml", survey, tiling=SMALL_CHUNKS,
                           data={"train": [], "test": [], "predict": [
@@ -99,8 +96,9 @@ def test_predict_in_one_pass_over_many_chunks(survey_run, survey, tmp_path):
     runs = {}
     for keep in ("false", "true"):
         runs[keep] = tmp_path / f"keep_{keep}"
+        here = ["--in-process"] if keep == "true" else []
         result = silva("predict", config, "--model", out / "model", "--out", runs[keep],
-                       "--quiet", "--set", f"output.keep_features={keep}")
+                       "--quiet", *here, "--set", f"output.keep_features={keep}")
         assert result.exit_code == 0, result.output
         folded = "[2/6] features: computed with the stages, in one pass per chunk"
         assert (folded in result.output) == (keep == "false")
@@ -121,7 +119,7 @@ def test_predict_in_one_pass_over_many_chunks(survey_run, survey, tmp_path):
 
 def test_resume_after_sigkill_in_the_one_pass(survey_run, survey, tmp_path):
     _, out = survey_run
-    config = write_config(tmp_path / "k.yaml", survey, tiling={"chunk_size": 3.5},
+    config = write_config(tmp_path / "k.yaml", survey, tiling={"chunk_size": 5.0},
                           data={"train": []}, output={"keep_features": False})
     killed = tmp_path / "killed"
     sigkill_when(["predict", config, "--model", out / "model", "--out", killed, "--quiet",
@@ -146,19 +144,25 @@ def test_the_default_set_in_one_pass_over_many_chunks_equals_one_stored_chunk(su
                                                                               tmp_path):
     """The default set (several radii, height columns, voxels; the covariance set is a part
     of it) reaches further than the paper's: in one pass over many chunks it gives the bits
-    of one chunk with stored features."""
+    of one chunk with stored features. On a strip of two tiles a plot (14 m x 7 m): 4 x 2
+    chunks of 4 m, the test scene's halo wider than a chunk."""
     features = {"set": "default", "voxel": "auto"}
+    strip = {"train": [str(survey["train"] / "*_0.laz")],
+             "test": [str(survey["test"] / "*_0.laz")]}
     runs = {}
     for name, tiling, keep in (("one_pass", {"chunk_size": 4.0}, "false"),  # halos > 4 m
                                ("stored", {"chunk_size": 100.0}, "true")):
         config = write_config(tmp_path / f"{name}.yaml", survey, tiling=tiling,
-                              features={"r1": 0.5, **features})
+                              features={"r1": 0.5, **features}, data=strip)
         runs[name] = tmp_path / name
         result = silva("run", config, "--out", runs[name], "--quiet", "--in-process",
                        "--set", f"output.keep_features={keep}")
         assert result.exit_code == 0, result.output
     layout = open_store(runs["one_pass"] / "store.zarr", mode="r").attrs["layout"]
-    assert len(layout["scenes"]["test"]["chunks"]) >= 4
+    test = layout["scenes"]["test"]
+    assert len(test["chunks"]) >= 8 and test["grid"]["nx"] >= 3 and test["one_pass"]
+    assert test["halo"] > test["grid"]["size"]  # a chunk's window reaches past its neighbours
+    assert len(read_predictions(runs["stored"])) == 4  # two tiles of each plot
     assert_same_predictions(runs["one_pass"], runs["stored"])
 
 

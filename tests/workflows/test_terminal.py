@@ -42,8 +42,8 @@ def test_run_saves_the_config_and_shows_it_only_with_v(tmp_path, survey):
 
 # -- -q: one line per step, and the log file -----------------------------------------------------
 @pytest.mark.slow
-def test_quiet_run_prints_one_line_per_step_and_logs_the_run(tmp_path, survey):
-    config = write_config(tmp_path / "c.yaml", survey)
+def test_quiet_run_prints_one_line_per_step_and_logs_the_run(tmp_path, tiny_survey):
+    config = write_config(tmp_path / "c.yaml", tiny_survey)
     out = tmp_path / "out"
     result = silva("run", config, "--out", out, "--in-process", "-q")
     assert result.exit_code == 0, result.output + result.stderr

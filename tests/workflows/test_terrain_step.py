@@ -9,7 +9,7 @@ from pipeline.io import read_info
 from pipeline.io.raster import read_geotiff
 from pipeline.store import open_store
 from pipeline.terrain import TerrainParams, ground_elevation, terrain_model
-from tests.workflows.conftest import read_predictions, silva, write_config
+from tests.workflows.conftest import assert_chunked, read_predictions, silva, write_config
 from workflows.store.terrain import read_terrain
 
 pytestmark = pytest.mark.slow
@@ -33,10 +33,11 @@ def run(tmp_path, survey, name, chunk_size):
 @pytest.fixture(scope="module")
 def runs(survey, tmp_path_factory):
     root = tmp_path_factory.mktemp("terrain")
-    return run(root, survey, "one", 100.0), run(root, survey, "many", 4.0)
+    return run(root, survey, "one", 100.0), run(root, survey, "many", 5.0)
 
 
 def test_terrain_model_does_not_depend_on_the_chunking(runs, survey):
+    assert_chunked(runs[1], 9)  # 3 x 3 chunks a scene
     one, many = (open_store(out / "store.zarr") for out in runs)
     for scene in ("train", "test"):
         a, b = read_terrain(one, scene), read_terrain(many, scene)

@@ -8,7 +8,13 @@ import numpy as np
 import pyogrio
 import pytest
 
-from tests.workflows.conftest import read_predictions, sigkill_when, silva, write_config
+from tests.workflows.conftest import (
+    assert_chunked,
+    read_predictions,
+    sigkill_when,
+    silva,
+    write_config,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -38,7 +44,7 @@ def run(tmp_path, survey, name, chunk_size, workers=1, **trees):
 @pytest.fixture(scope="module")
 def runs(survey, tmp_path_factory):
     root = tmp_path_factory.mktemp("trees")
-    return run(root, survey, "one", 100.0), run(root, survey, "many", 4.0, workers=2)
+    return run(root, survey, "one", 100.0), run(root, survey, "many", 5.0, workers=2)
 
 
 def read_table(path) -> list[dict]:
@@ -47,6 +53,7 @@ def read_table(path) -> list[dict]:
 
 
 def test_tree_ids_and_tables_do_not_depend_on_chunks_or_workers(runs):
+    assert_chunked(runs[1], 9)  # 3 x 3 chunks a scene
     one, many = (read_predictions(out) for out in runs)
     assert one.keys() == many.keys() and one
     for tile in one:
@@ -105,7 +112,7 @@ def test_labelled_run_scores_the_tree_instances(runs):
 
 
 def test_a_run_killed_in_the_trees_step_resumes_to_the_same_trees(runs, survey, tmp_path):
-    config = config_for(tmp_path, survey, "killed", 4.0)
+    config = config_for(tmp_path, survey, "killed", 5.0)
     out = tmp_path / "killed"
     trees_started = lambda: (out / "store.zarr" / "scenes" / "test" / "trees").exists()  # noqa: E731
     sigkill_when(["run", config, "--out", out, "-q", "--in-process"], trees_started)

@@ -38,7 +38,10 @@ def venv(tmp_path_factory) -> Path:
         "--wheel-dir", root / "dist", source, cwd=root)
     wheels = list((root / "dist").glob("silva-*.whl"))
     assert len(wheels) == 1, wheels
-    run(sys.executable, "-m", "venv", "--system-site-packages", root / "venv", cwd=root)
+    # without a pip of its own (ensurepip takes longer than the rest): the venv's python
+    # runs this environment's pip, which installs into the venv
+    run(sys.executable, "-m", "venv", "--system-site-packages", "--without-pip", root / "venv",
+        cwd=root)
     bin_dir = root / "venv" / ("Scripts" if sys.platform == "win32" else "bin")
     run(bin_dir / "python", "-m", "pip", "install", "--no-deps", "--no-index", wheels[0],
         cwd=root)

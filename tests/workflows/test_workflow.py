@@ -20,6 +20,7 @@ from click.testing import CliRunner
 
 from pipeline.io import write_las
 from tests.workflows.conftest import (
+    assert_chunked,
     assert_same_predictions,
     read_predictions,
     sigkill_when,
@@ -39,13 +40,10 @@ def silva(*args):
 
 
 @pytest.fixture(scope="module")
-def reference(survey, tmp_path_factory):
-    """One chunk, one worker: the run every other run must reproduce."""
-    root = tmp_path_factory.mktemp("reference")
-    config = write_config(root / "one.yaml", survey)
-    result = silva("run", config, "--out", root / "out", "--quiet")
-    assert result.exit_code == 0, result.output
-    return root / "out"
+def reference(survey_run):
+    """One chunk per scene, in this process: the run every other run must reproduce (the
+    session's run of write_config's defaults; read it, never change it)."""
+    return survey_run[1]
 
 
 def test_outputs_of_a_complete_run(reference, survey):
@@ -89,12 +87,12 @@ def test_outputs_of_a_complete_run(reference, survey):
 
 @pytest.fixture(scope="module")
 def many_chunks(survey, tmp_path_factory):
-    """3 m chunks on 2 workers: dozens of chunks whose halos the results must not see, the
-    test scene's classified in one pass (which ``keep_features: auto`` would leave to the
-    stored features at this chunk size)."""
+    """5 m chunks on 2 workers: 3 x 3 chunks a scene whose halos the results must not see,
+    the test scene's classified in one pass (which ``keep_features: auto`` would leave to
+    the stored features at this chunk size)."""
     root = tmp_path_factory.mktemp("many")
     config = write_config(
-        root / "many.yaml", survey, tiling={"chunk_size": 3.0},
+        root / "many.yaml", survey, tiling={"chunk_size": 5.0},
         cluster={"kind": "local", "n_workers": 2, "threads_per_worker": 1, "dashboard": False},
         output={"keep_features": False},
     )
@@ -104,6 +102,7 @@ def many_chunks(survey, tmp_path_factory):
 
 
 def test_chunk_invariance_many_chunks_two_workers(reference, many_chunks):
+    assert_chunked(many_chunks, 9)
     layout_chunks = json.loads((many_chunks / "metrics.json").read_text())
     assert layout_chunks["n_test_points"] == json.loads(
         (reference / "metrics.json").read_text())["n_test_points"]
@@ -142,16 +141,12 @@ def _scene_points(out: Path, scene: str, first: str = "stage1_proba"):
     return {k: v[order] for k, v in arrays.items()}
 
 
-def test_estimator_equals_the_workflow(survey, tmp_path, many_chunks):
+def test_estimator_equals_the_workflow(survey_run_kept, many_chunks):
     """CascadedForest and `silva run` are one method: same seed and parameters, the same
     probabilities bit for bit, stage by stage over stored features in one chunk in this
-    process, and in one pass over many chunks on 2 workers (which keeps the first stage's
-    labels only)."""
-    config = write_config(tmp_path / "one.yaml", survey)
-    result = silva("run", config, "--out", tmp_path / "out", "--quiet", "--in-process",
-                   "--set", "output.keep_features=true")
-    assert result.exit_code == 0, result.output
-    train, test = _scene_points(tmp_path / "out", "train"), _scene_points(tmp_path / "out", "test")
+    process (write_config's defaults with output.keep_features true), and in one pass over
+    many chunks on 2 workers (which keeps the first stage's labels only)."""
+    train, test = _scene_points(survey_run_kept, "train"), _scene_points(survey_run_kept, "test")
     model = CascadedForest(stages=2, n_estimators=6, min_samples_leaf=15, r1=0.5,
                            max_train_points=8000, random_state=3)
     model.fit(train["xyz"], train["label"], ids=train["gid"])
@@ -179,7 +174,7 @@ def _invariant_mtimes(out: Path) -> dict[str, float]:
 
 
 def test_resume_after_sigkill(reference, survey, tmp_path):
-    config = write_config(tmp_path / "kill.yaml", survey, tiling={"chunk_size": 3.5})
+    config = write_config(tmp_path / "kill.yaml", survey, tiling={"chunk_size": 5.0})
     out = tmp_path / "out"
     sigkill_when(["run", config, "--out", out, "--quiet", "--in-process"],
                  lambda: len(_invariant_mtimes(out)) >= 3)
@@ -193,6 +188,7 @@ def test_resume_after_sigkill(reference, survey, tmp_path):
     for chunk, mtime in done_before.items():
         assert after[chunk] == mtime, (f"{chunk} was recomputed; its marks when killed: "
                                        f"{marks[chunk]}, after: {_marks(chunk)}")
+    assert_chunked(out, 9)
     assert_same_predictions(reference, out)
 
 
@@ -203,11 +199,12 @@ def _marks(features_dir: str) -> dict:
             "assembled": attrs.get("assembled")}
 
 
-def test_changed_config_invalidates_only_what_it_affects(reference, survey, tmp_path):
-    out = tmp_path / "out"
-    config = write_config(tmp_path / "c.yaml", survey)
-    assert silva("run", config, "--out", out, "--quiet", "--in-process").exit_code == 0
+def test_changed_config_invalidates_only_what_it_affects(reference, survey_run, tmp_path):
+    # a complete run of the config: the reference's, copied with its files' times
+    config, out = survey_run[0], tmp_path / "out"
+    shutil.copytree(reference, out)
     features_before = _invariant_mtimes(out)
+    assert features_before  # the training scene's features
     model_before = (out / "model" / "stage1.skops").stat().st_mtime_ns
     result = silva("run", config, "--out", out, "--quiet", "--in-process",
                    "--set", "cascade.n_estimators=4")
@@ -229,7 +226,7 @@ def test_lost_worker_does_not_change_the_result(reference, survey, tmp_path):
     from workflows.run import Run
     from workflows.workflow import execute
 
-    config = write_config(tmp_path / "lost.yaml", survey, tiling={"chunk_size": 3.0})
+    config = write_config(tmp_path / "lost.yaml", survey, tiling={"chunk_size": 5.0})
     out = tmp_path / "out"
     with LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1",
                       dashboard_address=None, processes=True) as cluster, Client(cluster) as client:
@@ -250,6 +247,7 @@ def test_lost_worker_does_not_change_the_result(reference, survey, tmp_path):
         execute(run, Engine(client, quiet=True, retries=2), "report")
         thread.join()
     assert killed
+    assert_chunked(out, 9)
     assert_same_predictions(reference, out)
 
 

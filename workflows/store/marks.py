@@ -64,7 +64,10 @@ def is_done(group: zarr.Group, step: str, fingerprint: str) -> bool:
 
 
 def mark_done(group: zarr.Group, step: str, fingerprint: str, **attrs) -> None:
-    """Record that ``step`` completed; call only after every output is written."""
+    """Record that ``step`` completed, with ``attrs`` (its summary, ...), in one write of the
+    group's metadata: a run killed at any moment leaves the mark with its attributes or
+    neither (``group.attrs.update`` would write the metadata once per key). Call only after
+    every output is written."""
     done = dict(group.attrs.get("done", {}))
     done[step] = fingerprint
-    group.attrs.update({"done": done, **attrs})
+    group.update_attributes({"done": done, **attrs})
