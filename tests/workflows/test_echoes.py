@@ -265,3 +265,15 @@ def test_a_thinned_copy_keeps_the_return_numbers_of_its_points(echo_survey, tmp_
     assert 0 < kept.sum() < len(kept)
     for name in ("gid", *names):
         assert np.array_equal(thinned[name], source[name][kept])
+
+
+def test_the_installed_airborne_model_refuses_a_tile_without_returns(echo_survey, tmp_path):
+    """The shipped airborne model reads each point's returns: a tile without them (as silva
+    synth writes them) is refused in one line naming the model, not classified wrongly."""
+    plain = sorted((echo_survey["plain"] / "test").glob("*.laz"))[0]
+    line = error_line(silva("predict", "--model", "als-ground-vegetation-building", "--out",
+                            tmp_path / "out", plain, "--in-process", "-q"))
+    assert line.startswith(f"silva: error: tile {plain} has no valid return numbers")
+    assert "als-ground-vegetation-building (trained with features.echoes: true)" in line
+    assert not (tmp_path / "out" / "predictions").exists() or not list(
+        (tmp_path / "out" / "predictions").iterdir())

@@ -38,7 +38,7 @@ def test_rasters_cover_the_points_beyond_a_stale_header_box(survey, tmp_path):
     outside = ((las.x < header.mins[0]) | (las.x > header.maxs[0])
                | (las.y < header.mins[1]) | (las.y > header.maxs[1]))
     assert outside.mean() > 0.5  # the header is stale indeed
-    result = silva("predict", "--model", "als-ground-vegetation-building", "--out",
+    result = silva("predict", "--model", "forest-tls-synthetic", "--out",
                    tmp_path / "out", tile, "--set", "output.rasters=[dsm]",
                    "--set", "output.raster_resolution=1.0", "--in-process", "-q")
     assert result.exit_code == 0, result.output
