@@ -20,23 +20,34 @@ def plot():
     return xyz[keep] + [512_000.0, 5_400_000.0, 300.0], ids
 
 
-@pytest.mark.parametrize("params", PARAMS, ids=lambda p: f"{p.set}-{p.voxel}-{p.plane}")
-def test_a_chunk_with_its_reach_equals_the_whole_cloud(plot, params):
-    xyz, ids = plot
-    fs = feature_set(params)
-    assert params.halo >= fs.reach >= params.r1
+def chunk_and_whole(fs, xyz, ids, returns=None):
+    """The features of the points of a 4 m square: from a chunk of the points within the
+    set's reach of it, shuffled (order must not matter), and from the whole cloud; rows in
+    the order of the points' ids."""
     x0, y0 = xyz[:, 0].min() + 3.0, xyz[:, 1].min() + 3.0
     core = (xyz[:, 0] >= x0) & (xyz[:, 0] < x0 + 4) & (xyz[:, 1] >= y0) & (xyz[:, 1] < y0 + 4)
     near = ((xyz[:, 0] >= x0 - fs.reach) & (xyz[:, 0] < x0 + 4 + fs.reach)
             & (xyz[:, 1] >= y0 - fs.reach) & (xyz[:, 1] < y0 + 4 + fs.reach))
     rows = np.flatnonzero(near)
-    rows = rows[np.random.default_rng(1).permutation(len(rows))]  # order must not matter
+    rows = rows[np.random.default_rng(1).permutation(len(rows))]
     query = np.flatnonzero(core[rows])
-    chunk = fs(xyz[rows], query, ids[rows])
-    whole = fs(xyz, np.flatnonzero(core), ids)
-    order = np.argsort(ids[rows][query])
-    assert chunk.shape == (core.sum(), len(fs.columns)) and chunk.dtype == np.float32
-    np.testing.assert_array_equal(chunk[order], whole[np.argsort(ids[core])])
+    options = {} if returns is None else {"returns": tuple(r[rows] for r in returns)}
+    chunk = fs(xyz[rows], query, ids[rows], **options)
+    options = {} if returns is None else {"returns": returns}
+    whole = fs(xyz, np.flatnonzero(core), ids, **options)
+    assert len(query) == core.sum()
+    return chunk[np.argsort(ids[rows][query])], whole[np.argsort(ids[core])]
+
+
+@pytest.mark.parametrize("params", PARAMS, ids=lambda p: f"{p.set}-{p.voxel}-{p.plane}")
+def test_a_chunk_with_its_reach_equals_the_whole_cloud(plot, params):
+    xyz, ids = plot
+    fs = feature_set(params)
+    assert params.halo >= fs.reach >= params.r1
+    chunk, whole = chunk_and_whole(fs, xyz, ids)
+    assert chunk.shape == whole.shape == (len(whole), len(fs.columns))
+    assert chunk.dtype == np.float32
+    np.testing.assert_array_equal(chunk, whole)
 
 
 def test_the_features_of_a_few_points_are_those_they_have_among_all(plot):
@@ -109,19 +120,10 @@ def test_echo_columns_of_a_chunk_with_its_reach_equal_the_whole_cloud(plot, retu
     xyz, ids = plot
     fs = feature_set(params)
     assert fs.uses_returns and params.halo >= fs.reach
-    x0, y0 = xyz[:, 0].min() + 3.0, xyz[:, 1].min() + 3.0
-    core = (xyz[:, 0] >= x0) & (xyz[:, 0] < x0 + 4) & (xyz[:, 1] >= y0) & (xyz[:, 1] < y0 + 4)
-    near = ((xyz[:, 0] >= x0 - fs.reach) & (xyz[:, 0] < x0 + 4 + fs.reach)
-            & (xyz[:, 1] >= y0 - fs.reach) & (xyz[:, 1] < y0 + 4 + fs.reach))
-    rows = np.flatnonzero(near)
-    rows = rows[np.random.default_rng(1).permutation(len(rows))]  # order must not matter
-    query = np.flatnonzero(core[rows])
-    chunk = fs(xyz[rows], query, ids[rows], returns=tuple(r[rows] for r in returns))
-    whole = fs(xyz, np.flatnonzero(core), ids, returns=returns)
-    order = np.argsort(ids[rows][query])
+    chunk, whole = chunk_and_whole(fs, xyz, ids, returns)
     echo = slice(-3 * len(params.scales), None)
     assert np.isfinite(whole[:, echo]).mean() > 0.99  # spheres hold points with returns
-    np.testing.assert_array_equal(chunk[order], whole[np.argsort(ids[core])])
+    np.testing.assert_array_equal(chunk, whole)
 
 
 def test_echoes_append_the_sphere_columns_at_the_covariance_radii(plot, returns):
