@@ -23,11 +23,12 @@ from tests.workflows.conftest import (
     assert_chunked,
     assert_same_predictions,
     read_predictions,
+    scene_arrays,
     sigkill_when,
     write_config,
 )
 from pipeline.cascade import CascadedForest, labels_from_proba
-from pipeline.store import open_store, read_array
+from pipeline.store import open_store
 from workflows.store.layout import proba_array
 from workflows.cli import main
 
@@ -126,19 +127,10 @@ def test_chunk_invariance_balanced_chunks(reference, survey, tmp_path):
 
 
 def _scene_points(out: Path, scene: str, first: str = "stage1_proba"):
-    """xyz, label, gid, the ``first`` stage's probabilities (or labels: ``stage1_labels``,
-    where a scene classified in one pass keeps no more) and the second stage's
-    probabilities of every core point of a scene, by gid."""
-    root = open_store(out / "store.zarr", mode="r")
-    chunks = root[f"scenes/{scene}/chunks"]
-    names = ("xyz", "label", "gid", first, proba_array(1))
-    parts = {name: [] for name in names}
-    for chunk in sorted(chunks.group_keys()):
-        for name in names:
-            parts[name].append(read_array(chunks[chunk], name))
-    arrays = {k: np.concatenate(v) for k, v in parts.items()}
-    order = np.argsort(arrays["gid"])
-    return {k: v[order] for k, v in arrays.items()}
+    """xyz, label, gid, the ``first`` stage's probabilities (or its labels,
+    ``stage1_labels``) and the second stage's probabilities of every core point of a scene,
+    by gid."""
+    return scene_arrays(out, scene, ("xyz", "label", first, proba_array(1)))
 
 
 def test_estimator_equals_the_workflow(survey_run_kept, many_chunks):
