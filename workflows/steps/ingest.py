@@ -353,7 +353,7 @@ def occupied_cells(paths, read_batch: int, span=None, *, label_field: str = "cla
     for path in paths:
         for batch in iter_points(path, batch_size=read_batch, fields=points_filter.fields(labels),
                                  start=start, stop=stop):
-            kept = _kept(points_filter, batch, labels)
+            kept, _ = _kept(points_filter, batch, labels)
             points += int(np.count_nonzero(kept))
             cells = np.union1d(cells, cell_keys(batch.xyz[kept], DEFAULT_DENSITY_CELL))
     return {"points": points, "cells": cells}
@@ -421,9 +421,11 @@ def check_something_left(run, tiles: list[dict]) -> None:
                 f"data.{scene}")
 
 
-def _kept(points_filter: PointFilter, batch, label_field: str | None) -> np.ndarray:
-    """bool (n,): the points of a read ``batch`` that ``points_filter`` keeps; the unlisted
-    codes are looked at only in a labelled scene (``label_field`` not None)."""
+def _kept(points_filter: PointFilter, batch, label_field: str | None
+          ) -> tuple[np.ndarray, int]:
+    """bool (n,): the points of a read ``batch`` that ``points_filter`` keeps, and how many
+    its codes and withheld flag exclude; the unlisted codes are looked at only in a labelled
+    scene (``label_field`` not None)."""
     kept = np.ones(len(batch.xyz), dtype=bool)
     excluded = points_filter.excluded(batch.fields)
     if excluded is not None:
@@ -432,7 +434,7 @@ def _kept(points_filter: PointFilter, batch, label_field: str | None) -> np.ndar
         unlisted = points_filter.unlisted(np.asarray(batch.fields[label_field]).astype(np.int64))
         if unlisted is not None:
             kept &= ~unlisted
-    return kept
+    return kept, 0 if excluded is None else int(np.count_nonzero(excluded))
 
 
 @dataclass(frozen=True)
@@ -552,11 +554,9 @@ def _stored_columns(task: IngestTask, tile: dict, batch, labelled: bool):
     if labelled:
         raw = np.asarray(batch.fields[task.label_field]).astype(np.int64)
         label = labels_from_codes(raw, task.code_to_class)
-    dropped = task.points_filter.excluded(batch.fields)
-    n_dropped = 0 if dropped is None else int(np.count_nonzero(dropped))
     returns = () if task.echoes is None else batch_returns(batch.fields)
     some_returns = bool(returns) and has_returns(*returns)
-    kept = _kept(task.points_filter, batch, task.label_field if labelled else None)
+    kept, n_dropped = _kept(task.points_filter, batch, task.label_field if labelled else None)
     columns = (xyz, gid, label, *returns)
     if not kept.all():
         columns = tuple(values[kept] for values in columns)
