@@ -50,6 +50,22 @@ def survey_run(survey, tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def dask_cluster() -> dict:
+    """The ``cluster`` section of a config that runs on a LocalCluster of 2 worker processes
+    on loopback, started once per session (``kind: address``, as a user's running cluster):
+    the runs whose results must not depend on the workers share its workers, which import
+    Silva's modules once instead of once per run. Tests that kill, limit or watch the workers
+    of a run, or the cluster a run starts itself, start their own."""
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address="127.0.0.1:0") as cluster:  # not 8787: others' default
+        with Client(cluster) as client:
+            assert len(client.scheduler_info()["workers"]) == 2
+        yield {"kind": "address", "address": cluster.scheduler_address}
+
+
+@pytest.fixture(scope="session")
 def survey_run_kept(survey_run, tmp_path_factory):
     """The run of :func:`survey_run` with ``output.keep_features: true`` (every scene's
     features stored, the test scene's classified stage by stage), in this process: its

@@ -24,27 +24,28 @@ CASCADE = {"stages": 1, "n_estimators": 6, "min_samples_leaf": 15, "max_train_po
 TREES = {"trees": True}
 
 
-def config_for(tmp_path, survey, name, chunk_size, workers=1, **trees):
+def config_for(tmp_path, survey, name, chunk_size, cluster=None, **trees):
+    """The config of a run on ``cluster`` (a config's cluster section; None: in this
+    process)."""
     return write_config(tmp_path / f"{name}.yaml", survey, features=FEATURES,
                         tiling={"chunk_size": chunk_size}, output=TREES, cascade=CASCADE,
-                        trees=trees,
-                        cluster={"kind": "local", "n_workers": workers,
-                                 "threads_per_worker": 1, "dashboard": False})
+                        trees=trees, cluster=cluster or {})
 
 
-def run(tmp_path, survey, name, chunk_size, workers=1, **trees):
-    config = config_for(tmp_path, survey, name, chunk_size, workers, **trees)
+def run(tmp_path, survey, name, chunk_size, cluster=None, **trees):
+    config = config_for(tmp_path, survey, name, chunk_size, cluster, **trees)
     out = tmp_path / name
-    args = ["run", config, "--out", out, "-q"] + (["--in-process"] if workers == 1 else [])
+    args = ["run", config, "--out", out, "-q"] + (["--in-process"] if cluster is None else [])
     result = silva(*args)
     assert result.exit_code == 0, result.output
     return out
 
 
 @pytest.fixture(scope="module")
-def runs(survey, tmp_path_factory):
+def runs(survey, tmp_path_factory, dask_cluster):
+    """One chunk a scene in this process, and 5 m chunks on the session's 2 workers."""
     root = tmp_path_factory.mktemp("trees")
-    return run(root, survey, "one", 100.0), run(root, survey, "many", 5.0, workers=2)
+    return run(root, survey, "one", 100.0), run(root, survey, "many", 5.0, dask_cluster)
 
 
 def read_table(path) -> list[dict]:
