@@ -43,9 +43,10 @@ def run(tmp_path, survey, name, chunk_size, cluster=None, **trees):
 
 @pytest.fixture(scope="module")
 def runs(survey, tmp_path_factory, dask_cluster):
-    """One chunk a scene in this process, and 5 m chunks on the session's 2 workers."""
+    """One chunk a scene in this process, and 8 m chunks (2 x 2 a scene, their borders
+    across the plots' middle) on the session's 2 workers."""
     root = tmp_path_factory.mktemp("trees")
-    return run(root, survey, "one", 100.0), run(root, survey, "many", 5.0, dask_cluster)
+    return run(root, survey, "one", 100.0), run(root, survey, "many", 8.0, dask_cluster)
 
 
 def read_table(path) -> list[dict]:
@@ -54,7 +55,7 @@ def read_table(path) -> list[dict]:
 
 
 def test_tree_ids_and_tables_do_not_depend_on_chunks_or_workers(runs):
-    assert_chunked(runs[1], 9)  # 3 x 3 chunks a scene
+    assert_chunked(runs[1], 4)  # 2 x 2 chunks a scene
     one, many = (read_predictions(out) for out in runs)
     assert one.keys() == many.keys() and one
     for tile in one:
@@ -113,7 +114,7 @@ def test_labelled_run_scores_the_tree_instances(runs):
 
 
 def test_a_run_killed_in_the_trees_step_resumes_to_the_same_trees(runs, survey, tmp_path):
-    config = config_for(tmp_path, survey, "killed", 5.0)
+    config = config_for(tmp_path, survey, "killed", 8.0)
     out = tmp_path / "killed"
     trees_started = lambda: (out / "store.zarr" / "scenes" / "test" / "trees").exists()  # noqa: E731
     sigkill_when(["run", config, "--out", out, "-q", "--in-process"], trees_started)
