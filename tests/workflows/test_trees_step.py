@@ -10,6 +10,7 @@ import pytest
 
 from tests.workflows.conftest import (
     assert_chunked,
+    covariance_config,
     read_predictions,
     sigkill_when,
     silva,
@@ -18,35 +19,17 @@ from tests.workflows.conftest import (
 
 pytestmark = pytest.mark.slow
 
-FEATURES = {"set": "covariance", "r1": 0.5}
-CASCADE = {"stages": 1, "n_estimators": 6, "min_samples_leaf": 15, "max_train_points": 8000,
-           "seed": 3}
-TREES = {"trees": True}
 
-
-def config_for(tmp_path, survey, name, chunk_size, cluster=None, **trees):
-    """The config of a run on ``cluster`` (a config's cluster section; None: in this
-    process)."""
-    return write_config(tmp_path / f"{name}.yaml", survey, features=FEATURES,
-                        tiling={"chunk_size": chunk_size}, output=TREES, cascade=CASCADE,
-                        trees=trees, cluster=cluster or {})
-
-
-def run(tmp_path, survey, name, chunk_size, cluster=None, **trees):
-    config = config_for(tmp_path, survey, name, chunk_size, cluster, **trees)
-    out = tmp_path / name
-    args = ["run", config, "--out", out, "-q"] + (["--in-process"] if cluster is None else [])
-    result = silva(*args)
-    assert result.exit_code == 0, result.output
-    return out
+def config_for(tmp_path, survey, name, chunk_size):
+    """The config of the shared runs (trees and rasters) with ``chunk_size``."""
+    return covariance_config(tmp_path / f"{name}.yaml", survey, chunk_size)
 
 
 @pytest.fixture(scope="module")
-def runs(survey, tmp_path_factory, dask_cluster):
-    """One chunk a scene in this process, and 8 m chunks (2 x 2 a scene, their borders
-    across the plots' middle) on the session's 2 workers."""
-    root = tmp_path_factory.mktemp("trees")
-    return run(root, survey, "one", 100.0), run(root, survey, "many", 8.0, dask_cluster)
+def runs(covariance_runs):
+    """One chunk a scene in this process, and 8 m chunks (2 x 2 a scene) on the session's 2
+    workers, with the trees (and the rasters the terrain step's tests read)."""
+    return covariance_runs
 
 
 def read_table(path) -> list[dict]:
