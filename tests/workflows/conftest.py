@@ -52,6 +52,58 @@ def survey_run(survey, tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def dask_cluster() -> dict:
+    """The ``cluster`` section of a config that runs on a LocalCluster of 2 worker processes
+    on loopback, started once per session (``kind: address``, as a user's running cluster):
+    the runs whose results must not depend on the workers share its workers, which import
+    Silva's modules once instead of once per run. Tests that kill, limit or watch the workers
+    of a run, or the cluster a run starts itself, start their own."""
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address="127.0.0.1:0") as cluster:  # not 8787: others' default
+        with Client(cluster) as client:
+            assert len(client.scheduler_info()["workers"]) == 2
+        yield {"kind": "address", "address": cluster.scheduler_address}
+
+
+#: The runs of the terrain and trees steps' tests: the covariance set, one stage (the
+#: context's chunk invariance is tested by the workflow's other runs), the trees, and the
+#: DTM, DSM and canopy height rasters.
+COVARIANCE = {"set": "covariance", "r1": 0.5}
+ONE_STAGE = {"stages": 1, "n_estimators": 6, "min_samples_leaf": 15, "max_train_points": 8000,
+             "seed": 3}
+RASTERS = {"rasters": ["dtm", "dsm", "chm"], "raster_resolution": 2.0}
+TREES_AND_RASTERS = {"trees": True, **RASTERS}
+
+
+def covariance_config(path: Path, survey: dict, chunk_size: float, cluster=None,
+                      output=TREES_AND_RASTERS, **sections) -> Path:
+    """The config of :func:`covariance_runs` with ``chunk_size``, on ``cluster`` (a config's
+    cluster section; None: the default, for a run in this process)."""
+    return write_config(path, survey, features=COVARIANCE, cascade=ONE_STAGE,
+                        tiling={"chunk_size": chunk_size}, output=output,
+                        cluster=cluster or {}, **sections)
+
+
+@pytest.fixture(scope="session")
+def covariance_runs(survey, tmp_path_factory, dask_cluster) -> tuple[Path, Path]:
+    """Two runs of :func:`covariance_config`: one chunk a scene in this process, and 8 m
+    chunks (2 x 2 a scene, their borders across the plots' middle) on the session's 2
+    workers; their output directories, which the terrain and trees steps' tests share (read
+    them; copy one before changing it)."""
+    root = tmp_path_factory.mktemp("covariance_runs")
+    outs = []
+    for name, chunk_size, cluster in (("one", 100.0, None), ("many", 8.0, dask_cluster)):
+        config = covariance_config(root / f"{name}.yaml", survey, chunk_size, cluster)
+        here = ["--in-process"] if cluster is None else []
+        result = silva("run", config, "--out", root / name, "-q", *here)
+        assert result.exit_code == 0, result.output
+        outs.append(root / name)
+    return outs[0], outs[1]
+
+
+@pytest.fixture(scope="session")
 def survey_run_kept(survey_run, tmp_path_factory):
     """The run of :func:`survey_run` with ``output.keep_features: true`` (every scene's
     features stored, the test scene's classified stage by stage), in this process: its

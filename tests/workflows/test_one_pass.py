@@ -84,15 +84,15 @@ def test_the_same_bits_as_stored_features_and_a_store_without_them(survey_run, s
     assert size[out] * 2 < size[kept]
 
 
-def test_predict_in_one_pass_over_many_chunks(survey_run, survey, tmp_path):
-    """A saved model applied to balanced chunks in one pass, on two workers, gives what the
-    stage-by-stage cascade gives with the features kept (in this process); one chunk
-    recomputed alone (--chunk) gives its bits again."""
+def test_predict_in_one_pass_over_many_chunks(survey_run, survey, tmp_path, dask_cluster):
+    """A saved model applied to balanced chunks in one pass, on two workers (the session's
+    cluster), gives what the stage-by-stage cascade gives with the features kept (in this
+    process); one chunk recomputed alone (--chunk) gives its bits again."""
     _, out = survey_run
     config = write_config(tmp_path / "p.yaml", survey, tiling=SMALL_CHUNKS,
                           data={"train": [], "test": [], "predict": [
                               str(survey["test"] / "*.laz")]},
-                          cluster={"n_workers": 2})
+                          cluster=dask_cluster)
     runs = {}
     for keep in ("false", "true"):
         runs[keep] = tmp_path / f"keep_{keep}"
@@ -117,10 +117,12 @@ def test_predict_in_one_pass_over_many_chunks(survey_run, survey, tmp_path):
     assert_same_predictions(runs["true"], runs["false"])
 
 
-def test_resume_after_sigkill_in_the_one_pass(survey_run, survey, tmp_path):
+def test_resume_after_sigkill_in_the_one_pass(survey_run, survey, tmp_path, dask_cluster):
     _, out = survey_run
+    # killed in its own process, resumed on the session's cluster
     config = write_config(tmp_path / "k.yaml", survey, tiling={"chunk_size": 5.0},
-                          data={"train": []}, output={"keep_features": False})
+                          data={"train": []}, output={"keep_features": False},
+                          cluster=dask_cluster)
     killed = tmp_path / "killed"
     sigkill_when(["predict", config, "--model", out / "model", "--out", killed, "--quiet",
                   "--in-process"], lambda: len(_apply_marks(killed)) >= 3)

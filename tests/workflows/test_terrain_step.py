@@ -9,35 +9,28 @@ from pipeline.io import read_info
 from pipeline.io.raster import read_geotiff
 from pipeline.store import open_store
 from pipeline.terrain import TerrainParams, ground_elevation, terrain_model
-from tests.workflows.conftest import assert_chunked, read_predictions, silva, write_config
+from tests.workflows.conftest import (
+    TREES_AND_RASTERS,
+    assert_chunked,
+    covariance_config,
+    read_predictions,
+    silva,
+)
 from workflows.store.terrain import read_terrain
 
 pytestmark = pytest.mark.slow
 
-FEATURES = {"set": "covariance", "r1": 0.5}
-RASTERS = {"rasters": ["dtm", "dsm", "chm"], "raster_resolution": 2.0}
-#: one stage: the context's chunk invariance is tested by the workflow's other runs
-CASCADE = {"stages": 1, "n_estimators": 6, "min_samples_leaf": 15, "max_train_points": 8000,
-           "seed": 3}
-
-
-def run(tmp_path, survey, name, chunk_size):
-    config = write_config(tmp_path / f"{name}.yaml", survey, features=FEATURES,
-                          tiling={"chunk_size": chunk_size}, output=RASTERS, cascade=CASCADE)
-    out = tmp_path / name
-    result = silva("run", config, "--out", out, "--in-process", "-q")
-    assert result.exit_code == 0, result.output
-    return out
-
 
 @pytest.fixture(scope="module")
-def runs(survey, tmp_path_factory):
-    root = tmp_path_factory.mktemp("terrain")
-    return run(root, survey, "one", 100.0), run(root, survey, "many", 5.0)
+def runs(covariance_runs):
+    """One chunk a scene in this process, and 8 m chunks (2 x 2 a scene) on the session's 2
+    workers, with the DTM, DSM and CHM rasters (and the trees the trees step's tests
+    read)."""
+    return covariance_runs
 
 
 def test_terrain_model_does_not_depend_on_the_chunking(runs, survey):
-    assert_chunked(runs[1], 9)  # 3 x 3 chunks a scene
+    assert_chunked(runs[1], 4)  # 2 x 2 chunks a scene
     one, many = (open_store(out / "store.zarr") for out in runs)
     for scene in ("train", "test"):
         a, b = read_terrain(one, scene), read_terrain(many, scene)
@@ -104,9 +97,8 @@ def test_rasters_no_longer_asked_for_are_removed(runs, survey, tmp_path):
 
     out = tmp_path / "copy"
     shutil.copytree(runs[0], out)
-    config = write_config(tmp_path / "c.yaml", survey, features=FEATURES, cascade=CASCADE,
-                          tiling={"chunk_size": 100.0}, output={"rasters": ["dtm"],
-                                                                "raster_resolution": 2.0})
+    config = covariance_config(tmp_path / "c.yaml", survey, 100.0,
+                               output={**TREES_AND_RASTERS, "rasters": ["dtm"]})
     result = silva("export", config, "--out", out, "--in-process", "-q")
     assert result.exit_code == 0, result.output
     assert {p.name.rsplit("_", 1)[1] for p in (out / "rasters").iterdir()} == {"dtm.tif"}
@@ -118,8 +110,7 @@ def test_an_export_done_already_keeps_its_rasters(runs, survey, tmp_path):
     out = tmp_path / "copy"
     shutil.copytree(runs[0], out)
     before = sorted(p.name for p in (out / "rasters").iterdir())
-    config = write_config(tmp_path / "c.yaml", survey, features=FEATURES, cascade=CASCADE,
-                          tiling={"chunk_size": 100.0}, output=RASTERS)
+    config = covariance_config(tmp_path / "c.yaml", survey, 100.0)  # the run's own
     result = silva("export", config, "--out", out, "--in-process", "-q")
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in (out / "rasters").iterdir()) == before

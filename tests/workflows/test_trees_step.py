@@ -10,6 +10,7 @@ import pytest
 
 from tests.workflows.conftest import (
     assert_chunked,
+    covariance_config,
     read_predictions,
     sigkill_when,
     silva,
@@ -18,33 +19,17 @@ from tests.workflows.conftest import (
 
 pytestmark = pytest.mark.slow
 
-FEATURES = {"set": "covariance", "r1": 0.5}
-CASCADE = {"stages": 1, "n_estimators": 6, "min_samples_leaf": 15, "max_train_points": 8000,
-           "seed": 3}
-TREES = {"trees": True}
 
-
-def config_for(tmp_path, survey, name, chunk_size, workers=1, **trees):
-    return write_config(tmp_path / f"{name}.yaml", survey, features=FEATURES,
-                        tiling={"chunk_size": chunk_size}, output=TREES, cascade=CASCADE,
-                        trees=trees,
-                        cluster={"kind": "local", "n_workers": workers,
-                                 "threads_per_worker": 1, "dashboard": False})
-
-
-def run(tmp_path, survey, name, chunk_size, workers=1, **trees):
-    config = config_for(tmp_path, survey, name, chunk_size, workers, **trees)
-    out = tmp_path / name
-    args = ["run", config, "--out", out, "-q"] + (["--in-process"] if workers == 1 else [])
-    result = silva(*args)
-    assert result.exit_code == 0, result.output
-    return out
+def config_for(tmp_path, survey, name, chunk_size):
+    """The config of the shared runs (trees and rasters) with ``chunk_size``."""
+    return covariance_config(tmp_path / f"{name}.yaml", survey, chunk_size)
 
 
 @pytest.fixture(scope="module")
-def runs(survey, tmp_path_factory):
-    root = tmp_path_factory.mktemp("trees")
-    return run(root, survey, "one", 100.0), run(root, survey, "many", 5.0, workers=2)
+def runs(covariance_runs):
+    """One chunk a scene in this process, and 8 m chunks (2 x 2 a scene) on the session's 2
+    workers, with the trees (and the rasters the terrain step's tests read)."""
+    return covariance_runs
 
 
 def read_table(path) -> list[dict]:
@@ -53,7 +38,7 @@ def read_table(path) -> list[dict]:
 
 
 def test_tree_ids_and_tables_do_not_depend_on_chunks_or_workers(runs):
-    assert_chunked(runs[1], 9)  # 3 x 3 chunks a scene
+    assert_chunked(runs[1], 4)  # 2 x 2 chunks a scene
     one, many = (read_predictions(out) for out in runs)
     assert one.keys() == many.keys() and one
     for tile in one:
@@ -112,7 +97,7 @@ def test_labelled_run_scores_the_tree_instances(runs):
 
 
 def test_a_run_killed_in_the_trees_step_resumes_to_the_same_trees(runs, survey, tmp_path):
-    config = config_for(tmp_path, survey, "killed", 5.0)
+    config = config_for(tmp_path, survey, "killed", 8.0)
     out = tmp_path / "killed"
     trees_started = lambda: (out / "store.zarr" / "scenes" / "test" / "trees").exists()  # noqa: E731
     sigkill_when(["run", config, "--out", out, "-q", "--in-process"], trees_started)

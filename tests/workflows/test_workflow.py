@@ -87,16 +87,13 @@ def test_outputs_of_a_complete_run(reference, survey):
 
 
 @pytest.fixture(scope="module")
-def many_chunks(survey, tmp_path_factory):
-    """5 m chunks on 2 workers: 3 x 3 chunks a scene whose halos the results must not see,
-    the test scene's classified in one pass (which ``keep_features: auto`` would leave to
-    the stored features at this chunk size)."""
+def many_chunks(survey, tmp_path_factory, dask_cluster):
+    """5 m chunks on 2 workers (the session's cluster): 3 x 3 chunks a scene whose halos the
+    results must not see, the test scene's classified in one pass (which
+    ``keep_features: auto`` would leave to the stored features at this chunk size)."""
     root = tmp_path_factory.mktemp("many")
-    config = write_config(
-        root / "many.yaml", survey, tiling={"chunk_size": 5.0},
-        cluster={"kind": "local", "n_workers": 2, "threads_per_worker": 1, "dashboard": False},
-        output={"keep_features": False},
-    )
+    config = write_config(root / "many.yaml", survey, tiling={"chunk_size": 5.0},
+                          cluster=dask_cluster, output={"keep_features": False})
     result = silva("run", config, "--out", root / "out", "--quiet")
     assert result.exit_code == 0, result.output
     return root / "out"
@@ -165,8 +162,10 @@ def _invariant_mtimes(out: Path) -> dict[str, float]:
     return mtimes
 
 
-def test_resume_after_sigkill(reference, survey, tmp_path):
-    config = write_config(tmp_path / "kill.yaml", survey, tiling={"chunk_size": 5.0})
+def test_resume_after_sigkill(reference, survey, tmp_path, dask_cluster):
+    # killed in its own process, resumed on the session's cluster
+    config = write_config(tmp_path / "kill.yaml", survey, tiling={"chunk_size": 5.0},
+                          cluster=dask_cluster)
     out = tmp_path / "out"
     sigkill_when(["run", config, "--out", out, "--quiet", "--in-process"],
                  lambda: len(_invariant_mtimes(out)) >= 3)
