@@ -19,8 +19,9 @@ from pipeline.errors import ChunkError, InputError, SilvaError
 from pipeline.store import open_store, write_arrays
 from workflows.progress import StepProgress
 from workflows.store.assembly import chunk_points
-from workflows.store.layout import RETURNS, chunk_path, source_scene
+from workflows.store.layout import RETURNS, chunk_path
 from workflows.store.marks import is_done, mark_done, read_array
+from workflows.store.scenes import RunLayout
 
 log = logging.getLogger(__name__)
 
@@ -215,19 +216,18 @@ def _chunk_step(fn, store_path, scene, chunk, step, fingerprint, params):
     return result
 
 
-def chunk_tasks(run, layout: dict, step: str, fn, params, fingerprint: str, verb: str, *,
+def chunk_tasks(run, layout: RunLayout, step: str, fn, params, fingerprint: str, verb: str, *,
                 only: str | None = None, marks: bool = True) -> list[Task]:
     """One task ``fn(view, params)`` per chunk of every scene (or only ``scene/chunk``).
 
-    ``params`` is a frozen parameter object, or a function of the scene's layout entry
-    returning one; ``verb`` is the command that reruns one chunk; ``marks`` False for a step
-    that leaves nothing in the store.
+    ``params`` is a frozen parameter object, or a function of the scene's
+    :class:`~workflows.store.scenes.SceneLayout` returning one; ``verb`` is the command
+    that reruns one chunk; ``marks`` False for a step that leaves nothing in the store.
     """
     tasks = []
-    for scene, info in layout["scenes"].items():
-        source = source_scene(scene)  # a thinned copy: its scene's tiles
-        names = [t["name"] for t in layout["tiles"] if t["scene"] == source]
-        for chunk in info["chunks"]:
+    for scene, info in layout.scenes.items():
+        names = [t["name"] for t in layout.tiles_of(scene)]  # a thinned copy: its scene's
+        for chunk in info.chunks:
             if only is not None and only != f"{scene}/{chunk}":
                 continue
             tasks.append(Task(
@@ -252,9 +252,10 @@ def results_by_scene(tasks: list[Task], results: dict) -> dict[str, list]:
     return grouped
 
 
-def check_chunk(layout: dict, only: str) -> None:
-    """Raise :class:`ChunkError` unless ``only`` ("scene/chunk") is a chunk of ``layout``."""
-    known = [f"{s}/{c}" for s, info in layout["scenes"].items() for c in info["chunks"]]
+def check_chunk(layout: RunLayout, only: str) -> None:
+    """Raise :class:`ChunkError` unless ``only`` ("scene/chunk") is a chunk of ``layout``
+    (a :class:`~workflows.store.scenes.RunLayout`)."""
+    known = layout.chunk_keys()
     if only not in known:
         raise ChunkError(f"--chunk {only}: no such chunk in this run; give SCENE/CHUNK, one of "
                          f"{', '.join(known[:6])}{' ...' if len(known) > 6 else ''}")

@@ -20,14 +20,13 @@ from dask.utils import format_bytes
 from pipeline.atomic import atomic_path
 from pipeline.errors import ConfigError
 from pipeline.features.sets import feature_set
-from pipeline.tiling import MIN_CHUNK_HALOS, Grid, layout_from_dict, tile_area
+from pipeline.tiling import MIN_CHUNK_HALOS, Grid, tile_area
 from workflows.progress import clock, counted
 from workflows.run import Run
 from workflows.step_table import step_weights as table_weights
 from workflows.steps.copies import copy_lines
 from workflows.steps.ingest import plan_scenes, plan_tiles, scene_chunk_size
-from workflows.steps.one_pass import one_pass_scenes
-from workflows.store.layout import is_copy
+from workflows.store.scenes import SceneLayout
 
 log = logging.getLogger(__name__)
 
@@ -171,44 +170,25 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
              f"halo {run.halo:g} m" + (f", voxels of {params.voxel:.3g} m" if params.voxel
                                        else "") + f", {echoes_text(params.echoes)}"]
     largest, disk = 0.0, 0.0
-    one_pass = one_pass_scenes({"scenes": scenes})
-    for scene, info in scenes.items():
-        if is_copy(scene):  # a thinned copy (data.densities): its line follows
-            disk += info["expected"] * (STORE_BYTES_PER_POINT + 4 * columns)
-            continue
-        grid = layout_from_dict(info["grid"])
+    copied = sum(info.thinning.expected for info in scenes.values() if info.thinning)
+    outputs = {scene: info for scene, info in scenes.items() if info.thinning is None}
+    for scene, info in outputs.items():
         members = [t for t in tiles if t["scene"] == scene]
-        points = sum(t["n_points"] for t in members)
-        area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
-        way = "one pass" if scene in one_pass else "stage by stage"
-        head = (f"scene {scene}: {counted(len(members), 'tile')}, "
-                f"{counted(points, 'point')}, {points / area:,.1f} points/m²; "
-                f"halo {info['halo']:g} m ({way}); ")
-        if isinstance(grid, Grid):
-            per_chunk = grid_window(members, grid.size, info["halo"])
-            lines.append(f"{head}chunks of {grid.size:g} m, a {grid.nx} x {grid.ny} grid; "
-                         f"about {counted(round(per_chunk), 'point')} in a chunk with its halo")
-        else:
-            core, window = info["estimate"]["core"], info["estimate"]["window"]
-            per_chunk = window[2]
-            lines.append(f"{head}{counted(grid.n_chunks, 'chunk')} {grid.label}; "
-                         "points in a core (min / median / max) "
-                         f"{' / '.join(f'{v:,}' for v in core)}, with its halo "
-                         f"{' / '.join(f'{v:,}' for v in window)}")
+        line, per_chunk = _scene_line(scene, info, members)
+        lines.append(line)
         largest = max(largest, per_chunk)
-        disk += points * (ONE_PASS_BYTES_PER_POINT if scene in one_pass
-                          else STORE_BYTES_PER_POINT + 4 * columns)
+        disk += sum(t["n_points"] for t in members) * (
+            ONE_PASS_BYTES_PER_POINT if info.one_pass else STORE_BYTES_PER_POINT + 4 * columns)
+    disk += copied * (STORE_BYTES_PER_POINT + 4 * columns)  # the thinned copies
     lines += copy_lines(scenes, run.cfg.data.densities, run.cfg.cascade.seed,
                         run.model is not None)
     memory = worker_bytes(largest, columns)
-    spent = estimated_seconds(run, tiles, workers, sum(
-        info["expected"] for scene, info in scenes.items() if is_copy(scene)))
+    spent = estimated_seconds(run, tiles, workers, copied)
     seconds, training = spent["features"] + spent["other"], spent["training"]
     lines += [
         f"memory: about {memory / 2**30:.2f} GiB per worker in the largest chunk" + (
             " at the mean density (dense parts of a chunk hold more; tiling.target_points "
-            "bounds it)" if any("estimate" not in info for scene, info in scenes.items()
-                                if not is_copy(scene)) else ""),
+            "bounds it)" if any(info.estimate is None for info in outputs.values()) else ""),
         f"disk: about {disk / 2**30:.2f} GiB for store.zarr",
         f"time: about {clock(seconds + training)} on {counted(workers, 'worker')}: "
         f"{clock(seconds)} for the features, context and predictions, {clock(training)} "
@@ -218,9 +198,31 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
     if run.cfg.output.trees:
         lines.append(trees_line(run, tiles))
     if picture is not None:
-        _draw({s: info for s, info in scenes.items() if not is_copy(s)}, tiles, picture)
+        _draw(outputs, tiles, picture)
         lines.append(f"picture: {picture}")
     return lines
+
+
+def _scene_line(scene: str, info: SceneLayout, members: list[dict]) -> tuple[str, float]:
+    """``silva plan``'s line of a scene of tiles ``members``, and the points of its
+    largest chunk with its halo."""
+    grid = info.grid
+    points = sum(t["n_points"] for t in members)
+    area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
+    way = "one pass" if info.one_pass else "stage by stage"
+    head = (f"scene {scene}: {counted(len(members), 'tile')}, "
+            f"{counted(points, 'point')}, {points / area:,.1f} points/m²; "
+            f"halo {info.halo:g} m ({way}); ")
+    if isinstance(grid, Grid):
+        per_chunk = grid_window(members, grid.size, info.halo)
+        return (f"{head}chunks of {grid.size:g} m, a {grid.nx} x {grid.ny} grid; "
+                f"about {counted(round(per_chunk), 'point')} in a chunk with its halo",
+                per_chunk)
+    core, window = info.estimate["core"], info.estimate["window"]
+    return (f"{head}{counted(grid.n_chunks, 'chunk')} {grid.label}; "
+            "points in a core (min / median / max) "
+            f"{' / '.join(f'{v:,}' for v in core)}, with its halo "
+            f"{' / '.join(f'{v:,}' for v in window)}", window[2])
 
 
 def echoes_text(echoes: bool) -> str:
@@ -265,7 +267,7 @@ def step_weights(run: Run, tiles: list[dict], workers: int) -> dict[str, float]:
     return table_weights(estimated_seconds(run, tiles, workers))
 
 
-def _draw(scenes: dict, tiles: list[dict], path: Path) -> None:
+def _draw(scenes: dict[str, SceneLayout], tiles: list[dict], path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -274,7 +276,7 @@ def _draw(scenes: dict, tiles: list[dict], path: Path) -> None:
 
     fig, axes = plt.subplots(1, len(scenes), figsize=(5 * len(scenes), 5), squeeze=False)
     for ax, (scene, info) in zip(axes[0], scenes.items()):
-        grid = layout_from_dict(info["grid"])
+        grid = info.grid
         if isinstance(grid, Grid):
             lo = (grid.x0, grid.y0)
             hi = (grid.x0 + grid.nx * grid.size, grid.y0 + grid.ny * grid.size)

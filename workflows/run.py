@@ -39,9 +39,10 @@ log = logging.getLogger(__name__)
 SCENES = ("train", "test", "predict")
 
 
-def has_test_points(layout: dict, split) -> bool:
-    """Whether a run holds labelled test points: a test scene, or a train scene split in two."""
-    return "test" in layout["scenes"] or ("train" in layout["scenes"] and split is not None)
+def has_test_points(scenes, split) -> bool:
+    """Whether a run of ``scenes`` (their names) holds labelled test points: a test scene,
+    or a train scene split in two."""
+    return "test" in scenes or ("train" in scenes and split is not None)
 
 
 @dataclass

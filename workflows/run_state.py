@@ -10,7 +10,7 @@ from pipeline.errors import StoreError
 from workflows.durations import accumulate
 from workflows.run import Run, has_test_points
 from workflows.step_table import BY_NAME, steps_until
-from workflows.store.layout import without_copies
+from workflows.store.scenes import RunLayout
 
 
 @dataclass
@@ -31,10 +31,10 @@ class RunState:
     kernels: object = None
     summary: dict = field(default_factory=dict)
     stamp: str = ""  # what metrics and report follow from (Run.results_stamp)
-    layout: dict | None = None  # ingest's chunk layout
+    layout: RunLayout | None = None  # ingest's chunk layout
     counts: object = None  # the training points per class (features)
-    staged: dict | None = None  # the layout's scenes classified stage by stage
-    one_pass: dict | None = None  # and those classified in one pass per chunk
+    staged: RunLayout | None = None  # the layout's scenes classified stage by stage
+    one_pass: RunLayout | None = None  # and those classified in one pass per chunk
     stages: list | None = None  # the model's stage records
     trees: dict | None = None  # the trees found per scene (output.trees)
     drawn: tuple | None = None  # an unlabelled run's survey and its figures (a future)
@@ -56,14 +56,14 @@ class RunState:
         return self.run.model_dir is None
 
     @property
-    def outputs(self) -> dict:
+    def outputs(self) -> RunLayout:
         """The layout without the thinned copies of the training scene (data.densities):
         the scenes the steps after the cascade export, score and survey."""
-        return without_copies(self.layout)
+        return self.layout.without_copies()
 
     @property
     def labelled(self) -> bool:
-        return has_test_points(self.layout, self.run.cfg.data.split)
+        return has_test_points(self.layout.scenes, self.run.cfg.data.split)
 
     @property
     def n_stages(self) -> int:

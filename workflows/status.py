@@ -7,12 +7,12 @@ import yaml
 from pipeline.errors import ModelError
 from pipeline.model import MODEL_FILE, read_description
 from pipeline.store import open_store
-from pipeline.tiling import layout_from_dict
 from workflows.lock import describe, held_by_other, read_lock
 from workflows.progress import counted
 from workflows.run import has_test_points
 from workflows.store.layout import chunk_path
 from workflows.store.retention import removed_record
+from workflows.store.scenes import RunLayout
 
 
 def run_status(out: Path) -> list[str]:
@@ -27,27 +27,25 @@ def _steps(out: Path) -> list[str]:
     if not store_path.exists():
         return [f"{out}: nothing ingested yet (no store.zarr)"]
     root = open_store(store_path, mode="r")
-    layout = root.attrs.get("layout")
-    if not layout:
+    if not root.attrs.get("layout"):
         return [f"{out}: ingest did not finish; rerun the command to resume"]
-    lines = [f"{out}: {counted(len(layout['tiles']), 'tile')}, "
-             f"{counted(sum(t['n_points'] for t in layout['tiles']), 'point')}"]
+    layout = RunLayout.from_dict(root.attrs["layout"])
+    lines = [f"{out}: {counted(len(layout.tiles), 'tile')}, {counted(layout.n_points, 'point')}"]
     removed = removed_record(root) is not None
     if removed:
         lines.append("store: its chunks were removed after the run completed (output.keep_store: "
                      "false); the same run again has nothing to do, any other recomputes them")
-    for scene, info in (() if removed else layout["scenes"].items()):
+    for scene, info in (() if removed else layout.scenes.items()):
         steps: dict[str, int] = {}
-        for chunk in info["chunks"]:
+        for chunk in info.chunks:
             path = chunk_path(scene, chunk)
             done = root[path].attrs.get("done", {}) if path in root else {}
             for step in done:
                 steps[step] = steps.get(step, 0) + 1
-        total = len(info["chunks"])
+        total = len(info.chunks)
         # steps in the order they ran (the order of the chunks' done records)
         done_text = ", ".join(f"{s} {n}/{total}" for s, n in steps.items()) or "no step done"
-        label = layout_from_dict(info["grid"]).label
-        lines.append(f"scene {scene}: {counted(total, 'chunk')} {label}; {done_text}")
+        lines.append(f"scene {scene}: {counted(total, 'chunk')} {info.grid.label}; {done_text}")
     model = out / "model"
     if (model / MODEL_FILE).is_file():
         try:
@@ -56,23 +54,23 @@ def _steps(out: Path) -> list[str]:
         except ModelError as err:
             lines.append(f"model: unusable ({err})")
     exported = _exported(root, out, layout)
-    lines.append(f"predictions: {exported} of {len(layout['tiles'])} tiles exported")
+    lines.append(f"predictions: {exported} of {len(layout.tiles)} tiles exported")
     metrics = out / "metrics.json"
     if metrics.is_file():
         lines.append(f"metrics: {metrics}")
-    elif has_test_points(layout, _saved_split(out)):
+    elif has_test_points(layout.scenes, _saved_split(out)):
         lines.append("metrics: not written yet")
     else:
         lines.append("metrics: none (no labelled test points: data.test or data.split)")
     return lines
 
 
-def _exported(root, out: Path, layout: dict) -> int:
+def _exported(root, out: Path, layout: RunLayout) -> int:
     """Tiles of the run whose prediction file, in the configured format, was written by a
     finished export (files of other formats or of tiles dropped since are not counted)."""
     suffix = "." + str(_saved(out, "output").get("format", "laz"))
     count = 0
-    for tile in layout["tiles"]:
+    for tile in layout.tiles:
         marker = f"exports/{tile['index']}"
         done = marker in root and "export" in root[marker].attrs.get("done", {})
         count += done and (out / "predictions" / f"{tile['name']}{suffix}").is_file()

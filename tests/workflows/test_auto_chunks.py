@@ -55,7 +55,8 @@ def window_counts(directory, grid: dict, halo: float) -> np.ndarray:
 
 def planned_grids(tmp_path, survey, **tiling) -> dict[str, dict]:
     """The planned layouts by scene; a grid sized from the headers unless told otherwise."""
-    return {scene: info["grid"] for scene, info in planned(tmp_path, survey, **tiling).items()}
+    return {scene: info.grid.to_dict()
+            for scene, info in planned(tmp_path, survey, **tiling).items()}
 
 
 def planned(tmp_path, survey, **tiling) -> dict[str, dict]:
@@ -149,7 +150,7 @@ def test_balanced_chunks_hold_at_most_target_points(tmp_path, survey, target_poi
     scenes = planned(tmp_path, survey, chunk_size="auto", layout="balanced",
                      target_points=target_points)
     for scene, info in scenes.items():
-        layout = layout_from_dict(info["grid"])
+        layout = info.grid
         assert isinstance(layout, BalancedLayout) and layout.n_chunks > 1
         xy = scene_xy(survey[scene])
         core = np.bincount(layout.chunk_of(xy), minlength=layout.n_chunks)
@@ -160,7 +161,7 @@ def test_balanced_chunks_hold_at_most_target_points(tmp_path, survey, target_poi
         assert window.max() <= target_points
         assert core.max() <= 2.5 * core.min()
         # the plan's estimate (from the lattice counts) is on the safe side
-        estimate = info["estimate"]
+        estimate = info.estimate
         assert estimate["window"][2] >= window.max() and estimate["core"][2] >= core.max()
         # the grid sized for the same target from the headers is far less even
         grid = layout_from_dict(planned_grids(tmp_path, survey, chunk_size="auto",
@@ -207,4 +208,4 @@ def test_balanced_scene_within_the_target_is_one_chunk_from_the_headers(tmp_path
                      target_points=10_000_000)
     for scene, info in scenes.items():
         n_points = scene_headers(survey[scene])[0]
-        assert info["grid"]["cuts"] == [] and info["estimate"]["window"] == [n_points] * 3
+        assert info.grid.cuts == () and info.estimate["window"] == [n_points] * 3

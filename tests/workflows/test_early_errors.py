@@ -176,7 +176,7 @@ def test_the_memory_a_worker_needs_follows_its_chunk_and_columns(tmp_path, surve
                        for s in ("train", "test"))
     # never below the windows the balanced layout cuts once it has counted the points,
     # though small dense plots keep windows above the target
-    counted = max(info["estimate"]["window"][2] for info in plan_scenes(run, tiles).values())
+    counted = max(info.estimate["window"][2] for info in plan_scenes(run, tiles).values())
     assert counted <= foreseen_window(run, tiles) <= scene_points
     # an airborne tile: 10 M points on 1 km², chunks of the target's points
     airborne = [{"scene": "predict", "n_points": 10_000_000, "mins": [0.0, 0.0, 0.0],

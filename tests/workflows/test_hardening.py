@@ -145,7 +145,7 @@ def test_ingest_checks_the_points_read_against_the_header(tmp_path, survey):
     tile["n_points"] += 5
     from workflows.steps.ingest import plan_scenes
 
-    grid = plan_scenes(run, [tile])[tile["scene"]]["grid"]
+    grid = plan_scenes(run, [tile])[tile["scene"]].grid
     run.store  # creates it
     with pytest.raises(InputError, match=rf"announces {tile['n_points']} points but "
                                          rf"{tile['n_points'] - 5} were read"):

@@ -18,7 +18,7 @@ def _peak_ingest(tmp_path, tile_path, n_points, read_batch):
             "n_points": n_points}
     grid = Grid(0.0, 0.0, 100.0, 1, 1)
     tracemalloc.start()
-    ingest_tile(IngestTask(str(store), "train", tile, grid.to_dict(), 0.5, "classification",
+    ingest_tile(IngestTask(str(store), "train", tile, grid, 0.5, "classification",
                            {2: 0}, None, read_batch, "fp"))
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()

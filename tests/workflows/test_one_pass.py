@@ -10,11 +10,13 @@ import pytest
 
 from pipeline.features.density import capped_halo
 from pipeline.store import open_store
+from pipeline.tiling import BalancedLayout, Grid
 from workflows.autoparams import resolve_run
 from workflows.config import load_config
 from workflows.run import Run
 from workflows.steps.ingest import plan_scenes, plan_tiles
-from workflows.steps.one_pass import MAX_BORDER_SHARE, border_share, one_pass_scenes
+from workflows.steps.one_pass import MAX_BORDER_SHARE, border_share
+from workflows.store.scenes import SceneLayout
 from tests.workflows.conftest import (
     assert_same_predictions,
     read_predictions,
@@ -177,8 +179,8 @@ def test_auto_leaves_scenes_of_small_chunks_to_the_stored_features(survey, tmp_p
                                        output={"keep_features": keep}))
         run = Run(resolve_run(cfg), tmp_path / "out", quiet=True)
         scenes = plan_scenes(run, plan_tiles(run))
-        return ({scene: info["halo"] for scene, info in scenes.items()},
-                one_pass_scenes({"scenes": scenes}))
+        return ({scene: info.halo for scene, info in scenes.items()},
+                {scene for scene, info in scenes.items() if info.one_pass})
 
     # write_config's paper set at r1 0.5, and with 2 stages
     reach = capped_halo(0.5)
@@ -192,12 +194,12 @@ def test_auto_leaves_scenes_of_small_chunks_to_the_stored_features(survey, tmp_p
     # the halo 1.01 m, the ring 0.5 m: squares of 30 m have 0.14 of their points beside
     # them within the halo, half of that within the ring; squares of 15 m twice as many
     def grid(size):
-        return {"grid": {"x0": 0.0, "y0": 0.0, "size": size, "nx": 3, "ny": 3}}
+        return SceneLayout(Grid(0.0, 0.0, size, 3, 3), 1.01, groups=())
 
-    share = {size: border_share(grid(size), 1.01, 0.5) for size in (15.0, 30.0)}
+    share = {size: border_share(grid(size), 0.5) for size in (15.0, 30.0)}
     assert share[30.0] == pytest.approx(((30 + 2.02) ** 2 - 30**2) / 30**2 * 0.5 / 1.01)
     assert share[30.0] < MAX_BORDER_SHARE < share[15.0]
-    balanced = {"grid": {"kind": "balanced", "cuts": [[0, 10.0, -1, -2]], "cell": 0.25,
-                         "bounds": [0.0, 0.0, 20.0, 20.0]},
-                "estimate": {"core": [700, 771, 800], "window": [900, 956, 990]}}
-    assert border_share(balanced, 1.52, 1.0) == pytest.approx((956 / 771 - 1) / 1.52)
+    balanced = SceneLayout(BalancedLayout(((0, 10.0, -1, -2),), 0.25, (0.0, 0.0, 20.0, 20.0)),
+                           1.52, groups=(),
+                           estimate={"core": [700, 771, 800], "window": [900, 956, 990]})
+    assert border_share(balanced, 1.0) == pytest.approx((956 / 771 - 1) / 1.52)

@@ -124,7 +124,7 @@ def survey_html(survey: dict, images: dict) -> str:
     total, cells = max(int(counts.sum()), 1), max(int(area.sum()), 1)
     parts = ["<h2>Predicted classes</h2>",
              "<table><tr><th>class</th><th>code</th><th>points</th><th>share of the points</th>"
-             f"<th>share of the area</th></tr>"]
+             "<th>share of the area</th></tr>"]
     for i, name in enumerate(names):
         swatch = f'<span class="swatch" style="background:{class_colour(i)}"></span>'
         parts.append(f"<tr><td>{swatch}{e(name)}</td><td>{codes[i]}</td>"

@@ -37,7 +37,7 @@ from pipeline.model import (
     write_description,
 )
 from pipeline.store import rows_of
-from pipeline.tiling import layout_from_dict
+from pipeline.tiling import BalancedLayout, Grid
 from workflows.autoparams import data_filters
 from workflows.engine import chunk_tasks
 from workflows.progress import say
@@ -45,6 +45,7 @@ from workflows.run import Run
 from workflows.run_plan import AppliedModel, check_model
 from workflows.steps.copies import trained_copies
 from workflows.store.layout import ROLE_TRAIN, context_array, labels_array, proba_array
+from workflows.store.scenes import RunLayout
 
 log = logging.getLogger(__name__)
 FIT_LINE_SECONDS = 60  # with --quiet, a line at most this often while the forests grow
@@ -57,7 +58,7 @@ class ContextTask:
     mode: str  # "hard" or "soft"
     stage: int  # the stage the context feeds (>= 1)
     n_classes: int
-    grid: dict
+    grid: Grid | BalancedLayout
 
 
 @dataclass(frozen=True)
@@ -98,7 +99,7 @@ def chunk_context(view, task: ContextTask):
     xyz, gid, halo_xyz, halo_gid = view.read("xyz", "gid", "halo_xyz", "halo_gid")
     proba = np.concatenate([
         view.read(proba_array(task.stage - 1)),
-        _halo_proba(view, layout_from_dict(task.grid), halo_xyz, halo_gid, task.stage - 1,
+        _halo_proba(view, task.grid, halo_xyz, halo_gid, task.stage - 1,
                     task.n_classes),
     ])
     context = stage_context(
@@ -166,7 +167,7 @@ class StoreCascade:
     """:class:`pipeline.cascade.CascadeData` of a run: the chunks of its store, mapped over
     the engine's workers. Its forests live in files that the workers load."""
 
-    def __init__(self, run: Run, engine, layout: dict, *, fit: bool, only: str | None):
+    def __init__(self, run: Run, engine, layout: RunLayout, *, fit: bool, only: str | None):
         self.run, self.engine, self.layout, self.fit, self.only = run, engine, layout, fit, only
         self.n_classes = run.n_classes
         self.params = run.cascade_params(n_jobs=os.cpu_count() or 1)
@@ -213,7 +214,7 @@ class StoreCascade:
     def update_context(self, stage):
         run = self.run
         self._map(f"context-{stage + 1}", chunk_context, lambda info: ContextTask(
-            run.features, self.params.context, stage, self.n_classes, info["grid"]), stage)
+            run.features, self.params.context, stage, self.n_classes, info.grid), stage)
 
     def training_rows(self, stage, fractions, seed):
         self.fractions = fractions
@@ -314,7 +315,7 @@ class StoreCascade:
                 "training_copies": trained_copies(self.layout)}
 
 
-def cascade(run: Run, engine, layout: dict, train_counts: np.ndarray | None, *, fit: bool,
+def cascade(run: Run, engine, layout: RunLayout, train_counts: np.ndarray | None, *, fit: bool,
             only: str | None = None) -> list[dict]:
     """Run every stage over every chunk (fitting the stages a model lacks when ``fit``);
     return the model's stage records."""

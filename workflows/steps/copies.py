@@ -7,7 +7,7 @@ labels and roles. Ingest writes its parts in the same pass as the scene's (:clas
 under the same keys and on the same chunk grid; from there on it is a scene like any other,
 with its own terrain model, features and context computed on its thinned points (a sparse
 crown's neighbourhoods), and its labelled points train the forests. It is never exported,
-scored or surveyed (:func:`~workflows.store.layout.without_copies`).
+scored or surveyed (:meth:`~workflows.store.scenes.RunLayout.without_copies`).
 
 The scene's density is counted over all its tiles before any copy is written (ingest's
 density pass, the points ingest keeps over the 2 m cells they occupy, as
@@ -19,55 +19,56 @@ ids, a point and its copies fall in the same out-of-fold fold: no forest predict
 that one of its copies trained.
 """
 
+from dataclasses import replace
+
 from pipeline.cascade.thinning import cells_density, thinned_mask, thinning_fraction
-from workflows.store.layout import chunk_path, copy_scene, is_copy
+from workflows.store.layout import chunk_path, copy_scene
 from workflows.store.marks import forget_done, is_done, mark_done
+from workflows.store.scenes import RunLayout, SceneLayout, Thinning
 
 #: The scene that gets thinned copies.
 SOURCE = "train"
-#: What a copy's layout entry does not take from its scene's.
-OWN_KEYS = ("density", "estimate")
 
 
-def plan_copies(scenes: dict, densities, measure) -> dict:
-    """``scenes`` (ingest's layout entries, by scene) with a thinned copy of the training
-    scene after it for every density of ``densities`` (points per m², densest first) below
-    its own; ``measure(scene)`` gives (points, occupied 2 m cells) of the whole scene.
+def plan_copies(scenes: dict[str, SceneLayout], densities, measure
+                ) -> dict[str, SceneLayout]:
+    """``scenes`` (ingest's layouts, by scene) with a thinned copy of the training scene
+    after it for every density of ``densities`` (points per m², densest first) below its
+    own; ``measure(scene)`` gives (points, occupied 2 m cells) of the whole scene.
 
-    The training scene's entry records its ``density`` (``points``, ``cells``, ``value``);
-    a copy's entry is its scene's (the same grid, halo, read units and part keys), stage by
-    stage, with ``copy_of``, the ``target`` density, the kept ``fraction`` and the
-    ``expected`` points.
+    The training scene's layout records its ``density`` (``points``, ``cells``,
+    ``value``); a copy's is its scene's (the same grid, halo, read units and part keys),
+    stage by stage, with its :class:`~workflows.store.scenes.Thinning`.
     """
     if not densities or SOURCE not in scenes:
         return scenes
     points, cells = measure(SOURCE)
     density = cells_density(points, cells)
-    source = {**scenes[SOURCE], "density": {"points": int(points), "cells": int(cells),
-                                            "value": density}}
     result = {}
     for scene, info in scenes.items():
-        result[scene] = source if scene == SOURCE else info
         if scene != SOURCE:
+            result[scene] = info
             continue
+        result[scene] = replace(info, density={"points": int(points), "cells": int(cells),
+                                               "value": density})
         for target in sorted(set(map(float, densities)), reverse=True):
             if target >= density:
                 continue  # a copy is never denser than its scene (said by copy_lines)
-            fraction = thinning_fraction(density, target)
-            result[copy_scene(scene, target)] = {
-                **{k: v for k, v in info.items() if k not in OWN_KEYS},
-                "one_pass": False, "copy_of": scene, "target": target,
-                "fraction": fraction, "expected": int(round(points * fraction))}
+            fraction = float(thinning_fraction(density, target))
+            result[copy_scene(scene, target)] = replace(
+                info, one_pass=False, estimate=None, thinning=Thinning(
+                    scene, target, fraction, int(round(points * fraction))))
     return result
 
 
-def copies_of(scenes: dict, scene: str) -> tuple[tuple[str, float], ...]:
+def copies_of(scenes: dict[str, SceneLayout], scene: str) -> tuple[tuple[str, float], ...]:
     """(copy, fraction) of every thinned copy of ``scene`` in ``scenes``, in layout order."""
-    return tuple((name, float(info["fraction"])) for name, info in scenes.items()
-                 if info.get("copy_of") == scene)
+    return tuple((name, info.thinning.fraction) for name, info in scenes.items()
+                 if info.thinning is not None and info.thinning.copy_of == scene)
 
 
-def copy_lines(scenes: dict, densities, seed: int, applies_model: bool = False) -> list[str]:
+def copy_lines(scenes: dict[str, SceneLayout], densities, seed: int,
+               applies_model: bool = False) -> list[str]:
     """What ``silva plan`` and the ingest log say of the thinned copies: one line per copy
     (scene, density, fraction, expected points) and per density that makes none."""
     if not densities:
@@ -76,13 +77,14 @@ def copy_lines(scenes: dict, densities, seed: int, applies_model: bool = False) 
         return ["data.densities: no thinned copies: the run applies a saved model"]
     if SOURCE not in scenes:
         return [f"data.densities: no thinned copies: the run has no data.{SOURCE}"]
-    density = scenes[SOURCE]["density"]["value"]
-    lines = [f"copy {name}: scene {info['copy_of']} ({density:,.1f} points/m² in its "
-             f"occupied 2 m cells) thinned to {info['target']:g} points/m², fraction "
-             f"{info['fraction']:.4f} (seed {seed}): about {info['expected']:,} points, "
+    density = scenes[SOURCE].density["value"]
+    copies = {name: info.thinning for name, info in scenes.items() if info.thinning}
+    lines = [f"copy {name}: scene {copy.copy_of} ({density:,.1f} points/m² in its "
+             f"occupied 2 m cells) thinned to {copy.target:g} points/m², fraction "
+             f"{copy.fraction:.4f} (seed {seed}): about {copy.expected:,} points, "
              "trained on, not exported or scored"
-             for name, info in scenes.items() if is_copy(name)]
-    made = {info["target"] for info in scenes.values() if "target" in info}
+             for name, copy in copies.items()]
+    made = {copy.target for copy in copies.values()}
     lines += [f"data.densities {target:g}: no copy of scene {SOURCE}, whose density is "
               f"{density:,.1f} points/m² (a copy is never denser than its scene)"
               for target in sorted(set(map(float, densities)), reverse=True)
@@ -90,13 +92,13 @@ def copy_lines(scenes: dict, densities, seed: int, applies_model: bool = False) 
     return lines
 
 
-def trained_copies(layout: dict) -> list[dict]:
+def trained_copies(layout: RunLayout) -> list[dict]:
     """What a model records of the copies it was trained on: each copy's scene, the scene
     it was thinned from, its density and that scene's, the fraction kept."""
-    return [{"scene": name, "copy_of": info["copy_of"], "density": info["target"],
-             "scene_density": layout["scenes"][info["copy_of"]]["density"]["value"],
-             "fraction": info["fraction"]}
-            for name, info in layout["scenes"].items() if is_copy(name)]
+    return [{"scene": name, "copy_of": info.thinning.copy_of, "density": info.thinning.target,
+             "scene_density": layout.scenes[info.thinning.copy_of].density["value"],
+             "fraction": info.thinning.fraction}
+            for name, info in layout.scenes.items() if info.thinning is not None]
 
 
 # -- ingest: the parts of the copies ------------------------------------------------------

@@ -19,6 +19,7 @@ from pipeline.cascade import id_hash, labels_from_proba
 from pipeline.metrics import confusion_matrix, scores_from_confusion
 from pipeline.atomic import atomic_write_text
 from workflows.store.layout import ROLE_TEST, labels_array, proba_array
+from workflows.store.scenes import RunLayout
 from workflows.engine import chunk_tasks, results_by_scene
 from workflows.run import Run
 from workflows.steps.survey import canopy_samples
@@ -60,10 +61,9 @@ def chunk_evaluation(view, task: EvaluationTask):
     }
 
 
-def evaluate(run: Run, engine, layout: dict, n_stages: int) -> dict:
+def evaluate(run: Run, engine, layout: RunLayout, n_stages: int) -> dict:
     """Return the metrics dict (metrics.json) and the report's plot data."""
-    total = sum(t["n_points"] for t in layout["tiles"])
-    fraction = min(1.0, PLOT_POINTS / max(total, 1))
+    fraction = min(1.0, PLOT_POINTS / max(layout.n_points, 1))
     tasks = chunk_tasks(run, layout, "evaluate", chunk_evaluation,
                         EvaluationTask(n_stages, run.n_classes, fraction),
                         run.fingerprint("evaluate"), "evaluate", marks=False)
@@ -75,7 +75,7 @@ def evaluate(run: Run, engine, layout: dict, n_stages: int) -> dict:
         confusion = sum(r["confusions"][stage] for r in results)
         stages.append(scores_from_confusion(confusion, run.classes, exclude=background))
     scored = {"test"} | ({"train"} if run.cfg.data.split is not None else set())
-    excluded = sum(t.get("excluded", 0) for t in layout["tiles"] if t["scene"] in scored)
+    excluded = sum(t.get("excluded", 0) for t in layout.tiles if t["scene"] in scored)
     metrics = {**stages[-1], "excluded_points": excluded,
                "points_without_features": sum(r["no_features"] for r in results),
                "stages": stages}

@@ -32,7 +32,7 @@ from pipeline.io.raster import cell_index, tile_grid, write_geotiff
 from pipeline.store import open_store, rows_of
 from pipeline.surface import despike, top_two
 from pipeline.terrain import Raster, TerrainBlocks, ground_elevation
-from pipeline.tiling import global_ids, layout_from_dict
+from pipeline.tiling import BalancedLayout, Grid, global_ids
 from workflows.config.point_filter import PointFilter
 from workflows.config.schema import feature_dim_name
 from workflows.engine import Task
@@ -41,6 +41,7 @@ from workflows.run import Run
 from workflows.steps.terrain import scene_terrain
 from workflows.steps.trees import REFERENCE_TREE_ID, TileTrees, TreeTask
 from workflows.store.layout import chunk_path, proba_array
+from workflows.store.scenes import RunLayout
 from workflows.store.marks import is_done, mark_done, read_array
 
 PREDICTED = "PredictedClassification"
@@ -305,7 +306,7 @@ class ExportTask:
 
     store_path: str
     tile: dict
-    grid: dict
+    grid: Grid | BalancedLayout
     dst: str
     fingerprint: str
     spec: ExportSpec
@@ -316,12 +317,12 @@ class _TileExport:
     """The values of the dimensions export adds to one tile, batch by batch (``values``),
     and its counts of points without features and excluded at ingest."""
 
-    def __init__(self, root, store_path: str, tile: dict, grid: dict, spec: ExportSpec,
+    def __init__(self, root, store_path: str, tile: dict, grid, spec: ExportSpec,
                  score_trees: bool):
         self.tile, self.spec = tile, spec
         # a labelled scene's unlisted codes were left out at ingest: their points are missing
         allow_missing = spec.points_filter.keep_codes is not None and tile["scene"] != "predict"
-        self.predictions = _ChunkPredictions(root, tile["scene"], layout_from_dict(grid),
+        self.predictions = _ChunkPredictions(root, tile["scene"], grid,
                                              spec.stage, allow_missing, spec.feature_index)
         self.dtm = scene_terrain(root, store_path, tile["scene"])  # once per worker process
         rasters = spec.rasters
@@ -446,7 +447,8 @@ def export_command(out: Path) -> str:
     return f"silva export {Path(out) / 'config.yaml'} --out {out} --in-process"
 
 
-def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> list[str]:
+def export(run: Run, engine, layout: RunLayout, final_stage: int, stage_fp: str
+           ) -> list[str]:
     """Write predictions/<tile>.laz (or .las) for every input tile; remove every other
     file of predictions/ (tiles no longer in the run, the other format, parts of files a
     killed export left)."""
@@ -455,20 +457,20 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
     out_dir.mkdir(parents=True, exist_ok=True)
     remove_parts(out_dir)
     suffix = "." + run.cfg.output.format
-    check_raster_size(run, layout["tiles"])  # points beyond a stale header widen a raster
+    check_raster_size(run, layout.tiles)  # points beyond a stale header widen a raster
     spec = ExportSpec.of(run, final_stage, stage_fp)
     raster_dir = run.out / "rasters"
     if spec.rasters is not None:
         raster_dir.mkdir(parents=True, exist_ok=True)
         remove_parts(raster_dir)
     tasks = []
-    for tile in layout["tiles"]:
+    for tile in layout.tiles:
         dst = out_dir / f"{tile['name']}{suffix}"
         tasks.append(Task(
             key=f"export-{tile['index']}-{fingerprint[:8]}",
             fn=export_tile,
             kwargs={"task": ExportTask(
-                str(run.store_path), tile, layout["scenes"][tile["scene"]]["grid"], str(dst),
+                str(run.store_path), tile, layout.scenes[tile["scene"]].grid, str(dst),
                 fingerprint, spec,
                 score_trees=spec.trees is not None and tile["scene"] == "test")},
             where=f"export of tile {tile['path']}",
@@ -482,8 +484,8 @@ def export(run: Run, engine, layout: dict, final_stage: int, stage_fp: str) -> l
                      suffixes=(".tif",))
     undefined = sum(r["no_features"] for r in results)
     if undefined:
-        total = sum(t["n_points"] for t in layout["tiles"])
-        say(f"export: {counted(undefined, 'point')} ({undefined / max(total, 1):.2%}) have no "
+        share = undefined / max(layout.n_points, 1)
+        say(f"export: {counted(undefined, 'point')} ({share:.2%}) have no "
             "features (too few neighbours within features.r1 to form a surface, or collinear "
             f"ones); their predictions are unreliable and marked {NO_FEATURES}=1",
             quiet=run.quiet)  # -q keeps one line per step; the log has it

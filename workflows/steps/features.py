@@ -16,6 +16,7 @@ from pipeline.features.density import left_out, neighbourhood_members, pile_up_w
 from pipeline.features.neighbors import RadiusIndex
 from pipeline.features.sets import FeatureParams, feature_set
 from workflows.store.layout import ROLE_TRAIN
+from workflows.store.scenes import RunLayout
 from workflows.engine import chunk_tasks, chunk_window_returns
 from workflows.progress import say
 from workflows.run import Run
@@ -65,13 +66,13 @@ def neighbourhood_checks(xyz, ids, query, r1) -> dict:
     return checks
 
 
-def features(run: Run, engine, layout: dict, only: str | None = None) -> np.ndarray:
+def features(run: Run, engine, layout: RunLayout, only: str | None = None) -> np.ndarray:
     """Compute every chunk's features; return the training points per class (C,)."""
     tasks = chunk_tasks(
         run, layout, "features", chunk_features,
-        lambda info: FeatureTask(run.features, run.n_classes, tuple(info["tiles"])),
+        lambda info: FeatureTask(run.features, run.n_classes, info.tiles),
         run.fingerprint("features"), "features", only=only,
-    ) if layout["scenes"] else []  # every scene classified in one pass
+    ) if layout.scenes else []  # every scene classified in one pass
     results = list(engine.map("features", tasks).values()) if tasks else []
     counts = np.zeros(run.n_classes, dtype=np.int64)
     for value in results:

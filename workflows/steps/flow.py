@@ -28,27 +28,26 @@ from workflows.steps.one_pass import classify_in_one_pass, one_pass_scenes
 from workflows.steps.survey import canopy_samples, survey
 from workflows.steps.terrain import terrain
 from workflows.steps.trees import score_trees, trees
+from workflows.store.scenes import RunLayout
 
 
-def scenes_of(layout: dict, keep, only: str | None = None) -> dict:
+def scenes_of(layout: RunLayout, keep, only: str | None = None) -> RunLayout:
     """``layout`` with the scenes ``keep(scene)`` holds (and only the scene of ``only``, a
     "scene/chunk" computed alone, when given)."""
-    scenes = {s: info for s, info in layout["scenes"].items() if keep(s)}
-    if only is not None:
-        scenes = {s: info for s, info in scenes.items() if s == only.split("/", 1)[0]}
-    return {**layout, "scenes": scenes}
+    return layout.with_scenes(
+        lambda s: keep(s) and (only is None or s == only.split("/", 1)[0]))
 
 
 def ingest_step(state: RunState) -> None:
     """Ingest the tiles; the summary counts points, chunks and excluded points."""
     layout = state.layout = state.timed("ingest", ingest, state.run, state.engine)
-    state.summary["points"] = sum(t["n_points"] for t in layout["tiles"])
-    state.summary["chunks"] = sum(len(s["chunks"]) for s in layout["scenes"].values())
+    state.summary["points"] = layout.n_points
+    state.summary["chunks"] = sum(len(info.chunks) for info in layout.scenes.values())
     state.summary["chunk size (m)"] = ", ".join(
-        f"{scene} {info['grid']['size']:g}" if "size" in info["grid"] else f"{scene} balanced"
-        for scene, info in layout["scenes"].items())
-    state.summary["excluded points"] = sum(t.get("excluded", 0) for t in layout["tiles"])
-    check_point_formats(state.run, layout["tiles"])  # output.point_format: keep, before work
+        f"{scene} {info.chunk_size:g}" if info.chunk_size else f"{scene} balanced"
+        for scene, info in layout.scenes.items())
+    state.summary["excluded points"] = sum(t.get("excluded", 0) for t in layout.tiles)
+    check_point_formats(state.run, layout.tiles)  # output.point_format: keep, before work
 
 
 def terrain_step(state: RunState) -> None:
@@ -67,7 +66,7 @@ def features_step(state: RunState) -> None:
         check_chunk(layout, only)
     state.staged = scenes_of(layout, lambda s: s not in passes, only)
     state.one_pass = scenes_of(layout, lambda s: s in passes, only)
-    if state.one_pass["scenes"] and not state.staged["scenes"]:
+    if state.one_pass.scenes and not state.staged.scenes:
         fold_step("features", "computed with the stages, in one pass per chunk")
     state.counts = state.timed("features", features, state.run, state.engine, state.staged,
                                only)
@@ -77,12 +76,12 @@ def cascade_step(state: RunState) -> None:
     """Train (or apply) the cascade stage by stage, then classify the other scenes in one
     pass per chunk."""
     run, engine, only = state.run, state.engine, state.only
-    if state.staged["scenes"]:
+    if state.staged.scenes:
         state.stages = state.timed("train" if state.fits else "apply", cascade, run, engine,
                                    state.staged, state.counts, fit=state.fits, only=only)
     else:  # --chunk of a scene classified in one pass
         state.stages = model_stages(run)
-    if state.one_pass["scenes"]:
+    if state.one_pass.scenes:
         state.timed("apply", classify_in_one_pass, run, engine, state.one_pass, state.stages,
                     only)
 
@@ -222,7 +221,7 @@ def echo_features_text(run) -> str:
 
 def _no_features(state: RunState) -> dict:
     """The points written without features (NoFeatures = 1), as export counted them."""
-    root, tiles = state.run.store, state.layout["tiles"]
+    root, tiles = state.run.store, state.layout.tiles
     markers = [f"exports/{t['index']}" for t in tiles]
     points = sum(int(root[m].attrs.get("no_features", 0)) for m in markers if m in root)
     return {"points": points, "total": sum(t["n_points"] for t in tiles)}

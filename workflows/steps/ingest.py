@@ -14,7 +14,7 @@ same read, each of the points it keeps.
 """
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cache, partial
 from pathlib import Path
 
@@ -36,7 +36,6 @@ from pipeline.tiling import (
     count_cell_size,
     global_ids,
     group_tiles,
-    layout_from_dict,
     tile_area,
 )
 from workflows.config import expand_inputs
@@ -53,6 +52,7 @@ from workflows.store.layout import (
     RETURNS, ROLE_PREDICT, ROLE_TEST, ROLE_TRAIN, chunk_path, is_copy,
 )
 from workflows.store.marks import forget_done, is_done, mark_done
+from workflows.store.scenes import RunLayout, SceneLayout, read_units
 
 AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -131,25 +131,23 @@ def plan_tiles(run: Run) -> list[dict]:
     return tiles
 
 
-def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
-    """The chunk layout of each scene, covering all its tiles (under the key ``grid``), its
-    halo (``halo``) and the tiles each ingest task reads (``groups``, lists of tile indices,
-    see :func:`ingest_groups`; ``ranges``: tile index -> the point ranges a big tile is read
-    in, see :func:`point_ranges`); ``tiles`` lists the keys the points are stored under (see
-    :func:`read_units`): the first tile of each group, "i.k" for range k of tile i.
+def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict[str, SceneLayout]:
+    """The layout of each scene (:class:`~workflows.store.scenes.SceneLayout`): its chunks,
+    covering all its tiles, its halo, its mode, and the tiles each ingest task reads
+    (``groups``, see :func:`ingest_groups`; ``ranges``, the point ranges a big tile is read
+    in, see :func:`point_ranges`).
 
     With ``tiling.chunk_size: auto`` and ``tiling.layout: balanced`` (the default), a first
     pass counts each tile's points on a lattice (one task per tile, per group of small
     tiles or per range of a big one, on ``engine``, or in this process) and the scene is cut
-    into chunks balanced by point count (:class:`~pipeline.tiling.BalancedLayout`);
-    ``estimate`` then holds the min, median and max counted points of the chunks' cores and
-    of their cores with halos. Otherwise a regular grid: of ``chunk_size`` metres, or with
-    ``layout: grid`` sized from the headers (see :func:`scene_chunk_size`).
+    into chunks balanced by point count (:class:`~pipeline.tiling.BalancedLayout`), with
+    the ``estimate`` of its chunks' points. Otherwise a regular grid: of ``chunk_size``
+    metres, or with ``layout: grid`` sized from the headers (see :func:`scene_chunk_size`).
 
     A scene that may be classified in one pass (:func:`~workflows.steps.one_pass.
     wants_one_pass`) gets the configured halo, unless (``output.keep_features: auto``) the
     borders of its chunks would hold too many of its points; every other scene the
-    features' reach, all that the cascade stage by stage needs. Each scene's entry records
+    features' reach, all that the cascade stage by stage needs. Each scene's layout records
     the decision (``one_pass``): every step reads it there.
 
     With ``data.densities`` (and no model applied), a pass counts the training scene's
@@ -165,17 +163,14 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict:
         counts = cache(partial(scene_counts, run, scene, members, engine))
         reach = run.features.halo
         one_pass = wants_one_pass(run, scene)
-        halo = run.halo if one_pass else reach
-        info = _cut_scene(run, members, halo, counts)
+        info = _cut_scene(run, members, run.halo if one_pass else reach, counts)
         if one_pass and run.cfg.output.keep_features == "auto" and border_share(
-                info, halo, ring_width(run.r1, run.n_stages)) > MAX_BORDER_SHARE:
+                info, ring_width(run.r1, run.n_stages)) > MAX_BORDER_SHARE:
             # the one pass would cost more than the stored features save
-            one_pass, halo = False, reach
-            info = _cut_scene(run, members, halo, counts)
+            one_pass, info = False, _cut_scene(run, members, reach, counts)
         groups = [[by_index[i] for i in group]
-                  for group in ingest_groups(run, members, info["grid"])]
-        entry = {**read_entry(run, groups), **info, "halo": halo, "one_pass": one_pass}
-        scenes[scene] = {"tiles": [unit.key for unit in read_units(entry)], **entry}
+                  for group in ingest_groups(run, members, info.grid)]
+        scenes[scene] = replace(info, one_pass=one_pass, **read_plan(run, groups))
     if run.model is None:  # thinned copies of the training scene (data.densities)
         scenes = plan_copies(scenes, run.cfg.data.densities, lambda scene: scene_density(
             run, scene, [t for t in tiles if t["scene"] == scene], engine))
@@ -191,51 +186,14 @@ def point_ranges(run: Run, group: list[dict]) -> int:
     return max(1, -(-group[0]["n_points"] // int(run.cfg.tiling.target_points)))
 
 
-def read_entry(run: Run, groups: list[list[dict]]) -> dict:
-    """What a scene's layout entry records of its reading, for these groups of tiles
-    (dicts): the ``groups`` as tile indices and the ``ranges`` of the big tiles (tile index
-    -> how many, :func:`point_ranges`), from which :func:`read_units` makes the tasks."""
-    return {"groups": [[t["index"] for t in group] for group in groups],
+def read_plan(run: Run, groups: list[list[dict]]) -> dict:
+    """How a scene's tiles are read, for these groups of tiles (dicts): the ``groups`` as
+    tile indices and the ``ranges`` of the big tiles (tile index -> how many,
+    :func:`point_ranges`), from which :func:`~workflows.store.scenes.read_units` makes the
+    tasks."""
+    return {"groups": tuple(tuple(t["index"] for t in group) for group in groups),
             "ranges": {str(group[0]["index"]): n for group in groups
                        if (n := point_ranges(run, group)) > 1}}
-
-
-@dataclass(frozen=True)
-class ReadUnit:
-    """What one ingest task reads: the tiles of a group (``tiles``, indices), or the
-    point range ``part`` of ``parts`` of a single tile; ``key`` names its parts in the
-    store."""
-
-    key: int | str
-    tiles: tuple[int, ...]
-    part: int = 0
-    parts: int = 1
-
-    def span(self, n_points: int) -> tuple[int, int] | None:
-        """(start, stop) of the range in a tile of ``n_points``; None: the whole tiles."""
-        return range_span(n_points, self.part, self.parts)
-
-
-def range_span(n_points: int, part: int, parts: int) -> tuple[int, int] | None:
-    """(start, stop) of range ``part`` of ``parts`` equal ranges of ``n_points`` points;
-    None for the one range of a tile read whole."""
-    if parts == 1:
-        return None
-    return n_points * part // parts, n_points * (part + 1) // parts
-
-
-def read_units(info: dict) -> list[ReadUnit]:
-    """The ingest tasks of a scene from its layout entry: a group of tiles each, a range
-    each of a tile read in ranges (``ranges``: tile index -> how many)."""
-    ranges = info.get("ranges") or {}
-    units = []
-    for group in scene_groups(info):
-        n = int(ranges.get(str(group[0]), 1))
-        if n == 1:
-            units.append(ReadUnit(group[0], tuple(group)))
-        else:
-            units += [ReadUnit(f"{group[0]}.{k}", tuple(group), k, n) for k in range(n)]
-    return units
 
 
 def group_budget(run: Run) -> int:
@@ -243,33 +201,27 @@ def group_budget(run: Run) -> int:
     return max(1, int(run.cfg.tiling.target_points * GROUP_SHARE))
 
 
-def ingest_groups(run: Run, members: list[dict], grid: dict) -> list[list[int]]:
+def ingest_groups(run: Run, members: list[dict], grid) -> list[list[int]]:
     """The tile indices each ingest task of a scene reads: tiles below
     :func:`group_budget` points whose XY centres lie in one chunk of ``grid`` are read
     together, the others one by one."""
     centres = np.array([[(t["mins"][i] + t["maxs"][i]) / 2 for i in (0, 1)] for t in members],
                        dtype=np.float64).reshape(-1, 2)
-    keys = layout_from_dict(grid).chunk_of(centres)
+    keys = grid.chunk_of(centres)
     groups = group_tiles([t["n_points"] for t in members], keys, group_budget(run))
     return [[members[i]["index"] for i in group] for group in groups]
 
 
-def scene_groups(info: dict) -> list[list[int]]:
-    """The ``groups`` of a scene's layout entry (one tile each in a layout planned before
-    tiles were grouped)."""
-    return info.get("groups") or [[index] for index in info["tiles"]]
-
-
-def _cut_scene(run: Run, members: list[dict], halo: float, counts) -> dict:
-    """The ``grid`` (and ``estimate``) of a scene with ``halo``; ``counts()`` its counted
-    points."""
+def _cut_scene(run: Run, members: list[dict], halo: float, counts) -> SceneLayout:
+    """The chunk layout (and ``estimate``) of a scene with ``halo``, its tiles not yet
+    grouped; ``counts()`` its counted points."""
     tiling = run.cfg.tiling
     n_points = sum(t["n_points"] for t in members)
     mins = np.min([t["mins"] for t in members], axis=0)
     maxs = np.max([t["maxs"] for t in members], axis=0)
     if tiling.chunk_size != "auto" or tiling.layout != "balanced":
         size = scene_chunk_size(run, n_points, mins, maxs, halo)
-        return {"grid": Grid.covering(mins, maxs, size).to_dict()}
+        return SceneLayout(Grid.covering(mins, maxs, size), halo, groups=())
     if n_points <= tiling.target_points:  # one chunk: the headers say so, no count
         bounds = (*np.floor(mins[:2]), *np.ceil(maxs[:2]))
         layout = BalancedLayout((), 1.0, tuple(float(v) for v in bounds))
@@ -277,10 +229,9 @@ def _cut_scene(run: Run, members: list[dict], halo: float, counts) -> dict:
     else:
         layout = BalancedLayout.build(counts(), halo, int(tiling.target_points))
         estimates = layout.estimate(counts(), halo)
-    return {"grid": layout.to_dict(),
-            "estimate": {name: [int(v) for v in np.percentile(values, [0, 50, 100],
-                                                              method="lower")]
-                         for name, values in zip(("core", "window"), estimates)}}
+    estimate = {name: [int(v) for v in np.percentile(values, [0, 50, 100], method="lower")]
+                for name, values in zip(("core", "window"), estimates)}
+    return SceneLayout(layout, halo, groups=(), estimate=estimate)
 
 
 def count_tile(path, cell: float, read_batch: int, span=None) -> CellCounts:
@@ -314,7 +265,7 @@ def _pass_over_tiles(run: Run, scene: str, members: list[dict], engine, name: st
                           group_budget(run))]
     by_index = {t["index"]: t for t in members}
     units = [(unit, [by_index[i] for i in unit.tiles])
-             for unit in read_units(read_entry(run, groups))]
+             for unit in read_units(**read_plan(run, groups))]
     calls = [dict(paths=[t["path"] for t in tiles], read_batch=run.cfg.tiling.read_batch,
                   span=unit.span(tiles[0]["n_points"]), **kwargs) for unit, tiles in units]
     if engine is None:
@@ -376,9 +327,9 @@ def tiles_text(tiles: list[dict]) -> str:
     return f"{len(tiles)} tiles {tiles[0]['path']} ... {tiles[-1]['path']}"
 
 
-def layout_text(grid: dict) -> str:
-    """How a scene is cut, for messages: "in chunks of 15 m (3 x 2 grid)"."""
-    layout = layout_from_dict(grid)
+def layout_text(layout) -> str:
+    """How a scene is cut (a Grid or a BalancedLayout), for messages: "in chunks of 15 m
+    (3 x 2 grid)"."""
     if isinstance(layout, Grid):
         return f"in chunks {layout.label} ({layout.nx} x {layout.ny} grid)"
     return f"in {layout.n_chunks} chunks {layout.label}"
@@ -445,7 +396,7 @@ class IngestTask:
     store_path: str
     scene: str
     tiles: tuple  # the tile dicts read, in order (one dict: that tile alone)
-    grid: dict
+    grid: Grid | BalancedLayout
     halo: float
     label_field: str
     code_to_class: dict
@@ -499,9 +450,8 @@ def ingest_tile(task: IngestTask) -> dict:
         if chunk_path(scene, name) in root:  # chunks built from it are built again
             forget_done(root[chunk_path(scene, name)])
         del marker[name]
-    chunks = layout_from_dict(grid)
-    writer = with_copies(_PartWriter(marker, chunks, task.halo), root, task.key, task.copies,
-                         task.seed, fingerprint, lambda part: _PartWriter(part, chunks, task.halo))
+    writer = with_copies(_PartWriter(marker, grid, task.halo), root, task.key, task.copies,
+                         task.seed, fingerprint, lambda part: _PartWriter(part, grid, task.halo))
     start, stop = task.span or (0, None)
     labelled = scene != "predict"
     excluded: dict[str, int] = {}
@@ -659,11 +609,11 @@ def _ingested(root, scene: str, key: int | str, fingerprint: str) -> bool:
     return path in root and is_done(root[path], "ingest", fingerprint)
 
 
-def say_scenes(run: Run, scenes: dict) -> None:
+def say_scenes(run: Run, scenes: dict[str, SceneLayout]) -> None:
     """The ingest log's line of each scene's layout, and of the thinned copies."""
     for scene, info in scenes.items():
         if not is_copy(scene):
-            say(f"ingest: scene {scene} {layout_text(info['grid'])}", quiet=run.quiet)
+            say(f"ingest: scene {scene} {layout_text(info.grid)}", quiet=run.quiet)
     for line in copy_lines(scenes, run.cfg.data.densities, run.cfg.cascade.seed,
                            run.model is not None):
         say(f"ingest: {line}", quiet=run.quiet)
@@ -680,36 +630,64 @@ def scene_chunks(scene: str, tasks: list[Task], results: dict) -> list[str]:
     return sorted(names)
 
 
-def ingest(run: Run, engine) -> dict:
+def ingest(run: Run, engine) -> RunLayout:
     """Plan the scenes, stream every tile into the store, record the chunk layout."""
     tiles = plan_tiles(run)
     fingerprint = run.fingerprint("ingest")
     root = run.store
-    layout = root.attrs.get("layout")
-    if layout is not None and layout.get("fingerprint") == fingerprint:
+    stored = root.attrs.get("layout")
+    if stored is not None and stored.get("fingerprint") == fingerprint:
+        layout = RunLayout.from_dict(stored)
         if all(_ingested(root, scene, unit.key, fingerprint)
-               for scene, info in layout["scenes"].items() for unit in read_units(info)):
+               for scene, info in layout.scenes.items() for unit in info.read_units):
             return layout
-        scenes = layout["scenes"]  # a tile found damaged since: ingest it again
+        scenes = layout.scenes  # a tile found damaged since: ingest it again
     elif (root.attrs.get("planned") or {}).get("fingerprint") == fingerprint:
         # killed while ingesting: the tiles done are kept, in the layout planned then
-        scenes = root.attrs["planned"]["scenes"]
+        scenes = {scene: SceneLayout.from_dict(info)
+                  for scene, info in root.attrs["planned"]["scenes"].items()}
     else:
-        if layout is not None or "scenes" in root:
+        if stored is not None or "scenes" in root:
             # Inputs or chunking changed: nothing stored is valid any more.
             for key in ("scenes", "exports"):
                 if key in root:
                     del root[key]
             root.attrs["layout"] = None
         scenes = plan_scenes(run, tiles, engine)
-        root.attrs["planned"] = {"fingerprint": fingerprint, "scenes": scenes}
+        root.attrs["planned"] = {"fingerprint": fingerprint,
+                                 "scenes": {s: info.to_dict() for s, info in scenes.items()}}
     say_scenes(run, scenes)
+    tasks = ingest_tasks(run, scenes, tiles, fingerprint)
+    results = engine.map("ingest", tasks)
+    scenes = {scene: replace(info, chunks=tuple(scene_chunks(scene, tasks, results)))
+              for scene, info in scenes.items()}
+    excluded_by_tile: dict[str, int] = {}  # a tile read in ranges: the sum of its ranges'
+    for task in tasks:
+        for index, n in results[task.key]["excluded"].items():
+            excluded_by_tile[index] = excluded_by_tile.get(index, 0) + n
+    for tile in tiles:  # points the ingest filters left out (data.exclude_*)
+        tile["excluded"] = int(excluded_by_tile.get(str(tile["index"]), 0))
+    take_seen_bounds(tiles, [results[task.key] for task in tasks])
+    check_something_left(run, tiles)
+    excluded = sum(t["excluded"] for t in tiles)
+    if excluded:
+        say(f"ingest: {counted(excluded, 'point')} excluded (data.exclude_codes / "
+            "data.exclude_withheld): in no neighbourhood and no score, exported unchanged "
+            "with Excluded=1", quiet=run.quiet)
+    layout = RunLayout(fingerprint, tiles, scenes)
+    root.attrs["layout"] = layout.to_dict()
+    return layout
+
+
+def ingest_tasks(run: Run, scenes: dict[str, SceneLayout], tiles: list[dict],
+                 fingerprint: str) -> list[Task]:
+    """One task per read unit of every scene (a thinned copy is written by its scene's)."""
     by_index = {tile["index"]: tile for tile in tiles}
     tasks = []
     for scene, info in scenes.items():
         if is_copy(scene):  # written by its scene's tasks
             continue
-        for unit in read_units(info):
+        for unit in info.read_units:
             members = tuple(by_index[index] for index in unit.tiles)
             span = unit.span(members[0]["n_points"])
             tasks.append(Task(
@@ -719,8 +697,8 @@ def ingest(run: Run, engine) -> dict:
                     store_path=str(run.store_path),
                     scene=scene,
                     tiles=members,
-                    grid=info["grid"],
-                    halo=info["halo"],
+                    grid=info.grid,
+                    halo=info.halo,
                     label_field=run.cfg.data.label_field,
                     code_to_class=run.code_to_class,
                     split=run.cfg.data.split,
@@ -738,22 +716,4 @@ def ingest(run: Run, engine) -> dict:
                        f" (scene '{scene}')"),
                 reproduce=f"silva ingest CONFIG --out {run.out} --in-process",
             ))
-    results = engine.map("ingest", tasks)
-    for scene, info in scenes.items():
-        info["chunks"] = scene_chunks(scene, tasks, results)
-    excluded_by_tile: dict[str, int] = {}  # a tile read in ranges: the sum of its ranges'
-    for task in tasks:
-        for index, n in results[task.key]["excluded"].items():
-            excluded_by_tile[index] = excluded_by_tile.get(index, 0) + n
-    for tile in tiles:  # points the ingest filters left out (data.exclude_*)
-        tile["excluded"] = int(excluded_by_tile.get(str(tile["index"]), 0))
-    take_seen_bounds(tiles, [results[task.key] for task in tasks])
-    check_something_left(run, tiles)
-    excluded = sum(t["excluded"] for t in tiles)
-    if excluded:
-        say(f"ingest: {counted(excluded, 'point')} excluded (data.exclude_codes / "
-            "data.exclude_withheld): in no neighbourhood and no score, exported unchanged "
-            "with Excluded=1", quiet=run.quiet)
-    layout = {"fingerprint": fingerprint, "tiles": tiles, "scenes": scenes}
-    root.attrs["layout"] = layout
-    return layout
+    return tasks

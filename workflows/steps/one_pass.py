@@ -19,13 +19,14 @@ import numpy as np
 from pipeline.cascade import labels_from_proba, one_pass, one_pass_halo
 from pipeline.features.sets import FeatureParams, feature_set
 from pipeline.store import write_arrays
-from pipeline.tiling import layout_from_dict
+from pipeline.tiling import BalancedLayout, Grid
 from workflows.engine import chunk_tasks, chunk_window_returns
 from workflows.run import Run
 from workflows.steps.cascade import cached_forest
 from workflows.steps.features import neighbourhood_checks, warn_neighbourhoods
 from workflows.steps.terrain import ground_under
 from workflows.store.layout import labels_array, proba_array
+from workflows.store.scenes import RunLayout, SceneLayout
 
 #: The pack of a one-pass chunk's results.
 PACK = "predictions"
@@ -37,7 +38,7 @@ class OnePassTask:
     context: str  # "hard" or "soft"
     n_classes: int
     tiles: tuple[int, ...]  # the tiles with points in this scene
-    grid: dict
+    grid: Grid | BalancedLayout
     forest_paths: tuple[str, ...]  # the fitted stages, in order
 
 
@@ -55,7 +56,7 @@ def chunk_one_pass(view, task: OnePassTask):
     n_core = len(core["gid"])
     ground = ground_under(view, xyz) if compute.uses_ground else None
     probas, undefined = one_pass(
-        xyz, ids, n_core, chunk_box(layout_from_dict(task.grid), view.chunk),
+        xyz, ids, n_core, chunk_box(task.grid, view.chunk),
         lambda rows: compute(xyz, rows, ids, ground, returns),
         [cached_forest(p) for p in task.forest_paths],
         n_classes=task.n_classes, mode=task.context, r1=params.r1, r2=params.r2,
@@ -90,29 +91,29 @@ def wants_one_pass(run: Run, scene: str) -> bool:
             and run.halo >= one_pass_halo(run.features.halo, run.r1, run.n_stages))
 
 
-def one_pass_scenes(layout: dict) -> set[str]:
+def one_pass_scenes(layout: RunLayout) -> set[str]:
     """The scenes of ``layout`` classified in one pass, as they were planned
     (:func:`workflows.steps.ingest.plan_scenes`)."""
-    return {scene for scene, info in layout["scenes"].items() if info.get("one_pass")}
+    return {scene for scene, info in layout.scenes.items() if info.one_pass}
 
 
-def border_share(info: dict, halo: float, width: float) -> float:
+def border_share(info: SceneLayout, width: float) -> float:
     """Estimated share of a scene's points, beside its chunks' cores, that lie within
-    ``width`` of a core (as many again as the one pass computes twice), from its layout
-    entry: the counted points of its median balanced chunk, or a regular grid's squares at
+    ``width`` of a core (as many again as the one pass computes twice), from its layout:
+    the counted points of its median balanced chunk, or a regular grid's squares at
     uniform density; zero for a single chunk, whose outer sides are open."""
-    grid = layout_from_dict(info["grid"])
+    grid, halo = info.grid, info.halo
     if grid.n_chunks == 1 or width <= 0:
         return 0.0
-    if "estimate" in info:
-        core, window = info["estimate"]["core"][1], info["estimate"]["window"][1]
+    if info.estimate is not None:
+        core, window = info.estimate["core"][1], info.estimate["window"][1]
         halo_share = window / max(core, 1) - 1
     else:
         halo_share = ((grid.size + 2 * halo) ** 2 - grid.size ** 2) / grid.size ** 2
     return halo_share * min(width / halo, 1.0)
 
 
-def classify_in_one_pass(run: Run, engine, layout: dict, stages: list[dict],
+def classify_in_one_pass(run: Run, engine, layout: RunLayout, stages: list[dict],
                          only: str | None = None) -> None:
     """Classify every chunk of ``layout`` with the saved forests of ``stages``."""
     forests = tuple(str(run.model_path / stage["file"]) for stage in stages)
@@ -120,6 +121,6 @@ def classify_in_one_pass(run: Run, engine, layout: dict, stages: list[dict],
     tasks = chunk_tasks(
         run, layout, "apply", chunk_one_pass,
         lambda info: OnePassTask(run.features, run.cfg.cascade.context, run.n_classes,
-                                 tuple(info["tiles"]), info["grid"], forests),
+                                 info.tiles, info.grid, forests),
         fingerprint, "train" if run.model_dir is None else "predict", only=only)
     warn_neighbourhoods(run, engine.map("apply", tasks).values())

@@ -19,6 +19,7 @@ from workflows.run import Run
 from workflows.steps.export import entropy
 from workflows.steps.terrain import ground_under, read_blocks
 from workflows.store.layout import proba_array
+from workflows.store.scenes import RunLayout
 
 BINS = 20  # of the confidence and entropy histograms
 MAP_POINTS = 200_000  # points drawn in the maps
@@ -74,13 +75,13 @@ def highest_per_cell(keys: np.ndarray, z: np.ndarray) -> np.ndarray:
     return order[first]
 
 
-def _profiles(layout: dict) -> dict:
+def _profiles(layout: RunLayout) -> dict:
     """Per scene, the side view (axis, centre, half width, share of the scene's width):
     along its longer side, through the middle, 2 % of the shorter side wide (at least a
     metre)."""
     views = {}
-    for scene in layout["scenes"]:
-        tiles = [t for t in layout["tiles"] if t["scene"] == scene]
+    for scene in layout.scenes:
+        tiles = layout.tiles_of(scene)
         lo = np.min([t["mins"][:2] for t in tiles], axis=0)
         hi = np.max([t["maxs"][:2] for t in tiles], axis=0)
         axis = int(np.argmax(hi - lo))
@@ -91,15 +92,14 @@ def _profiles(layout: dict) -> dict:
     return views
 
 
-def survey(run: Run, engine, layout: dict, final_stage: int, *,
+def survey(run: Run, engine, layout: RunLayout, final_stage: int, *,
            counted_in: str = "report") -> dict:
     """What the run predicted, per scene and tile (see the module docstring); its tasks
     count in the progress of the run's step ``counted_in``."""
-    total = sum(t["n_points"] for t in layout["tiles"])
     profiles = _profiles(layout)
-    band_points = sum(t["n_points"] * profiles[t["scene"]][3] for t in layout["tiles"])
-    task = SurveyTask(final_stage, run.n_classes, len(layout["tiles"]), run.terrain.cell,
-                      min(1.0, MAP_POINTS / max(total, 1)),
+    band_points = sum(t["n_points"] * profiles[t["scene"]][3] for t in layout.tiles)
+    task = SurveyTask(final_stage, run.n_classes, len(layout.tiles), run.terrain.cell,
+                      min(1.0, MAP_POINTS / max(layout.n_points, 1)),
                       tuple((s, v[:3]) for s, v in profiles.items()),
                       min(1.0, PROFILE_POINTS / max(band_points, 1.0)))
     tasks = chunk_tasks(run, layout, "survey", chunk_survey, task, run.fingerprint("export"),
@@ -123,7 +123,7 @@ def survey(run: Run, engine, layout: dict, final_stage: int, *,
         "codes": run.class_codes,
         "cell": run.terrain.cell,
         "tiles": [{"name": t["name"], "scene": t["scene"], "counts": counts[t["index"]]}
-                  for t in layout["tiles"]],
+                  for t in layout.tiles],
         "confidence": sum(r["confidence"] for rs in by_scene.values() for r in rs),
         "entropy": sum(r["entropy"] for rs in by_scene.values() for r in rs),
         "low_confidence": LOW_CONFIDENCE,

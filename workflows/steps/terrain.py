@@ -23,6 +23,7 @@ from workflows.engine import chunk_tasks, chunk_window
 from workflows.progress import say
 from workflows.run import Run
 from workflows.store.layout import chunk_path, terrain_path
+from workflows.store.scenes import RunLayout
 from workflows.store.marks import read_array
 from workflows.store.terrain import read_terrain, terrain_done, write_terrain
 
@@ -52,21 +53,20 @@ def chunk_minima(view, task: TerrainTask):
     return {"cells": int(len(zmin))}
 
 
-def terrain(run: Run, engine, layout: dict) -> None:
+def terrain(run: Run, engine, layout: RunLayout) -> None:
     """Make (or keep) the terrain model of every scene of ``layout``."""
     fingerprint = run.fingerprint("terrain")
     root = run.store
-    todo = {scene: info for scene, info in layout["scenes"].items()
-            if terrain_done(root, scene) != fingerprint}
-    if not todo:
+    todo = layout.with_scenes(lambda scene: terrain_done(root, scene) != fingerprint)
+    if not todo.scenes:
         return
     params = run.terrain
-    tasks = chunk_tasks(run, {**layout, "scenes": todo}, "terrain", chunk_minima,
-                        lambda info: TerrainTask(params.cell, tuple(info["tiles"])),
+    tasks = chunk_tasks(run, todo, "terrain", chunk_minima,
+                        lambda info: TerrainTask(params.cell, info.tiles),
                         fingerprint, "features")
     engine.map("ingest (terrain)", tasks)  # the end of ingest in the run's progress
-    for scene, info in todo.items():
-        groups = [root[chunk_path(scene, chunk)] for chunk in info["chunks"]]
+    for scene, info in todo.scenes.items():
+        groups = [root[chunk_path(scene, chunk)] for chunk in info.chunks]
         keys, zmin, xy = merge_minima(
             tuple(read_array(g, name) for name in ("minima_keys", "minima_z", "minima_xy"))
             for g in groups)

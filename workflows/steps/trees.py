@@ -36,6 +36,7 @@ from workflows.engine import chunk_tasks, results_by_scene
 from workflows.progress import counted, say
 from workflows.steps.terrain import ground_under
 from workflows.store.layout import proba_array
+from workflows.store.scenes import RunLayout
 from workflows.store.marks import is_done, mark_done, read_array
 
 log = logging.getLogger(__name__)
@@ -132,7 +133,7 @@ def tile_of(table: np.ndarray, tiles: list[dict]) -> np.ndarray:
     return owner
 
 
-def trees(run, engine, layout: dict, final_stage: int, stage_fp: str) -> dict:
+def trees(run, engine, layout: RunLayout, final_stage: int, stage_fp: str) -> dict:
     """Find the trees of every scene of ``layout`` and write their tables; return, per
     scene, the method used and the number of trees, and the files written."""
     cfg = run.cfg
@@ -140,16 +141,15 @@ def trees(run, engine, layout: dict, final_stage: int, stage_fp: str) -> dict:
     task = TreeTask(final_stage, tuple(cfg.canopy_classes), tuple(cfg.stem_classes),
                     cfg.trees.params, fingerprint)
     root = run.store
-    tiles_of = {s: [t for t in layout["tiles"] if t["scene"] == s] for s in layout["scenes"]}
-    todo = {s: info for s, info in layout["scenes"].items()
-            if not (model_path(s) in root and is_done(root[model_path(s)], "trees", fingerprint))}
-    if todo:
-        tasks = chunk_tasks(run, {**layout, "scenes": todo}, "trees", chunk_tree_inputs, task,
+    todo = layout.with_scenes(lambda s: not (model_path(s) in root and is_done(
+        root[model_path(s)], "trees", fingerprint)))
+    if todo.scenes:
+        tasks = chunk_tasks(run, todo, "trees", chunk_tree_inputs, task,
                             fingerprint, "trees", marks=False)
         for scene, results in results_by_scene(tasks, engine.map("trees", tasks)).items():
+            area = scene_area(layout.tiles_of(scene))
             store_model(root, scene, *scene_model(merge_inputs(results, task.params),
-                                                  task.params, scene_area(tiles_of[scene])),
-                        fingerprint)
+                                                  task.params, area), fingerprint)
     tasks = chunk_tasks(run, layout, "tree-stats", chunk_tree_stats, task, fingerprint,
                         "trees", marks=False)
     out_dir = run.out / "trees"
@@ -159,7 +159,7 @@ def trees(run, engine, layout: dict, final_stage: int, stage_fp: str) -> dict:
     for scene, results in results_by_scene(tasks, engine.map("trees (stats)", tasks)).items():
         model = scene_trees(str(run.store_path), scene, fingerprint)
         table = tree_table(model, merge_stats(results))
-        tiles = tiles_of[scene]
+        tiles = layout.tiles_of(scene)
         owner = tile_of(table, tiles)
         for tile in tiles:
             rows = table[owner == tile["index"]]
@@ -217,12 +217,12 @@ class TileTrees:
 REFERENCE_TABLE = "trees.csv"
 
 
-def score_trees(run, layout: dict, found: dict) -> dict | None:
+def score_trees(run, layout: RunLayout, found: dict) -> dict | None:
     """Instance scores of the trees of the test tiles that carry a reference ``TreeID``, with
     the height and DBH errors of the matched trees where a reference table (``trees.csv``
     beside the tiles) gives them; None when no test tile has reference trees."""
     root = run.store
-    tiles = [t for t in layout["tiles"] if t["scene"] == "test"]
+    tiles = layout.tiles_of("test")
     parts = [read_array(root[f"exports/{t['index']}"], PAIRS) for t in tiles
              if f"exports/{t['index']}/{PAIRS}" in root]
     if not parts or "test" not in found:

@@ -56,21 +56,9 @@ def copy_scene(scene: str, density: float) -> str:
     return f"{scene}{COPY_MARK}{density:g}ppm"
 
 
-def source_scene(scene: str) -> str:
-    """The scene a copy was thinned from (a scene that is no copy: itself)."""
-    return scene.split(COPY_MARK, 1)[0]
-
-
 def is_copy(scene: str) -> bool:
     """Whether ``scene`` is a thinned copy of another (:func:`copy_scene`)."""
     return COPY_MARK in scene
-
-
-def without_copies(layout: dict) -> dict:
-    """``layout`` without its thinned copies: the scenes that are exported, scored and
-    surveyed."""
-    return {**layout, "scenes": {s: info for s, info in layout["scenes"].items()
-                                 if not is_copy(s)}}
 
 
 def chunk_path(scene: str, chunk_name: str) -> str:
