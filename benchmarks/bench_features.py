@@ -11,7 +11,7 @@ PATH defaults to the Oakland validation scene
 import sys
 from pathlib import Path
 
-from workflows.cli import main
+from workflows.cli.main import main
 
 DEFAULT_DATA = (Path(__file__).resolve().parents[2] / "shared" / "data" / "oakland"
                 / "oakland_part3_am.xyz_label_conf")

@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from workflows.config import load_config
-from workflows.engine import Engine
-from workflows.run import Run
-from workflows.workflow import execute
+from workflows.exec.engine import Engine
+from workflows.run.directory import Run
+from workflows.run.loop import execute
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "oakland.yaml"
 PAPER = {  # Table 2, averaged over the five classes

@@ -16,8 +16,8 @@ import tempfile
 from pathlib import Path
 
 from pipeline.synth import write_synthetic_plot
-from workflows.cli import main as silva
-from workflows.templates import write_template
+from workflows.cli.main import main as silva
+from workflows.cli.templates import write_template
 
 DEFAULT_TILE = Path(__file__).resolve().parents[2] / "shared" / "data" / "tls" / "LPine1_demo.laz"
 

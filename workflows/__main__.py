@@ -1,5 +1,5 @@
 """``python -m workflows`` runs the ``silva`` command."""
 
-from workflows.cli import main
+from workflows.cli.main import main
 
 main(prog_name="silva")

@@ -205,7 +205,7 @@ def silva(*args):
     """Run the silva command in this process; the click Result."""
     from click.testing import CliRunner
 
-    from workflows.cli import main
+    from workflows.cli.main import main
 
     return CliRunner().invoke(main, [str(a) for a in args])
 

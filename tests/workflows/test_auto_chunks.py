@@ -10,13 +10,13 @@ from pipeline.features.density import capped_halo
 from pipeline.io import read_info, read_points
 from pipeline.store import open_store
 from pipeline.tiling import SIZE_SERIES, BalancedLayout, layout_from_dict
-from tests.workflows.conftest import SMALL_PLOT, write_config
-from workflows.autoparams import resolve_run
-from workflows.cli import main
+from workflows.cli.main import main
+from workflows.cli.status import run_status
 from workflows.config import load_config
-from workflows.run import Run
-from workflows.status import run_status
+from workflows.run.autoparams import resolve_run
+from workflows.run.directory import Run
 from workflows.steps.ingest import plan_scenes, plan_tiles
+from tests.workflows.conftest import SMALL_PLOT, write_config
 
 
 HALO = capped_halo(0.5)  # the halo the plans below are made with: write_config's features

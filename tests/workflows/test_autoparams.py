@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 
 from pipeline.cascade import one_pass_halo
+from pipeline.errors import ConfigError
 from pipeline.features.sets import AUTO_NEIGHBORS, auto_radius, auto_voxel
 from pipeline.io import write_las
-from pipeline.errors import ConfigError
-from workflows.autoparams import adopt_model, header_density, resolve_auto
 from workflows.config import validate_config
+from workflows.run.autoparams import adopt_model, header_density, resolve_auto
 
 
 def _tile(path, density, side=40.0):
@@ -91,8 +91,8 @@ def test_an_applied_model_gives_its_classes_to_a_config_without_them(tmp_path):
 
 
 def test_an_applied_model_leaves_out_the_points_it_was_trained_without(tmp_path):
-    from workflows.autoparams import read_run, resolve_run
     from workflows.models import model_path
+    from workflows.run.autoparams import read_run, resolve_run
 
     described = {"data.exclude_codes": [7, 18], "data.exclude_withheld": True}
     adopted = adopt_model({}, described, "m")

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
+from workflows.cli import bench as bench_module
 from tests.workflows.conftest import error_line, silva, write_config
-from workflows import bench as bench_module
 
 FEATURE_KEYS = ("points", "silva_points_per_s", "baseline_name", "baseline_points_per_s",
                 "knn_points_per_s", "time_ratio")

@@ -79,7 +79,7 @@ def test_class_without_training_points(tmp_path, survey):
 
 def test_failing_chunk_names_itself_and_the_reproduce_command(caplog):
     from pipeline.errors import SilvaError
-    from workflows.engine import Engine, StepFailed, Task
+    from workflows.exec.engine import Engine, StepFailed, Task
 
     def explode(n):
         raise ZeroDivisionError("boom")

@@ -7,7 +7,7 @@ from click.testing import CliRunner
 
 from pipeline.io import read_info
 from pipeline.synth import SYNTH_CLASSES, synthetic_plot
-from workflows.cli import main
+from workflows.cli.main import main
 
 
 def silva(*args):

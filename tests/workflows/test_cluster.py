@@ -12,8 +12,8 @@ import time
 import pytest
 
 from pipeline.errors import ConfigError, SilvaError
-from workflows.cluster import ctrl_c_held, dashboard_link, open_client, slurm_job_script
 from workflows.config import load_config
+from workflows.exec.cluster import ctrl_c_held, dashboard_link, open_client, slurm_job_script
 
 
 def cluster_cfg(*overrides):
@@ -145,7 +145,7 @@ def test_slurm_without_cores_anywhere_names_the_key():
 
 
 def test_slurm_workers_counts_site_processes(site_config):
-    from workflows.cluster import slurm_workers
+    from workflows.exec.cluster import slurm_workers
 
     import dask.config
 
@@ -220,7 +220,7 @@ def test_ctrl_c_while_the_cluster_starts_is_held_back_from_workers_then_interrup
 
 
 def test_workers_drop_only_the_tracebacks_the_run_reports_itself():
-    from workflows.engine import _DropReportedFailures
+    from workflows.exec.engine import _DropReportedFailures
 
     def kept(msg, *args):
         record = logging.LogRecord("distributed.worker", logging.ERROR, __file__, 1, msg, args,

@@ -5,20 +5,20 @@ import subprocess
 import sys
 from pathlib import Path
 
-from workflows.cli import main
+from workflows.cli.main import main
 
 REPO = Path(__file__).resolve().parents[2]
 
 
 def test_commands_do_not_import_the_cli():
-    """cli.py gathers the commands; commands.py never imports cli.py (one direction)."""
-    tree = ast.parse((REPO / "workflows" / "commands.py").read_text())
+    """cli/main.py gathers the commands; cli/commands.py never imports it (one direction)."""
+    tree = ast.parse((REPO / "workflows" / "cli" / "commands.py").read_text())
     imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
     imported |= {a.name for node in ast.walk(tree) if isinstance(node, ast.Import)
                  for a in node.names}
-    assert "workflows.cli" not in imported
-    code = ("import sys, workflows.commands as c; "
-            "assert 'workflows.cli' not in sys.modules; print(len(c.COMMANDS))")
+    assert "workflows.cli.main" not in imported
+    code = ("import sys, workflows.cli.commands as c; "
+            "assert 'workflows.cli.main' not in sys.modules; print(len(c.COMMANDS))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           cwd=REPO, check=True)
     # all but sweep and bench, which run through them
@@ -26,6 +26,6 @@ def test_commands_do_not_import_the_cli():
 
 
 def test_no_import_cycle_between_commands_and_sweep():
-    tree = ast.parse((REPO / "workflows" / "commands.py").read_text())
+    tree = ast.parse((REPO / "workflows" / "cli" / "commands.py").read_text())
     imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
-    assert "workflows.sweep" not in imported and "sweep" in main.commands
+    assert "workflows.cli.sweep" not in imported and "sweep" in main.commands

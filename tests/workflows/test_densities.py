@@ -12,14 +12,14 @@ import pytest
 from pipeline.cascade.thinning import point_density, thinned_mask
 from pipeline.io import read_info
 from pipeline.store import open_store
-from tests.workflows.conftest import assert_same_predictions, scene_arrays, silva, write_config
-from workflows.config import fingerprint, validate_config
-from workflows.engine import Engine
-from workflows.fingerprint import STEPS
+from workflows.config import validate_config
+from workflows.exec.engine import Engine
 from workflows.models import installed_models, model_summary
-from workflows.run_plan import trained_densities
+from workflows.run.fingerprint import STEPS, fingerprint
+from workflows.run.plan import trained_densities
 from workflows.store.layout import ROLE_TEST
 from workflows.store.marks import forget_done
+from tests.workflows.conftest import assert_same_predictions, scene_arrays, silva, write_config
 
 pytestmark = pytest.mark.slow
 

@@ -4,8 +4,8 @@ import json
 
 import pytest
 
+from workflows.run.durations import accumulate, durations_path, reset, totals
 from tests.workflows.conftest import silva, write_config
-from workflows.durations import accumulate, durations_path, reset, totals
 
 
 def test_durations_add_up_over_runs_in_the_order_steps_first_ran(tmp_path):

@@ -8,9 +8,10 @@ import sys
 import pytest
 
 from pipeline.features import numba_cache
+from workflows.cli.commands import LOG_NAME, resume_command
+from workflows.exec import cluster
+from workflows.run import loop
 from tests.workflows.conftest import error_line, silva, write_config
-from workflows import cluster, workflow
-from workflows.commands import LOG_NAME, resume_command
 
 
 @pytest.fixture
@@ -48,7 +49,7 @@ def refused_at_start(tmp_path, survey, started, command, *args) -> str:
     result = silva(command, config, *args, "--out", out)
     line = error_line(result)
     assert started == []
-    assert _last_log_line(out).endswith(f" ERROR workflows.progress: {line}")
+    assert _last_log_line(out).endswith(f" ERROR workflows.run.progress: {line}")
     return line
 
 
@@ -125,7 +126,7 @@ def test_the_resume_hint_after_ctrl_c_never_says_overwrite(tmp_path, survey, mon
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(workflow, "execute", interrupted)
+    monkeypatch.setattr(loop, "execute", interrupted)
     args = ["run", str(config), "--overwrite", "--out", str(out), "--in-process", "-q"]
     monkeypatch.setattr(sys, "argv", ["silva", *args])  # the command as typed
     result = silva(*args)
@@ -153,11 +154,11 @@ def test_a_memory_limit_too_small_for_the_largest_chunk_is_refused_before_the_cl
 
 
 def test_the_memory_a_worker_needs_follows_its_chunk_and_columns(tmp_path, survey):
-    from workflows.autoparams import resolve_run
+    from workflows.cli.plan import (WORKER_BASE_BYTES, check_memory, foreseen_window,
+                                    worker_bytes, worker_memory_limit)
     from workflows.config import load_config
-    from workflows.plan import (WORKER_BASE_BYTES, check_memory, foreseen_window,
-                                worker_bytes, worker_memory_limit)
-    from workflows.run import Run
+    from workflows.run.autoparams import resolve_run
+    from workflows.run.directory import Run
     from workflows.steps.ingest import plan_scenes, plan_tiles
 
     # the measured peaks it was fitted on: 1,875 MiB for the default set's 61 columns on

@@ -13,6 +13,11 @@ import pytest
 from pipeline.cascade import CascadedForest
 from pipeline.errors import ConfigError
 from pipeline.store import open_store
+from workflows.config import validate_config
+from workflows.models import installed_models
+from workflows.run.autoparams import run_config
+from workflows.run.fingerprint import STEPS, fingerprint
+from workflows.store.layout import proba_array
 from tests.workflows.conftest import (
     assert_same_predictions,
     error_line,
@@ -21,11 +26,6 @@ from tests.workflows.conftest import (
     silva,
     write_config,
 )
-from workflows.autoparams import run_config
-from workflows.config import validate_config
-from workflows.fingerprint import STEPS, fingerprint
-from workflows.models import installed_models
-from workflows.store.layout import proba_array
 
 pytestmark = pytest.mark.slow
 

@@ -11,9 +11,9 @@ from pipeline.errors import ConfigError
 from pipeline.io import write_las
 from pipeline.store import open_store, read_array
 from pipeline.tiling import global_ids
-from tests.workflows.conftest import read_predictions, write_config
-from workflows.commands import start_run
+from workflows.cli.commands import start_run
 from workflows.config import validate_config
+from tests.workflows.conftest import read_predictions, write_config
 
 NOISE = (7, 18)
 
@@ -148,8 +148,8 @@ def test_exclude_codes_config():
 
 
 def test_forest_template_excludes_noise():
+    from workflows.cli.templates import template_path
     from workflows.config import load_config
-    from workflows.templates import template_path
 
     with template_path("forest") as path:
         cfg = load_config(path)

@@ -11,8 +11,8 @@ import pytest
 from pipeline.features import numba_cache
 from pipeline.features.numba_cache import kernels_cold, mark_warm, source_digest
 from pipeline.features.sets import FeatureParams
+from workflows.cli import commands
 from tests.workflows.conftest import silva, write_config
-from workflows import commands
 
 
 @pytest.fixture
@@ -145,7 +145,7 @@ def test_a_failed_compilation_does_not_fail_the_run(cold, survey, tmp_path, monk
 @pytest.mark.parametrize("error", [RuntimeError("boom"), KeyboardInterrupt()])
 def test_an_error_or_ctrl_c_kills_the_compiling_processes(error, cold, survey, tmp_path,
                                                           monkeypatch):
-    from workflows import workflow
+    from workflows.run import loop
 
     seen = []
 
@@ -154,7 +154,7 @@ def test_an_error_or_ctrl_c_kills_the_compiling_processes(error, cold, survey, t
         assert seen and all(process.poll() is None for process in seen)
         raise error
 
-    monkeypatch.setattr(workflow, "execute", execute)
+    monkeypatch.setattr(loop, "execute", execute)
     config = write_config(tmp_path / "c.yaml", survey)
     result = silva("run", config, "--out", tmp_path / "out", "--in-process")
     assert result.exit_code != 0

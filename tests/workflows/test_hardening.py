@@ -16,15 +16,15 @@ import numpy as np
 import pytest
 
 from pipeline.errors import ConfigError, InputError
-from tests.workflows.conftest import error_line, silva, write_config
-from workflows.autoparams import resolve_run
+from workflows.cli.status import run_status
 from workflows.config import load_config
-from workflows.lock import LOCK_NAME, LockedError, acquire, read_lock
-from workflows.probe import check_scheduler
-from workflows.run import OutputError, Run, prepare_output, read_paths
-from workflows.status import run_status
+from workflows.exec.probe import check_scheduler
+from workflows.run.autoparams import resolve_run
+from workflows.run.directory import OutputError, Run, prepare_output, read_paths
+from workflows.run.lock import LOCK_NAME, LockedError, acquire, read_lock
 from workflows.steps.export import remove_stale
 from workflows.steps.ingest import plan_tiles, tile_name
+from tests.workflows.conftest import error_line, silva, write_config
 
 
 @pytest.fixture
@@ -233,12 +233,12 @@ def test_out_that_cannot_be_created(tmp_path, monkeypatch):
 
 
 def test_os_error_in_a_step_is_one_line(tmp_path, monkeypatch):
-    import workflows.commands
+    import workflows.cli.commands
 
     def full(*args, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "report.html"))
 
-    monkeypatch.setattr(workflows.commands, "start_run", full)
+    monkeypatch.setattr(workflows.cli.commands, "start_run", full)
     result = silva("run", tmp_path / "c.yaml")
     line = error_line(result)
     assert "No space left on device" in line and "report.html" in line
@@ -268,10 +268,10 @@ def test_workers_over_their_memory_limit_stop_the_run_with_the_fix(tmp_path, sur
     from distributed import Client, LocalCluster
 
     from workflows.config import load_config
-    from workflows.engine import Engine
-    from workflows.run import Run
-    from workflows.watch import NoWorkerCanRun
-    from workflows.workflow import execute
+    from workflows.exec.engine import Engine
+    from workflows.exec.watch import NoWorkerCanRun
+    from workflows.run.directory import Run
+    from workflows.run.loop import execute
 
     config = write_config(tmp_path / "c.yaml", survey)
     started = time.monotonic()
@@ -290,7 +290,7 @@ def test_workers_over_their_memory_limit_stop_the_run_with_the_fix(tmp_path, sur
 # -- 11: smaller things ------------------------------------------------------------------
 def test_broken_symlink_in_a_glob_is_named(tmp_path, survey):
     from pipeline.errors import MissingFileError
-    from workflows.inputs import expand_inputs
+    from workflows.config.inputs import expand_inputs
 
     shutil_dir = tmp_path / "tiles"
     shutil_dir.mkdir()
@@ -323,8 +323,8 @@ def test_parts_a_killed_writer_left_are_cleared(tmp_path):
 def test_a_real_scheduler_passes_the_check_and_connects():
     from distributed import LocalCluster
 
-    from workflows.cluster import open_client
     from workflows.config import validate_config
+    from workflows.exec.cluster import open_client
 
     with LocalCluster(n_workers=1, processes=False, protocol="tcp", host="127.0.0.1",
                       dashboard_address=None) as cluster:
@@ -352,8 +352,8 @@ def finished_run(tmp_path_factory):
 
 
 def test_report_shows_the_models_importances_and_the_points_without_features(finished_run):
-    from tests.workflows.conftest import read_predictions
     from workflows.report import format_score
+    from tests.workflows.conftest import read_predictions
 
     _, out = finished_run
     page = (out / "report.html").read_text(encoding="utf-8")

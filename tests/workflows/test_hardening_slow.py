@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 
 from pipeline.model import stage_file
+from workflows.cli.status import run_status
+from workflows.run.lock import LOCK_NAME, read_lock
 from tests.workflows.conftest import (
     assert_same_predictions,
     error_line,
@@ -22,8 +24,6 @@ from tests.workflows.conftest import (
     silva,
     write_config,
 )
-from workflows.lock import LOCK_NAME, read_lock
-from workflows.status import run_status
 
 pytestmark = pytest.mark.slow
 

@@ -6,7 +6,7 @@ import click
 import pytest
 from click.testing import CliRunner
 
-from workflows.cli import main
+from workflows.cli.main import main
 
 
 def all_commands(group=main, path=("silva",)):

@@ -5,9 +5,9 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from workflows.cli import main
+from workflows.cli.main import main
+from workflows.cli.templates import TEMPLATES, template_path, template_text
 from workflows.config import load_config
-from workflows.templates import TEMPLATES, template_path, template_text
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -7,9 +7,9 @@ from pathlib import Path
 import pytest
 
 from pipeline.errors import InputError
+from workflows.config.inputs import expand_inputs
+from workflows.run.directory import OutputError, prepare_output
 from tests.workflows.conftest import error_line, silva, write_config
-from workflows.inputs import expand_inputs
-from workflows.run import OutputError, prepare_output
 
 
 @pytest.fixture

@@ -11,9 +11,9 @@ import pytest
 from pipeline.features.density import capped_halo
 from pipeline.store import open_store
 from pipeline.tiling import BalancedLayout, Grid
-from workflows.autoparams import resolve_run
 from workflows.config import load_config
-from workflows.run import Run
+from workflows.run.autoparams import resolve_run
+from workflows.run.directory import Run
 from workflows.steps.ingest import plan_scenes, plan_tiles
 from workflows.steps.one_pass import MAX_BORDER_SHARE, border_share
 from workflows.store.scenes import SceneLayout

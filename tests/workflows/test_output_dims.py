@@ -7,9 +7,9 @@ import pytest
 
 from pipeline.store import open_store, read_array, rows_of
 from pipeline.tiling import global_ids
-from tests.workflows.conftest import error_line, silva, write_config
-from workflows.commands import start_run
+from workflows.cli.commands import start_run
 from workflows.config.schema import feature_dim_name
+from tests.workflows.conftest import error_line, silva, write_config
 
 
 def _legacy_copy(src, dst, point_format, drop_code):

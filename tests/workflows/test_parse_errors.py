@@ -11,10 +11,10 @@ import time
 import pytest
 
 from pipeline.errors import ConfigError
-from tests.workflows.conftest import error_line, silva
+from workflows.cli.status import run_status
 from workflows.config import load_config
-from workflows.lock import LOCK_NAME, acquire, check_free, read_lock
-from workflows.status import run_status
+from workflows.run.lock import LOCK_NAME, acquire, check_free, read_lock
+from tests.workflows.conftest import error_line, silva
 
 
 # -- config keys that are lists or mappings ------------------------------------------------
@@ -115,7 +115,7 @@ def test_a_lock_file_with_odd_fields_is_taken_over(tmp_path, caplog, name):
     assert read_lock(out) is None
     assert not any(line.startswith("running now") for line in run_status(out))
     check_free(out)
-    with caplog.at_level(logging.WARNING, logger="workflows.lock"):
+    with caplog.at_level(logging.WARNING, logger="workflows.run.lock"):
         with acquire(out, "silva run c.yaml"):
             assert read_lock(out)["pid"] == os.getpid()
     assert f"{LOCK_NAME} was not written by Silva" in caplog.text

@@ -3,8 +3,8 @@
 import pytest
 from click.testing import CliRunner
 
+from workflows.cli.main import main
 from tests.workflows.conftest import write_config
-from workflows.cli import main
 
 
 def test_plan_prints_scenes_grid_and_estimates_and_writes_nothing(tmp_path, survey):
@@ -37,10 +37,10 @@ def test_plan_names_a_bad_key_in_one_line(tmp_path, survey):
 
 
 def test_the_forests_training_is_counted_from_rows_trees_folds_and_stages():
-    from workflows.autoparams import resolve_run
+    from workflows.cli.plan import features_tried, training_seconds
     from workflows.config import validate_config
-    from workflows.plan import features_tried, training_seconds
-    from workflows.run import Run
+    from workflows.run.autoparams import resolve_run
+    from workflows.run.directory import Run
 
     assert features_tried("sqrt", 69) == 8 and features_tried("log2", 69) == 6
     assert features_tried(0.5, 10) == 5 and features_tried(3, 10) == 3
@@ -64,10 +64,10 @@ def test_the_forests_training_is_counted_from_rows_trees_folds_and_stages():
 
 
 def test_the_run_weighs_its_steps_by_their_estimated_seconds(survey, tmp_path):
-    from workflows.autoparams import resolve_run
+    from workflows.cli.plan import step_weights
     from workflows.config import load_config
-    from workflows.plan import step_weights
-    from workflows.run import Run
+    from workflows.run.autoparams import resolve_run
+    from workflows.run.directory import Run
     from workflows.steps.ingest import plan_tiles
 
     def weights(trees):

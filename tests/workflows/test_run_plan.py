@@ -8,11 +8,11 @@ import os
 import pytest
 
 import pipeline.model
-from workflows import autoparams
-from workflows.autoparams import resolve_run
 from workflows.config import load_config
 from workflows.models import model_path
-from workflows.run import Run
+from workflows.run import autoparams
+from workflows.run.autoparams import resolve_run
+from workflows.run.directory import Run
 from workflows.steps import cascade
 from workflows.steps.cascade import model_stages
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from pipeline.store import open_store
+from workflows.exec.engine import Engine
 from tests.workflows.conftest import silva
-from workflows.engine import Engine
 
 MODEL = "forest-tls-synthetic"
 CUTS = 8  # the plot cut into CUTS x CUTS small tiles

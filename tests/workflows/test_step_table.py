@@ -6,15 +6,15 @@ from pkgutil import resolve_name
 
 import pytest
 
-from workflows import step_table, workflow
-from workflows.autoparams import resolve_run
-from workflows.commands import STEP_COMMANDS
+from workflows.cli.commands import STEP_COMMANDS
 from workflows.config import load_config
-from workflows.fingerprint import STEPS as FINGERPRINTED, fingerprint
-from workflows.progress import STEP_WEIGHTS
-from workflows.run import Run
-from workflows.run_state import RunState
-from workflows.step_table import STEPS, Step, Weight, progress_steps, steps_until
+from workflows.run import loop, step_table
+from workflows.run.autoparams import resolve_run
+from workflows.run.directory import Run
+from workflows.run.fingerprint import STEPS as FINGERPRINTED, fingerprint
+from workflows.run.progress import STEP_WEIGHTS
+from workflows.run.state import RunState
+from workflows.run.step_table import STEPS, Step, Weight, progress_steps, steps_until
 
 DEMO = "configs/demo.yaml"
 
@@ -65,7 +65,7 @@ def test_a_step_hashes_the_configuration_paths_it_names(monkeypatch):
     trees = Step("trees", "tests.workflows.test_step_table:_record",
                  fingerprint=(*step_table.CASCADE_PARTS, "terrain.cell", "output.format"))
     monkeypatch.setitem(step_table.FINGERPRINTED, "trees", trees)
-    monkeypatch.setattr("workflows.fingerprint.STEPS", (*FINGERPRINTED, "trees"))
+    monkeypatch.setattr("workflows.run.fingerprint.STEPS", (*FINGERPRINTED, "trees"))
     base = load_config(DEMO)
     changed = {
         key: load_config(DEMO, [f"{key}={value}"])
@@ -98,7 +98,7 @@ def fake_table(monkeypatch):
              Step("count", "tests.workflows.test_step_table:_record", needs=("layout",),
                   per_chunk=False),
              Step("train", "tests.workflows.test_step_table:_needs_stages", needs=("stages",)))
-    monkeypatch.setattr(workflow, "steps_until",
+    monkeypatch.setattr(loop, "steps_until",
                         lambda target, cfg=None:
                         steps[: [s.name for s in steps].index(target) + 1])
     CALLS.clear()
@@ -107,14 +107,14 @@ def fake_table(monkeypatch):
 
 def test_execute_runs_the_steps_of_the_table_up_to_the_target(fake_table, tmp_path):
     run = Run(resolve_run(load_config(DEMO)), tmp_path / "out", quiet=True)
-    summary = workflow.execute(run, None, "count")
+    summary = loop.execute(run, None, "count")
     assert CALLS == ["count", "count"] and summary["out"] == str(tmp_path / "out")
     CALLS.clear()
-    workflow.execute(run, None, "count", only="train/0_0")  # a chunk: per-chunk steps only
+    loop.execute(run, None, "count", only="train/0_0")  # a chunk: per-chunk steps only
     assert CALLS == ["count"]
     CALLS.clear()
     with pytest.raises(RuntimeError, match="step train needs stages"):
-        workflow.execute(run, None, "train")
+        loop.execute(run, None, "train")
     assert CALLS == ["train", "train"]
 
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import yaml
 
+from workflows.cli.sweep import parse_values, plan_sweep
 from tests.workflows.conftest import error_line, silva, write_config
-from workflows.sweep import parse_values, plan_sweep
 
 PNG = b"\x89PNG\r\n\x1a\n"
 

@@ -16,10 +16,10 @@ import pytest
 from click.testing import CliRunner
 
 from pipeline.features.numba_cache import mark_warm
+from workflows.cli.commands import announce_compilation
+from workflows.cli.main import main
+from workflows.run.progress import RunProgress, StepProgress, run_progress
 from tests.workflows.conftest import write_config
-from workflows.cli import main
-from workflows.commands import announce_compilation
-from workflows.progress import RunProgress, StepProgress, run_progress
 
 STEPS = ["ingest", "features", "train", "export", "evaluate", "report"]
 

@@ -4,7 +4,7 @@ import pytest
 
 from pipeline.errors import ConfigError
 from workflows.config import load_config
-from workflows.fingerprint import STEPS, fingerprint
+from workflows.run.fingerprint import STEPS, fingerprint
 
 FOREST = "configs/forest.yaml"
 

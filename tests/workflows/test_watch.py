@@ -6,7 +6,7 @@ memory they reported, and its get_events (when it has an event log) the schedule
 
 import pytest
 
-import workflows.watch as watch
+import workflows.exec.watch as watch
 
 LIMIT = 2**30
 AGAIN = "run the same command again"

@@ -59,7 +59,7 @@ def test_wheel_loads_its_packaged_demo_config(venv, tmp_path):
     code = (
         "import workflows\n"
         "from workflows.config import load_config\n"
-        "from workflows.templates import template_path\n"
+        "from workflows.cli.templates import template_path\n"
         "with template_path('demo') as path:\n"
         "    cfg = load_config(path)\n"
         "print(workflows.__file__)\n"

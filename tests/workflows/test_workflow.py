@@ -18,7 +18,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from pipeline.cascade import CascadedForest, labels_from_proba
 from pipeline.io import write_las
+from pipeline.store import open_store
+from workflows.cli.main import main
+from workflows.store.layout import proba_array
 from tests.workflows.conftest import (
     assert_chunked,
     assert_same_predictions,
@@ -27,10 +31,6 @@ from tests.workflows.conftest import (
     sigkill_when,
     write_config,
 )
-from pipeline.cascade import CascadedForest, labels_from_proba
-from pipeline.store import open_store
-from workflows.store.layout import proba_array
-from workflows.cli import main
 
 pytestmark = pytest.mark.slow
 
@@ -211,11 +211,11 @@ def test_changed_config_invalidates_only_what_it_affects(reference, survey_run, 
 def test_lost_worker_does_not_change_the_result(reference, survey, tmp_path):
     from distributed import Client, LocalCluster
 
-    from workflows.autoparams import resolve_run
     from workflows.config import load_config
-    from workflows.engine import Engine
-    from workflows.run import Run
-    from workflows.workflow import execute
+    from workflows.exec.engine import Engine
+    from workflows.run.autoparams import resolve_run
+    from workflows.run.directory import Run
+    from workflows.run.loop import execute
 
     config = write_config(tmp_path / "lost.yaml", survey, tiling={"chunk_size": 5.0})
     out = tmp_path / "out"

@@ -18,21 +18,20 @@ what a run used and loading that text again gives an equal configuration.
 
 Modules: :mod:`~workflows.config.schema` (the sections), :mod:`~workflows.config.loading`
 (YAML, paths, overrides), :mod:`~workflows.config.messages` (one-line errors),
-:mod:`~workflows.config.fields` (field types). :func:`fingerprint` lives in
-:mod:`workflows.fingerprint` and :func:`expand_inputs` in :mod:`workflows.inputs`.
+:mod:`~workflows.config.fields` (field types), :mod:`~workflows.config.inputs` (the input
+tiles the data section names). The fingerprint of a step's keys is
+:mod:`workflows.run.fingerprint`'s.
 """
 
+from workflows.config.inputs import expand_inputs
 from workflows.config.loading import dump_config, load_config, validate_config
 from workflows.config.schema import ClusterConfig, SilvaConfig
-from workflows.fingerprint import fingerprint
-from workflows.inputs import expand_inputs
 
 __all__ = [
     "ClusterConfig",
     "SilvaConfig",
     "dump_config",
     "expand_inputs",
-    "fingerprint",
     "load_config",
     "validate_config",
 ]

@@ -14,9 +14,9 @@ import yaml
 from pydantic import ValidationError
 
 from pipeline.errors import ConfigError, MissingFileError
+from workflows.config.inputs import SCENES
 from workflows.config.messages import describe, show, submodel, unwrap
 from workflows.config.schema import SilvaConfig
-from workflows.inputs import SCENES
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):

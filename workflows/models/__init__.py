@@ -8,7 +8,7 @@ from pathlib import Path
 
 from pipeline.errors import ModelError
 from pipeline.model import recorded
-from workflows.run_plan import trained_densities
+from workflows.run.plan import trained_densities
 
 HERE = Path(__file__).resolve().parent
 

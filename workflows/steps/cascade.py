@@ -38,11 +38,11 @@ from pipeline.model import (
 )
 from pipeline.store import rows_of
 from pipeline.tiling import BalancedLayout, Grid
-from workflows.autoparams import data_filters
-from workflows.engine import chunk_tasks
-from workflows.progress import say
-from workflows.run import Run
-from workflows.run_plan import AppliedModel, check_model
+from workflows.exec.engine import chunk_tasks
+from workflows.run.autoparams import data_filters
+from workflows.run.directory import Run
+from workflows.run.plan import AppliedModel, check_model
+from workflows.run.progress import say
 from workflows.steps.copies import trained_copies
 from workflows.store.layout import ROLE_TRAIN, context_array, labels_array, proba_array
 from workflows.store.scenes import RunLayout

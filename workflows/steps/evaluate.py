@@ -15,15 +15,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.atomic import atomic_write_text
 from pipeline.cascade import id_hash, labels_from_proba
 from pipeline.metrics import confusion_matrix, scores_from_confusion
-from pipeline.atomic import atomic_write_text
-from workflows.store.layout import ROLE_TEST, labels_array, proba_array
-from workflows.store.scenes import RunLayout
-from workflows.engine import chunk_tasks, results_by_scene
-from workflows.run import Run
+from workflows.exec.engine import chunk_tasks, results_by_scene
+from workflows.run.directory import Run
 from workflows.steps.survey import canopy_samples
 from workflows.steps.terrain import ground_under
+from workflows.store.layout import ROLE_TEST, labels_array, proba_array
+from workflows.store.scenes import RunLayout
 
 PLOT_POINTS = 200_000  # points drawn in the report's plots
 

@@ -35,14 +35,14 @@ from pipeline.terrain import Raster, TerrainBlocks, ground_elevation
 from pipeline.tiling import BalancedLayout, Grid, global_ids
 from workflows.config.point_filter import PointFilter
 from workflows.config.schema import feature_dim_name
-from workflows.engine import Task
-from workflows.progress import counted, say
-from workflows.run import Run
+from workflows.exec.engine import Task
+from workflows.run.directory import Run
+from workflows.run.progress import counted, say
 from workflows.steps.terrain import scene_terrain
 from workflows.steps.trees import REFERENCE_TREE_ID, TileTrees, TreeTask
 from workflows.store.layout import chunk_path, proba_array
-from workflows.store.scenes import RunLayout
 from workflows.store.marks import is_done, mark_done, read_array
+from workflows.store.scenes import RunLayout
 
 PREDICTED = "PredictedClassification"
 HEIGHT_ABOVE_GROUND = "HeightAboveGround"

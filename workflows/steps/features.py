@@ -15,12 +15,12 @@ from pipeline.cascade import id_hash
 from pipeline.features.density import left_out, neighbourhood_members, pile_up_warning
 from pipeline.features.neighbors import RadiusIndex
 from pipeline.features.sets import FeatureParams, feature_set
+from workflows.exec.engine import chunk_tasks, chunk_window_returns
+from workflows.run.directory import Run
+from workflows.run.progress import say
+from workflows.steps.terrain import ground_under
 from workflows.store.layout import ROLE_TRAIN
 from workflows.store.scenes import RunLayout
-from workflows.engine import chunk_tasks, chunk_window_returns
-from workflows.progress import say
-from workflows.run import Run
-from workflows.steps.terrain import ground_under
 
 SPARSE_NEIGHBORS = 8  # fewer points in S1 than this make a poor surface
 SPARSE_SAMPLE = 0.02  # fraction of the points whose neighbourhood size is checked

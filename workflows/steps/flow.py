@@ -1,5 +1,5 @@
-"""The built-in steps as the step table (:data:`workflows.step_table.STEPS`) runs them: each
-takes the run's :class:`~workflows.run_state.RunState`, calls its step module and leaves
+"""The built-in steps as the step table (:data:`workflows.run.step_table.STEPS`) runs them: each
+takes the run's :class:`~workflows.run.state.RunState`, calls its step module and leaves
 what it found on the state for the steps after it.
 
 The features and the stage-by-stage cascade cover the scenes the forests train on (and
@@ -15,10 +15,10 @@ import platform
 from datetime import datetime, timezone
 
 from pipeline import __version__
-from workflows.durations import totals
-from workflows.engine import check_chunk
-from workflows.progress import fold_step, say
-from workflows.run_state import RunState
+from workflows.exec.engine import check_chunk
+from workflows.run.durations import totals
+from workflows.run.progress import fold_step, say
+from workflows.run.state import RunState
 from workflows.steps.cascade import cascade, model_stages
 from workflows.steps.evaluate import evaluate, write_metrics
 from workflows.steps.export import check_point_formats, export

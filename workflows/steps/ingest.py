@@ -38,12 +38,12 @@ from pipeline.tiling import (
     group_tiles,
     tile_area,
 )
-from workflows.config import expand_inputs
+from workflows.config.inputs import SCENES, expand_inputs
 from workflows.config.point_filter import PointFilter
-from workflows.echoes import EchoNeed, check_return_fields, echo_need
-from workflows.engine import Task
-from workflows.progress import counted, say
-from workflows.run import SCENES, Run
+from workflows.exec.engine import Task
+from workflows.run.directory import Run
+from workflows.run.echoes import EchoNeed, check_return_fields, echo_need
+from workflows.run.progress import counted, say
 from workflows.steps.copies import (
     copies_done, copies_of, copy_counts, copy_lines, plan_copies, with_copies,
 )

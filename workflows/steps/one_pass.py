@@ -20,8 +20,8 @@ from pipeline.cascade import labels_from_proba, one_pass, one_pass_halo
 from pipeline.features.sets import FeatureParams, feature_set
 from pipeline.store import write_arrays
 from pipeline.tiling import BalancedLayout, Grid
-from workflows.engine import chunk_tasks, chunk_window_returns
-from workflows.run import Run
+from workflows.exec.engine import chunk_tasks, chunk_window_returns
+from workflows.run.directory import Run
 from workflows.steps.cascade import cached_forest
 from workflows.steps.features import neighbourhood_checks, warn_neighbourhoods
 from workflows.steps.terrain import ground_under

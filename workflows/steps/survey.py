@@ -14,8 +14,8 @@ import numpy as np
 
 from pipeline.cascade import id_hash, labels_from_proba
 from pipeline.tiling import split_global_ids
-from workflows.engine import chunk_tasks, results_by_scene
-from workflows.run import Run
+from workflows.exec.engine import chunk_tasks, results_by_scene
+from workflows.run.directory import Run
 from workflows.steps.export import entropy
 from workflows.steps.terrain import ground_under, read_blocks
 from workflows.store.layout import proba_array

@@ -19,12 +19,12 @@ from pipeline.store import open_store, write_arrays
 from pipeline.terrain import (
     Raster, TerrainBlocks, block_models, cell_minima, ground_elevation, merge_minima,
 )
-from workflows.engine import chunk_tasks, chunk_window
-from workflows.progress import say
-from workflows.run import Run
+from workflows.exec.engine import chunk_tasks, chunk_window
+from workflows.run.directory import Run
+from workflows.run.progress import say
 from workflows.store.layout import chunk_path, terrain_path
-from workflows.store.scenes import RunLayout
 from workflows.store.marks import read_array
+from workflows.store.scenes import RunLayout
 from workflows.store.terrain import read_terrain, terrain_done, write_terrain
 
 #: The pack of a chunk's cell minima.

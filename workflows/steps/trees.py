@@ -32,12 +32,12 @@ from pipeline.terrain import Raster
 from pipeline.trees import TreeModel, TreeParams, assign_trees, merge_stats, tree_stats, tree_table
 from pipeline.trees.instances import match_pairs, matched_errors, merge_pairs, pair_counts
 from pipeline.trees.scene import TreeInputs, merge_inputs, scene_model, tree_inputs
-from workflows.engine import chunk_tasks, results_by_scene
-from workflows.progress import counted, say
+from workflows.exec.engine import chunk_tasks, results_by_scene
+from workflows.run.progress import counted, say
 from workflows.steps.terrain import ground_under
 from workflows.store.layout import proba_array
-from workflows.store.scenes import RunLayout
 from workflows.store.marks import is_done, mark_done, read_array
+from workflows.store.scenes import RunLayout
 
 log = logging.getLogger(__name__)
 

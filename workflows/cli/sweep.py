@@ -1,6 +1,6 @@
 """``silva sweep``: run one configuration once per value of a key (and per seed), compare.
 
-Every run is an ordinary run up to ``evaluate`` (:func:`workflows.workflow.execute`) with
+Every run is an ordinary run up to ``evaluate`` (:func:`workflows.run.loop.execute`) with
 ``--set KEY=VALUE`` and ``cascade.seed = 0 .. N-1``, all on one Dask client opened the way
 ``silva run`` opens it. Runs whose features are the same (their ``features`` fingerprint,
 :func:`workflows.config.fingerprint`, is equal: any ``cascade.*`` key, ``features.r2``,
@@ -34,7 +34,7 @@ import click
 import yaml
 
 from pipeline.errors import ConfigError, SilvaError
-from workflows.progress import run_logging, run_progress, say
+from workflows.run.progress import run_logging, run_progress, say
 
 MEASURES = ("precision", "recall", "f1")
 
@@ -76,8 +76,9 @@ def parse_values(text: str) -> list[tuple[str, Any]]:
 def plan_sweep(config: Path, key: str, values: str, seeds: int, out: Path,
                overrides=()) -> list[SweepRun]:
     """Every run of the sweep, each configuration validated, before any work is done."""
-    from workflows.config import fingerprint, load_config
-    from workflows.run import read_paths
+    from workflows.config import load_config
+    from workflows.run.directory import read_paths
+    from workflows.run.fingerprint import fingerprint
 
     key = key.strip()
     if key.split(".")[0] == "cluster":
@@ -116,8 +117,8 @@ def run_sweep(config: Path, key: str, values: str, seeds: int, out: Path, overri
               quiet: bool = False, in_process: bool = False, verbose: int = 0,
               command: str = "silva sweep") -> list[dict]:
     """Run every value x seed; write sweep.csv, sweep.md and the plots; return the rows."""
-    from workflows.commands import LOG_NAME, Interrupted, _engine, prepare_kernels
-    from workflows.run import prepare_output
+    from workflows.cli.commands import LOG_NAME, Interrupted, _engine, prepare_kernels
+    from workflows.run.directory import prepare_output
 
     plan = plan_sweep(config, key, values, seeds, out, overrides)
     works = list(dict.fromkeys(r.work for r in plan))
@@ -154,10 +155,10 @@ def run_sweep(config: Path, key: str, values: str, seeds: int, out: Path, overri
 def _run_one(item: SweepRun, engine, quiet: bool, command: str, kernels=None) -> dict:
     """Run ``item`` up to evaluate in its run directory; keep and return its metrics."""
     from pipeline.atomic import atomic_write_text
-    from workflows.autoparams import resolve_run
-    from workflows.run import Run
-    from workflows.step_table import progress_steps
-    from workflows.workflow import execute
+    from workflows.run.autoparams import resolve_run
+    from workflows.run.directory import Run
+    from workflows.run.loop import execute
+    from workflows.run.step_table import progress_steps
 
     run = Run(resolve_run(item.cfg), item.work, quiet=quiet)
     run.save_config()
@@ -302,7 +303,7 @@ def sweep(config, key, values, seeds, out, overrides, quiet, in_process, verbose
       silva sweep survey.yaml --param features.r1 --values 0.3,0.4,0.5
       silva sweep survey.yaml --param cascade.stages --values 1,2,3 --seeds 3
     """
-    from workflows.commands import _command_line
+    from workflows.cli.commands import _command_line
 
     out = out or Path(f"silva-sweep-{Path(config).stem}")
     run_sweep(config, key, values, seeds, out, overrides, quiet=quiet, in_process=in_process,

@@ -17,7 +17,7 @@ import numpy as np
 
 from pipeline.errors import ChunkError, InputError, SilvaError
 from pipeline.store import open_store, write_arrays
-from workflows.progress import StepProgress
+from workflows.run.progress import StepProgress
 from workflows.store.assembly import chunk_points
 from workflows.store.layout import RETURNS, chunk_path
 from workflows.store.marks import is_done, mark_done, read_array
@@ -115,7 +115,7 @@ class Engine:
         return results
 
     def _map_dask(self, tasks, progress, step):
-        from workflows.watch import completed
+        from workflows.exec.watch import completed
 
         futures = {}
         for task in tasks:

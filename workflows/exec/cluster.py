@@ -181,7 +181,7 @@ def ctrl_c_held():
 def _connect(address: str, timeout: float):
     from distributed import Client
 
-    from workflows.probe import check_scheduler
+    from workflows.exec.probe import check_scheduler
 
     check_scheduler(address, timeout)  # a web server or a proxy would make Client hang
     try:

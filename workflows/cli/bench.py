@@ -34,7 +34,7 @@ from pathlib import Path
 import click
 
 from pipeline.errors import ConfigError, MissingFileError, SilvaError
-from workflows.progress import say
+from workflows.run.progress import say
 
 PEERS = ("jakteristics", "pgeof")
 INSTALL_PEERS = ("no covariance-feature library to compare with: install the bench extra "
@@ -413,10 +413,10 @@ def machine_scaling(client, params, n_points: int = SCALING_POINTS) -> float:
 def one_run(config: Path, overrides, out: Path, model: Path | None, client) -> dict:
     """One ``silva run`` (``predict`` with ``model``) of ``config`` on ``client`` into
     ``out``: the run's summary plus ``seconds`` (its steps, the cluster already running)."""
-    from workflows.autoparams import run_config
-    from workflows.engine import Engine
-    from workflows.run import Run
-    from workflows.workflow import execute
+    from workflows.exec.engine import Engine
+    from workflows.run.autoparams import run_config
+    from workflows.run.directory import Run
+    from workflows.run.loop import execute
 
     run = Run(run_config(config, overrides, model), out, quiet=True)
     run.save_config()
@@ -436,11 +436,11 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
                    quiet: bool = False, repeat: int = 1) -> dict:
     """Time the runs of ``config`` (see module) ``repeat`` times, the kinds of run taking
     turns; return the figures: medians over the rounds, each ratio taken within a round."""
-    from workflows.autoparams import resolve_run
-    from workflows.cluster import open_client
-    from workflows.commands import prepare_kernels
+    from workflows.cli.commands import prepare_kernels
     from workflows.config import load_config
-    from workflows.run import Run, read_paths
+    from workflows.exec.cluster import open_client
+    from workflows.run.autoparams import resolve_run
+    from workflows.run.directory import Run, read_paths
 
     cfg = load_config(config, overrides)  # a bad config or a missing input: now, not later
     read_paths(cfg, config, model)

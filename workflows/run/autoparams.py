@@ -26,9 +26,9 @@ from pipeline.io import read_info
 from pipeline.model import LATER_KEYS, read_model_file
 from pipeline.tiling import tile_area
 from workflows.config import SilvaConfig, validate_config
+from workflows.config.inputs import expand_inputs
 from workflows.config.loading import load_raw
-from workflows.inputs import expand_inputs
-from workflows.run_plan import AppliedModel, RunPlan, check_model, find_inputs
+from workflows.run.plan import AppliedModel, RunPlan, check_model, find_inputs
 
 log = logging.getLogger(__name__)
 

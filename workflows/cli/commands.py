@@ -2,8 +2,8 @@
 ``demo``, ``synth`` and ``init`` (``sweep``, which runs through these, is in its own module).
 
 Each step command is a target: it runs the steps up to and including its own, skipping what a
-previous run finished with the same configuration (see :mod:`workflows.workflow`).
-:mod:`workflows.cli` gathers :data:`COMMANDS` into the ``silva`` group; this module does not
+previous run finished with the same configuration (see :mod:`workflows.run.loop`).
+:mod:`workflows.cli.main` gathers :data:`COMMANDS` into the ``silva`` group; this module does not
 import it. The modules that run steps (Dask, numba, zarr) are imported only when a run starts,
 so ``silva --help`` and ``silva init`` answer at once.
 """
@@ -17,7 +17,8 @@ from pathlib import Path
 
 import click
 
-from workflows.progress import (
+from workflows.cli.templates import TEMPLATES, template_path, write_template
+from workflows.run.progress import (
     counted,
     log_line,
     report_finished_step,
@@ -26,8 +27,7 @@ from workflows.progress import (
     say,
     uncounted,
 )
-from workflows.step_table import STEPS, TARGETS, examples, progress_steps
-from workflows.templates import TEMPLATES, template_path, write_template
+from workflows.run.step_table import STEPS, TARGETS, examples, progress_steps
 
 log = logging.getLogger(__name__)
 
@@ -108,12 +108,12 @@ def run_options(fn):
 
 @contextlib.contextmanager
 def _engine(cfg, *, quiet, in_process, debug):
-    from workflows.engine import Engine
+    from workflows.exec.engine import Engine
 
     if in_process or debug:
         yield Engine(None, quiet=quiet, debug=debug)
         return
-    from workflows.cluster import dashboard_link, open_client
+    from workflows.exec.cluster import dashboard_link, open_client
 
     with contextlib.ExitStack() as stack:
         with uncounted():  # once per run: not a rate of the steps' work
@@ -211,7 +211,7 @@ def check_before_start(run, steps, in_process: bool = False) -> list[dict]:
     rasters' size, and that a local cluster's workers have the memory for the largest chunk
     (the saved model a run applies was checked with its plan). Raises the error the step would raise
     later."""
-    from workflows.plan import check_memory
+    from workflows.cli.plan import check_memory
     from workflows.steps.export import check_output_names, check_point_formats, check_raster_size
     from workflows.steps.ingest import plan_tiles
 
@@ -247,12 +247,14 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
     kernels compile (:func:`check_before_start`); an error or Ctrl-C also ends the run's log
     with the line the command line shows. The resume hint never carries ``--overwrite``.
     """
-    from workflows.autoparams import read_run, resolve_run
-    from workflows.plan import plan_workers, step_weights
+    from workflows.cli.plan import plan_workers, step_weights
     from workflows.config import validate_config
-    from workflows.durations import reset
-    from workflows.run import Run, applied_model, prepare_output, read_paths, record_applied_model
-    from workflows.workflow import execute
+    from workflows.run.autoparams import read_run, resolve_run
+    from workflows.run.directory import (
+        Run, applied_model, prepare_output, read_paths, record_applied_model,
+    )
+    from workflows.run.durations import reset
+    from workflows.run.loop import execute
 
     out = out or Path(f"silva-{Path(config).stem if config else 'predict'}")
     if model_dir is None and not overwrite:
@@ -387,11 +389,11 @@ def plan(config, overrides, picture):
       silva plan survey.yaml
       silva plan survey.yaml --set tiling.target_points=500000 --picture grid.png
     """
-    from workflows.autoparams import resolve_run
+    from workflows.cli.plan import plan as plan_run
+    from workflows.cli.plan import plan_workers
     from workflows.config import load_config
-    from workflows.plan import plan as plan_run
-    from workflows.plan import plan_workers
-    from workflows.run import Run
+    from workflows.run.autoparams import resolve_run
+    from workflows.run.directory import Run
 
     run = Run(resolve_run(load_config(config, overrides)), Path("."), quiet=True)
     for line in plan_run(run, plan_workers(run), picture):
@@ -407,7 +409,7 @@ def status(out):
     Examples:
       silva status results/
     """
-    from workflows.status import run_status
+    from workflows.cli.status import run_status
 
     for line in run_status(out):
         click.echo(line)
@@ -435,9 +437,9 @@ def demo(out, quiet, in_process, overwrite, overrides, plot_size, verbose):
     """
     from pipeline.synth import write_synthetic_plot
     from workflows.config import load_config
-    from workflows.run import prepare_output
+    from workflows.run.directory import prepare_output
 
-    from workflows.durations import reset
+    from workflows.run.durations import reset
 
     prepare_output(out, overwrite=overwrite)
     if overwrite:

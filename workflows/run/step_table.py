@@ -1,7 +1,8 @@
 """The steps of a run, declared once: :data:`STEPS`, read by the run's loop
-(:func:`workflows.workflow.execute`), its progress and ETA (:mod:`workflows.progress`,
-:func:`workflows.plan.step_weights`), the fingerprints (:mod:`workflows.fingerprint`) and the
-per-step commands (:data:`workflows.commands.STEP_COMMANDS`).
+(:func:`workflows.run.loop.execute`), its progress and ETA (:mod:`workflows.run.progress`,
+:func:`workflows.cli.plan.step_weights`), the fingerprints
+(:mod:`workflows.run.fingerprint`) and the per-step commands
+(:data:`workflows.cli.commands.STEP_COMMANDS`).
 
 Each :class:`Step` gives its name, the function that runs it (``"module:function"``,
 imported only when the step runs, so that this table stays as light as the modules that
@@ -12,7 +13,7 @@ the command's help.
 Adding a step (for example ``trees``, per scene after the cascade, before the export):
 
 1. write its function in its own module; it takes the run's state
-   (:class:`workflows.run_state.RunState`), reads what its ``needs`` name there and times
+   (:class:`workflows.run.state.RunState`), reads what its ``needs`` name there and times
    its work under its name::
 
        def trees_step(state):
@@ -31,7 +32,7 @@ Adding a step (for example ``trees``, per scene after the cascade, before the ex
 The loop then runs it (``silva run`` and every command after it), ``silva trees`` exists,
 the progress shows its line and weighs it (``share`` before a plan, else its estimated
 seconds), and ``run.fingerprint("trees")`` hashes what it names: :data:`PARTS
-<workflows.fingerprint.PARTS>` (rules of their own) and configuration paths as written
+<workflows.run.fingerprint.PARTS>` (rules of their own) and configuration paths as written
 (``"trees"``: the whole section, ``"output.trees"``: one key; the configuration schema
 declares them). A step without ``command`` has no command and no line in the progress (its
 tasks count in the progress of the step they run in); a step with ``per_chunk=False`` is
@@ -47,7 +48,7 @@ from pkgutil import resolve_name
 class Weight:
     """A step's share of a run's time: ``share`` before anything is known (the demo and the
     benchmarks), else a sum of the run's estimated seconds
-    (:func:`workflows.plan.estimated_seconds`): of the features, the forests' training and
+    (:func:`workflows.cli.plan.estimated_seconds`): of the features, the forests' training and
     the other chunk work, each times its factor."""
 
     share: float = 0.0
@@ -183,7 +184,7 @@ def progress_steps(target: str, applies_model: bool = False, cfg=None) -> list[s
 def step_weights(spent: Mapping[str, float] | None = None) -> dict[str, float]:
     """Each shown step's weight in a run's progress, under its name and, for a step named
     otherwise when a model is applied, that name too: the typical shares, or with ``spent``
-    (:func:`workflows.plan.estimated_seconds`) its estimated seconds."""
+    (:func:`workflows.cli.plan.estimated_seconds`) its estimated seconds."""
     weights = {}
     for step in STEPS:
         if step.command is None:

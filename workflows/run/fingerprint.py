@@ -1,7 +1,7 @@
 """The recompute fingerprint: a hash of the configuration keys that affect one workflow step.
 
 :data:`STEPS` is the list of fingerprinted steps, as the step table
-(:mod:`workflows.step_table`) declares them with the configuration parts each hashes
+(:mod:`workflows.run.step_table`) declares them with the configuration parts each hashes
 (:data:`PARTS`, or configuration paths hashed as written); a rerun redoes a step whose
 fingerprint changed and keeps the others.
 """
@@ -13,8 +13,8 @@ import json
 from typing import TYPE_CHECKING, Any
 
 from pipeline.errors import ConfigError
-from workflows.inputs import SCENES
-from workflows.step_table import FINGERPRINTED
+from workflows.config.inputs import SCENES
+from workflows.run.step_table import FINGERPRINTED
 
 if TYPE_CHECKING:
     from workflows.config.schema import SilvaConfig

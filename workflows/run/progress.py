@@ -26,7 +26,7 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from workflows.step_table import per_stage_names, step_weights
+from workflows.run.step_table import per_stage_names, step_weights
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +67,7 @@ def clock(seconds: float) -> str:
 class RunProgress:
     """Step n of m, elapsed and ETA of a whole run, from the progress of its steps' tasks.
 
-    ``steps`` are the run's steps in order (:func:`workflows.step_table.progress_steps`).
+    ``steps`` are the run's steps in order (:func:`workflows.run.step_table.progress_steps`).
     Each :class:`StepProgress` reports here under its task name: a step's name (``ingest``,
     ``features``, ``export``, ...) is its step; every other name (``sample-2``,
     ``predict-3``, ...) belongs to the cascade step, and its trailing number is the stage out

@@ -1,4 +1,4 @@
-"""The run's loop: the steps of the table (:data:`workflows.step_table.STEPS`) in order,
+"""The run's loop: the steps of the table (:data:`workflows.run.step_table.STEPS`) in order,
 each resumable, up to the command's target.
 
 Every command is a target: it runs the steps up to and including its own. Steps skip the work
@@ -12,11 +12,11 @@ only says so, and any other command starts afresh from the input tiles.
 import logging
 import os
 
+from workflows.run.directory import Run
+from workflows.run.progress import say
+from workflows.run.state import RunState
+from workflows.run.step_table import TARGETS, steps_until
 from workflows.store.retention import forget_removed, remove_chunks, removed_record
-from workflows.progress import say
-from workflows.run import Run
-from workflows.run_state import RunState
-from workflows.step_table import TARGETS, steps_until
 
 log = logging.getLogger(__name__)
 
@@ -24,7 +24,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
             kernels=None) -> dict:
     """Run the steps up to ``target``; return a summary (durations, counts, output paths).
 
-    ``kernels`` (:class:`workflows.commands.Kernels`, optional): the feature kernels
+    ``kernels`` (:class:`workflows.cli.commands.Kernels`, optional): the feature kernels
     compiling in the background while ingest runs; waited for before the features step.
     """
     state = RunState(run, engine, target, only, command, kernels)

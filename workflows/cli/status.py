@@ -7,9 +7,9 @@ import yaml
 from pipeline.errors import ModelError
 from pipeline.model import MODEL_FILE, read_description
 from pipeline.store import open_store
-from workflows.lock import describe, held_by_other, read_lock
-from workflows.progress import counted
-from workflows.run import has_test_points
+from workflows.run.directory import has_test_points
+from workflows.run.lock import describe, held_by_other, read_lock
+from workflows.run.progress import counted
 from workflows.store.layout import chunk_path
 from workflows.store.retention import removed_record
 from workflows.store.scenes import RunLayout

@@ -1,8 +1,8 @@
 """A run's plan (:class:`RunPlan`): its resolved configuration, the saved model it
 applies (read and checked once) and its input files, frozen before the first step starts.
 
-:func:`workflows.autoparams.resolve_run` builds it, the one place a run's configuration is
-resolved; :class:`workflows.run.Run` holds it beside the run's paths and store.
+:func:`workflows.run.autoparams.resolve_run` builds it, the one place a run's configuration is
+resolved; :class:`workflows.run.directory.Run` holds it beside the run's paths and store.
 """
 
 import hashlib
@@ -14,7 +14,7 @@ from pipeline.errors import ConfigError, ModelError
 from pipeline.features.sets import feature_set
 from pipeline.model import check_compatible, check_versions, verify_stage_files
 from workflows.config import SilvaConfig
-from workflows.inputs import SCENES, expand_inputs
+from workflows.config.inputs import SCENES, expand_inputs
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,7 @@ class RunPlan:
     @property
     def n_stages(self) -> int:
         """The cascade stages the run computes (an applied model's: see
-        :func:`workflows.autoparams.adopt_model`)."""
+        :func:`workflows.run.autoparams.adopt_model`)."""
         return self.cfg.cascade.stages
 
 

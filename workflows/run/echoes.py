@@ -2,7 +2,7 @@
 are computed from, and the one line that refuses a tile without them.
 
 A run computes echo features when its configuration sets ``features.echoes: true`` or when
-the model it applies was trained with them (:func:`workflows.autoparams.adopt_model` takes
+the model it applies was trained with them (:func:`workflows.run.autoparams.adopt_model` takes
 the key from the model). Every tile must then record each point's return number and number
 of returns: a format without the fields (Oakland text) is refused when the tiles are
 planned, from the header (:func:`check_return_fields`); a LAS tile whose points all have
@@ -42,8 +42,8 @@ class EchoNeed:
 
 
 def echo_need(run) -> EchoNeed | None:
-    """What needs the return numbers in ``run`` (a :class:`workflows.run.Run`), or None when
-    its features use none."""
+    """What needs the return numbers in ``run`` (a :class:`workflows.run.directory.Run`), or
+    None when its features use none."""
     if not run.features.echoes:
         return None
     if run.model_dir is not None:

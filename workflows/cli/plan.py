@@ -21,9 +21,9 @@ from pipeline.atomic import atomic_path
 from pipeline.errors import ConfigError
 from pipeline.features.sets import feature_set
 from pipeline.tiling import MIN_CHUNK_HALOS, Grid, tile_area
-from workflows.progress import clock, counted
-from workflows.run import Run
-from workflows.step_table import step_weights as table_weights
+from workflows.run.directory import Run
+from workflows.run.progress import clock, counted
+from workflows.run.step_table import step_weights as table_weights
 from workflows.steps.copies import copy_lines
 from workflows.steps.ingest import plan_scenes, plan_tiles, scene_chunk_size
 from workflows.store.scenes import SceneLayout
@@ -263,7 +263,7 @@ def estimated_seconds(run: Run, tiles: list[dict], workers: int,
 def step_weights(run: Run, tiles: list[dict], workers: int) -> dict[str, float]:
     """Each step's estimated seconds (:func:`estimated_seconds`): how the run's progress
     weighs the steps for its ETA, the forests' training included (each step's
-    :class:`~workflows.step_table.Weight`)."""
+    :class:`~workflows.run.step_table.Weight`)."""
     return table_weights(estimated_seconds(run, tiles, workers))
 
 
@@ -308,7 +308,7 @@ def plan_workers(run: Run) -> int:
     if cluster.kind == "local":
         return int(cluster.n_workers or os.cpu_count() or 1)
     if cluster.kind == "slurm":
-        from workflows.cluster import slurm_workers
+        from workflows.exec.cluster import slurm_workers
 
         return slurm_workers(cluster)
     return max(1, int(getattr(cluster, "n_workers", None) or 1))

@@ -28,15 +28,14 @@ from pipeline.errors import ConfigError, SilvaError
 from pipeline.features.sets import FeatureParams
 from pipeline.store import open_store
 from pipeline.terrain import TerrainParams
-from workflows.config import SilvaConfig, dump_config, fingerprint
-from workflows.fingerprint import STEPS as FINGERPRINTED
-from workflows.inputs import expand_inputs
-from workflows.lock import LOCK_NAME, acquire, check_free
-from workflows.run_plan import AppliedModel, RunPlan, feature_description
+from workflows.config import SilvaConfig, dump_config
+from workflows.config.inputs import SCENES, expand_inputs
+from workflows.run.fingerprint import STEPS as FINGERPRINTED
+from workflows.run.fingerprint import fingerprint
+from workflows.run.lock import LOCK_NAME, acquire, check_free
+from workflows.run.plan import AppliedModel, RunPlan, feature_description
 
 log = logging.getLogger(__name__)
-
-SCENES = ("train", "test", "predict")
 
 
 def has_test_points(scenes, split) -> bool:
@@ -48,7 +47,7 @@ def has_test_points(scenes, split) -> bool:
 @dataclass
 class Run:
     """The paths and the store of one run, and its plan (:class:`RunPlan`: built once by
-    :func:`workflows.autoparams.resolve_run`), which everything it computes follows."""
+    :func:`workflows.run.autoparams.resolve_run`), which everything it computes follows."""
 
     plan: RunPlan
     out: Path

@@ -3,7 +3,7 @@
 Every command turns a :class:`pipeline.errors.SilvaError`, and a usage error, into one line
 on stderr and exit code 1, so batch logs show what went wrong and how to fix it instead of a
 traceback or a usage screen. Ctrl-C ends a run with one line that says how to resume it. The
-commands themselves are in :mod:`workflows.commands`.
+commands themselves are in :mod:`workflows.cli.commands`.
 """
 
 import sys
@@ -11,9 +11,9 @@ import sys
 import click
 
 from pipeline.errors import SilvaError
-from workflows.bench import bench
-from workflows.commands import COMMANDS, error_line
-from workflows.sweep import sweep  # it runs its runs through commands: registered here
+from workflows.cli.bench import bench
+from workflows.cli.commands import COMMANDS, error_line
+from workflows.cli.sweep import sweep  # it runs its runs through commands: registered here
 
 
 def _usage_error(err: click.UsageError):

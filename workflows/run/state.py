@@ -7,9 +7,9 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 from pipeline.errors import StoreError
-from workflows.durations import accumulate
-from workflows.run import Run, has_test_points
-from workflows.step_table import BY_NAME, steps_until
+from workflows.run.directory import Run, has_test_points
+from workflows.run.durations import accumulate
+from workflows.run.step_table import BY_NAME, steps_until
 from workflows.store.scenes import RunLayout
 
 
@@ -17,9 +17,9 @@ from workflows.store.scenes import RunLayout
 class RunState:
     """One execution of the steps up to ``target``: its inputs and what the steps found.
 
-    ``kernels`` (:class:`workflows.commands.Kernels`, optional): the feature kernels
+    ``kernels`` (:class:`workflows.cli.commands.Kernels`, optional): the feature kernels
     compiling in the background while ingest runs; waited for before the features step.
-    ``summary`` is what :func:`workflows.workflow.execute` returns; its ``timings`` fill in
+    ``summary`` is what :func:`workflows.run.loop.execute` returns; its ``timings`` fill in
     as the steps finish.
     """
 

@@ -1,0 +1,2 @@
+"""Where the tasks run: the Dask cluster, the engine that maps a step's tasks on it, and the
+watch that notices a cluster on which no task can run."""
