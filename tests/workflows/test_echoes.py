@@ -250,9 +250,8 @@ def test_a_thinned_copy_keeps_the_return_numbers_of_its_points(echo_survey, tmp_
     its source stores, so its echo columns are those of the thinned cloud."""
     from pipeline.cascade.thinning import thinned_mask
 
-    config = echo_config(tmp_path / "copies.yaml", echo_survey, data={"densities": [50]},
-                         cascade={"stages": 1})
-    result = silva("run", config, "--out", tmp_path / "out", "--in-process", "-q")
+    config = echo_config(tmp_path / "copies.yaml", echo_survey, data={"densities": [50]})
+    result = silva("features", config, "--out", tmp_path / "out", "--in-process", "-q")
     assert result.exit_code == 0, result.output
     layout = open_store(tmp_path / "out" / "store.zarr", mode="r").attrs["layout"]
     copy = layout["scenes"]["train@50ppm"]
