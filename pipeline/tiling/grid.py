@@ -58,6 +58,24 @@ def _checked_extent(n_points, area, halo, target_points, extent) -> float:
     return extent
 
 
+def _uniform_window(n_points: int, area: float, extent: float, target_points: int) -> float:
+    """The side w of a square window holding ``target_points`` of ``n_points`` (> that)
+    points spread uniformly over a box of ``area`` (m²) and larger side ``extent`` (> 0).
+
+    Such a window holds ``n_points * min(w, W) / W * min(w, H) / H`` points (W = extent,
+    H = area / extent; a side of length 0 counts as fully covered), so
+
+    * in a box wider than the window, ``w = sqrt(target_points * area / n_points)``;
+    * in a strip narrower than the window (H < w, e.g. a transect or points on a line of
+      length W, area 0), ``w = target_points * W / n_points``.
+    """
+    width, height = extent, area / extent
+    window = math.sqrt(target_points * area / n_points)
+    if window >= height:  # the window is as wide as the strip or wider (a line: both 0)
+        window = target_points * width / n_points
+    return window
+
+
 def auto_chunk_size(
     n_points: int, area: float, halo: float, target_points: int, *, extent: float | None = None
 ) -> float:
@@ -69,17 +87,11 @@ def auto_chunk_size(
     Only header statistics are needed, so the grid is known before any point is read.
 
     The points are assumed spread uniformly over the scene's XY box, of area ``area`` (m²)
-    and larger side ``extent`` (m; default: the side of a square of that area). A window of
-    side w = s + 2 * halo (a core and its halo) then holds
-    ``n_points * min(w, W) / W * min(w, H) / H`` points (W = extent, H = area / extent; a
-    side of length 0 counts as fully covered), so
-
-    * in a box wider than the window, ``w = sqrt(target_points * area / n_points)``;
-    * in a strip narrower than the window (H < w, e.g. a transect or points on a line of
-      length W, area 0), ``w = target_points * W / n_points``;
-
-    and ``s = w - 2 * halo``. Real scans are not uniform (a terrestrial scan is densest
-    around its scanner positions), so chunks in dense parts hold more than the mean.
+    and larger side ``extent`` (m; default: the side of a square of that area): the exact
+    side is ``s = w - 2 * halo``, w the side of the window (a core and its halo) that
+    :func:`_uniform_window` finds holds ``target_points``. Real scans are not uniform (a
+    terrestrial scan is densest around its scanner positions), so chunks in dense parts
+    hold more than the mean.
 
     The side is then rounded *down* to the series 1, 1.2, 1.5, 2, 2.5, 3, 4, 5, 6, 8 times a
     power of ten (:data:`SIZE_SERIES`; at most 4/3 below the exact side, so a chunk holds
@@ -123,11 +135,7 @@ def auto_chunk_size(
     upper = series_ceil(extent)
     if n_points <= target_points:
         return max(lower, upper)
-    width, height = extent, area / extent
-    window = math.sqrt(target_points * area / n_points)
-    if window >= height:  # the window is as wide as the strip or wider (a line: both 0)
-        window = target_points * width / n_points
-    side = window - 2 * halo
+    side = _uniform_window(n_points, area, extent, target_points) - 2 * halo
     exact = series_floor(side) if side > 0 else 0.0
     return max(lower, min(exact, upper))
 

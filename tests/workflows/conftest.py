@@ -52,6 +52,19 @@ def survey_run(survey, tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def one_stage(survey, tmp_path_factory):
+    """A complete run of ``survey`` whose model has one stage, in this process, and a config
+    of the same survey that says two: (that config, the run's output directory; read it,
+    copy it before changing it)."""
+    root = tmp_path_factory.mktemp("one_stage")
+    config = write_config(root / "c.yaml", survey, cascade={"stages": 1})
+    result = silva("run", config, "--out", root / "out", "--in-process", "-q")
+    assert result.exit_code == 0, result.output
+    two = write_config(root / "two.yaml", survey)  # cascade.stages: 2
+    return two, root / "out"
+
+
+@pytest.fixture(scope="session")
 def dask_cluster() -> dict:
     """The ``cluster`` section of a config that runs on a LocalCluster of 2 worker processes
     on loopback, started once per session (``kind: address``, as a user's running cluster):

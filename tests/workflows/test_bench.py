@@ -116,15 +116,14 @@ def test_bench_pipeline_of_a_missing_config_or_model_is_one_line(tiny, tmp_path)
 
 
 
-def test_the_machines_scaling_is_what_its_workers_do_side_by_side(capsys):
-    from distributed import Client, LocalCluster
+def test_the_machines_scaling_is_what_its_workers_do_side_by_side(capsys, dask_cluster):
+    from distributed import Client
 
     from pipeline.features.sets import FeatureParams
 
     assert bench_module.scaling(2.0, [2.0, 2.0]) == 2.0  # no slower side by side
     assert bench_module.scaling(2.0, [2.5, 4.0]) == 1.0  # the slower one decides
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster, Client(cluster) as client:
+    with Client(dask_cluster["address"]) as client:  # the session's 2 workers
         allowed = bench_module.machine_scaling(client, FeatureParams(set="paper", r1=0.5),
                                                n_points=3000)
     assert _positive(allowed)

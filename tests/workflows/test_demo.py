@@ -1,4 +1,5 @@
-"""``silva demo``: synthetic plots, the whole workflow, a report, on a real LocalCluster."""
+"""``silva demo``: synthetic plots, the whole workflow, a report, on a real LocalCluster (the
+session's 2 workers)."""
 
 import json
 
@@ -12,12 +13,12 @@ from workflows.cli.main import main
 pytestmark = pytest.mark.slow
 
 
-def test_demo_runs_end_to_end(tmp_path):
+def test_demo_runs_end_to_end(tmp_path, dask_cluster):
     out = tmp_path / "demo"
-    result = CliRunner().invoke(
-        main, ["demo", "--out", str(out), "--plot-size", "12", "--quiet",
-               "--set", "cascade.n_estimators=8", "--set", "cluster.n_workers=2"],
-        catch_exceptions=False)
+    args = ["demo", "--out", str(out), "--plot-size", "12", "--quiet",
+            "--set", "cascade.n_estimators=8",
+            *(f"--set=cluster.{key}={value}" for key, value in dask_cluster.items())]
+    result = CliRunner().invoke(main, args, catch_exceptions=False)
     assert result.exit_code == 0, result.output
     assert f"report: {out / 'report.html'}" in result.output
     report = (out / "report.html").read_text()
@@ -34,8 +35,6 @@ def test_demo_runs_end_to_end(tmp_path):
     assert sorted(p.name for p in (out / "predictions").glob("*.laz")) == sorted(
         tiles["train"] + tiles["test"])
     # a second demo resumes: nothing to redo, the same metrics
-    again = CliRunner().invoke(
-        main, ["demo", "--out", str(out), "--plot-size", "12", "--quiet",
-               "--set", "cascade.n_estimators=8", "--set", "cluster.n_workers=2"])
+    again = CliRunner().invoke(main, args)
     assert again.exit_code == 0, again.output
     assert json.loads((out / "metrics.json").read_text()) == metrics

@@ -54,13 +54,13 @@ def reference(survey, tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def chunked(survey, tmp_path_factory) -> Path:
-    """Chunks balanced by point count, a few per scene, on 2 workers: the tasks finish in
-    any order."""
+def chunked(survey, tmp_path_factory, dask_cluster) -> Path:
+    """Chunks balanced by point count, a few per scene, on 2 workers (the session's): the
+    tasks finish in any order."""
     root = tmp_path_factory.mktemp("dense_chunked")
     config = dense_config(
         root / "c.yaml", survey, tiling={"chunk_size": "auto", "target_points": 20_000},
-        cluster={"kind": "local", "n_workers": 2, "threads_per_worker": 1, "dashboard": False})
+        cluster=dask_cluster)
     run_ok("run", config, "--out", root / "out", "-q")
     return root / "out"
 

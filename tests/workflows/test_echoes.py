@@ -77,14 +77,12 @@ def reference(echo_survey, tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def many_chunks(echo_survey, tmp_path_factory) -> Path:
-    """Chunks of 4 m (a 3 x 3 grid) on two workers: the training scene stage by stage over
-    stored features, the test scene in one pass."""
+def many_chunks(echo_survey, tmp_path_factory, dask_cluster) -> Path:
+    """Chunks of 4 m (a 3 x 3 grid) on two workers (the session's): the training scene stage
+    by stage over stored features, the test scene in one pass."""
     root = tmp_path_factory.mktemp("echo_many")
     config = echo_config(root / "many.yaml", echo_survey, tiling={"chunk_size": 4.0},
-                         output={"keep_features": False},
-                         cluster={"kind": "local", "n_workers": 2, "threads_per_worker": 1,
-                                  "dashboard": False})
+                         output={"keep_features": False}, cluster=dask_cluster)
     result = silva("run", config, "--out", root / "out", "-q")
     assert result.exit_code == 0, result.output
     return root / "out"
@@ -252,9 +250,8 @@ def test_a_thinned_copy_keeps_the_return_numbers_of_its_points(echo_survey, tmp_
     its source stores, so its echo columns are those of the thinned cloud."""
     from pipeline.cascade.thinning import thinned_mask
 
-    config = echo_config(tmp_path / "copies.yaml", echo_survey, data={"densities": [50]},
-                         cascade={"stages": 1})
-    result = silva("run", config, "--out", tmp_path / "out", "--in-process", "-q")
+    config = echo_config(tmp_path / "copies.yaml", echo_survey, data={"densities": [50]})
+    result = silva("features", config, "--out", tmp_path / "out", "--in-process", "-q")
     assert result.exit_code == 0, result.output
     layout = open_store(tmp_path / "out" / "store.zarr", mode="r").attrs["layout"]
     copy = layout["scenes"]["train@50ppm"]

@@ -7,20 +7,15 @@ import pytest
 
 from pipeline.model import MODEL_FILE
 from tests.conftest import edit_model_json
-from tests.workflows.conftest import error_line, silva, write_config
+from tests.workflows.conftest import error_line, silva
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def trained(survey, tmp_path_factory):
-    """The model directory of a quick one-stage run."""
-    root = tmp_path_factory.mktemp("bundle")
-    config = write_config(root / "c.yaml", survey, cascade={"stages": 1, "n_estimators": 4})
-    result = silva("run", config, "--out", root / "out", "--in-process", "-q",
-                   "--set", "data.test=[]")
-    assert result.exit_code == 0, result.output
-    return root / "out" / "model"
+def trained(one_stage):
+    """The model directory of the session's one-stage run (copy it before changing it)."""
+    return one_stage[1] / "model"
 
 
 def _copy(trained, tmp_path):

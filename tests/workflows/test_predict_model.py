@@ -16,17 +16,6 @@ pytestmark = pytest.mark.slow
 DIMS = ("PredictedClassification", "Confidence", "Probability_tree", "HeightAboveGround")
 
 
-@pytest.fixture(scope="module")
-def one_stage(survey, tmp_path_factory):
-    """A complete run whose model has one stage, and its config (which says two)."""
-    root = tmp_path_factory.mktemp("one_stage")
-    config = write_config(root / "c.yaml", survey, cascade={"stages": 1})
-    result = silva("run", config, "--out", root / "out", "--in-process", "-q")
-    assert result.exit_code == 0, result.output
-    two = write_config(root / "two.yaml", survey)  # cascade.stages: 2
-    return two, root / "out"
-
-
 def test_predict_from_the_model_alone_gives_the_training_runs_bits(one_stage, survey, tmp_path):
     _, trained = one_stage
     result = silva("predict", "--model", trained / "model", "--out", tmp_path / "p",

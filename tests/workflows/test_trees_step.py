@@ -3,6 +3,7 @@ the number of workers, the points' IDs agreeing with the tables, the tables per 
 and GeoPackage, the instance scores of a labelled run, and a resume after a SIGKILL."""
 
 import csv
+import shutil
 
 import numpy as np
 import pyogrio
@@ -97,8 +98,13 @@ def test_labelled_run_scores_the_tree_instances(runs):
 
 
 def test_a_run_killed_in_the_trees_step_resumes_to_the_same_trees(runs, survey, tmp_path):
+    # the chunked run up to the trees step: a copy without its tree models and outputs
     config = config_for(tmp_path, survey, "killed", 8.0)
     out = tmp_path / "killed"
+    shutil.copytree(runs[1], out)
+    for path in (*(out / "store.zarr" / "scenes").glob("*/trees"), out / "trees",
+                 out / "predictions"):
+        shutil.rmtree(path)
     trees_started = lambda: (out / "store.zarr" / "scenes" / "test" / "trees").exists()  # noqa: E731
     sigkill_when(["run", config, "--out", out, "-q", "--in-process"], trees_started)
     result = silva("run", config, "--out", out, "-q", "--in-process")
