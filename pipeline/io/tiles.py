@@ -123,9 +123,9 @@ def export_with_extra_dims(
         raise InputError(f"compute must be a function batch -> dict, got {type(compute).__name__}")
     fmt = _format_of(src)
     if fmt.export is not None:
-        las = fmt.name in ("las", "laz")  # text sources have no point format, no more fields
-        options = {"keep_point_format": True} if keep_point_format and las else {}
-        if source_fields and las:
+        is_las = fmt.name in ("las", "laz")  # text sources have no point format, no more fields
+        options = {"keep_point_format": True} if keep_point_format and is_las else {}
+        if source_fields and is_las:
             options["source_fields"] = tuple(source_fields)
         return fmt.export(
             src, dst, list(extra_dims), compute, batch_size=batch_size,
