@@ -18,7 +18,10 @@ in a canopy height model an empty cell is no canopy, height 0 (``floor``), so a 
 over open ground is compared with the ground.
 """
 
+import math
+
 import numpy as np
+from scipy.spatial import cKDTree
 
 #: Least height (m) by which a stray point stands out above every point that could support it.
 SPIKE_GAP = 15.0
@@ -63,14 +66,19 @@ def top_two(flat: np.ndarray, values: np.ndarray, top: np.ndarray, second: np.nd
     top_view[cells] = np.fmax(old_top, best)
 
 
-def support_offsets(cell: float) -> np.ndarray:
-    """int64 (M, 2): (di, dj) of the cells whose highest points may support a cell's: those
-    within :data:`SUPPORT_RADIUS` metres (centre to centre), at least the eight around it."""
-    reach = max(1, int(SUPPORT_RADIUS / float(cell) + 1e-9))
-    di, dj = np.mgrid[-reach:reach + 1, -reach:reach + 1]
-    near = ((di * di + dj * dj <= reach * reach) | (np.maximum(abs(di), abs(dj)) == 1))
-    near &= (di != 0) | (dj != 0)
-    return np.column_stack([di[near], dj[near]]).astype(np.int64)
+def support_reach(cell: float) -> int:
+    """How many cells of side ``cell`` (m) away a cell's highest point may find support:
+    those within :data:`SUPPORT_RADIUS` metres (centre to centre), at least one (the eight
+    around it)."""
+    return max(1, int(SUPPORT_RADIUS / float(cell) + 1e-9))
+
+
+def _near_count(reach: int) -> int:
+    """How many cells lie within ``reach`` cells of a cell (a disc; at least its eight
+    neighbours), the cell itself left out."""
+    if reach == 1:
+        return 8
+    return sum(2 * math.isqrt(reach * reach - di * di) + 1 for di in range(-reach, reach + 1)) - 1
 
 
 def _support(ranking: np.ndarray) -> np.ndarray:
@@ -82,28 +90,54 @@ def _support(ranking: np.ndarray) -> np.ndarray:
     return support
 
 
-def _support_near(padded: np.ndarray, reach: int, rows: np.ndarray, cols: np.ndarray,
-                  offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The support of the cells (rows, cols): float64 (n,) the :data:`SUPPORT_RANK`-th
-    highest value of the cells at ``offsets`` of them (the lowest there is, when fewer have
-    one; -inf when none), in ``padded`` (the raster padded by ``reach``, empty cells -inf or
-    the floor), and int64 (n,) how many of those cells have a value."""
+#: The eight neighbours of a cell.
+EIGHT = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)])
+
+
+def _support_of_eight(padded: np.ndarray, rows: np.ndarray, cols: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The support of the cells (rows, cols) among their eight neighbours: float64 (n,) the
+    :data:`SUPPORT_RANK`-th highest of their values (the lowest there is, when fewer have
+    one; -inf when none), in ``padded`` (the raster padded by one cell, empty cells -inf or
+    the floor), and int64 (n,) how many of them have a value."""
     width = padded.shape[1]
-    at = (rows + reach) * width + cols + reach
-    shifts = offsets[:, 0] * width + offsets[:, 1]
+    at = (rows + 1) * width + cols + 1
+    shifts = EIGHT[:, 0] * width + EIGHT[:, 1]
     flat = padded.reshape(-1)
-    k = min(SUPPORT_RANK, shifts.shape[0])
     support, count = np.empty(rows.shape[0]), np.empty(rows.shape[0], dtype=np.int64)
     for start in range(0, rows.shape[0], 65_536):  # bounded memory
         values = flat[at[start:start + 65_536, None] + shifts[None, :]]
-        best = np.partition(values, values.shape[1] - k, axis=1)[:, -k:]
+        best = np.partition(values, values.shape[1] - SUPPORT_RANK, axis=1)[:, -SUPPORT_RANK:]
         support[start:start + 65_536] = _support(np.sort(best, axis=1)[:, ::-1])
         count[start:start + 65_536] = np.count_nonzero(~np.isneginf(values), axis=1)
     return support, count
 
 
-#: The eight neighbours of a cell.
-EIGHT = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)])
+def _support_within(top: np.ndarray, empty: float, rows: np.ndarray, cols: np.ndarray,
+                    reach: int) -> np.ndarray:
+    """The support of the cells (rows, cols) among the cells within ``reach`` of them
+    (:func:`support_reach`): float64 (n,), as :func:`_support_of_eight` gives it. The cells
+    near are looked up among those with a value only, since in a fine raster (cells of
+    centimetres) the disc spans millions of cells, nearly all empty; each empty one, or one
+    beyond the raster, counts as ``empty`` (-inf: none)."""
+    filled = np.argwhere(np.isfinite(top))
+    values = top[filled[:, 0], filled[:, 1]]
+    n_near = _near_count(reach)
+    ranking = np.full((rows.shape[0], SUPPORT_RANK), -np.inf)
+    queries = np.column_stack([rows, cols])
+    if rows.shape[0] == 0 or filled.shape[0] == 0:
+        return _support(ranking)
+    found_near = cKDTree(filled).query_ball_point(queries, r=reach + 1)  # the disc follows
+    for n, (row, col) in enumerate(queries):
+        near = np.asarray(found_near[n], dtype=np.int64)
+        step = filled[near] - (row, col)
+        inside = (((step * step).sum(axis=1) <= reach * reach)
+                  | (np.abs(step).max(axis=1, initial=0) == 1)) & step.any(axis=1)
+        found = np.sort(values[near[inside]])[::-1][:SUPPORT_RANK]
+        unfilled = np.full(min(n_near - int(inside.sum()), SUPPORT_RANK), empty)
+        best = np.sort(np.concatenate([found, unfilled]))[::-1][:SUPPORT_RANK]
+        ranking[n, :best.shape[0]] = best
+    return _support(ranking)
 
 
 def despike(top: np.ndarray, second: np.ndarray, cell: float,
@@ -112,7 +146,7 @@ def despike(top: np.ndarray, second: np.ndarray, cell: float,
     NaN = empty), each that nothing supports replaced by the cell's ``second`` highest
     value (same shape, NaN when the cell holds one point): see the module docstring.
     ``cell``: the cells' side (m), which sets the gap (:func:`spike_gap`) and the cells
-    near (:func:`support_offsets`). ``floor``: the value of an empty cell near (a canopy
+    near (:func:`support_reach`). ``floor``: the value of an empty cell near (a canopy
     height model: 0, no canopy), else it supports nothing.
 
     Only the cells their own points leave unsupported are looked at, and the cells within
@@ -121,20 +155,19 @@ def despike(top: np.ndarray, second: np.ndarray, cell: float,
     """
     top = np.asarray(top, dtype=np.float64)
     second = np.asarray(second, dtype=np.float64)
-    gap, offsets = spike_gap(cell), support_offsets(cell)
+    gap = spike_gap(cell)
     with np.errstate(invalid="ignore"):
         rows, cols = np.nonzero(np.isfinite(top) & ~(top - gap <= second))  # NaN: no second
     if rows.size == 0:
         return top.copy()
-    reach = int(np.abs(offsets).max())
     empty = -np.inf if floor is None else float(floor)
-    padded = np.pad(np.where(np.isnan(top), empty, top), reach, constant_values=empty)
+    padded = np.pad(np.where(np.isnan(top), empty, top), 1, constant_values=empty)
     high = top[rows, cols] - gap
-    support, count = _support_near(padded, reach, rows, cols, EIGHT)
+    support, count = _support_of_eight(padded, rows, cols)
     # unsupported by the eight, or fewer than three of them with points: the cells within
     # the radius decide
     wider = np.flatnonzero((high > support) | (count < SUPPORT_RANK))
-    support[wider] = _support_near(padded, reach, rows[wider], cols[wider], offsets)[0]
+    support[wider] = _support_within(top, empty, rows[wider], cols[wider], support_reach(cell))
     # the cell's own second point counts too; nothing at all to compare with: no spike
     support = np.fmax(second[rows, cols], np.where(np.isneginf(support), np.nan, support))
     spike = np.isfinite(support) & (high > support)

@@ -62,7 +62,7 @@ def _despike_loop(top, second, cell, floor=None):
 
 
 @pytest.mark.parametrize("cell, floor", [(1.0, None), (0.5, None), (2.5, None), (0.5, 0.0),
-                                         (1.0, 0.0)])
+                                         (1.0, 0.0), (0.25, None), (0.1, 0.0)])
 @pytest.mark.parametrize("empty", [0.2, 0.6, 0.9])
 def test_despike_equals_a_loop_over_the_cells(cell, floor, empty):
     rng = np.random.default_rng(int(10 * cell + 7 * empty))
@@ -75,6 +75,23 @@ def test_despike_equals_a_loop_over_the_cells(cell, floor, empty):
     top[spikes] += rng.uniform(5.0, 60.0, spikes.sum())
     np.testing.assert_array_equal(despike(top, second, cell, floor),
                                   _despike_loop(top, second, cell, floor))
+
+
+def test_despike_of_a_fine_raster_looks_only_at_the_cells_with_points():
+    """Cells of 2 mm: 3 m span 1,500 cells each way, 7 million cells around each one; the
+    cells near are found among the few with points, and a bird is still told from a tree."""
+    rng = np.random.default_rng(5)
+    top = np.full((3000, 3000), np.nan)
+    rows, cols = rng.integers(0, 3000, (2, 3000))
+    top[rows, cols] = rng.uniform(10.0, 12.0, 3000)
+    top[1500, 1500] = 60.0  # a bird over the crowns
+    top[100:104, 100] = 40.0  # a mast of four points
+    out = despike(top, np.full(top.shape, np.nan), 0.002)
+    assert np.isnan(out[1500, 1500])
+    assert (out[100:104, 100] == 40.0).all()
+    filled = np.isfinite(top)
+    filled[1500, 1500] = False
+    np.testing.assert_array_equal(out[filled], top[filled])
 
 
 def _canopy():
