@@ -1,5 +1,6 @@
 """A tile whose header's box is stale (smaller than its points' box): its rasters, made from
-the box of the points ingest reads, still cover every point."""
+the box of the points ingest reads, still cover every point, and a raster too big for that box
+is refused once the points are read, before their features."""
 
 import shutil
 import struct
@@ -51,3 +52,23 @@ def test_rasters_cover_the_points_beyond_a_stale_header_box(survey, tmp_path):
     seen = np.isfinite(dsm.values)
     assert np.array_equal(seen, np.isfinite(highest))
     assert np.allclose(dsm.values[seen], highest[seen], atol=1e-3)
+
+
+def test_a_raster_too_big_for_the_points_box_is_refused_before_the_features(survey, tmp_path):
+    tile = tmp_path / "stale.laz"
+    shutil.copy(sorted(survey["test"].glob("*.laz"))[0], tile)
+    shrink_header_box(tile, 0.01)
+    # cells of 0.5 mm: the header's box of a few centimetres passes, the points' 7 m do not
+    out = tmp_path / "out"
+    result = silva("predict", "--model", "forest-tls-synthetic", "--out", out, tile,
+                   "--set", "output.rasters=[dsm]", "--set", "output.raster_resolution=0.0005",
+                   "--in-process", "-q")
+    assert result.exit_code == 1
+    line = result.output.strip().splitlines()[-1]
+    assert line.startswith("silva: error: config error: output.raster_resolution=0.0005 gives "
+                           f"the rasters of {tile} ")
+    assert "set a coarser resolution" in line
+    log = (out / "silva.log").read_text().splitlines()  # refused once ingested, before work
+    assert any(" ingest: " in entry for entry in log)
+    assert [entry for entry in log if "features" in entry and " start: " not in entry] == []
+    assert not (out / "predictions").exists() or not any((out / "predictions").iterdir())

@@ -186,8 +186,8 @@ MAX_RASTER_CELLS = 50_000_000
 
 def check_raster_size(run: Run, tiles: list[dict]) -> None:
     """Refuse an ``output.raster_resolution`` that gives a tile's raster (of its XY box:
-    its header's before any work, that of its points as read once ingested) more than
-    :data:`MAX_RASTER_CELLS` cells."""
+    its header's before any work, that of its points as read once ingested, before the
+    features) more than :data:`MAX_RASTER_CELLS` cells."""
     out = run.cfg.output
     if not out.rasters:
         return

@@ -21,7 +21,7 @@ from workflows.run.progress import fold_step, say
 from workflows.run.state import RunState
 from workflows.steps.cascade import cascade, model_stages
 from workflows.steps.evaluate import evaluate, write_metrics
-from workflows.steps.export import check_point_formats, export
+from workflows.steps.export import check_point_formats, check_raster_size, export
 from workflows.steps.features import features
 from workflows.steps.ingest import ingest
 from workflows.steps.one_pass import classify_in_one_pass, one_pass_scenes
@@ -48,6 +48,7 @@ def ingest_step(state: RunState) -> None:
         for scene, info in layout.scenes.items())
     state.summary["excluded points"] = sum(t.get("excluded", 0) for t in layout.tiles)
     check_point_formats(state.run, layout.tiles)  # output.point_format: keep, before work
+    check_raster_size(state.run, layout.tiles)  # the points' boxes: a stale header hid them
 
 
 def terrain_step(state: RunState) -> None:
