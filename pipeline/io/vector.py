@@ -73,6 +73,8 @@ def _layer(path, layer, table, geometries, crs_wkt) -> None:
         # the temporary file's name ends in .part; it is renamed to the .gpkg once complete
         warnings.filterwarnings("ignore", message=".*(extension|file extension)",
                                 category=RuntimeWarning)
+        # a tile without a CRS (a local TLS frame) gives layers without one, as its LAZ
+        warnings.filterwarnings("ignore", message="'crs' was not provided", category=UserWarning)
         pyogrio.raw.write(path, shapely.to_wkb(np.asarray(geometries, dtype=object)),
                           [np.ascontiguousarray(table[name]) for name in names], names,
                           layer=layer, driver="GPKG", crs=crs_wkt, promote_to_multi=not points,

@@ -2,6 +2,7 @@
 
 import csv
 import math
+import warnings
 
 import numpy as np
 import pyogrio
@@ -86,6 +87,16 @@ def test_the_geopackage_holds_tops_and_crowns_in_the_crs(tmp_path, trees):
     assert np.allclose(shapely.area(crowns), values["crown_area"])
     assert CRS.from_user_input(meta["crs"]) == CRS.from_epsg(32611)
     assert not list(tmp_path.glob(".*part"))
+
+
+def test_a_tile_without_a_crs_gives_layers_without_one_and_no_warning(tmp_path, trees):
+    table, labels = trees
+    path = tmp_path / "local.gpkg"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the user's terminal shows none
+        write_tree_gpkg(path, table, labels, 100.0, 200.0, 0.5, None)
+    assert pyogrio.read_info(path, layer="tops")["crs"] is None
+    assert pyogrio.read_info(path, layer="crowns")["features"] == 2
 
 
 def test_a_model_without_crowns_writes_an_empty_crowns_layer(tmp_path, trees):
