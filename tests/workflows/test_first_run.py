@@ -12,6 +12,7 @@ from pipeline.features import numba_cache
 from pipeline.features.numba_cache import kernels_cold, mark_warm, source_digest
 from pipeline.features.sets import FeatureParams
 from workflows.cli import commands
+from workflows.exec.kernels import prepare_kernels
 from tests.workflows.conftest import silva, write_config
 
 
@@ -60,7 +61,7 @@ def events(monkeypatch):
 
 def test_a_cold_cache_starts_compiling_with_one_line_and_a_warm_one_does_not(
         cold, events, capsys):
-    with commands.prepare_kernels(False, FeatureParams(set="paper")) as kernels:
+    with prepare_kernels(False, FeatureParams(set="paper")) as kernels:
         err = capsys.readouterr().err
         assert err.startswith("compiling the feature kernels (numba) in the background")
         assert err.count("\n") == 1 and str(cold) in err
@@ -71,10 +72,10 @@ def test_a_cold_cache_starts_compiling_with_one_line_and_a_warm_one_does_not(
         kernels.wait()  # once only
     assert events[1:] == ["wait"]  # nothing left to stop
     mark_warm(("surface", "search"), cold)
-    with commands.prepare_kernels(False, FeatureParams(set="paper")) as kernels:
+    with prepare_kernels(False, FeatureParams(set="paper")) as kernels:
         kernels.wait()
     assert capsys.readouterr().err == "" and len(events) == 2  # warm: no line, no compile
-    with commands.prepare_kernels(False, FeatureParams(set="covariance")):
+    with prepare_kernels(False, FeatureParams(set="covariance")):
         pass  # another group is cold; leaving without waiting stops it
     assert events[2:] == [("start", ("search", "covariance")), "stop"]
 

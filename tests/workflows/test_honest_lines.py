@@ -10,7 +10,7 @@ import pytest
 
 from pipeline.features import numba_cache
 from pipeline.features.numba_cache import kernels_cached, kernels_cold, source_digest
-from workflows.cli.commands import Kernels, announce_compilation
+from workflows.exec.kernels import Kernels, announce_compilation
 from workflows.run.progress import RunProgress, run_progress, uncounted
 
 STEPS = ["ingest", "features", "train", "export", "evaluate", "report"]

@@ -16,8 +16,8 @@ import pytest
 from click.testing import CliRunner
 
 from pipeline.features.numba_cache import mark_warm
-from workflows.cli.commands import announce_compilation
 from workflows.cli.main import main
+from workflows.exec.kernels import announce_compilation
 from workflows.run.progress import RunProgress, StepProgress, run_progress
 from tests.workflows.conftest import write_config
 

@@ -436,9 +436,9 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
                    quiet: bool = False, repeat: int = 1) -> dict:
     """Time the runs of ``config`` (see module) ``repeat`` times, the kinds of run taking
     turns; return the figures: medians over the rounds, each ratio taken within a round."""
-    from workflows.cli.commands import prepare_kernels
     from workflows.config import load_config
     from workflows.exec.cluster import open_client
+    from workflows.exec.kernels import prepare_kernels
     from workflows.run.autoparams import resolve_run
     from workflows.run.directory import Run, read_paths
 

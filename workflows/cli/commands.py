@@ -18,14 +18,13 @@ from pathlib import Path
 import click
 
 from workflows.cli.templates import TEMPLATES, template_path, write_template
+from workflows.exec.kernels import prepare_kernels
 from workflows.run.progress import (
     counted,
     log_line,
-    report_finished_step,
     run_logging,
     run_progress,
     say,
-    uncounted,
 )
 from workflows.run.step_table import STEPS, TARGETS, examples, progress_steps
 
@@ -106,93 +105,6 @@ def run_options(fn):
     return fn
 
 
-@contextlib.contextmanager
-def _engine(cfg, *, quiet, in_process, debug):
-    from workflows.exec.engine import Engine
-
-    if in_process or debug:
-        yield Engine(None, quiet=quiet, debug=debug)
-        return
-    from workflows.exec.cluster import dashboard_link, open_client
-
-    with contextlib.ExitStack() as stack:
-        with uncounted():  # once per run: not a rate of the steps' work
-            client = stack.enter_context(open_client(cfg.cluster, quiet=quiet))
-        link = dashboard_link(client)
-        if link:
-            say(f"dask dashboard: {link}", quiet=quiet)
-        yield Engine(client, quiet=quiet)
-
-
-def announce_compilation(quiet: bool, groups=None) -> bool:
-    """Say so when numba has not compiled the kernel ``groups`` (default all) for this
-    version yet; True when it said it."""
-    import numba
-
-    import pipeline.features  # noqa: F401 - points numba at the source-keyed cache
-    from pipeline.features.numba_cache import kernels_cold
-
-    folder = Path(numba.config.CACHE_DIR)
-    if not kernels_cold(groups, folder):
-        return False
-    say(f"compiling the feature kernels (numba) in the background, once for this version of "
-        f"Silva (about a minute); later runs reuse them from {folder}", quiet=quiet)
-    return True
-
-
-class Kernels:
-    """The feature kernels of a run: ``groups`` (numba_cache kernel groups) and their
-    compilation, when one was started. :meth:`wait` returns once they are compiled."""
-
-    def __init__(self, groups: tuple[str, ...], warming=None, quiet: bool = False):
-        self.groups, self.quiet = groups, quiet
-        self._warming = warming
-
-    def wait(self) -> None:
-        """Wait for the compilation (with a line when it is still running); at once when
-        none runs. A compilation that failed is logged: the workers then compile."""
-        warming, self._warming = self._warming, None
-        if warming is None:
-            return
-        if not warming.done():
-            report_finished_step()  # ingest's line first, then why the run stands still
-            say("waiting for the feature kernels to finish compiling", quiet=self.quiet)
-        with warming, uncounted():  # Ctrl-C while waiting stops it; no ETA counts the wait
-            done = warming.wait()
-        log.info("compiled the feature kernels (%s) in %.1f s", ", ".join(done) or "none",
-                 warming.seconds)
-
-    def stop(self) -> None:
-        """Stop a compilation still running (an error, Ctrl-C, or a run that needed none)."""
-        warming, self._warming = self._warming, None
-        if warming is not None:
-            warming.stop()
-
-
-@contextlib.contextmanager
-def prepare_kernels(quiet: bool, features=None):
-    """Start compiling, in the background, the kernels a run of ``features`` uses
-    (FeatureParams or the config's features section; None: every set) when they are not
-    cached yet; yields the :class:`Kernels`, whose ``wait()`` comes before the features step:
-    the workers then load the kernels instead of each compiling them. Leaving the block
-    stops a compilation still running; one that cannot start leaves it to the workers."""
-    from pipeline.features.numba_cache import Warming, kernel_groups
-
-    groups = kernel_groups(*(() if features is None else (features.set,
-                                                          features.voxel is not None)))
-    warming = None
-    if announce_compilation(quiet, groups):
-        try:
-            warming = Warming(groups)
-        except OSError as err:  # no new process: each worker compiles what it uses
-            log.warning("cannot start compiling the feature kernels: %s", err)
-    kernels = Kernels(groups, warming, quiet)
-    try:
-        yield kernels
-    finally:
-        kernels.stop()
-
-
 def _kernels_of(run, steps, quiet: bool, kernels=None):
     """The kernels of ``run`` as a context: ``kernels`` when the caller started them, else
     their compilation started now when the ``steps`` include features, else None."""
@@ -241,7 +153,8 @@ def _logged_error():
 def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, target,
               *, model_dir=None, command=None, config_path=None, kernels=None, inputs=()):
     """Load the config, prepare the output directory and run the steps up to ``target``;
-    ``kernels``: the run's :class:`Kernels` when the caller already started them.
+    ``kernels``: the run's :class:`~workflows.exec.kernels.Kernels` when the caller already
+    started them.
 
     What can be checked without workers is checked before the cluster starts and the
     kernels compile (:func:`check_before_start`); an error or Ctrl-C also ends the run's log
@@ -249,6 +162,7 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
     """
     from workflows.cli.plan import plan_workers, step_weights
     from workflows.config import validate_config
+    from workflows.exec.engine import open_engine
     from workflows.run.autoparams import read_run, resolve_run
     from workflows.run.directory import (
         Run, applied_model, prepare_output, read_paths, record_applied_model,
@@ -286,7 +200,7 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
             with run_progress(steps, quiet=quiet, stages=run.n_stages,
                               weights=weights) as progress, \
                     _kernels_of(run, steps, quiet, kernels) as ready:
-                with _engine(plan.cfg, quiet=quiet, in_process=in_process,
+                with open_engine(plan.cfg, quiet=quiet, in_process=in_process,
                              debug=chunk is not None) as engine:
                     summary = execute(run, engine, target, only=chunk, command=command,
                                       kernels=ready)

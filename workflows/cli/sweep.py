@@ -117,7 +117,9 @@ def run_sweep(config: Path, key: str, values: str, seeds: int, out: Path, overri
               quiet: bool = False, in_process: bool = False, verbose: int = 0,
               command: str = "silva sweep") -> list[dict]:
     """Run every value x seed; write sweep.csv, sweep.md and the plots; return the rows."""
-    from workflows.cli.commands import LOG_NAME, Interrupted, _engine, prepare_kernels
+    from workflows.cli.commands import LOG_NAME, Interrupted
+    from workflows.exec.engine import open_engine
+    from workflows.exec.kernels import prepare_kernels
     from workflows.run.directory import prepare_output
 
     plan = plan_sweep(config, key, values, seeds, out, overrides)
@@ -132,7 +134,7 @@ def run_sweep(config: Path, key: str, values: str, seeds: int, out: Path, overri
         say(f"sweep of {key}: {len(plan)} runs ({where})", quiet=quiet)
         kernels = stack.enter_context(prepare_kernels(quiet))  # waited for before features
         try:
-            with _engine(plan[0].cfg, quiet=quiet, in_process=in_process,
+            with open_engine(plan[0].cfg, quiet=quiet, in_process=in_process,
                          debug=False) as engine:
                 for i, item in enumerate(plan, 1):
                     say(f"run {i}/{len(plan)}: {key}={item.text}, cascade.seed={item.seed}",

@@ -7,6 +7,7 @@ what it can, then raises one :class:`StepFailed` that lists every failed item wi
 that reproduces it.
 """
 
+import contextlib
 import logging
 import time
 import traceback
@@ -17,7 +18,7 @@ import numpy as np
 
 from pipeline.errors import ChunkError, InputError, SilvaError
 from pipeline.store import open_store, write_arrays
-from workflows.run.progress import StepProgress
+from workflows.run.progress import StepProgress, say, uncounted
 from workflows.store.assembly import chunk_points
 from workflows.store.layout import RETURNS, chunk_path
 from workflows.store.marks import is_done, mark_done, read_array
@@ -259,3 +260,21 @@ def check_chunk(layout: RunLayout, only: str) -> None:
     if only not in known:
         raise ChunkError(f"--chunk {only}: no such chunk in this run; give SCENE/CHUNK, one of "
                          f"{', '.join(known[:6])}{' ...' if len(known) > 6 else ''}")
+
+
+@contextlib.contextmanager
+def open_engine(cfg, *, quiet, in_process, debug):
+    """The engine of a run of ``cfg`` as a context: in this process (``in_process``, or
+    ``debug``: one chunk, its full error), else on the cluster of ``cfg.cluster``."""
+    if in_process or debug:
+        yield Engine(None, quiet=quiet, debug=debug)
+        return
+    from workflows.exec.cluster import dashboard_link, open_client
+
+    with contextlib.ExitStack() as stack:
+        with uncounted():  # once per run: not a rate of the steps' work
+            client = stack.enter_context(open_client(cfg.cluster, quiet=quiet))
+        link = dashboard_link(client)
+        if link:
+            say(f"dask dashboard: {link}", quiet=quiet)
+        yield Engine(client, quiet=quiet)

@@ -24,7 +24,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
             kernels=None) -> dict:
     """Run the steps up to ``target``; return a summary (durations, counts, output paths).
 
-    ``kernels`` (:class:`workflows.cli.commands.Kernels`, optional): the feature kernels
+    ``kernels`` (:class:`workflows.exec.kernels.Kernels`, optional): the feature kernels
     compiling in the background while ingest runs; waited for before the features step.
     """
     state = RunState(run, engine, target, only, command, kernels)

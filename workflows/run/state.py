@@ -17,7 +17,7 @@ from workflows.store.scenes import RunLayout
 class RunState:
     """One execution of the steps up to ``target``: its inputs and what the steps found.
 
-    ``kernels`` (:class:`workflows.cli.commands.Kernels`, optional): the feature kernels
+    ``kernels`` (:class:`workflows.exec.kernels.Kernels`, optional): the feature kernels
     compiling in the background while ingest runs; waited for before the features step.
     ``summary`` is what :func:`workflows.run.loop.execute` returns; its ``timings`` fill in
     as the steps finish.
