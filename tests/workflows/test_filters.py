@@ -11,7 +11,7 @@ from pipeline.errors import ConfigError
 from pipeline.io import write_las
 from pipeline.store import open_store, read_array
 from pipeline.tiling import global_ids
-from workflows.cli.commands import start_run
+from workflows.cli.commands import RunOptions, start_run
 from workflows.config import validate_config
 from tests.workflows.conftest import read_predictions, write_config
 
@@ -19,7 +19,7 @@ NOISE = (7, 18)
 
 
 def _run(config, out, target):
-    return start_run(config, out, (), False, True, True, None, False, target)
+    return start_run(config, RunOptions(out, quiet=True, in_process=True), target)
 
 
 def _with_noise(src, dst, seed, withheld=False):

@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.store import open_store, read_array, rows_of
 from pipeline.tiling import global_ids
-from workflows.cli.commands import start_run
+from workflows.cli.commands import RunOptions, start_run
 from workflows.config.schema import feature_dim_name
 from tests.workflows.conftest import error_line, silva, write_config
 
@@ -56,7 +56,7 @@ def test_feature_dims_and_kept_point_format_round_trip(legacy, survey, tmp_path)
                      point_format="keep", write_classification=True,
                      feature_dims=["I2_22", "I3_3*"], format="las")
     out = tmp_path / "out"
-    start_run(config, out, (), False, True, True, None, False, "export")
+    start_run(config, RunOptions(out, quiet=True, in_process=True), "export")
     src = laspy.read(tile)
     dst = laspy.read(out / "predictions" / "fit.las")
     assert str(dst.header.version) == "1.2" and dst.point_format.id == 3

@@ -9,10 +9,12 @@ so ``silva --help`` and ``silva init`` answer at once.
 """
 
 import contextlib
+import functools
 import json
 import logging
 import shlex
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import click
@@ -83,12 +85,25 @@ def _command_line() -> str:
     return ctx.command_path if ctx is not None else "silva"
 
 
-def run_options(fn):
-    """Options shared by every command that runs steps."""
-    options = [
-        click.argument("config", type=click.Path(dir_okay=False, path_type=Path)),
+@dataclass(frozen=True)
+class RunOptions:
+    """What the options of a command that runs steps ask (:func:`run_options`)."""
+
+    out: Path | None = None  # None: ./silva-<config name>, or ./silva-predict
+    overrides: tuple[str, ...] = ()  # --set KEY=VALUE
+    overwrite: bool = False
+    quiet: bool = False
+    in_process: bool = False
+    chunk: str | None = None  # "scene/chunk": that chunk alone, in this process
+    verbose: int = 0
+
+
+def run_options(out_help: str = "Output directory [default: ./silva-<config name>]."):
+    """The options of every command that runs steps, handed to the command as one
+    :class:`RunOptions` (its parameter ``options``)."""
+    flags = [
         click.option("--out", "-o", type=click.Path(file_okay=False, path_type=Path),
-                     help="Output directory [default: ./silva-<config name>]."),
+                     help=out_help),
         click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
                      help="Override a config value with a YAML value, e.g. tiling.chunk_size=20."),
         click.option("--overwrite", is_flag=True, help="Start from an empty output directory."),
@@ -100,9 +115,18 @@ def run_options(fn):
         click.option("-v", "--verbose", count=True,
                      help="Show the resolved configuration and info logs (-vv: debug)."),
     ]
-    for option in reversed(options):
-        fn = option(fn)
-    return fn
+
+    def decorate(fn):
+        @functools.wraps(fn)
+        def command(*, out, overrides, overwrite, quiet, in_process, chunk, verbose, **given):
+            return fn(options=RunOptions(out, tuple(overrides), overwrite, quiet, in_process,
+                                         chunk, verbose), **given)
+
+        for flag in reversed(flags):
+            command = flag(command)
+        return command
+
+    return decorate
 
 
 def _kernels_of(run, steps, quiet: bool, kernels=None):
@@ -150,11 +174,11 @@ def _logged_error():
         raise
 
 
-def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, target,
-              *, model_dir=None, command=None, config_path=None, kernels=None, inputs=()):
-    """Load the config, prepare the output directory and run the steps up to ``target``;
-    ``kernels``: the run's :class:`~workflows.exec.kernels.Kernels` when the caller already
-    started them.
+def start_run(config, options: RunOptions, target: str, *, model_dir=None, command=None,
+              config_path=None, kernels=None, inputs=()):
+    """Load the config, prepare the output directory and run the steps up to ``target``, as
+    ``options`` ask; ``kernels``: the run's :class:`~workflows.exec.kernels.Kernels` when the
+    caller already started them.
 
     What can be checked without workers is checked before the cluster starts and the
     kernels compile (:func:`check_before_start`); an error or Ctrl-C also ends the run's log
@@ -170,10 +194,11 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
     from workflows.run.durations import reset
     from workflows.run.loop import execute
 
-    out = out or Path(f"silva-{Path(config).stem if config else 'predict'}")
+    out = options.out or Path(f"silva-{Path(config).stem if config else 'predict'}")
+    overwrite, quiet = options.overwrite, options.quiet
     if model_dir is None and not overwrite:
         model_dir = applied_model(out)  # a later step of a 'silva predict' output
-    raw = read_run(config_path or config, overrides, inputs)
+    raw = read_run(config_path or config, options.overrides, inputs)
     command = command or _command_line()
     # --overwrite never deletes what this command reads (its config, model or inputs)
     keep = (read_paths(validate_config(raw), config_path or config, model_dir) if overwrite
@@ -183,7 +208,7 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
         reset(out)  # the durations of the runs emptied start again
     steps = progress_steps(target, applies_model=model_dir is not None)
     resume = resume_command(command)
-    with run_logging(verbose, out / LOG_NAME), lock, _logged_error():
+    with run_logging(options.verbose, out / LOG_NAME), lock, _logged_error():
         log.info("start: %s (steps %s)", command, ", ".join(steps))
         try:
             plan = resolve_run(raw, model_dir)  # the model's values: a bad model is logged
@@ -192,17 +217,17 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
                 record_applied_model(out, model_dir)
             run = Run(plan, out, quiet=quiet)
             text = run.save_config()
-            if verbose:
+            if options.verbose:
                 click.echo(f"# resolved configuration (saved to {out / 'config.yaml'})\n"
                            f"{text}", err=True)
-            tiles = check_before_start(run, steps, in_process)  # before the cluster, the kernels
+            tiles = check_before_start(run, steps, options.in_process)  # before cluster, kernels
             weights = step_weights(run, tiles, plan_workers(run))  # the ETA counts training
             with run_progress(steps, quiet=quiet, stages=run.n_stages,
                               weights=weights) as progress, \
                     _kernels_of(run, steps, quiet, kernels) as ready:
-                with open_engine(plan.cfg, quiet=quiet, in_process=in_process,
-                             debug=chunk is not None) as engine:
-                    summary = execute(run, engine, target, only=chunk, command=command,
+                with open_engine(plan.cfg, quiet=quiet, in_process=options.in_process,
+                                 debug=options.chunk is not None) as engine:
+                    summary = execute(run, engine, target, only=options.chunk, command=command,
                                       kernels=ready)
                 done = [*summary["timings"], *(["report"] if "report" in summary else [])]
                 progress.finish(summary["timings"], done)
@@ -221,9 +246,10 @@ def start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbo
 
 
 def _step_command(name: str, target: str, doc: str) -> click.Command:
-    @run_options
-    def command(config, out, overrides, overwrite, quiet, in_process, chunk, verbose):
-        start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, target)
+    @click.argument("config", type=click.Path(dir_okay=False, path_type=Path))
+    @run_options()
+    def command(config, options):
+        start_run(config, options, target)
 
     command.__doc__ = doc
     return click.command(name)(command)
@@ -245,19 +271,8 @@ STEP_COMMANDS = {
 @click.option("--model", "model_dir", required=True, metavar="MODEL",
               help="A model directory written by 'silva train' or 'silva run' (OUT/model), "
               "or the name of a model installed with Silva (see 'silva models').")
-@click.option("--out", "-o", type=click.Path(file_okay=False, path_type=Path),
-              help="Output directory [default: ./silva-<config name>, or ./silva-predict].")
-@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
-              help="Override a config value with a YAML value, e.g. tiling.chunk_size=20.")
-@click.option("--overwrite", is_flag=True, help="Start from an empty output directory.")
-@click.option("--quiet", "-q", is_flag=True, help="No progress bars: a line per step.")
-@click.option("--in-process", is_flag=True,
-              help="Run every task in this process, without a Dask cluster.")
-@click.option("--chunk", metavar="SCENE/CHUNK",
-              help="Rerun one chunk in this process, showing the full error.")
-@click.option("-v", "--verbose", count=True,
-              help="Show the resolved configuration and info logs (-vv: debug).")
-def predict(inputs, model_dir, out, overrides, overwrite, quiet, in_process, chunk, verbose):
+@run_options("Output directory [default: ./silva-<config name>, or ./silva-predict].")
+def predict(inputs, model_dir, options):
     """Classify tiles with a saved model; evaluate when a CONFIG gives labelled test tiles.
 
     The model decides everything its predictions depend on (features, context, terrain,
@@ -283,8 +298,7 @@ def predict(inputs, model_dir, out, overrides, overwrite, quiet, in_process, chu
     config = configs[0] if configs else None
     if config is not None and not config.is_file():
         raise click.UsageError(f"configuration {config} does not exist")
-    start_run(config, out, overrides, overwrite, quiet, in_process, chunk, verbose, "report",
-              model_dir=model_path(model_dir), inputs=tuple(tiles))
+    start_run(config, options, "report", model_dir=model_path(model_dir), inputs=tuple(tiles))
 
 
 @click.command("plan")
@@ -374,8 +388,9 @@ def demo(out, quiet, in_process, overwrite, overrides, plot_size, verbose):
                     size = ({} if plot_size is None
                             else {"size": plot_size, "tile_size": plot_size / 2})
                     write_synthetic_plot(data / role, seed=seed, **size)
-            summary = start_run(config, out, overrides, False, quiet, in_process, None,
-                                verbose, "report", kernels=kernels)
+            summary = start_run(config, RunOptions(out, overrides, quiet=quiet,
+                                                   in_process=in_process, verbose=verbose),
+                                "report", kernels=kernels)
     if "report" in summary:
         click.echo(f"open {summary['report']} in a browser to see the report")
     return summary
