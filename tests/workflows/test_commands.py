@@ -1,4 +1,5 @@
-"""The command modules: cli.py holds the group and gathers the commands of commands.py."""
+"""The command modules: cli/main.py holds the group and gathers the commands of
+cli/commands.py."""
 
 import ast
 import subprocess
