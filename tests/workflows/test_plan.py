@@ -70,12 +70,18 @@ def test_the_run_weighs_its_steps_by_their_estimated_seconds(survey, tmp_path):
     from workflows.run.directory import Run
     from workflows.steps.ingest import plan_tiles
 
-    def weights(trees):
+    def weights(trees, densities=()):
         config = write_config(tmp_path / f"c{trees}.yaml", survey,
-                              cascade={"n_estimators": trees})
+                              cascade={"n_estimators": trees},
+                              data={"densities": list(densities)})
         run = Run(resolve_run(load_config(config)), tmp_path)
         return step_weights(run, plan_tiles(run), workers=2)
 
     few, many = weights(5), weights(200)
     assert many["features"] == few["features"] and many["train"] > 3 * few["train"]
     assert set(few) >= {"ingest", "features", "train", "apply", "export"}
+    # thinned copies of the training scene are computed and trained on too; a density above
+    # the scene's makes none
+    copied = weights(5, densities=[50, 1e6])
+    assert copied["features"] > few["features"] and copied["train"] > few["train"]
+    assert weights(5, densities=[1e6])["features"] == few["features"]

@@ -260,11 +260,24 @@ def estimated_seconds(run: Run, tiles: list[dict], workers: int,
             "training": training_seconds(run, train_points, os.cpu_count() or 1)}
 
 
+def foreseen_copies(run: Run, tiles: list[dict]) -> int:
+    """The points the thinned copies of the training scene (``data.densities``) will hold,
+    foreseen from the headers before the density pass counts them: the scene's points at
+    each density below its own, its points over its tiles' boxes."""
+    train = [t for t in tiles if t["scene"] == "train"]
+    if not run.cfg.data.densities or not train or run.model is not None:
+        return 0
+    points = sum(t["n_points"] for t in train)
+    density = points / max(sum(tile_area(t["mins"], t["maxs"]) for t in train), 1e-9)
+    return round(sum(points * target / density
+                     for target in set(map(float, run.cfg.data.densities)) if target < density))
+
+
 def step_weights(run: Run, tiles: list[dict], workers: int) -> dict[str, float]:
-    """Each step's estimated seconds (:func:`estimated_seconds`): how the run's progress
-    weighs the steps for its ETA, the forests' training included (each step's
-    :class:`~workflows.run.step_table.Weight`)."""
-    return table_weights(estimated_seconds(run, tiles, workers))
+    """Each step's estimated seconds (:func:`estimated_seconds`, with the thinned copies
+    :func:`foreseen_copies`): how the run's progress weighs the steps for its ETA, the
+    forests' training included (each step's :class:`~workflows.run.step_table.Weight`)."""
+    return table_weights(estimated_seconds(run, tiles, workers, foreseen_copies(run, tiles)))
 
 
 def _draw(scenes: dict[str, SceneLayout], tiles: list[dict], path: Path) -> None:
