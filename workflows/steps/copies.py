@@ -22,8 +22,9 @@ that one of its copies trained.
 from dataclasses import replace
 
 from pipeline.cascade.thinning import cells_density, thinned_mask, thinning_fraction
-from workflows.store.layout import chunk_path, copy_scene
-from workflows.store.marks import forget_done, is_done, mark_done
+from workflows.store.assembly import restart_unit
+from workflows.store.layout import copy_scene, unit_path
+from workflows.store.marks import is_done, mark_done
 from workflows.store.scenes import RunLayout, SceneLayout, Thinning
 
 #: The scene that gets thinned copies.
@@ -103,7 +104,7 @@ def trained_copies(layout: RunLayout) -> list[dict]:
 
 # -- ingest: the parts of the copies ------------------------------------------------------
 def _marker(root, scene: str, key):
-    return root.require_group(f"scenes/{scene}/parts/{key}")
+    return root.require_group(unit_path(scene, key))
 
 
 def copies_done(root, key, copies, fingerprint: str) -> bool:
@@ -135,11 +136,7 @@ class CopyWriter:
         self.copies = []
         for scene, fraction in copies:
             marker = _marker(root, scene, key)
-            forget_done(marker)
-            for name in list(marker.group_keys()):  # an earlier attempt's parts
-                if chunk_path(scene, name) in root:
-                    forget_done(root[chunk_path(scene, name)])
-                del marker[name]
+            restart_unit(root, scene, marker)
             self.copies.append((fraction, marker, make_writer(marker)))
 
     @property

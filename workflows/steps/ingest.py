@@ -48,10 +48,11 @@ from workflows.steps.copies import (
     copies_done, copies_of, copy_counts, copy_lines, plan_copies, with_copies,
 )
 from workflows.steps.one_pass import MAX_BORDER_SHARE, border_share, wants_one_pass
+from workflows.store.assembly import restart_unit
 from workflows.store.layout import (
-    RETURNS, ROLE_PREDICT, ROLE_TEST, ROLE_TRAIN, chunk_path, is_copy,
+    RETURNS, ROLE_PREDICT, ROLE_TEST, ROLE_TRAIN, is_copy, unit_path,
 )
-from workflows.store.marks import forget_done, is_done, mark_done
+from workflows.store.marks import is_done, mark_done
 from workflows.store.scenes import RunLayout, SceneLayout, read_units
 
 AXES = {"x": 0, "y": 1, "z": 2}
@@ -427,7 +428,7 @@ def ingest_tile(task: IngestTask) -> dict:
     of small tiles costs about what one tile of all their points costs. A point range of a
     big tile (``span``) is stored under its own ``key``.
 
-    The points ``points_filter`` leaves out (:mod:`workflows.steps.point_filter`) are in no
+    The points ``points_filter`` leaves out (:mod:`workflows.config.point_filter`) are in no
     chunk (cores and halos): in no neighbourhood, no training sample and no metric. The
     number of those excluded by code or withheld flag is recorded per tile in the group's
     marker (``excluded``).
@@ -438,18 +439,14 @@ def ingest_tile(task: IngestTask) -> dict:
     store_path, scene, tiles, grid = task.store_path, task.scene, task.tiles, task.grid
     read_batch, fingerprint = task.read_batch, task.fingerprint
     root = open_store(store_path)
-    marker = root.require_group(f"scenes/{scene}/parts/{task.key}")
+    marker = root.require_group(unit_path(scene, task.key))
     if is_done(marker, "ingest", fingerprint) and copies_done(root, task.key, task.copies,
                                                                fingerprint):
         return {"core_counts": marker.attrs["core_counts"],
                 "excluded": _excluded(marker.attrs, tiles),
                 "bounds": marker.attrs.get("bounds", {}),
                 **copy_counts(root, task.key, task.copies)}
-    forget_done(marker)  # done only when a copy is not: written again with it
-    for name in list(marker.group_keys()):  # a half-written or damaged earlier attempt
-        if chunk_path(scene, name) in root:  # chunks built from it are built again
-            forget_done(root[chunk_path(scene, name)])
-        del marker[name]
+    restart_unit(root, scene, marker)  # done only when a copy is not: written again with it
     writer = with_copies(_PartWriter(marker, grid, task.halo), root, task.key, task.copies,
                          task.seed, fingerprint, lambda part: _PartWriter(part, grid, task.halo))
     start, stop = task.span or (0, None)
@@ -493,7 +490,6 @@ def ingest_tile(task: IngestTask) -> dict:
             **copy_counts(root, task.key, task.copies)}
 
 
-
 def _stored_columns(task: IngestTask, tile: dict, batch, labelled: bool):
     """What ingest stores of a read ``batch`` of ``tile``: the columns of its kept points
     (xyz, gid, label, role, and with echoes the return numbers), the number of its points
@@ -513,6 +509,7 @@ def _stored_columns(task: IngestTask, tile: dict, batch, labelled: bool):
     xyz, gid, label, *returns = columns
     return ((xyz, gid, label, point_roles(task.scene, xyz, task.split), *returns), n_dropped,
             some_returns)
+
 
 def widened(box: list | None, xyz: np.ndarray) -> list:
     """[mins, maxs] (lists of 3 floats) of ``box`` (None: no point yet) and the points
@@ -605,7 +602,7 @@ def _excluded(attrs, tiles) -> dict[str, int]:
 
 
 def _ingested(root, scene: str, key: int | str, fingerprint: str) -> bool:
-    path = f"scenes/{scene}/parts/{key}"
+    path = unit_path(scene, key)
     return path in root and is_done(root[path], "ingest", fingerprint)
 
 
@@ -683,10 +680,11 @@ def ingest_tasks(run: Run, scenes: dict[str, SceneLayout], tiles: list[dict],
                  fingerprint: str) -> list[Task]:
     """One task per read unit of every scene (a thinned copy is written by its scene's)."""
     by_index = {tile["index"]: tile for tile in tiles}
-    tasks = []
+    echoes, tasks = echo_need(run), []
     for scene, info in scenes.items():
         if is_copy(scene):  # written by its scene's tasks
             continue
+        copies = copies_of(scenes, scene)
         for unit in info.read_units:
             members = tuple(by_index[index] for index in unit.tiles)
             span = unit.span(members[0]["n_points"])
@@ -707,8 +705,8 @@ def ingest_tasks(run: Run, scenes: dict[str, SceneLayout], tiles: list[dict],
                     points_filter=run.cfg.data.points_filter,
                     key=unit.key,
                     span=span,
-                    echoes=echo_need(run),
-                    copies=copies_of(scenes, scene),
+                    echoes=echoes,
+                    copies=copies,
                     seed=run.cfg.cascade.seed,
                 )},
                 where=(f"{tiles_text(list(members))}"

@@ -12,8 +12,8 @@ import zarr
 from pipeline.errors import StoreError
 from pipeline.store import write_arrays
 from workflows.store.layout import CORE, HALO, POINTS, RETURNS
-from workflows.store.layout import chunk_path, part_path
-from workflows.store.marks import forget, read_array, read_records
+from workflows.store.layout import chunk_path, part_path, unit_path
+from workflows.store.marks import forget, forget_done, read_array, read_records
 
 _EMPTY = {"xyz": np.empty((0, 3)), "gid": np.empty(0, np.int64),
           "label": np.empty(0, np.int16), "role": np.empty(0, np.int8),
@@ -27,7 +27,7 @@ def tile_part(root: zarr.Group, scene: str, tile: int, chunk: str, prefix: str):
     Ingest records in the tile's marker which parts it wrote (``parts``); a part it wrote
     that is gone is a :class:`StoreError`, and the tile is marked to be ingested again.
     """
-    marker = root[f"scenes/{scene}/parts/{tile}"]
+    marker = root[unit_path(scene, tile)]
     if prefix not in marker.attrs.get("parts", {}).get(chunk, []):
         return None
     path = part_path(scene, tile, chunk)
@@ -111,11 +111,21 @@ def _without_returns(group: zarr.Group) -> StoreError:
                       "--overwrite")
 
 
+def restart_unit(root: zarr.Group, scene: str, marker: zarr.Group) -> None:
+    """Make the read unit of ``marker`` (in ``scene``) ready to be ingested again: not
+    done, without the parts of an earlier (half-written or damaged) attempt, and the chunks
+    built from those parts to be built again."""
+    forget_done(marker)
+    for name in list(marker.group_keys()):
+        if chunk_path(scene, name) in root:
+            forget_done(root[chunk_path(scene, name)])
+        del marker[name]
+
+
 def drop_part(root: zarr.Group, scene: str, tile: int, chunk: str) -> None:
     """Remove the part of ``tile`` in ``chunk`` (nothing when there is none)."""
-    marker = f"scenes/{scene}/parts/{tile}"
     if part_path(scene, tile, chunk) in root:
-        del root[marker][chunk]
+        del root[unit_path(scene, tile)][chunk]
 
 
 def drop_assembled_parts(root: zarr.Group) -> int:
@@ -129,7 +139,7 @@ def drop_assembled_parts(root: zarr.Group) -> int:
         if f"scenes/{scene}/parts" not in root:
             continue
         for tile in list(root[f"scenes/{scene}/parts"].group_keys()):
-            marker = root[f"scenes/{scene}/parts/{tile}"]
+            marker = root[unit_path(scene, tile)]
             for chunk in list(marker.group_keys()):
                 path = chunk_path(scene, chunk)
                 if path in root and root[path].attrs.get("assembled") == built_from:

@@ -65,8 +65,14 @@ def chunk_path(scene: str, chunk_name: str) -> str:
     return f"scenes/{scene}/chunks/{chunk_name}"
 
 
+def unit_path(scene: str, key) -> str:
+    """The marker of an ingest read unit (a tile, a group's first tile, "i.k" a range of
+    tile i), which holds its parts."""
+    return f"scenes/{scene}/parts/{key}"
+
+
 def part_path(scene: str, tile_index: int, chunk_name: str) -> str:
-    return f"scenes/{scene}/parts/{tile_index}/{chunk_name}"
+    return f"{unit_path(scene, tile_index)}/{chunk_name}"
 
 
 def terrain_path(scene: str) -> str:
