@@ -283,10 +283,7 @@ class ExportSpec:
         rasters = (RasterRequest(tuple(out.rasters), out.raster_resolution,
                                  tuple(run.cfg.canopy_classes), str(run.out / "rasters"))
                    if out.rasters else None)
-        trees = (TreeTask(final_stage, tuple(run.cfg.canopy_classes),
-                          tuple(run.cfg.stem_classes), run.cfg.trees.params,
-                          f"{run.fingerprint('trees')}-{stage_fp}")
-                 if out.trees else None)
+        trees = TreeTask.of(run, final_stage, stage_fp) if out.trees else None
         return cls(final_stage, tuple(run.classes), tuple(run.class_codes), out.probabilities,
                    out.write_classification, run.cfg.tiling.read_batch,
                    run.cfg.data.points_filter, feature_columns,
@@ -457,7 +454,6 @@ def export(run: Run, engine, layout: RunLayout, final_stage: int, stage_fp: str
     out_dir.mkdir(parents=True, exist_ok=True)
     remove_parts(out_dir)
     suffix = "." + run.cfg.output.format
-    check_raster_size(run, layout.tiles)  # points beyond a stale header widen a raster
     spec = ExportSpec.of(run, final_stage, stage_fp)
     raster_dir = run.out / "rasters"
     if spec.rasters is not None:

@@ -62,6 +62,14 @@ class TreeTask:
     params: TreeParams
     fingerprint: str  # of the scene's tree model
 
+    @classmethod
+    def of(cls, run, final_stage: int, stage_fp: str) -> "TreeTask":
+        """The trees of ``run`` from its final stage (``stage_fp``: that stage's
+        fingerprint, which the tree model follows from)."""
+        cfg = run.cfg
+        return cls(final_stage, tuple(cfg.canopy_classes), tuple(cfg.stem_classes),
+                   cfg.trees.params, f"{run.fingerprint('trees')}-{stage_fp}")
+
 
 def chunk_points(view, task: TreeTask):
     """The core points of one chunk with their heights above ground and class masks."""
@@ -136,10 +144,8 @@ def tile_of(table: np.ndarray, tiles: list[dict]) -> np.ndarray:
 def trees(run, engine, layout: RunLayout, final_stage: int, stage_fp: str) -> dict:
     """Find the trees of every scene of ``layout`` and write their tables; return, per
     scene, the method used and the number of trees, and the files written."""
-    cfg = run.cfg
-    fingerprint = f"{run.fingerprint('trees')}-{stage_fp}"
-    task = TreeTask(final_stage, tuple(cfg.canopy_classes), tuple(cfg.stem_classes),
-                    cfg.trees.params, fingerprint)
+    task = TreeTask.of(run, final_stage, stage_fp)
+    fingerprint = task.fingerprint
     root = run.store
     todo = layout.with_scenes(lambda s: not (model_path(s) in root and is_done(
         root[model_path(s)], "trees", fingerprint)))
