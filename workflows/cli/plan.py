@@ -89,12 +89,18 @@ def foreseen_window(run: Run, tiles: list[dict]) -> int:
     return int(largest)
 
 
+def mean_density(members: list[dict]) -> float:
+    """Points per m² of the tiles ``members`` (dicts), from their headers: their points over
+    their XY boxes."""
+    area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
+    return sum(t["n_points"] for t in members) / max(area, 1e-9)
+
+
 def grid_window(members: list[dict], size: float, halo: float) -> float:
     """Points of a grid chunk of side ``size`` with its ``halo`` over the tiles ``members``
     of a scene, at their mean density (at most the scene's points)."""
     points = sum(t["n_points"] for t in members)
-    area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
-    return min(points, points / max(area, 1e-9) * (size + 2 * halo) ** 2)
+    return min(points, mean_density(members) * (size + 2 * halo) ** 2)
 
 
 def worker_memory_limit(run: Run) -> int | None:
@@ -267,8 +273,7 @@ def foreseen_copies(run: Run, tiles: list[dict]) -> int:
     train = [t for t in tiles if t["scene"] == "train"]
     if not run.cfg.data.densities or not train or run.model is not None:
         return 0
-    points = sum(t["n_points"] for t in train)
-    density = points / max(sum(tile_area(t["mins"], t["maxs"]) for t in train), 1e-9)
+    points, density = sum(t["n_points"] for t in train), mean_density(train)
     return round(sum(points * target / density
                      for target in set(map(float, run.cfg.data.densities)) if target < density))
 
