@@ -45,7 +45,7 @@ from pipeline.features.invariants import INVARIANT_NAMES
 from pipeline.features.local import PLANES, local_surface
 from pipeline.features.voxel import halo as voxel_halo
 from pipeline.features.voxel import representative_of
-from pipeline.terrain import TerrainParams, ground_elevation, terrain_blocks
+from pipeline.terrain import TerrainParams, ground_elevation, scene_terrain
 from pipeline.tiling import box_distance, series_ceil
 
 SURFACE_SIZE_NAMES = ("log_neighbors", "log_area")
@@ -170,7 +170,7 @@ class FeatureSet:
 
         ``ground`` (float64, one per row of ``xyz``) is the terrain model's elevation under
         each point; None: the terrain model of ``xyz`` itself, a whole scene
-        (:func:`pipeline.terrain.terrain_blocks` with the set's terrain parameters).
+        (:func:`pipeline.terrain.scene_terrain` with the set's terrain parameters).
         ``returns`` is ``(return_number, number_of_returns)``, integer arrays of one value
         per row of ``xyz``, for a set that :attr:`uses_returns`; None: a cloud without
         them, whose echo columns are NaN (:mod:`pipeline.features.echo`). A set without
@@ -318,7 +318,7 @@ def query_box(xy: np.ndarray) -> tuple[float, float, float, float]:
 def scene_ground(xyz: np.ndarray, terrain: TerrainParams) -> np.ndarray:
     """float64 (N,): the elevation under each point of the terrain model of ``xyz``, taken
     as a whole scene, as the terrain step makes it (plots far apart are modelled apart)."""
-    return ground_elevation(terrain_blocks(xyz, terrain), xyz[:, :2])
+    return ground_elevation(scene_terrain(xyz, terrain), xyz[:, :2])
 
 
 def _with_echoes(params: FeatureParams, *parts) -> tuple:

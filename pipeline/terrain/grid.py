@@ -365,10 +365,10 @@ def ground_elevation(dtm, xy: np.ndarray) -> np.ndarray:
 
     Parameters
     ----------
-    dtm : Raster or TerrainBlocks
+    dtm : Raster or SceneTerrain
         A raster without NaN (the ``dtm`` of a :class:`~pipeline.terrain.GroundModel`; NaN
         cells give NaN at the points they influence), read by :func:`bilinear`; or a scene's
-        :class:`~pipeline.terrain.blocks.TerrainBlocks`, each position read from the DTM of
+        :class:`~pipeline.terrain.blocks.SceneTerrain`, each position read from the DTM of
         the block that holds it.
     xy : float (N, 2)
         Query positions, finite.

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from pipeline.io.raster import read_geotiff
-from pipeline.terrain import terrain_blocks
+from pipeline.terrain import scene_terrain
 from workflows.steps.export import RasterRequest, _TileRasters
 
 
@@ -33,7 +33,7 @@ def _rasters(tmp_path, name, xyz, canopy, dtm, batches):
 @pytest.mark.parametrize("batches", [1, 7])
 def test_a_bird_over_the_canopy_sets_no_surface_cell(tmp_path, batches):
     xyz, canopy = _forest()
-    dtm = terrain_blocks(xyz[~canopy])
+    dtm = scene_terrain(xyz[~canopy])
     birds = np.array([[7.3, 12.6, 180.0],  # over the canopy, predicted as canopy
                       [3.5, 3.5, 150.0]])  # and a second one
     noisy = np.vstack([xyz, birds])

@@ -50,24 +50,25 @@ def test_topdown_and_terrain_figures_of_one_point():
 
 
 def _two_plots_a_kilometre_apart():
-    from pipeline.terrain import TerrainParams, block_models, cell_minima
+    from pipeline.terrain import scene_terrain
 
     rng = np.random.default_rng(4)
     xy = np.concatenate([rng.uniform(0.0, 15.0, (2000, 2)),
                          rng.uniform(0.0, 15.0, (2000, 2)) + (1000.0, 400.0)])
     xyz = np.column_stack([xy, 80.0 + 0.05 * xy[:, 0]])
-    blocks = block_models(*cell_minima(xyz, 1.0), TerrainParams())[0]
-    assert len(blocks.dtms) == 2
-    return blocks
+    terrain = scene_terrain(xyz)
+    dtms = [dtm for row in range(len(terrain.blocks)) for dtm in terrain.load(row).dtms]
+    assert len(dtms) == 2
+    return xyz, dtms
 
 
 def test_the_terrain_figure_shows_every_block_of_a_scene_at_its_place():
-    blocks = _two_plots_a_kilometre_apart()
-    figure = terrain_figure({"a": {"dtm": blocks, "x": np.array([5.0, 1005.0]),
+    _, dtms = _two_plots_a_kilometre_apart()
+    figure = terrain_figure({"a": {"dtm": dtms, "x": np.array([5.0, 1005.0]),
                                    "y": np.array([5.0, 405.0]), "height": np.array([9.0, 12.0])}})
     hillshade_axes = figure.axes[0]
     drawn = sorted(tuple(image.get_extent()) for image in hillshade_axes.get_images())
-    assert drawn == sorted(raster_extent(dtm) for dtm in blocks.dtms)
+    assert drawn == sorted(raster_extent(dtm) for dtm in dtms)
     (x0, x1), (y0, y1) = hillshade_axes.get_xlim(), hillshade_axes.get_ylim()
     for left, right, bottom, top in drawn:
         assert x0 <= left and right <= x1 and y0 <= bottom and top <= y1
@@ -78,16 +79,20 @@ def test_the_survey_hands_the_figure_every_terrain_block(tmp_path):
     from types import SimpleNamespace
 
     from pipeline.store import open_store
+    from pipeline.terrain import BlockGrid, TerrainParams, block_model, cell_minima
     from workflows.steps.survey import canopy_samples
-    from workflows.steps.terrain import write_blocks
+    from workflows.store.terrain import write_block, write_scene_terrain
 
-    blocks = _two_plots_a_kilometre_apart()
+    xyz, blocks = _two_plots_a_kilometre_apart()
     root = open_store(tmp_path / "store.zarr")
-    write_blocks(root, "predict", blocks, 0.0, "fp")
+    grid, params = BlockGrid.of(TerrainParams()), TerrainParams()
+    keys, zmin, xy = cell_minima(xyz, 1.0)
+    for block in grid.occupied(keys):
+        write_block(root, "predict", block, block_model(keys, zmin, xy, grid, block, params), "fp")
+    write_scene_terrain(root, "predict", grid, grid.occupied(keys), 0.0, "fp")
     run = SimpleNamespace(store=root, cfg=SimpleNamespace(canopy_classes=[1]))
     maps = {"predict": (np.array([5.0, 1005.0]), np.array([5.0, 405.0]), np.array([1, 1]),
                         np.array([9.0, 12.0]), np.array([0.9, 0.8]))}
     dtms = scene_rasters(canopy_samples(run, maps)["predict"]["dtm"])
     assert len(dtms) == 2
-    assert sorted(raster_extent(d) for d in dtms) == sorted(raster_extent(d)
-                                                            for d in blocks.dtms)
+    assert sorted(raster_extent(d) for d in dtms) == sorted(raster_extent(d) for d in blocks)

@@ -16,7 +16,7 @@ from tests.workflows.conftest import (
     read_predictions,
     silva,
 )
-from workflows.store.terrain import read_terrain
+from workflows.store.terrain import read_scene_terrain
 
 pytestmark = pytest.mark.slow
 
@@ -33,13 +33,18 @@ def test_terrain_model_does_not_depend_on_the_chunking(runs, survey):
     assert_chunked(runs[1], 4)  # 2 x 2 chunks a scene
     one, many = (open_store(out / "store.zarr") for out in runs)
     for scene in ("train", "test"):
-        a, b = read_terrain(one, scene), read_terrain(many, scene)
-        assert np.array_equal(a.values, b.values) and (a.x0, a.y0, a.cell) == (b.x0, b.y0, b.cell)
-        assert np.isfinite(a.values).all()
-        # the scene's model is that of the whole cloud in memory
+        a, b = read_scene_terrain(one, scene), read_scene_terrain(many, scene)
+        assert np.array_equal(a.blocks, b.blocks)
+        for row in range(len(a.blocks)):
+            for d1, d2 in zip(a.load(row).dtms, b.load(row).dtms, strict=True):
+                assert np.array_equal(d1.values, d2.values)
+                assert (d1.x0, d1.y0, d1.cell) == (d2.x0, d2.y0, d2.cell)
+                assert np.isfinite(d1.values).all()
+        # a scene smaller than a block: the model of the whole cloud in memory
         xyz = np.concatenate([laspy.read(p).xyz for p in sorted(survey[scene].glob("*.laz"))])
         whole = terrain_model(xyz, TerrainParams())
-        assert np.array_equal(whole.dtm.values, a.values)
+        assert np.array_equal(ground_elevation(whole.dtm, xyz[:, :2]),
+                              ground_elevation(a, xyz[:, :2]))
 
 
 def test_height_above_ground_and_predictions_are_chunk_invariant(runs):
@@ -61,7 +66,7 @@ def test_heights_above_ground_separate_terrain_from_trees(runs):
     store = open_store(runs[0] / "store.zarr")
     tile = next(t for t in sorted(dims) if t.startswith("plot_s2"))
     xyz = dims[tile]["xyz"]
-    expected = xyz[:, 2] - ground_elevation(read_terrain(store, "test"), xyz[:, :2])
+    expected = xyz[:, 2] - ground_elevation(read_scene_terrain(store, "test"), xyz[:, :2])
     assert np.allclose(dims[tile]["HeightAboveGround"], expected, atol=1e-4)
 
 

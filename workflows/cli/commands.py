@@ -184,7 +184,8 @@ def start_run(config, options: RunOptions, target: str, *, model_dir=None, comma
     kernels compile (:func:`check_before_start`); an error or Ctrl-C also ends the run's log
     with the line the command line shows. The resume hint never carries ``--overwrite``.
     """
-    from workflows.cli.plan import plan_workers, step_weights
+    from workflows.cli.plan import step_weights
+    from workflows.exec.cluster import plan_workers
     from workflows.config import validate_config
     from workflows.exec.engine import open_engine
     from workflows.run.autoparams import read_run, resolve_run
@@ -266,6 +267,22 @@ STEP_COMMANDS = {
 }
 
 
+def config_and_tiles(inputs) -> tuple[Path | None, tuple[str, ...]]:
+    """The configuration (a .yaml file, at most one) and the tiles among a command's
+    ``[CONFIG] [TILE_OR_GLOB]...`` arguments; UsageError for none, two configurations or a
+    configuration that does not exist."""
+    configs = [Path(p) for p in inputs if Path(p).suffix.lower() in (".yaml", ".yml")]
+    tiles = tuple(p for p in inputs if Path(p).suffix.lower() not in (".yaml", ".yml"))
+    if len(configs) > 1:
+        raise click.UsageError(f"one configuration at most, got {', '.join(map(str, configs))}")
+    if not configs and not tiles:
+        raise click.UsageError("give the tiles to classify (TILE_OR_GLOB...) or a CONFIG")
+    config = configs[0] if configs else None
+    if config is not None and not config.is_file():
+        raise click.UsageError(f"configuration {config} does not exist")
+    return config, tiles
+
+
 @click.command("predict")
 @click.argument("inputs", nargs=-1, metavar="[CONFIG] [TILE_OR_GLOB]...")
 @click.option("--model", "model_dir", required=True, metavar="MODEL",
@@ -289,41 +306,42 @@ def predict(inputs, model_dir, options):
     """
     from workflows.models import model_path
 
-    configs = [Path(p) for p in inputs if Path(p).suffix.lower() in (".yaml", ".yml")]
-    tiles = [p for p in inputs if Path(p).suffix.lower() not in (".yaml", ".yml")]
-    if len(configs) > 1:
-        raise click.UsageError(f"one configuration at most, got {', '.join(map(str, configs))}")
-    if not configs and not tiles:
-        raise click.UsageError("give the tiles to classify (TILE_OR_GLOB...) or a CONFIG")
-    config = configs[0] if configs else None
-    if config is not None and not config.is_file():
-        raise click.UsageError(f"configuration {config} does not exist")
+    config, tiles = config_and_tiles(inputs)
     start_run(config, options, "report", model_dir=model_path(model_dir), inputs=tuple(tiles))
 
 
 @click.command("plan")
-@click.argument("config", type=click.Path(dir_okay=False, exists=True, path_type=Path))
+@click.argument("inputs", nargs=-1, metavar="[CONFIG] [TILE_OR_GLOB]...")
+@click.option("--model", "model_dir", default=None, metavar="MODEL",
+              help="Plan a 'silva predict' run applying MODEL (a model directory or the name "
+              "of a model installed with Silva): CONFIG is then optional, as for predict.")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="Override a config key, e.g. --set tiling.chunk_size=20 (repeatable).")
 @click.option("--picture", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Also write a PNG of each scene's chunk layout over its tiles.")
-def plan(config, overrides, picture):
-    """Show what a run of CONFIG will do, from the tiles' headers (and a quick count of the
-    points for balanced chunks): tiles, points, chunk layout, memory per worker, store size
-    and duration (rough estimates). Nothing is written.
+def plan(inputs, model_dir, overrides, picture):
+    """Show what a run of CONFIG (or a 'silva predict' run with --model) will do, from the
+    tiles' headers (and a quick count of the points for balanced chunks): tiles, points,
+    chunk layout, terrain blocks, memory per worker, store size and duration (rough
+    estimates); refuse in one line what will not fit. Nothing is written.
 
     \b
     Examples:
       silva plan survey.yaml
       silva plan survey.yaml --set tiling.target_points=500000 --picture grid.png
+      silva plan --model als-ground-vegetation-building "tiles/*.laz"
     """
     from workflows.cli.plan import plan as plan_run
-    from workflows.cli.plan import plan_workers
-    from workflows.config import load_config
-    from workflows.run.autoparams import resolve_run
+    from workflows.exec.cluster import plan_workers
+    from workflows.models import model_path
+    from workflows.run.autoparams import read_run, resolve_run
     from workflows.run.directory import Run
 
-    run = Run(resolve_run(load_config(config, overrides)), Path("."), quiet=True)
+    if model_dir is None and (len(inputs) != 1 or not str(inputs[0]).endswith((".yaml", ".yml"))):
+        raise click.UsageError("give one CONFIG (or --model MODEL with the tiles to classify)")
+    config, tiles = config_and_tiles(inputs)
+    model = model_path(model_dir) if model_dir is not None else None
+    run = Run(resolve_run(read_run(config, overrides, tiles), model), Path("."), quiet=True)
     for line in plan_run(run, plan_workers(run), picture):
         click.echo(line)
 

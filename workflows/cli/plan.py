@@ -21,11 +21,12 @@ from pipeline.atomic import atomic_path
 from pipeline.errors import ConfigError
 from pipeline.features.sets import feature_set
 from pipeline.tiling import MIN_CHUNK_HALOS, Grid, tile_area
+from workflows.exec.cluster import plan_workers
 from workflows.run.directory import Run
 from workflows.run.progress import clock, counted
 from workflows.run.step_table import step_weights as table_weights
 from workflows.steps.copies import copy_lines
-from workflows.steps.ingest import plan_scenes, plan_tiles, scene_chunk_size
+from workflows.steps.ingest import plan_scenes, plan_tiles, scene_chunk_size, scene_target
 from workflows.store.scenes import SceneLayout
 
 log = logging.getLogger(__name__)
@@ -56,6 +57,13 @@ OTHER_RATE = 25_000
 #: random forests of 10 trees on 50,000-100,000 rows of 30-61 columns, leaves of 1-20,
 #: measured 7.5e-8 to 9.5e-8 on the 2-core reference machine.
 TREE_SECONDS = 8.5e-8
+#: A worker's peak bytes per cell of a terrain block's region (SMRF, its fills and the
+#: minima), measured on regions of 1,114 x 1,114 cells at 1 m: 440 MiB above the process
+#: with 3 M points, 480 with 300,000, 560 with 30,000 (sparser blocks fill more cells).
+TERRAIN_BYTES_PER_CELL = 480
+#: Seconds one core spends per cell of a terrain block's region: 1 km blocks at 1 m took
+#: 16-33 s (dense to sparse) on the reference machine.
+TERRAIN_SECONDS_PER_CELL = 2e-5
 
 
 def worker_bytes(points: float, columns: int) -> float:
@@ -67,8 +75,8 @@ def worker_bytes(points: float, columns: int) -> float:
 
 def foreseen_window(run: Run, tiles: list[dict]) -> int:
     """The points of the largest chunk with its halo, as the tiles' headers foresee it: a
-    layout balanced by point count holds a chunk to tiling.target_points (or the whole
-    scene, if smaller), unless the smallest chunk it cuts, a core of
+    layout balanced by point count holds a chunk to its target (:func:`scene_target`, or
+    the whole scene, if smaller), unless the smallest chunk it cuts, a core of
     :data:`~pipeline.tiling.MIN_CHUNK_HALOS` halos a side, holds more with its halo at the
     mean density; a grid's chunk holds its area's share at the mean density."""
     largest = 0.0
@@ -80,7 +88,7 @@ def foreseen_window(run: Run, tiles: list[dict]) -> int:
             # a small dense plot: the TLS plot's 1.5 M points, cut in two at a target of
             # 1 M, keep windows of 1.1 and 1.3 M
             smallest = grid_window(members, MIN_CHUNK_HALOS * run.halo, run.halo)
-            largest = max(largest, min(points, tiling.target_points), smallest)
+            largest = max(largest, min(points, scene_target(run, points)), smallest)
             continue
         mins = [min(t["mins"][i] for t in members) for i in (0, 1)]
         maxs = [max(t["maxs"][i] for t in members) for i in (0, 1)]
@@ -133,6 +141,43 @@ def check_memory(run: Run, tiles: list[dict]) -> None:
             f"needs about {format_bytes(needed)} for the largest chunk ({points:,} points "
             f"with its halo, {columns} feature columns); raise cluster.memory_limit, or "
             "lower tiling.target_points (or cluster.n_workers, with memory_limit: auto)")
+    needed = terrain_bytes(run, tiles)
+    if needed > limit:
+        side = run.cfg.terrain.grid.size * run.terrain.cell
+        raise ConfigError(
+            f"cluster.memory_limit ({format_bytes(limit)} per worker) is too small: a worker "
+            f"needs about {format_bytes(needed)} for a terrain block of {side:g} m; lower "
+            "terrain.block, or raise cluster.memory_limit")
+
+
+def terrain_blocks(run: Run, tiles: list[dict]) -> tuple[int, float, float]:
+    """The terrain blocks the tiles' boxes touch (an upper bound of the occupied ones), the
+    cells of their regions that hold the tiles (each tile's cells with its blocks' share of
+    buffer), and the cells of the largest region (the box of the tiles in it)."""
+    grid = run.cfg.terrain.grid
+    side, buffer = grid.size * grid.cell, grid.buffer * grid.cell
+    boxes, cells = {}, 0.0  # per block, the box of the tiles in its region
+    for t in tiles:
+        (x0, y0), (x1, y1) = (np.floor(np.asarray(v[:2]) / side).astype(int)
+                              for v in (t["mins"], t["maxs"]))
+        for bx in range(x0, x1 + 1):
+            for by in range(y0, y1 + 1):
+                low = np.maximum(t["mins"][:2], np.array([bx, by]) * side - buffer)
+                high = np.minimum(t["maxs"][:2], np.array([bx + 1, by + 1]) * side + buffer)
+                key = (t["scene"], bx, by)
+                if key in boxes:
+                    low, high = np.minimum(low, boxes[key][0]), np.maximum(high, boxes[key][1])
+                boxes[key] = (low, high)
+        cells += tile_area(t["mins"], t["maxs"]) / grid.cell ** 2 * (
+            grid.region_side / grid.size) ** 2
+    largest = max((float(np.prod(np.maximum(high - low, 0) / grid.cell + 1))
+                   for low, high in boxes.values()), default=0.0)
+    return len(boxes), cells, largest
+
+
+def terrain_bytes(run: Run, tiles: list[dict]) -> float:
+    """Estimated peak resident bytes of a worker modelling the largest terrain block."""
+    return WORKER_BASE_BYTES + TERRAIN_BYTES_PER_CELL * terrain_blocks(run, tiles)[2]
 
 
 def features_tried(max_features, columns: int) -> int:
@@ -167,8 +212,11 @@ def training_seconds(run: Run, train_points: int, cores: int) -> float:
 
 
 def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
-    """The lines ``silva plan`` prints; with ``picture``, a PNG of the chunk layouts."""
+    """The lines ``silva plan`` prints; with ``picture``, a PNG of the chunk layouts.
+    ConfigError, naming the key to change, for a run that will not fit (the memory of a
+    worker of the local cluster)."""
     tiles = plan_tiles(run)
+    check_memory(run, tiles)
     scenes = plan_scenes(run, tiles)
     params = run.features
     columns = len(feature_set(params).columns)
@@ -191,10 +239,14 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
     memory = worker_bytes(largest, columns)
     spent = estimated_seconds(run, tiles, workers, copied)
     seconds, training = spent["features"] + spent["other"], spent["training"]
+    grid, blocks = run.cfg.terrain.grid, terrain_blocks(run, tiles)[0]
     lines += [
+        f"terrain: {counted(blocks, 'block')} of {grid.size * grid.cell:g} m at most "
+        f"(a buffer of {grid.buffer * grid.cell:g} m around each), modelled on the workers",
         f"memory: about {memory / 2**30:.2f} GiB per worker in the largest chunk" + (
             " at the mean density (dense parts of a chunk hold more; tiling.target_points "
-            "bounds it)" if any(info.estimate is None for info in outputs.values()) else ""),
+            "bounds it)" if any(info.estimate is None for info in outputs.values()) else "")
+        + f", {terrain_bytes(run, tiles) / 2**30:.2f} GiB for a terrain block",
         f"disk: about {disk / 2**30:.2f} GiB for store.zarr",
         f"time: about {clock(seconds + training)} on {counted(workers, 'worker')}: "
         f"{clock(seconds)} for the features, context and predictions, {clock(training)} "
@@ -261,8 +313,10 @@ def estimated_seconds(run: Run, tiles: list[dict], workers: int,
     scene (data.densities), which are computed and trained on too."""
     points = sum(t["n_points"] for t in tiles) + copies
     train_points = sum(t["n_points"] for t in tiles if t["scene"] == "train") + copies
+    cells = terrain_blocks(run, tiles)[1]
     return {"features": points / workers / FEATURE_RATES[run.features.set],
-            "other": points / workers / OTHER_RATE,
+            "other": points / workers / OTHER_RATE
+            + cells * TERRAIN_SECONDS_PER_CELL / workers,
             "training": training_seconds(run, train_points, os.cpu_count() or 1)}
 
 
@@ -318,16 +372,3 @@ def _draw(scenes: dict[str, SceneLayout], tiles: list[dict], path: Path) -> None
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=80)
     plt.close(fig)
-
-
-def plan_workers(run: Run) -> int:
-    """The number of workers the configured cluster will start (local: one per core)."""
-    cluster = run.cfg.cluster
-    if cluster.kind == "local":
-        return int(cluster.n_workers or os.cpu_count() or 1)
-    if cluster.kind == "slurm":
-        from workflows.exec.cluster import slurm_workers
-
-        return slurm_workers(cluster)
-    return max(1, int(getattr(cluster, "n_workers", None) or 1))
-

@@ -19,7 +19,7 @@ from pipeline.features.sets import (
     AUTO_NEIGHBORS, FEATURE_SETS, FeatureParams, feature_set,
 )
 from pipeline.io.base import LAS_NAME_BYTES
-from pipeline.terrain import TerrainParams
+from pipeline.terrain import BlockGrid, TerrainParams
 from pipeline.trees import TreeParams
 from workflows.config.fields import (
     AutoBool,
@@ -431,11 +431,26 @@ class TerrainConfig(Section):
     scalar: Number = Field(
         _TERRAIN.scalar, ge=0,
         description="How much the threshold grows with the local slope (metres per unit slope).")
+    block: AutoLength = Field(
+        "auto",
+        description="Side in metres of the square blocks the terrain is modelled in, each on "
+        "a worker from its points and a buffer around it, anchored at multiples of it in map "
+        "coordinates: the memory of a block's model follows it, not the survey's area. "
+        "'auto': 1,000 cells (1 km at 1 m cells). The results depend on it (a little, at the "
+        "blocks' edges), never on the chunking or the workers.")
 
     @model_validator(mode="after")
     def _check_params(self) -> "TerrainConfig":
-        self.params  # noqa: B018 -- the filter's own checks (window >= cell), at load time
+        self.grid  # noqa: B018 -- the filter's own checks (window >= cell), at load time
         return self
+
+    @property
+    def grid(self) -> BlockGrid:
+        """The fixed blocks the terrain is modelled in."""
+        try:
+            return BlockGrid.of(self.params, None if self.block == "auto" else self.block)
+        except ValueError as err:
+            raise fail(str(err)) from None
 
     @property
     def params(self) -> TerrainParams:

@@ -302,3 +302,15 @@ def _link_of(client) -> str | None:
         return client.dashboard_link or None
     except Exception:  # noqa: BLE001 - a scheduler without HTTP services has no link
         return None
+
+
+def plan_workers(run) -> int:
+    """The number of workers the cluster of ``run`` (its ``cfg.cluster``) will start (local:
+    one per core)."""
+    cluster = run.cfg.cluster
+    if cluster.kind == "local":
+        return int(cluster.n_workers or os.cpu_count() or 1)
+    if cluster.kind == "slurm":
+        return slurm_workers(cluster)
+    return max(1, int(getattr(cluster, "n_workers", None) or 1))
+

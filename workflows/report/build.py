@@ -64,7 +64,7 @@ def write_report(
         ``{"points": int, "total": int}``: the points whose features could not be computed
         (marked ``NoFeatures`` = 1 in the output) among all the points written.
     terrain : dict, optional
-        ``{scene: {"dtm": Raster or TerrainBlocks, "x", "y", "height"}}`` for the terrain
+        ``{scene: {"dtm": Raster or Rasters, "x", "y", "height"}}`` for the terrain
         figure (see :func:`workflows.report.figures.terrain_figure`).
     sections : tuple, optional
         More sections of the page, each ``(html, {name: png bytes})``: the HTML is placed

@@ -365,10 +365,7 @@ def _compact_count(count) -> str:
 
 def scene_rasters(dtm) -> tuple:
     """The rasters of a scene's terrain model: ``dtm`` itself (a
-    :class:`pipeline.terrain.Raster`), or every block of a
-    :class:`pipeline.terrain.TerrainBlocks` or of a sequence of Rasters."""
-    if hasattr(dtm, "dtms"):
-        return tuple(dtm.dtms)
+    :class:`pipeline.terrain.Raster`), or every raster of a sequence of them."""
     if hasattr(dtm, "values"):
         return (dtm,)
     return tuple(dtm)

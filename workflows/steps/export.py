@@ -31,18 +31,18 @@ from pipeline.io.las import extra_dimension_types
 from pipeline.io.raster import cell_index, tile_grid, write_geotiff
 from pipeline.store import open_store, rows_of
 from pipeline.surface import despike, top_two
-from pipeline.terrain import Raster, TerrainBlocks, ground_elevation
+from pipeline.terrain import Raster, SceneTerrain, ground_elevation
 from pipeline.tiling import BalancedLayout, Grid, global_ids
 from workflows.config.point_filter import PointFilter
 from workflows.config.schema import feature_dim_name
 from workflows.exec.engine import Task
 from workflows.run.directory import Run
 from workflows.run.progress import counted, say
-from workflows.steps.terrain import scene_terrain
 from workflows.steps.trees import REFERENCE_TREE_ID, TileTrees, TreeTask
 from workflows.store.layout import chunk_path, proba_array
 from workflows.store.marks import is_done, mark_done, read_array
 from workflows.store.scenes import RunLayout
+from workflows.store.terrain import stored_terrain
 
 PREDICTED = "PredictedClassification"
 HEIGHT_ABOVE_GROUND = "HeightAboveGround"
@@ -112,7 +112,7 @@ class _TileRasters:
     """DSM and canopy height of one tile, accumulated batch by batch (the two highest values
     per cell), without the spikes of stray points (:func:`pipeline.surface.despike`)."""
 
-    def __init__(self, tile: dict, request: RasterRequest, dtm: TerrainBlocks):
+    def __init__(self, tile: dict, request: RasterRequest, dtm: SceneTerrain):
         self.tile, self.request, self.dtm = tile, request, dtm
         cell = request.resolution
         self.x0, self.y0, nx, ny = tile_grid(tile["mins"], tile["maxs"], cell)
@@ -321,7 +321,7 @@ class _TileExport:
         allow_missing = spec.points_filter.keep_codes is not None and tile["scene"] != "predict"
         self.predictions = _ChunkPredictions(root, tile["scene"], grid,
                                              spec.stage, allow_missing, spec.feature_index)
-        self.dtm = scene_terrain(root, store_path, tile["scene"])  # once per worker process
+        self.dtm = stored_terrain(root, store_path, tile["scene"])  # once per worker process
         rasters = spec.rasters
         self.rasters = _TileRasters(tile, rasters, self.dtm) if rasters is not None else None
         self.canopy = np.zeros(len(spec.classes), dtype=bool)

@@ -40,6 +40,7 @@ from pipeline.tiling import (
 )
 from workflows.config.inputs import SCENES, expand_inputs
 from workflows.config.point_filter import PointFilter
+from workflows.exec.cluster import plan_workers
 from workflows.exec.engine import Task
 from workflows.run.directory import Run
 from workflows.run.echoes import EchoNeed, check_return_fields, echo_need
@@ -213,6 +214,20 @@ def ingest_groups(run: Run, members: list[dict], grid) -> list[list[int]]:
     return [[members[i]["index"] for i in group] for group in groups]
 
 
+#: Fewest points a scene gives each worker a chunk of when it is shared out among them.
+MIN_SHARED_POINTS = 100_000
+
+
+def scene_target(run: Run, n_points: int) -> int:
+    """Points wanted in a balanced chunk of a scene of ``n_points``: tiling.target_points,
+    or fewer so that a scene of enough points gives every worker of the cluster a chunk (a
+    390,000-point tile in one chunk keeps one core busy and the other idle), each of at
+    least :data:`MIN_SHARED_POINTS`. The layout is planned once per run, so the results do
+    not depend on the workers a resumed run has (nor, chunk invariance, on this choice)."""
+    shared = max(MIN_SHARED_POINTS, -(-n_points // plan_workers(run)))
+    return int(min(run.cfg.tiling.target_points, shared))
+
+
 def _cut_scene(run: Run, members: list[dict], halo: float, counts) -> SceneLayout:
     """The chunk layout (and ``estimate``) of a scene with ``halo``, its tiles not yet
     grouped; ``counts()`` its counted points."""
@@ -223,12 +238,13 @@ def _cut_scene(run: Run, members: list[dict], halo: float, counts) -> SceneLayou
     if tiling.chunk_size != "auto" or tiling.layout != "balanced":
         size = scene_chunk_size(run, n_points, mins, maxs, halo)
         return SceneLayout(Grid.covering(mins, maxs, size), halo, groups=())
-    if n_points <= tiling.target_points:  # one chunk: the headers say so, no count
+    target = scene_target(run, n_points)
+    if n_points <= target:  # one chunk: the headers say so, no count
         bounds = (*np.floor(mins[:2]), *np.ceil(maxs[:2]))
         layout = BalancedLayout((), 1.0, tuple(float(v) for v in bounds))
         estimates = ([n_points], [n_points])
     else:
-        layout = BalancedLayout.build(counts(), halo, int(tiling.target_points))
+        layout = BalancedLayout.build(counts(), halo, target)
         estimates = layout.estimate(counts(), halo)
     estimate = {name: [int(v) for v in np.percentile(values, [0, 50, 100], method="lower")]
                 for name, values in zip(("core", "window"), estimates)}

@@ -8,7 +8,7 @@ cell maxima are exact and independent of the chunking (the coordinator merges th
 highest points); only the samples are samples.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -17,9 +17,10 @@ from pipeline.tiling import split_global_ids
 from workflows.exec.engine import chunk_tasks, results_by_scene
 from workflows.run.directory import Run
 from workflows.steps.export import entropy
-from workflows.steps.terrain import ground_under, read_blocks
+from workflows.steps.terrain import ground_under
 from workflows.store.layout import proba_array
 from workflows.store.scenes import RunLayout
+from workflows.store.terrain import terrain_overview
 
 BINS = 20  # of the confidence and entropy histograms
 MAP_POINTS = 200_000  # points drawn in the maps
@@ -36,6 +37,22 @@ class SurveyTask:
     map_fraction: float
     profile: tuple  # per scene: (axis along which the view looks, centre, half width)
     profile_fraction: float
+    boxes: dict | None = None  # of the scene's chunks: name -> (xmin, ymin, xmax, ymax)
+
+
+def chunk_boxes(info) -> dict:
+    """The core box of each chunk of a scene's layout, by name (infinite at the edges)."""
+    boxes = info.grid.boxes()
+    names = {info.grid.chunk_name(i): i for i in range(len(boxes))}
+    return {chunk: tuple(boxes[names[chunk]].tolist()) for chunk in info.chunks}
+
+
+def inner_cells(keys: np.ndarray, box, cell: float) -> np.ndarray:
+    """bool (M,): the cells (keys (M, 2)) that lie a cell or more inside the chunk's core
+    ``box``: no other chunk holds a point of them (the margin absorbs rounding)."""
+    low = keys * cell
+    return ((low[:, 0] >= box[0] + cell) & (low[:, 0] + cell <= box[2] - cell)
+            & (low[:, 1] >= box[1] + cell) & (low[:, 1] + cell <= box[3] - cell))
 
 
 def chunk_survey(view, task: SurveyTask):
@@ -47,8 +64,6 @@ def chunk_survey(view, task: SurveyTask):
     tile, _ = split_global_ids(gid)
     counts = np.zeros((task.n_tiles, task.n_classes), dtype=np.int64)
     np.add.at(counts, (tile, label), 1)
-    keys = np.floor(xyz[:, :2] / task.cell).astype(np.int64)
-    top = highest_per_cell(keys, xyz[:, 2])
     picked = id_hash(gid, 5) < task.map_fraction
     axis, centre, half = dict(task.profile)[view.scene]
     across = 1 - axis  # the coordinate the band is thin in
@@ -60,11 +75,36 @@ def chunk_survey(view, task: SurveyTask):
         "counts": counts,
         "confidence": np.histogram(confidence, BINS, (0.0, 1.0))[0],
         "entropy": np.histogram(entropy(proba), BINS, (0.0, max(np.log(task.n_classes), 1e-9)))[0],
-        "top_keys": keys[top], "top_z": xyz[top, 2], "top_label": label[top],
+        "tops": class_tops(xyz, label, task.boxes[view.chunk], task.cell, task.n_classes),
         "map": (xyz[picked, 0], xyz[picked, 1], label[picked], height[picked],
                 confidence[picked]),
         "profile": (xyz[band, axis], height[band], label[band]),
     }
+
+
+def class_tops(xyz: np.ndarray, label: np.ndarray, box, cell: float, n_classes: int):
+    """The class seen from above in a chunk's cells of side ``cell``: the class of the
+    highest point of each cell, counted (int64 (n_classes,)) over the cells within the
+    chunk's core ``box``, and for those at its border (which a neighbour may share) the
+    cells' keys, highest z and class, for :func:`merge_tops`."""
+    keys = np.floor(xyz[:, :2] / cell).astype(np.int64)
+    top = highest_per_cell(keys, xyz[:, 2])
+    inner = inner_cells(keys[top], box, cell)
+    border = top[~inner]
+    return (np.bincount(label[top[inner]], minlength=n_classes), keys[border], xyz[border, 2],
+            label[border])
+
+
+def merge_tops(parts, n_classes: int) -> np.ndarray:
+    """int64 (n_classes,): the cells of a scene whose highest point is of each class, from
+    its chunks' :func:`class_tops`; only the border cells are merged, so this holds no
+    array as large as the scene's area."""
+    parts = list(parts)
+    keys = np.concatenate([p[1] for p in parts]).reshape(-1, 2)
+    z = np.concatenate([p[2] for p in parts])
+    label = np.concatenate([p[3] for p in parts])
+    return sum(p[0] for p in parts) + np.bincount(label[highest_per_cell(keys, z)],
+                                                  minlength=n_classes)
 
 
 def highest_per_cell(keys: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -102,18 +142,15 @@ def survey(run: Run, engine, layout: RunLayout, final_stage: int, *,
                       min(1.0, MAP_POINTS / max(layout.n_points, 1)),
                       tuple((s, v[:3]) for s, v in profiles.items()),
                       min(1.0, PROFILE_POINTS / max(band_points, 1.0)))
-    tasks = chunk_tasks(run, layout, "survey", chunk_survey, task, run.fingerprint("export"),
-                        "report", marks=False)
+    tasks = chunk_tasks(run, layout, "survey", chunk_survey,
+                        lambda info: replace(task, boxes=chunk_boxes(info)),
+                        run.fingerprint("export"), "report", marks=False)
     by_scene = results_by_scene(tasks, engine.map(f"{counted_in} (survey)", tasks))
     counts = sum(r["counts"] for rs in by_scene.values() for r in rs)
     scenes = {}
     for scene, results in by_scene.items():
-        keys = np.concatenate([r["top_keys"] for r in results])
-        z = np.concatenate([r["top_z"] for r in results])
-        label = np.concatenate([r["top_label"] for r in results])
         scenes[scene] = {
-            "area_cells": np.bincount(label[highest_per_cell(keys, z)],
-                                      minlength=run.n_classes),
+            "area_cells": merge_tops((r["tops"] for r in results), run.n_classes),
             "map": [np.concatenate([r["map"][i] for r in results]) for i in range(5)],
             "profile": [np.concatenate([r["profile"][i] for r in results]) for i in range(3)],
             "profile_axis": "xy"[profiles[scene][0]],
@@ -132,13 +169,13 @@ def survey(run: Run, engine, layout: RunLayout, final_stage: int, *,
 
 
 def canopy_samples(run: Run, maps: dict) -> dict:
-    """The terrain figure's data of each scene: its terrain model (every block, see
-    :func:`~workflows.steps.terrain.read_blocks`), and those of its map samples
+    """The terrain figure's data of each scene: its terrain model (every block, drawn as
+    :func:`~workflows.store.terrain.terrain_overview` reads them), and those of its map samples
     ``maps[scene]`` = (x, y, label, height above ground, ...) predicted as a canopy class."""
     canopy = list(run.cfg.canopy_classes)
     samples = {}
     for scene, (x, y, label, height, *_) in maps.items():
         keep = np.isin(label, canopy)
-        samples[scene] = {"dtm": read_blocks(run.store, scene), "x": x[keep], "y": y[keep],
+        samples[scene] = {"dtm": terrain_overview(run.store, scene), "x": x[keep], "y": y[keep],
                           "height": height[keep]}
     return samples
