@@ -33,7 +33,7 @@ from pipeline.errors import ConfigError, InputError
 from pipeline.terrain.grid import (
     MAX_CELLS, Raster, bilinear, cell_minima, minima_offsets, minima_raster,
 )
-from pipeline.terrain.smrf import LOW_RADIUS, TerrainParams, ground_model
+from pipeline.terrain.smrf import LOW_RADIUS, GroundModel, TerrainParams, ground_model
 
 #: Offsets to the tiles met once per pair of 8-neighbours.
 FORWARD = ((0, 1), (1, -1), (1, 0), (1, 1))
@@ -263,6 +263,13 @@ class BlockModel:
     unseen: int
 
 
+def _lone_cell_model(minima: Raster) -> GroundModel:
+    """:func:`ground_model` of a raster of one cell, without its work: the cell is ground
+    and its own DTM (nothing to open, fill or carry on a level raster of one cell). A sparse
+    survey's blocks hold thousands of such cells, each a group of its own."""
+    return GroundModel(minima, np.ones((1, 1), dtype=bool), 0.0)
+
+
 def block_model(keys: np.ndarray, zmin: np.ndarray, xy: np.ndarray, grid: BlockGrid, block,
                 params: TerrainParams) -> BlockModel:
     """The terrain model of ``block`` (bx, by) of ``grid`` from cell minima (keys (M, 2)
@@ -290,7 +297,8 @@ def block_model(keys: np.ndarray, zmin: np.ndarray, xy: np.ndarray, grid: BlockG
     for group in kept:
         mine = members[group]
         minima = minima_raster(keys[mine], zmin[mine], grid.cell)
-        model = ground_model(minima, params, minima_offsets(keys[mine], xy[mine], minima))
+        model = _lone_cell_model(minima) if mine.size == 1 else ground_model(
+            minima, params, minima_offsets(keys[mine], xy[mine], minima))
         core_minima = _core_cut(minima, core_low, core_high).values
         core_ground = _core_cut(Raster(model.ground.astype(float), minima.x0, minima.y0,
                                        grid.cell), core_low, core_high).values

@@ -174,3 +174,15 @@ def test_heights_of_a_cloud_in_memory_take_its_plots_apart_as_the_terrain_step()
     ground = scene_ground(np.concatenate([a, b]), PARAMS)
     for plot, mine in ((a, ground[:len(a)]), (b, ground[len(a):])):
         assert np.array_equal(mine, ground_elevation(terrain_model(plot, PARAMS).dtm, plot[:, :2]))
+
+
+def test_a_lone_cell_is_its_own_ground_as_the_filter_makes_it():
+    from pipeline.terrain import Raster, ground_model
+    from pipeline.terrain.blocks import _lone_cell_model
+
+    minima = Raster(np.array([[123.456]]), 5.0, 7.0, 1.0)
+    fast = _lone_cell_model(minima)
+    slow = ground_model(minima, PARAMS, np.array([[[0.3, -0.2]]]))
+    assert np.array_equal(fast.dtm.values, slow.dtm.values)
+    assert (fast.dtm.x0, fast.dtm.y0) == (slow.dtm.x0, slow.dtm.y0)
+    assert np.array_equal(fast.ground, slow.ground) and fast.interpolated == slow.interpolated
