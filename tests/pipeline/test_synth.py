@@ -261,3 +261,57 @@ def test_tiles_carry_the_tree_ids_and_trees_csv_their_truth(tmp_path):
     assert np.array_equal(table["tree_id"].astype(np.uint32), np.unique(ids[ids > 0]))
     for name in table.dtype.names[1:]:
         assert np.allclose(table[name], scene.trees[name], rtol=0, atol=5.1e-5)
+
+
+def test_tiles_are_written_in_memory_that_does_not_grow_with_the_plot(tmp_path, monkeypatch):
+    # the plot goes through files: beyond what generating costs at any size (one object's
+    # samples, one batch of them scanned), memory holds one tile, and 1 byte per sample and
+    # 8 per point of the plot for the shadows' verdicts and the shuffle (about 8 bytes per
+    # point here; holding the plot in memory took about 30 more)
+    import tracemalloc
+
+    import laspy
+
+    import pipeline.io  # noqa: F401 - imported before counting
+    from pipeline.synth import scanner, terrain, tiles
+    from pipeline.synth.layout import random_layout
+    from pipeline.synth.surfaces import sample_surfaces
+
+    for module in (scanner, terrain, tiles):  # batches and ground strips of 32,768 samples
+        monkeypatch.setattr(module, "BATCH", 1 << 15)
+    seed, size = 3, 30.0
+    tracemalloc.start()
+    try:
+        rng = np.random.default_rng(seed)
+        layout = random_layout(rng, size)
+        for _ in scanner.captured(rng, sample_surfaces(rng, layout), layout):
+            pass
+        generating = tracemalloc.get_traced_memory()[1]
+        tracemalloc.reset_peak()
+        paths = write_synthetic_plot(tmp_path, seed=seed, size=size, tile_size=10.0)
+        writing = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    n_points = sum(laspy.open(p).header.point_count for p in paths)
+    assert n_points > 200_000
+    assert writing < generating + 16 * n_points, (writing, generating, n_points)
+
+
+def test_writing_leaves_no_temporary_file_nor_a_new_folder_when_it_fails(tmp_path,
+                                                                          monkeypatch):
+    import pipeline.io
+
+    write_synthetic_plot(tmp_path / "a", seed=7, size=8.0, tile_size=4.0)
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == [
+        "plot_s7_0_0.laz", "plot_s7_0_1.laz", "plot_s7_1_0.laz", "plot_s7_1_1.laz", "trees.csv"]
+    with pytest.raises(ConfigError, match="another tiling"):
+        write_synthetic_plot(tmp_path / "a", seed=7, size=8.0, tile_size=8.0)
+    assert len(list((tmp_path / "a").iterdir())) == 5  # the earlier tiles, nothing else
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(pipeline.io, "write_las", full_disk)
+    with pytest.raises(OSError, match="No space"):
+        write_synthetic_plot(tmp_path / "b" / "c", seed=7, size=8.0, tile_size=4.0)
+    assert not (tmp_path / "b" / "c").exists()
