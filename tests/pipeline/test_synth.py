@@ -263,40 +263,6 @@ def test_tiles_carry_the_tree_ids_and_trees_csv_their_truth(tmp_path):
         assert np.allclose(table[name], scene.trees[name], rtol=0, atol=5.1e-5)
 
 
-def test_tiles_are_written_in_memory_that_does_not_grow_with_the_plot(tmp_path, monkeypatch):
-    # the plot goes through files: beyond what generating costs at any size (one object's
-    # samples, one batch of them scanned), memory holds one tile, and 1 byte per sample and
-    # 8 per point of the plot for the shadows' verdicts and the shuffle (about 8 bytes per
-    # point here; holding the plot in memory took about 30 more)
-    import tracemalloc
-
-    import laspy
-
-    import pipeline.io  # noqa: F401 - imported before counting
-    from pipeline.synth import scanner, terrain, tiles
-    from pipeline.synth.layout import random_layout
-    from pipeline.synth.surfaces import sample_surfaces
-
-    for module in (scanner, terrain, tiles):  # batches and ground strips of 32,768 samples
-        monkeypatch.setattr(module, "BATCH", 1 << 15)
-    seed, size = 3, 30.0
-    tracemalloc.start()
-    try:
-        rng = np.random.default_rng(seed)
-        layout = random_layout(rng, size)
-        for _ in scanner.captured(rng, sample_surfaces(rng, layout), layout):
-            pass
-        generating = tracemalloc.get_traced_memory()[1]
-        tracemalloc.reset_peak()
-        paths = write_synthetic_plot(tmp_path, seed=seed, size=size, tile_size=10.0)
-        writing = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
-    n_points = sum(laspy.open(p).header.point_count for p in paths)
-    assert n_points > 200_000
-    assert writing < generating + 16 * n_points, (writing, generating, n_points)
-
-
 def test_writing_leaves_no_temporary_file_nor_a_new_folder_when_it_fails(tmp_path,
                                                                           monkeypatch):
     import pipeline.io
