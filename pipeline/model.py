@@ -21,8 +21,6 @@ import json
 import logging
 from pathlib import Path
 
-import skops.io as sio
-
 from pipeline import __version__
 from pipeline.atomic import atomic_path, atomic_write_text
 from pipeline.errors import ModelError
@@ -201,6 +199,8 @@ def stage_file(model_dir: str | Path, stage: int, fold: int | None = None) -> Pa
 
 def save_forest(path: Path, forest) -> None:
     """Write one forest atomically."""
+    import skops.io as sio  # here, not above: reading a model's description needs no forest
+
     with atomic_path(path) as tmp:
         sio.dump(forest, tmp)
 
@@ -214,6 +214,8 @@ def load_forest(path: Path):
     expected = _recorded_digest(path)
     if expected is not None:
         _verify(path, expected)
+    import skops.io as sio
+
     try:
         untrusted = sio.get_untrusted_types(file=path)
     except Exception as err:  # skops raises several types for corrupt archives
@@ -236,6 +238,13 @@ def recorded(description: dict, key: str):
     if key not in description and key in LATER_KEYS:
         return LATER_KEYS[key]
     return description[key]
+
+
+def trained_densities(description: dict) -> list[float]:
+    """The ``data.densities`` a model (its model.json ``description``) was trained with:
+    points per m² of the thinned copies of its training scene ([] for a model saved
+    without copies, or before they existed)."""
+    return [float(d) for d in description.get("data.densities", [])]
 
 
 def check_compatible(description: dict, expected: dict, model_dir) -> None:

@@ -89,68 +89,117 @@ def _concatenate(arrays: list, dtype, width: int | None = None) -> np.ndarray:
     return out
 
 
-def scan(rng, parts, layout: Layout):
-    """Scan every part (points, code, tree ID): xyz (N, 3) local, labels (N,) uint8, tree IDs
-    (N,) uint32 and the recording scanner (N,) int32.
-
-    Memory: the recorded samples once (float64 xyz, 33 bytes per sample in all) plus one
-    batch; occlusion and noise work in place on them.
-    """
+def captured(rng, parts, layout: Layout):
+    """The samples of ``parts`` (points, code, tree ID) the scanners record, batch by batch:
+    yields xyz (n, 3) local, labels (n,) uint8, tree IDs (n,) uint32 and the recording
+    scanner (n,) int32. The random draws are those of one pass over every part in order."""
     scanners = layout.scanners
     kd = cKDTree(scanners)
-    kept, labels, trees, owner = [], [], [], []
     for points, code, tree_id in parts:
         for start in range(0, len(points), BATCH):
             batch = points[start : start + BATCH]
             keep, which = capture(rng, batch, scanners, kd)
-            kept.append(batch[keep])
-            owner.append(which[keep].astype(np.int32))
-            labels.append(np.full(int(keep.sum()), code, dtype=np.uint8))
-            trees.append(np.full(int(keep.sum()), tree_id, dtype=np.uint32))
+            n = int(keep.sum())
+            yield (batch[keep], np.full(n, code, dtype=np.uint8),
+                   np.full(n, tree_id, dtype=np.uint32), which[keep].astype(np.int32))
+
+
+class Shadows:
+    """The scan shadows of a layout's standing stems: which recorded samples each stem hides
+    from the scanner that recorded them (:func:`occluded`).
+
+    A sample is tested against the stems whose sector of azimuths, as seen from its
+    scanner, holds it (found by bisection on sorted azimuths). Each sample's verdict depends
+    on that sample alone, so a plot's samples can be tested all at once or in batches.
+    """
+
+    def __init__(self, layout: Layout):
+        self.scanners = layout.scanners
+        self.stems = layout.occluders
+        # per scanner: the azimuth intervals [lo, hi) of the stems' sectors and their stems
+        self.sectors = []
+        for scanner in self.scanners:
+            lows, highs, which = [], [], []
+            for j, stem in enumerate(self.stems):
+                offset = stem.base[:2] - scanner[:2]
+                dist = float(np.hypot(*offset))
+                bound = float(stem.knots_r.max() + np.hypot(*stem.lean) * stem.height) + 0.05
+                if dist <= bound:
+                    continue  # cannot happen with the placement rules; never hide everything
+                half = math.asin(bound / dist)
+                centre = math.atan2(offset[1], offset[0])
+                for lo, hi in _wrapped(centre - half, centre + half):
+                    lows.append(lo)
+                    highs.append(hi)
+                    which.append(j)
+            self.sectors.append((np.array(lows), np.array(highs), np.array(which, dtype=int)))
+
+    def visible(self, xyz: np.ndarray, owner: np.ndarray) -> np.ndarray:
+        """Whether no stem hides each sample ``xyz`` (n, 3) local from its scanner ``owner``
+        (n,): (n,) bool."""
+        visible = np.ones(len(xyz), dtype=bool)
+        for k in np.unique(owner):
+            scanner = self.scanners[k]
+            sel = np.flatnonzero(owner == k)
+            rel = xyz[sel, :2] - scanner[:2]
+            azimuth = np.arctan2(rel[:, 1], rel[:, 0])
+            del rel
+            order = np.argsort(azimuth)
+            sel, azimuth = sel[order], azimuth[order]
+            del order
+            lows, highs, which = self.sectors[k]
+            first = np.searchsorted(azimuth, lows)
+            last = np.searchsorted(azimuth, highs)
+            for i in np.flatnonzero(last > first):
+                idx = sel[first[i] : last[i]]
+                visible[idx] &= ~occluded(scanner, xyz[idx], self.stems[which[i]])
+        return visible
+
+
+def beam_noise(rng, xyz: np.ndarray, owner: np.ndarray, scanners: np.ndarray) -> np.ndarray:
+    """The samples ``xyz`` (n, 3) moved along the beam from their scanner by range noise
+    that grows with the range: (n, 3), one normal draw per sample, in order."""
+    beam = xyz - scanners[owner]
+    rng_m = np.linalg.norm(beam, axis=1)
+    sigma = RANGE_NOISE[0] + RANGE_NOISE[1] * rng_m
+    return xyz + beam / np.maximum(rng_m, 1e-9)[:, None] * (
+        rng.normal(size=len(xyz)) * sigma)[:, None]
+
+
+def in_plot(xyz: np.ndarray, size: float) -> np.ndarray:
+    """Whether each sample (n, 3) local lies inside the plot [0, size)^2: (n,) bool."""
+    return np.all((xyz[:, :2] >= 0.0) & (xyz[:, :2] < size), axis=1)
+
+
+def scan(rng, parts, layout: Layout):
+    """Scan every part (points, code, tree ID): xyz (N, 3) local, labels (N,) uint8, tree IDs
+    (N,) uint32 and the recording scanner (N,) int32, all in memory.
+
+    Memory: the recorded samples once (float64 xyz, 33 bytes per sample in all) plus one
+    batch; occlusion and noise work in place on them. :mod:`~pipeline.synth.tiles` streams
+    the same steps through files instead, for any size.
+    """
+    kept, labels, trees, owner = [], [], [], []
+    for batch, codes, ids, which in captured(rng, parts, layout):
+        kept.append(batch)
+        labels.append(codes)
+        trees.append(ids)
+        owner.append(which)
     xyz = _concatenate(kept, np.float64, 3)
     labels = _concatenate(labels, np.uint8)
     trees = _concatenate(trees, np.uint32)
     owner = _concatenate(owner, np.int32)
+    visible = Shadows(layout).visible(xyz, owner)
 
-    # Occlusion: each scanner against the stems, testing only the samples in the sector of
-    # azimuths a stem covers as seen from the scanner (found by bisection on sorted azimuths).
-    visible = np.ones(len(xyz), dtype=bool)
-    for k, scanner in enumerate(scanners):
-        sel = np.flatnonzero(owner == k)
-        rel = xyz[sel, :2] - scanner[:2]
-        azimuth = np.arctan2(rel[:, 1], rel[:, 0])
-        del rel
-        order = np.argsort(azimuth)
-        sel, azimuth = sel[order], azimuth[order]
-        del order
-        for stem in layout.occluders:
-            offset = stem.base[:2] - scanner[:2]
-            dist = float(np.hypot(*offset))
-            bound = float(stem.knots_r.max() + np.hypot(*stem.lean) * stem.height) + 0.05
-            if dist <= bound:
-                continue  # cannot happen with the placement rules; never hide everything
-            half = math.asin(bound / dist)
-            centre = math.atan2(offset[1], offset[0])
-            for lo, hi in _wrapped(centre - half, centre + half):
-                i0, i1 = np.searchsorted(azimuth, [lo, hi])
-                if i1 > i0:
-                    idx = sel[i0:i1]
-                    visible[idx] &= ~occluded(scanner, xyz[idx], stem)
-        del sel, azimuth
-
-    # Range noise along the beam, growing with the range, then the samples inside the plot:
-    # batch by batch (the normal draws of the visible samples are one stream, as in one
-    # call), compacted in place (rows written never lie after rows still to be read).
+    # Range noise, then the samples inside the plot: batch by batch (the normal draws of the
+    # visible samples are one stream, as in one call), compacted in place (rows written
+    # never lie after rows still to be read).
     n_out = 0
     for start in range(0, len(xyz), BATCH):
         sel = start + np.flatnonzero(visible[start : start + BATCH])
-        batch, who = xyz[sel], owner[sel]
-        beam = batch - scanners[who]
-        rng_m = np.linalg.norm(beam, axis=1)
-        sigma = RANGE_NOISE[0] + RANGE_NOISE[1] * rng_m
-        batch = batch + beam / np.maximum(rng_m, 1e-9)[:, None] * (
-            rng.normal(size=len(batch)) * sigma)[:, None]
-        inside = np.all((batch[:, :2] >= 0.0) & (batch[:, :2] < layout.size), axis=1)
+        who = owner[sel]
+        batch = beam_noise(rng, xyz[sel], who, layout.scanners)
+        inside = in_plot(batch, layout.size)
         n = int(inside.sum())
         xyz[n_out : n_out + n] = batch[inside]
         labels[n_out : n_out + n] = labels[sel][inside]

@@ -261,3 +261,23 @@ def test_tiles_carry_the_tree_ids_and_trees_csv_their_truth(tmp_path):
     assert np.array_equal(table["tree_id"].astype(np.uint32), np.unique(ids[ids > 0]))
     for name in table.dtype.names[1:]:
         assert np.allclose(table[name], scene.trees[name], rtol=0, atol=5.1e-5)
+
+
+def test_writing_leaves_no_temporary_file_nor_a_new_folder_when_it_fails(tmp_path,
+                                                                          monkeypatch):
+    import pipeline.io
+
+    write_synthetic_plot(tmp_path / "a", seed=7, size=8.0, tile_size=4.0)
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == [
+        "plot_s7_0_0.laz", "plot_s7_0_1.laz", "plot_s7_1_0.laz", "plot_s7_1_1.laz", "trees.csv"]
+    with pytest.raises(ConfigError, match="another tiling"):
+        write_synthetic_plot(tmp_path / "a", seed=7, size=8.0, tile_size=8.0)
+    assert len(list((tmp_path / "a").iterdir())) == 5  # the earlier tiles, nothing else
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(pipeline.io, "write_las", full_disk)
+    with pytest.raises(OSError, match="No space"):
+        write_synthetic_plot(tmp_path / "b" / "c", seed=7, size=8.0, tile_size=4.0)
+    assert not (tmp_path / "b" / "c").exists()

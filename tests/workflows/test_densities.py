@@ -16,7 +16,7 @@ from workflows.config import validate_config
 from workflows.exec.engine import Engine
 from workflows.models import installed_models, model_summary
 from workflows.run.fingerprint import STEPS, fingerprint
-from workflows.run.plan import trained_densities
+from pipeline.model import trained_densities
 from workflows.store.layout import ROLE_TEST
 from workflows.store.marks import forget_done
 from tests.workflows.conftest import assert_same_predictions, scene_arrays, silva, write_config

@@ -12,8 +12,13 @@ from pipeline.features import numba_cache
 from pipeline.features.numba_cache import kernels_cold, mark_warm, source_digest
 from pipeline.features.sets import FeatureParams
 from workflows.cli import commands
+from workflows.exec import kernels as kernels_module
 from workflows.exec.kernels import prepare_kernels
 from tests.workflows.conftest import silva, write_config
+
+
+#: Every kernel group: those of any shipped model or template, compiled by the first command.
+ALL = ("surface", "search", "covariance", "voxel")
 
 
 @pytest.fixture
@@ -65,19 +70,23 @@ def test_a_cold_cache_starts_compiling_with_one_line_and_a_warm_one_does_not(
         err = capsys.readouterr().err
         assert err.startswith("compiling the feature kernels (numba) in the background")
         assert err.count("\n") == 1 and str(cold) in err
-        assert events == [("start", ("surface", "search"))]  # started, not waited for
+        # started, not waited for: the run's groups and those of every shipped model
+        assert events == [("start", ALL)]
         assert kernels.groups == ("surface", "search")
         kernels.wait()
         assert "waiting for the feature kernels" in capsys.readouterr().err
         kernels.wait()  # once only
     assert events[1:] == ["wait"]  # nothing left to stop
     mark_warm(("surface", "search"), cold)
-    with prepare_kernels(False, FeatureParams(set="paper")) as kernels:
-        kernels.wait()
-    assert capsys.readouterr().err == "" and len(events) == 2  # warm: no line, no compile
-    with prepare_kernels(False, FeatureParams(set="covariance")):
-        pass  # another group is cold; leaving without waiting stops it
-    assert events[2:] == [("start", ("search", "covariance")), "stop"]
+    with prepare_kernels(False, FeatureParams(set="paper")):
+        pass  # the run's groups are warm, another shipped one is not; leaving stops it
+    assert events[2:] == [("start", ALL), "stop"]
+    mark_warm(ALL, cold)
+    for feature_set in ("paper", "covariance"):
+        with prepare_kernels(False, FeatureParams(set=feature_set)) as kernels:
+            kernels.wait()
+    assert capsys.readouterr().err.count("compiling") == 1 and len(events) == 4
+    # warm: no line, no compile
 
 
 def _record_steps(events, monkeypatch):
@@ -96,7 +105,7 @@ def test_the_run_waits_for_the_kernels_only_before_the_features_step(
     config = write_config(tmp_path / "c.yaml", survey)
     result = silva("features", config, "--out", tmp_path / "out", "--in-process")
     assert result.exit_code == 0, result.output
-    assert events == [("start", ("surface", "search")), "ingest", "wait", "features"]
+    assert events == [("start", ALL), "ingest", "wait", "features"]
     lines = result.stderr.splitlines()
     assert lines[0].startswith("compiling the feature kernels (numba) in the background")
     assert sum(line.startswith("waiting for the feature kernels") for line in lines) == 1
@@ -125,7 +134,7 @@ def test_the_demo_compiles_while_it_synthesises_its_plots(events, tmp_path, monk
     monkeypatch.setattr(commands, "start_run", start_run)
     result = silva("demo", "--out", tmp_path / "demo")
     assert result.exit_code == 0, result.output
-    assert events == [("start", ("surface", "search")), "synthesise", "synthesise", "run",
+    assert events == [("start", ALL), "synthesise", "synthesise", "run",
                       "stop"]  # start_run did not wait: leaving the demo stops it
     assert given["kernels"].groups == ("surface", "search")
 
@@ -134,6 +143,7 @@ def test_a_failed_compilation_does_not_fail_the_run(cold, survey, tmp_path, monk
                                                      caplog):
     # a real process, asked for a kernel group that does not exist: it fails at once
     monkeypatch.setattr(numba_cache, "kernel_groups", lambda *args: ("nowhere",))
+    monkeypatch.setattr(kernels_module, "SHIPPED_GROUPS", ())  # only the failing one
     _record_steps([], monkeypatch)
     config = write_config(tmp_path / "c.yaml", survey)
     with caplog.at_level(logging.WARNING, logger="pipeline.features.numba_cache"):

@@ -457,10 +457,14 @@ def init(path, template, force):
 
 
 @click.command("models")
-@click.option("--json", "as_json", is_flag=True, help="A JSON list of objects instead.")
+@click.option("--json", "as_json", is_flag=True,
+              help="A JSON list of objects instead: name, kind, classes, feature set, echoes, "
+                   "densities, training data, licences, every score.")
 def models(as_json):
-    """List the models installed with Silva: name, kind, classes, training data, licences and
-    scores. Use one with --model NAME wherever a model directory is accepted.
+    """List the models installed with Silva: per model its kind, classes (with their output
+    codes), the densities it was trained at, whether it needs echoes, and its headline score.
+    Use one with --model NAME wherever a model directory is accepted. Reads the models' cards,
+    never their forests.
 
     \b
     Examples:
@@ -475,16 +479,42 @@ def models(as_json):
         return
     if not found:
         click.echo("no models are installed with this Silva")
+        return
+    for line in models_table(found):
+        click.echo(line)
+
+
+#: What 'silva models' calls the kinds its cards record.
+MODEL_KINDS = {"als": "airborne", "tls": "terrestrial"}
+
+
+def models_table(found: list[dict]) -> list[str]:
+    """The lines of 'silva models': a header, a row per model (``found``: model_summary's
+    dicts), then what the columns mean and where the rest is."""
+    header = ("MODEL", "KIND", "CLASSES (CODE)", "TRAINED AT", "ECHOES", "SCORE")
+    rows = []
     for model in found:
-        classes = ", ".join(f"{name} ({code})" for name, code in model["classes"].items())
-        click.echo(f"{model['name']}  [{model['kind']}]  {classes}")
-        click.echo("    echo features: " + ("yes (needs each point's return number and number "
-                                            "of returns)" if model["echoes"] else "no"))
-        for key in ("description", "training_data", "licences", "density", "scores"):
-            if key in model:
-                value = model[key]
-                text = value if isinstance(value, str) else json.dumps(value)
-                click.echo(f"    {key.replace('_', ' ')}: {text}")
+        density = model.get("trained_density", "-")
+        if model["densities"]:
+            copies = ", ".join(f"{d:g}" for d in model["densities"])
+            density = f"{density}; copies at {copies} pts/m²"
+        headline = model.get("headline")
+        score = (f"{headline['value']:.3f} {headline['metric']}, {headline['on']}"
+                 if headline else "-")
+        rows.append((model["name"], MODEL_KINDS.get(model["kind"], model["kind"]),
+                     ", ".join(f"{name} {code}" for name, code in model["classes"].items()),
+                     density, "yes" if model["echoes"] else "no", score))
+    widths = [max(len(row[i]) for row in (header, *rows)) for i in range(len(header) - 1)]
+    lines = ["  ".join([*(cell.ljust(w) for cell, w in zip(row, widths)), row[-1]]).rstrip()
+             for row in (header, *rows)]
+    lines.append("")
+    if any(model["echoes"] for model in found):
+        lines.append("ECHOES yes: needs each point's return number and number of returns "
+                     "(airborne LAS tiles record them).")
+    lines += ["Use one: silva predict --model NAME --out OUT TILES.",
+              "Every score, the training data and licences: silva models --json; the cards: "
+              "docs/MODELS.md."]
+    return lines
 
 
 COMMANDS = [

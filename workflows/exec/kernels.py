@@ -1,6 +1,11 @@
 """The feature kernels of a run, compiled by numba in the background while the run starts
 (ingest, the cluster), once per version of Silva: the workers then load them from the cache
-instead of each compiling them."""
+instead of each compiling them.
+
+The first command that needs kernels compiles those of every model installed with Silva and
+every template too (:data:`SHIPPED_GROUPS`), not only its own: a ``silva demo`` (the paper's
+invariants) leaves nothing to compile for a later ``silva predict --model NAME`` (covariance,
+height, voxel and echo kernels), which would otherwise compile in the middle of that job."""
 
 import contextlib
 import logging
@@ -9,6 +14,11 @@ from pathlib import Path
 from workflows.run.progress import report_finished_step, say, uncounted
 
 log = logging.getLogger(__name__)
+
+#: The kernel groups (:data:`pipeline.features.numba_cache.GROUPS`) that the models
+#: installed with Silva (workflows/models/*) and the templates (configs/*.yaml) use, with
+#: their echo features and context: compiled by the first command that compiles any.
+SHIPPED_GROUPS = ("surface", "search", "covariance", "voxel")
 
 
 def announce_compilation(quiet: bool, groups=None) -> bool:
@@ -56,21 +66,34 @@ class Kernels:
             warming.stop()
 
 
+def compiled_groups(groups) -> tuple[str, ...]:
+    """The kernel groups a command that uses ``groups`` compiles when they are cold: those and
+    every group of :data:`SHIPPED_GROUPS`, in the order of numba_cache's GROUPS."""
+    from pipeline.features.numba_cache import GROUPS
+
+    wanted = [*groups, *(name for name in SHIPPED_GROUPS if name not in groups)]
+    return (*(name for name in GROUPS if name in wanted),
+            *(name for name in wanted if name not in GROUPS))
+
+
 @contextlib.contextmanager
 def prepare_kernels(quiet: bool, features=None):
     """Start compiling, in the background, the kernels a run of ``features`` uses
-    (FeatureParams or the config's features section; None: every set) when they are not
-    cached yet; yields the :class:`Kernels`, whose ``wait()`` comes before the features step:
-    the workers then load the kernels instead of each compiling them. Leaving the block
-    stops a compilation still running; one that cannot start leaves it to the workers."""
+    (FeatureParams or the config's features section; None: every set), and those of every
+    shipped model and template (:func:`compiled_groups`), when they are not cached yet;
+    yields the :class:`Kernels` (``groups``: the run's own), whose ``wait()`` comes before
+    the features step: the workers then load the kernels instead of each compiling them.
+    Leaving the block stops a compilation still running; one that cannot start leaves it to
+    the workers."""
     from pipeline.features.numba_cache import Warming, kernel_groups
 
     groups = kernel_groups(*(() if features is None else (features.set,
                                                           features.voxel is not None)))
+    compiled = compiled_groups(groups)
     warming = None
-    if announce_compilation(quiet, groups):
+    if announce_compilation(quiet, compiled):
         try:
-            warming = Warming(groups)
+            warming = Warming(compiled)
         except OSError as err:  # no new process: each worker compiles what it uses
             log.warning("cannot start compiling the feature kernels: %s", err)
     kernels = Kernels(groups, warming, quiet)

@@ -7,8 +7,7 @@ import json
 from pathlib import Path
 
 from pipeline.errors import ModelError
-from pipeline.model import recorded
-from workflows.run.plan import trained_densities
+from pipeline.model import recorded, trained_densities
 
 HERE = Path(__file__).resolve().parent
 

@@ -32,13 +32,6 @@ class AppliedModel:
         return self.description["stages"]
 
 
-def trained_densities(description: dict) -> list[float]:
-    """The ``data.densities`` a model (its model.json ``description``) was trained with:
-    points per m² of the thinned copies of its training scene ([] for a model saved
-    without copies, or before they existed)."""
-    return [float(d) for d in description.get("data.densities", [])]
-
-
 @dataclass(frozen=True)
 class InputFile:
     """An input tile as the run found it: its scene, path, size and modification time."""
