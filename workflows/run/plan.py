@@ -12,7 +12,7 @@ from pathlib import Path
 
 from pipeline.errors import ConfigError, ModelError
 from pipeline.features.sets import ECHO_SETS, feature_set
-from pipeline.model import check_compatible, check_versions, verify_stage_files
+from pipeline.model import check_compatible, check_versions, forest_inputs, verify_stage_files
 from workflows.config import SilvaConfig
 from workflows.config.inputs import SCENES, expand_inputs
 
@@ -131,6 +131,7 @@ def check_model(cfg: SilvaConfig, model: AppliedModel) -> None:
             f"{dict(zip(classes, class_codes))}; use the model's classes and codes"
         )
     verify_stage_files(path, description)
+    check_forest_inputs(description, path, len(expected["features.columns"]), len(names))
 
 
 def check_echo_columns(cfg: SilvaConfig, description: dict, path) -> None:
@@ -155,3 +156,21 @@ def check_echo_columns(cfg: SilvaConfig, description: dict, path) -> None:
         "features.echoes was edited in its model.json after training; restore the model's "
         f"own model.json (features.echoes: {json.dumps(other.echoes)}) or retrain the model "
         "with 'silva train'")
+
+
+def check_forest_inputs(description: dict, path, n_columns: int, n_classes: int) -> None:
+    """ModelError unless every stage forest of the model at ``path`` takes the inputs its
+    model.json ``description`` describes: ``n_columns`` feature columns and the context
+    (two columns per class, ``n_classes``), so that a model.json edited consistently (its
+    keys, columns and digest) is refused before any work, not by the forests."""
+    expected = n_columns + 2 * n_classes
+    for i, stage in enumerate(description["stages"]):
+        file = Path(path) / stage["file"]
+        got = forest_inputs(file)
+        if got != expected:
+            raise ModelError(
+                f"model {path}: the forest of stage {i + 1} ({file.name}) was fitted on {got} "
+                f"input columns, but its model.json describes {expected} ({n_columns} feature "
+                f"columns and 2 x {n_classes} context columns): its model.json was edited "
+                "after training (its keys, columns or classes no longer fit its forests); "
+                "restore the model's own model.json or retrain the model with 'silva train'")
