@@ -23,7 +23,7 @@ import numpy as np
 from pipeline.cascade.one_pass import ring_width
 from pipeline.cascade.thinning import DEFAULT_DENSITY_CELL, cell_keys
 from pipeline.errors import ConfigError, InputError, StoreError
-from pipeline.features.echo import has_returns
+from pipeline.features.echo import return_counts
 from pipeline.io import iter_points, labels_from_codes, read_info, reads_ranges
 from pipeline.io.crs import check_metres, check_same_crs
 from pipeline.store import Appender, open_store
@@ -434,7 +434,8 @@ def ingest_tile(task: IngestTask) -> dict:
     marker (``excluded``).
 
     With ``echoes``, each point's return number and number of returns are stored too
-    (uint8), and a tile (or range) without a point that has returns is refused.
+    (uint8), and the counts of valid, empty and inverted return fields are returned per tile
+    index (``returns``), for :func:`check_returns_seen` to judge each tile whole.
     """
     store_path, scene, tiles, grid = task.store_path, task.scene, task.tiles, task.grid
     read_batch, fingerprint = task.read_batch, task.fingerprint
@@ -445,6 +446,7 @@ def ingest_tile(task: IngestTask) -> dict:
         return {"core_counts": marker.attrs["core_counts"],
                 "excluded": _excluded(marker.attrs, tiles),
                 "bounds": marker.attrs.get("bounds", {}),
+                "returns": marker.attrs.get("returns", {}),
                 **copy_counts(root, task.key, task.copies)}
     restart_unit(root, scene, marker)  # done only when a copy is not: written again with it
     writer = with_copies(_PartWriter(marker, grid, task.halo), root, task.key, task.copies,
@@ -453,20 +455,21 @@ def ingest_tile(task: IngestTask) -> dict:
     labelled = scene != "predict"
     excluded: dict[str, int] = {}
     bounds: dict[str, list] = {}  # tile index -> [mins, maxs] of the points read
+    returns: dict[str, list] = {}  # tile index -> its points' return counts (with echoes)
     fields = task.points_filter.fields(task.label_field if labelled else None)
     if task.echoes is not None:
         fields = tuple(dict.fromkeys(fields + RETURNS))
     pending, held = [], 0  # points read and not yet written: less than a read batch
     for tile in tiles:
         n_read = n_excluded = 0
-        seen_returns = False  # some point of the tile has returns (with echoes)
+        counts = (0, 0, 0)  # (valid, empty, above) return fields of the points read
         for batch in iter_points(tile["path"], batch_size=read_batch, fields=fields,
                                  start=start, stop=stop):
             n_read += len(batch.xyz)
             bounds[str(tile["index"])] = widened(bounds.get(str(tile["index"])), batch.xyz)
-            columns, n_dropped, some_returns = _stored_columns(task, tile, batch, labelled)
+            columns, n_dropped, batch_counts = _stored_columns(task, tile, batch, labelled)
             n_excluded += n_dropped
-            seen_returns = seen_returns or some_returns
+            counts = tuple(a + b for a, b in zip(counts, batch_counts))
             if len(columns[0]) == 0:
                 continue
             pending.append(columns)
@@ -479,21 +482,22 @@ def ingest_tile(task: IngestTask) -> dict:
                              f"points but {n_read} were read; the file is truncated or its "
                              "header is wrong: repair or re-export it")
         if task.echoes is not None:
-            task.echoes.check_read(tile["path"], seen_returns, task.span)
+            returns[str(tile["index"])] = list(counts)
         excluded[str(tile["index"])] = n_excluded
     if pending:
         writer.write(*(np.concatenate(column) for column in zip(*pending)))
     parts = writer.seal()
     mark_done(marker, "ingest", fingerprint, core_counts=writer.counts, excluded=excluded,
-              parts=parts, bounds=bounds)
+              parts=parts, bounds=bounds, returns=returns)
     return {"core_counts": writer.counts, "excluded": excluded, "bounds": bounds,
-            **copy_counts(root, task.key, task.copies)}
+            "returns": returns, **copy_counts(root, task.key, task.copies)}
 
 
 def _stored_columns(task: IngestTask, tile: dict, batch, labelled: bool):
     """What ingest stores of a read ``batch`` of ``tile``: the columns of its kept points
     (xyz, gid, label, role, and with echoes the return numbers), the number of its points
-    excluded by code or flag, and whether some point has returns."""
+    excluded by code or flag, and the return counts of its points (with echoes, else zeros:
+    :func:`pipeline.features.echo.return_counts`)."""
     xyz = batch.xyz
     gid = global_ids(tile["index"], batch.start, len(xyz))
     label = np.full(len(xyz), -1, dtype=np.int16)
@@ -501,14 +505,30 @@ def _stored_columns(task: IngestTask, tile: dict, batch, labelled: bool):
         raw = np.asarray(batch.fields[task.label_field]).astype(np.int64)
         label = labels_from_codes(raw, task.code_to_class)
     returns = () if task.echoes is None else batch_returns(batch.fields)
-    some_returns = bool(returns) and has_returns(*returns)
+    counts = return_counts(*returns) if returns else (0, 0, 0)
     kept, n_dropped = _kept(task.points_filter, batch, task.label_field if labelled else None)
     columns = (xyz, gid, label, *returns)
     if not kept.all():
         columns = tuple(values[kept] for values in columns)
     xyz, gid, label, *returns = columns
     return ((xyz, gid, label, point_roles(task.scene, xyz, task.split), *returns), n_dropped,
-            some_returns)
+            counts)
+
+
+def check_returns_seen(run: Run, tiles: list[dict], results: list[dict]) -> None:
+    """With echo features, InputError for a tile none of whose points has returns, from the
+    return counts its ingest tasks read (``results``' ``returns``, summed over the point
+    ranges of a big tile): the verdict is about the tile, the same for any read ranges."""
+    need = echo_need(run)
+    if need is None:
+        return
+    seen: dict[str, tuple] = {}
+    for result in results:
+        for index, counts in result.get("returns", {}).items():
+            seen[index] = tuple(a + b for a, b in zip(seen.get(index, (0, 0, 0)), counts))
+    for tile in tiles:
+        if str(tile["index"]) in seen:  # a store ingested before the counts: checked then
+            need.check_tile(tile["path"], seen[str(tile["index"])])
 
 
 def widened(box: list | None, xyz: np.ndarray) -> list:
@@ -665,6 +685,7 @@ def ingest(run: Run, engine) -> RunLayout:
     for tile in tiles:  # points the ingest filters left out (data.exclude_*)
         tile["excluded"] = int(excluded_by_tile.get(str(tile["index"]), 0))
     take_seen_bounds(tiles, [results[task.key] for task in tasks])
+    check_returns_seen(run, tiles, [results[task.key] for task in tasks])
     check_something_left(run, tiles)
     excluded = sum(t["excluded"] for t in tiles)
     if excluded:
