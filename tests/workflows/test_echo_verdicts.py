@@ -1,6 +1,7 @@
 """Which tiles echo features accept: the verdict is about the tile, whatever point ranges it is
 read in; a tile whose header counts no return is refused before any worker starts; an
-inverted return_number > number_of_returns is named as such."""
+inverted return_number > number_of_returns is named as such; and the commands a failed task
+names fit a 'silva predict' without a configuration."""
 
 from dataclasses import replace
 from pathlib import Path
@@ -132,3 +133,23 @@ def test_a_header_without_counts_by_return_is_not_taken_for_a_tile_without_retur
               tmp_path)
     check_return_fields(run, path, replace(info, points_by_return=(0,) * 15))
 
+
+def test_the_commands_a_failed_task_names_fit_a_predict_without_configuration(plots, tmp_path):
+    from workflows.exec.engine import chunk_tasks
+    from workflows.run.autoparams import run_config
+    from workflows.run.directory import Run
+    from workflows.steps.ingest import ingest_tasks, plan_scenes, plan_tiles
+    from workflows.store.scenes import RunLayout
+
+    out = tmp_path / "out"
+    model = installed_models()["als-ground-vegetation-building"]
+    run = Run(run_config(None, model_dir=model, inputs=[plots["test"]]), out)
+    tiles = plan_tiles(run)
+    scenes = plan_scenes(run, tiles)
+    (task,) = ingest_tasks(run, scenes, tiles, "f" * 16)
+    assert task.reproduce == f"silva ingest {out / 'config.yaml'} --out {out} --in-process"
+    layout = RunLayout("f", tiles, {s: replace(i, chunks=("0_0",)) for s, i in scenes.items()})
+    (task,) = chunk_tasks(run, layout, "features", None, None, "f" * 16, "features")
+    assert task.reproduce == (f"silva features {out / 'config.yaml'} --out {out} "
+                              "--chunk predict/0_0")
+    assert "CONFIG" not in task.reproduce

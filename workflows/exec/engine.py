@@ -238,7 +238,7 @@ def chunk_tasks(run, layout: RunLayout, step: str, fn, params, fingerprint: str,
                             step=step if marks else None, fingerprint=fingerprint,
                             params=params(info) if callable(params) else params),
                 where=f"chunk {chunk} of scene '{scene}' (tiles {', '.join(names)})",
-                reproduce=f"silva {verb} CONFIG --out {run.out} --chunk {scene}/{chunk}",
+                reproduce=run.rerun(verb, "--chunk", f"{scene}/{chunk}"),
             ))
     if only is not None and not tasks:
         check_chunk(layout, only)

@@ -14,6 +14,7 @@ same read, each of the points it keeps.
 """
 
 import os
+import shlex
 from dataclasses import dataclass, replace
 from functools import cache, partial
 from pathlib import Path
@@ -273,7 +274,8 @@ def _pass_over_tiles(run: Run, scene: str, members: list[dict], engine, name: st
         return [fn(**call) for call in calls]
     tasks = [Task(key=f"{name}-{scene}-{unit.key}{key}", fn=fn, kwargs=call,
                   where=f"{tiles_text(tiles)} (scene '{scene}')",
-                  reproduce=f"silva plan CONFIG (reads {tiles_text(tiles)})")
+                  reproduce=f"silva plan {shlex.quote(str(run.out / 'config.yaml'))} "
+                            f"(reads {tiles_text(tiles)})")
              for (unit, tiles), call in zip(units, calls)]
     results = engine.map(f"ingest ({name})", tasks)
     return [results[task.key] for task in tasks]
@@ -733,6 +735,6 @@ def ingest_tasks(run: Run, scenes: dict[str, SceneLayout], tiles: list[dict],
                 where=(f"{tiles_text(list(members))}"
                        f"{f' (points {span[0]:,} to {span[1]:,})' if span else ''}"
                        f" (scene '{scene}')"),
-                reproduce=f"silva ingest CONFIG --out {run.out} --in-process",
+                reproduce=run.rerun("ingest", "--in-process"),
             ))
     return tasks
