@@ -47,6 +47,7 @@ from workflows.run.echoes import EchoNeed, check_return_fields, echo_need
 from workflows.run.progress import counted, say
 from workflows.steps.copies import (
     copies_done, copies_of, copy_counts, copy_lines, plan_copies, with_copies,
+    without_empty_copies,
 )
 from workflows.steps.one_pass import MAX_BORDER_SHARE, border_share, wants_one_pass
 from workflows.store.assembly import restart_unit
@@ -680,6 +681,7 @@ def ingest(run: Run, engine) -> RunLayout:
     results = engine.map("ingest", tasks)
     scenes = {scene: replace(info, chunks=tuple(scene_chunks(scene, tasks, results)))
               for scene, info in scenes.items()}
+    scenes = without_empty_copies(scenes, run.quiet)
     excluded_by_tile: dict[str, int] = {}  # a tile read in ranges: the sum of its ranges'
     for task in tasks:
         for index, n in results[task.key]["excluded"].items():
