@@ -13,6 +13,7 @@ the training scene (``data.densities``, :mod:`workflows.steps.copies`) are writt
 same read, each of the points it keeps.
 """
 
+import logging
 import os
 import shlex
 from dataclasses import dataclass, replace
@@ -26,7 +27,7 @@ from pipeline.cascade.thinning import DEFAULT_DENSITY_CELL, cell_keys
 from pipeline.errors import ConfigError, InputError, StoreError
 from pipeline.features.echo import return_counts
 from pipeline.io import iter_points, labels_from_codes, read_info, reads_ranges
-from pipeline.io.crs import check_metres, check_same_crs
+from pipeline.io.crs import check_metres, check_same_crs, crs_name
 from pipeline.store import Appender, open_store
 from pipeline.tiling import (
     GROUP_SHARE,
@@ -56,6 +57,8 @@ from workflows.store.layout import (
 )
 from workflows.store.marks import is_done, mark_done
 from workflows.store.scenes import RunLayout, SceneLayout, read_units
+
+log = logging.getLogger(__name__)
 
 AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -129,9 +132,33 @@ def plan_tiles(run: Run) -> list[dict]:
     if not tiles:
         raise InputError("no input tiles: set data.train, data.test or data.predict")
     for scene in SCENES:  # one scene, one CRS: neighbourhoods cross the tiles' borders
-        check_same_crs([(t["path"], t["crs_wkt"]) for t in tiles if t["scene"] == scene],
-                       f"data.{scene}")
+        members = [t for t in tiles if t["scene"] == scene]
+        crs = check_same_crs([(t["path"], t["crs_wkt"]) for t in members], f"data.{scene}")
+        assume_crs(members, crs, f"data.{scene}")
     return tiles
+
+
+#: The tiles whose assumed CRS was said already in this process (plan_tiles runs twice).
+_said_assumed: set[str] = set()
+
+
+def assume_crs(tiles: list[dict], crs: str | None, where: str) -> None:
+    """Give the ``tiles`` (dicts) of one scene that record no CRS the scene's ``crs`` (the
+    WKT of its other tiles; None: no tile has one), in which their points are taken and
+    their rasters and trees written, with a warning naming it (once per tile)."""
+    if crs is None:
+        return
+    named = next(t["path"] for t in tiles if t["crs_wkt"])
+    for tile in tiles:
+        if tile["crs_wkt"]:
+            continue
+        tile["crs_wkt"] = crs
+        if tile["path"] not in _said_assumed:
+            _said_assumed.add(tile["path"])
+            log.warning("tile %s of %s records no CRS, beside tiles in %s (%s): it is taken "
+                        "as %s, and its rasters and trees are written in it; if it is in "
+                        "another CRS, reproject it or run it apart", tile["path"], where,
+                        crs_name(crs), named, crs_name(crs))
 
 
 def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict[str, SceneLayout]:
