@@ -1,10 +1,15 @@
 """What the report's figures and captions say is what they show: the class map draws the
-highest point of each cell."""
+highest point of each cell, the trees map names its marks, and DBH is mentioned only with
+its histogram."""
 
 import matplotlib
 import numpy as np
 
 from workflows.report.figures import class_colour, topdown_figure
+from workflows.report.trees import trees_html
+
+TREES = np.dtype([("x", "f8"), ("y", "f8"), ("height", "f8"), ("crown_diameter", "f8"),
+                  ("dbh", "f8")])
 
 
 def test_the_class_map_shows_the_highest_point_of_each_cell():
@@ -23,4 +28,25 @@ def test_the_class_map_shows_the_highest_point_of_each_cell():
     assert len(drawn) > 100
     np.testing.assert_allclose(drawn, np.broadcast_to(tree, drawn.shape))
     assert "the highest of each cell drawn" in figure.axes[0].get_title()
+
+
+def _found(method, dbh):
+    table = np.zeros(3, TREES)
+    table["height"], table["crown_diameter"], table["dbh"] = [5, 8, 11], [2, 3, 4], dbh
+    return {"plot": {"method": method, "table": table, "chm": object(), "area": 400.0}}
+
+
+def _captions(found):
+    page = trees_html(found, {"trees_map": b"png", "trees_histograms": b"png"})
+    return [part.split("</figcaption>")[0] for part in page.split("<figcaption>")[1:]]
+
+
+def test_the_trees_captions_name_the_marks_and_mention_dbh_only_with_its_histogram():
+    stems, histograms = _captions(_found("stems", [0.2, np.nan, 0.3]))
+    assert stems.startswith("Stems (+") and "Tree tops" not in stems
+    assert "DBH" in histograms
+    tops, histograms = _captions(_found("crowns", [np.nan] * 3))
+    assert tops == "Tree tops (+) over the canopy height model."
+    assert histograms == ("Heights and crown diameters of the trees found (no stem was "
+                          "fitted: no DBH).")
 
