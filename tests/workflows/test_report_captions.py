@@ -1,11 +1,12 @@
 """What the report's figures and captions say is what they show: the class map draws the
-highest point of each cell, the trees map names its marks, and DBH is mentioned only with
-its histogram."""
+highest point of each cell, the trees map names its marks, DBH is mentioned only with its
+histogram, and the terrain figure's titles do not run into each other."""
 
 import matplotlib
 import numpy as np
 
-from workflows.report.figures import class_colour, topdown_figure
+from pipeline.terrain import Raster
+from workflows.report.figures import class_colour, terrain_figure, topdown_figure
 from workflows.report.trees import trees_html
 
 TREES = np.dtype([("x", "f8"), ("y", "f8"), ("height", "f8"), ("crown_diameter", "f8"),
@@ -50,3 +51,19 @@ def test_the_trees_captions_name_the_marks_and_mention_dbh_only_with_its_histogr
     assert histograms == ("Heights and crown diameters of the trees found (no stem was "
                           "fitted: no DBH).")
 
+
+def test_the_terrain_figure_titles_do_not_run_into_each_other():
+    """A terrestrial plot, narrower than tall: its panels are narrow, their titles long."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    rng = np.random.default_rng(1)
+    n = 123_456
+    x, y = rng.uniform(0, 12, n), rng.uniform(0, 40, n)
+    dtm = Raster(np.linspace(100, 130, 40 * 12).reshape(40, 12), 0.0, 0.0, 1.0)
+    figure = terrain_figure({"tls-plot": {"dtm": dtm, "x": x, "y": y,
+                                          "height": rng.uniform(0, 30, n)}})
+    renderer = FigureCanvasAgg(figure).get_renderer()
+    left, right = (ax.title.get_window_extent(renderer) for ax in figure.axes
+                   if ax.get_title())
+    assert left.x1 < right.x0, (figure.axes[0].get_title(), figure.axes[1].get_title())
+    assert right.x1 <= figure.bbox.width

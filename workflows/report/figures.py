@@ -430,7 +430,7 @@ def terrain_figure(terrain: dict) -> Figure:
             low = min(np.nanmin(r.values) for r in rasters)
             high = max(np.nanmax(r.values) for r in rasters)
             blocks = f", {len(rasters)} blocks" if len(rasters) > 1 else ""
-            ax.set_title(f"{_mpl_text(scene)}: terrain model, {low:.1f}-{high:.1f} m "
+            ax.set_title(f"{_mpl_text(scene)}: terrain model\n{low:.1f}-{high:.1f} m "
                          f"({rasters[0].cell:g} m cells{blocks})")
             ax.ticklabel_format(useOffset=False, style="plain")
             ax = fig.add_subplot(len(scenes), 2, 2 * row + 2)
@@ -447,7 +447,7 @@ def terrain_figure(terrain: dict) -> Figure:
             ax.set_ylim(extent[2], extent[3])
             ax.set_aspect("equal")
             ax.ticklabel_format(useOffset=False, style="plain")
-            ax.set_title(f"canopy height above the terrain ({x.size:,} sampled points)")
+            ax.set_title(f"canopy height above the terrain\n({x.size:,} sampled points)")
             fig.colorbar(colours, ax=ax, label="m above ground", shrink=0.8)
         fig.tight_layout()
     return fig
