@@ -1,9 +1,11 @@
 """Rerunning a finished run redoes nothing: the steps whose chunks are all done are answered
-from the store's done-marks without a worker."""
+from the store's done-marks without a worker, and the durations the report shows stay those
+of the runs that did the work."""
 
 from pipeline.store import open_store
 from tests.workflows.conftest import silva, write_config
 from workflows.exec.engine import Engine, Task, _chunk_step
+from workflows.run.durations import totals
 from workflows.store.layout import chunk_path
 from workflows.store.marks import mark_done
 
@@ -48,14 +50,17 @@ def test_finished_chunks_are_answered_from_their_marks_without_a_worker(tmp_path
                                  ("features-s-0_0", {"points": 0})]
 
 
-def test_rerunning_a_finished_run_redoes_no_chunk_step(tiny_survey, tmp_path):
+def test_rerunning_a_finished_run_redoes_no_step_and_adds_no_duration(tiny_survey, tmp_path):
     config = write_config(tmp_path / "c.yaml", tiny_survey,
                           features={"set": "covariance", "r1": 0.5},
                           cascade={"stages": 1, "n_estimators": 4})
     out = tmp_path / "out"
     first = silva("run", config, "--out", out, "--in-process", "-q")
     assert first.exit_code == 0, first.output
+    spent = totals(out)
+    assert spent["features"] > 0
     again = silva("run", config, "--out", out, "--in-process", "-q")
     assert again.exit_code == 0, again.output
     assert "features: already done" in again.output
     assert "features: 1 task" not in again.output
+    assert totals(out) == spent

@@ -29,6 +29,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     """
     state = RunState(run, engine, target, only, command, kernels)
     state.stamp = run.forget_stale_results()  # a rerun that changes nothing keeps metrics
+    state.adds_durations = not run.report_path.is_file()  # complete: it costs nothing more
     if _already_complete(run, target, only, state.summary, state.stamp):
         return state.summary
     try:
