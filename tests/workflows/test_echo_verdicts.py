@@ -153,3 +153,6 @@ def test_the_commands_a_failed_task_names_fit_a_predict_without_configuration(pl
     assert task.reproduce == (f"silva features {out / 'config.yaml'} --out {out} "
                               "--chunk predict/0_0")
     assert "CONFIG" not in task.reproduce
+    (task,) = chunk_tasks(run, layout, "apply", None, None, "f" * 16, "predict")
+    assert task.reproduce == (f"silva predict {out / 'config.yaml'} --out {out} --model {model} "
+                              "--chunk predict/0_0")

@@ -96,7 +96,9 @@ class Run:
 
     def rerun(self, verb: str, *options: str) -> str:
         """The command that runs ``silva VERB`` on this run's output directory with
-        ``options`` (:func:`rerun_command`)."""
+        ``options`` (:func:`rerun_command`; ``silva predict`` with the model it applies)."""
+        if verb == "predict" and self.model_dir is not None:
+            options = ("--model", str(self.model_dir), *options)
         return rerun_command(self.out, verb, *options)
 
     @property
