@@ -9,6 +9,7 @@ that reproduces it.
 
 import contextlib
 import logging
+import os
 import time
 import traceback
 from dataclasses import dataclass
@@ -239,7 +240,8 @@ def finished_results(tasks: list[Task]) -> dict[str, Any]:
     found, roots = {}, {}
     for task in tasks:
         kwargs = task.kwargs
-        if task.fn is not _chunk_step or kwargs.get("step") is None:
+        if (task.fn is not _chunk_step or kwargs.get("step") is None
+                or not os.path.isdir(kwargs["store_path"])):
             continue
         if kwargs["store_path"] not in roots:
             roots[kwargs["store_path"]] = open_store(kwargs["store_path"], mode="r")
