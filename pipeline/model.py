@@ -19,6 +19,7 @@ digest (saved before digests were written) still loads, with a warning.
 import hashlib
 import json
 import logging
+import zipfile
 from pathlib import Path
 
 from pipeline import __version__
@@ -179,6 +180,25 @@ def _verify(path: Path, expected: str) -> None:
         raise ModelError(f"model file {path} does not match the digest {MODEL_FILE} records "
                          "for it (it was replaced, swapped with another stage's file or "
                          "damaged); restore the model's own files or retrain with 'silva train'")
+
+
+def forest_inputs(path: str | Path) -> int:
+    """The number of input columns the forest saved at ``path`` was fitted on (its
+    ``n_features_in_``), read from the skops archive's schema without building the trees;
+    the whole forest is loaded only when the schema does not say."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            schema = json.loads(archive.read("schema.json"))
+        node = schema["content"]["content"]["n_features_in_"]
+        if node.get("is_json"):
+            return int(json.loads(node["content"]))
+    except (OSError, KeyError, TypeError, ValueError, zipfile.BadZipFile):
+        pass
+    try:
+        return int(load_forest(path).n_features_in_)
+    except AttributeError:
+        raise ModelError(f"model file {path} holds no fitted forest; restore the model's own "
+                         "files or retrain with 'silva train'") from None
 
 
 def _recorded_digest(path: Path) -> str | None:

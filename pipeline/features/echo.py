@@ -74,6 +74,18 @@ def has_returns(return_number, number_of_returns) -> bool:
     return rn is not None and bool(_valid(rn, nr).any())
 
 
+def return_counts(return_number, number_of_returns) -> tuple[int, int, int]:
+    """How many points of a cloud have returns (1 <= rn <= nr), have empty fields (rn or nr
+    0, as a writer that left them leaves them) and have rn > nr >= 1, as (valid, empty,
+    above) ints; (0, 0, 0) for ``None`` fields."""
+    n = 0 if return_number is None else len(return_number)
+    rn, nr = _check_returns(return_number, number_of_returns, n)
+    if rn is None:
+        return 0, 0, 0
+    empty = (rn == 0) | (nr == 0)
+    return int(_valid(rn, nr).sum()), int(empty.sum()), int(((rn > nr) & ~empty).sum())
+
+
 def echo_point_features(return_number, number_of_returns, n_points=None) -> np.ndarray:
     """Per-point echo columns (:data:`ECHO_POINT_NAMES`).
 

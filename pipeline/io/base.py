@@ -42,6 +42,8 @@ class TileInfo:
     point_format: int | None
     version: str | None
     dimensions: tuple[str, ...]
+    #: the header's count of points per return number (1, 2, ...); None: no such header
+    points_by_return: tuple[int, ...] | None = None
 
 
 @dataclass

@@ -105,7 +105,7 @@ def check_same_crs(tiles: Iterable[tuple], where: str) -> str | None:
             first = (path, wkt)
         elif wkt != first[1] and not _same_crs(wkt, first[1]):
             raise InputError(
-                f"tiles {first[0]} ({_crs_name(first[1])}) and {path} ({_crs_name(wkt)}) of "
+                f"tiles {first[0]} ({crs_name(first[1])}) and {path} ({crs_name(wkt)}) of "
                 f"{where} have different CRSs; reproject them to one CRS (e.g. with PDAL's "
                 "filters.reprojection) or process them in separate runs"
             )
@@ -133,7 +133,7 @@ def check_metres(wkt: str | None, path, centre=None) -> None:
         if part.is_geographic or part.is_geocentric:
             kind = "geographic (degrees)" if part.is_geographic else "geocentric (earth-centred)"
             raise InputError(
-                f"tile {path} is in a {kind} CRS, {_crs_name(part.to_wkt())}, and Silva's radii, "
+                f"tile {path} is in a {kind} CRS, {crs_name(part.to_wkt())}, and Silva's radii, "
                 "cells and heights are metres; reproject it to a projected CRS in metres "
                 f"first, {_reprojection(path, _utm_hint(centre))}"
             )
@@ -141,7 +141,7 @@ def check_metres(wkt: str | None, path, centre=None) -> None:
             if axis.unit_conversion_factor != 1.0:
                 raise InputError(
                     f"tile {path} has coordinates in {axis.unit_name} ({axis.name}, CRS "
-                    f"{_crs_name(crs.to_wkt())}), and Silva's radii, cells and heights are "
+                    f"{crs_name(crs.to_wkt())}), and Silva's radii, cells and heights are "
                     "metres; reproject it to a CRS in metres first, "
                     f"{_reprojection(path, 'EPSG:<code of a CRS in metres>')}"
                 )
@@ -169,7 +169,7 @@ def _same_crs(a: str, b: str) -> bool:
         return False
 
 
-def _crs_name(wkt: str) -> str:
+def crs_name(wkt: str) -> str:
     """'EPSG:32610', or the CRS's name, or the start of the WKT."""
     try:
         crs = pyproj.CRS.from_wkt(wkt)

@@ -240,6 +240,7 @@ def read_las_info(path) -> TileInfo:
             point_format=int(header.point_format.id),
             version=str(header.version),
             dimensions=tuple(header.point_format.dimension_names),
+            points_by_return=tuple(int(n) for n in header.number_of_points_by_return),
         )
 
 

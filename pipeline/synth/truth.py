@@ -3,7 +3,9 @@
 A tree's ID is the one its points carry (:func:`~pipeline.synth.surfaces.tree_ids`); the table
 lists the trees with at least one point in the plot, so the IDs of the points and of the table
 are the same set. Stem bases are sunk a little below the ground (the flare meets a slope), so
-heights are measured from the ground under the stem base, as a forester measures them.
+heights are measured from the ground under the stem base, as a forester measures them. ``z``
+is the elevation of the tree's top, as in the trees tables Silva writes: ``z - height`` is
+the ground under the stem.
 """
 
 from __future__ import annotations
@@ -16,8 +18,9 @@ from pipeline.synth.surfaces import tree_ids
 
 #: Where the DBH is measured, metres above the ground under the stem.
 BREAST_HEIGHT = 1.3
-#: The columns of the truth table (metres): stem base x, y, the ground z there, the tree's
-#: height above that ground and its DBH at BREAST_HEIGHT above it.
+#: The columns of the truth table (metres): stem base x, y, the elevation z of the tree's top,
+#: the tree's height above the ground under its stem (z - height is that ground) and its DBH
+#: at BREAST_HEIGHT above it.
 TRUTH_DTYPE = np.dtype([("tree_id", np.uint32), ("x", np.float64), ("y", np.float64),
                         ("z", np.float64), ("height", np.float64), ("dbh", np.float64)])
 #: Decimals written to CSV (a tenth of a millimetre).
@@ -40,8 +43,8 @@ def tree_truth(layout: Layout, origin, present: np.ndarray) -> np.ndarray:
         ground = float(layout.terrain.height(stem.base[0], stem.base[1]))
         sunk = ground - float(stem.base[2])  # the axis's length below the ground
         row["x"], row["y"] = stem.base[:2] + np.asarray(origin[:2], dtype=np.float64)
-        row["z"] = ground + float(origin[2])
         row["height"] = stem.height - sunk
+        row["z"] = ground + float(origin[2]) + row["height"]
         row["dbh"] = 2.0 * float(stem.radius(BREAST_HEIGHT + sunk))
     return table
 

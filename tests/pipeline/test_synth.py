@@ -231,7 +231,7 @@ def test_true_dbh_is_the_bark_circle_at_breast_height(scene):
     checked = 0
     for tree in scene.trees:
         xyz = scene.xyz[scene.tree_ids == tree["tree_id"]]
-        rel = xyz[:, 2] - tree["z"]
+        rel = xyz[:, 2] - (tree["z"] - tree["height"])  # above the ground under the stem
         near = np.hypot(xyz[:, 0] - tree["x"], xyz[:, 1] - tree["y"]) < tree["dbh"]
         ring = xyz[(np.abs(rel - 1.3) < 0.15) & near, :2] - [tree["x"], tree["y"]]
         if len(ring) < 20:
@@ -243,6 +243,19 @@ def test_true_dbh_is_the_bark_circle_at_breast_height(scene):
         assert tree["height"] > 7.5 and tree["dbh"] < 0.5
         checked += 1
     assert checked >= 5
+
+
+def test_a_trees_z_is_its_tops_elevation_as_in_silvas_tree_tables(scene):
+    """z is the elevation of the tree's top (as the trees tables give it: their z is the
+    highest point's), z - height the ground under its stem."""
+    gaps = []
+    for tree in scene.trees:
+        top = scene.xyz[scene.tree_ids == tree["tree_id"], 2].max()
+        assert top <= tree["z"] + 0.3  # a twig may stand a little above the stem's apex
+        gaps.append(abs(tree["z"] - top))
+        ground = float(scene.ground_height(np.array([tree["x"]]), np.array([tree["y"]]))[0])
+        assert tree["z"] - tree["height"] == pytest.approx(ground, abs=1e-6)
+    assert np.median(gaps) < 0.3  # the scanner sees most tops
 
 
 def test_tiles_carry_the_tree_ids_and_trees_csv_their_truth(tmp_path):

@@ -40,25 +40,32 @@ def _last_log_line(out):
     return (out / LOG_NAME).read_text().splitlines()[-1]
 
 
-def refused_at_start(tmp_path, survey, started, command, *args) -> str:
+def refused_at_start(tmp_path, survey, started, command, *args, made: bool = True) -> str:
     """The error line of ``silva COMMAND CONFIG ARGS --out OUT`` on the survey's config,
     refused before its cluster started and its kernels compiled; the line also ends the
-    run's log in OUT (``tmp_path / "out"``)."""
+    run's log in OUT (``tmp_path / "out"``), or (``made`` False) OUT was not even made."""
     config = write_config(tmp_path / "c.yaml", survey)
     out = tmp_path / "out"
     result = silva(command, config, *args, "--out", out)
     line = error_line(result)
     assert started == []
-    assert _last_log_line(out).endswith(f" ERROR workflows.run.progress: {line}")
+    if made:
+        assert _last_log_line(out).endswith(f" ERROR workflows.run.progress: {line}")
+    else:
+        assert not out.exists()
     return line
 
 
 def test_a_glob_that_matches_nothing_is_refused_before_the_cluster_starts(
         tmp_path, survey, started):
     line = refused_at_start(tmp_path, survey, started, "run", "--set",
-                            "data.test=[/nonexistent/*.laz]")
+                            "data.test=[/nonexistent/*.laz]", made=False)
     assert line == ("silva: error: no file matches '/nonexistent/*.laz' in data.test; check "
                     "the path or glob")
+    # in an existing output directory, its log ends with the line
+    (tmp_path / "out").mkdir()
+    assert refused_at_start(tmp_path, survey, started, "run", "--set",
+                            "data.test=[/nonexistent/*.laz]") == line
     assert not (tmp_path / "out" / "store.zarr").exists()
 
 

@@ -114,3 +114,22 @@ def test_a_nan_scale_is_refused_before_any_chunk(tmp_path, survey, command):
     assert f"{bad}: header y scale is nan;" in line
     assert "chunk" not in result.output and "RuntimeWarning" not in result.output
     assert not (tmp_path / "out" / "store.zarr").exists()
+
+
+# -- a wrong input path --------------------------------------------------------------------
+def test_a_wrong_tile_path_leaves_no_output_directory(tmp_path):
+    out = tmp_path / "out"
+    line = error_line(silva("predict", "--model", "forest-tls-synthetic", "--out", out,
+                            tmp_path / "nope.laz", "--in-process", "-q"))
+    assert f"no file matches '{tmp_path / 'nope.laz'}' in data.predict" in line
+    assert not out.exists()
+
+
+def test_a_wrong_path_in_a_configuration_leaves_no_output_directory(tmp_path):
+    config = tmp_path / "c.yaml"
+    config.write_text(f"data:\n  train: ['{tmp_path / 'missing' / '*.laz'}']\n"
+                      "  classes: {tree: [5]}\n")
+    out = tmp_path / "out"
+    line = error_line(silva("train", config, "--out", out, "--in-process", "-q"))
+    assert "in data.train" in line
+    assert not out.exists()

@@ -1,7 +1,7 @@
 """output.keep_store: false removes a completed run's chunks; status and reruns stay sensible."""
 
 from pipeline.synth import DEFAULT_ORIGIN
-from tests.workflows.conftest import SMALL_PLOT, silva, write_config
+from tests.workflows.conftest import SMALL_PLOT, error_line, silva, write_config
 
 
 def _files(path):
@@ -36,10 +36,29 @@ def test_a_completed_run_removes_its_chunks_and_reruns_as_complete(survey, tmp_p
     assert f"metrics: {out / 'metrics.json'}" in again.output
     assert (out / "metrics.json").read_text() == metrics
 
-    # any other command (or configuration) computes the chunks again from the inputs
-    ingest = silva("ingest", config, "--out", out, "--in-process", "-q")
-    assert ingest.exit_code == 0, ingest.output
-    assert "computing again from the input tiles" in ingest.output
+    # a step command of the same configuration: its work is part of the complete run
+    export = silva("export", config, "--out", out, "--in-process", "-q")
+    assert export.exit_code == 0, export.output
+    assert "the results of this configuration are complete" in export.output
+    assert not (out / "store.zarr" / "scenes").exists()
+    # one that would redo everything for a part of it says so, and how to ask for it
+    other = ("--set", "output.probabilities=false")
+    line = error_line(silva("export", config, "--out", out, "--in-process", "-q", *other))
+    assert line == (
+        f"silva: error: {out / 'store.zarr'}: its chunks were removed after the run completed "
+        "(output.keep_store: false) and it completed with another configuration, other inputs "
+        "or another model; 'silva export' would compute every step up to it again from the "
+        "input tiles: to do so, rerun it with --overwrite (set output.keep_store: true to "
+        "keep the chunks of the next run)")
+    assert (out / "metrics.json").read_text() == metrics  # refused: nothing removed
+    line = error_line(silva("features", config, "--out", out, "--in-process", "-q",
+                            "--chunk", "train/0_0"))
+    assert "and --chunk needs the chunks; 'silva features' would compute" in line
+    # the whole run of another configuration computes the chunks again from the inputs
+    rerun = silva("run", config, "--out", out, "--in-process", "-q", *other,
+                  "--set", "output.keep_store=true")
+    assert rerun.exit_code == 0, rerun.output
+    assert "computing again from the input tiles" in rerun.output
     assert (out / "store.zarr" / "scenes" / "train").is_dir()
     status = silva("status", out).output
     assert "removed" not in status and "scene train: 1 chunk" in status

@@ -187,6 +187,7 @@ def start_run(config, options: RunOptions, target: str, *, model_dir=None, comma
     from workflows.cli.plan import step_weights
     from workflows.exec.cluster import plan_workers
     from workflows.config import validate_config
+    from workflows.config.inputs import check_written_inputs
     from workflows.exec.engine import open_engine
     from workflows.run.autoparams import read_run, resolve_run
     from workflows.run.directory import (
@@ -200,6 +201,8 @@ def start_run(config, options: RunOptions, target: str, *, model_dir=None, comma
     if model_dir is None and not overwrite:
         model_dir = applied_model(out)  # a later step of a 'silva predict' output
     raw = read_run(config_path or config, options.overrides, inputs)
+    if not out.exists():  # a wrong path leaves no output directory behind
+        check_written_inputs(raw)
     command = command or _command_line()
     # --overwrite never deletes what this command reads (its config, model or inputs)
     keep = (read_paths(validate_config(raw), config_path or config, model_dir) if overwrite

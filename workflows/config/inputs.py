@@ -11,6 +11,23 @@ from pipeline.errors import InputError, MissingFileError
 SCENES = ("train", "test", "predict")
 
 
+def check_written_inputs(raw: dict) -> None:
+    """Raise the errors of :func:`expand_inputs` for the data paths of ``raw`` (a
+    configuration as written, its paths resolved), before anything is written: a wrong path
+    must not leave an output directory behind. Values of another type are left to the
+    validation."""
+    data = raw.get("data") if isinstance(raw, dict) else None
+    if not isinstance(data, dict):
+        return
+    for scene in SCENES:
+        patterns = data.get(scene)
+        if isinstance(patterns, (str, Path)):
+            patterns = [patterns]
+        if isinstance(patterns, list) and patterns and all(
+                isinstance(p, (str, Path)) for p in patterns):
+            expand_inputs(patterns, key=f"data.{scene}")
+
+
 def expand_inputs(patterns: Sequence[str | Path], *, key: str | None = None) -> list[Path]:
     """The files matched by paths and globs, sorted and without duplicates.
 

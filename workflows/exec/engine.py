@@ -9,6 +9,7 @@ that reproduces it.
 
 import contextlib
 import logging
+import os
 import time
 import traceback
 from dataclasses import dataclass
@@ -92,6 +93,11 @@ class Engine:
         results, failures = {}, []
         if not tasks:
             return results
+        done = finished_results(tasks)  # finished by an earlier run: no worker needed
+        if len(done) == len(tasks):
+            log.info("%s: all %d tasks were done already", step, len(tasks))
+            return done
+        every, tasks = tasks, [task for task in tasks if task.key not in done]
         started = time.monotonic()
         with StepProgress(step, len(tasks), quiet=self.quiet) as progress:
             if self.client is None:
@@ -113,7 +119,7 @@ class Engine:
             lines = "; ".join(failures[:5])
             more = f" (and {len(failures) - 5} more)" if len(failures) > 5 else ""
             raise StepFailed(f"{step}: {len(failures)} of {len(tasks)} failed: {lines}{more}")
-        return results
+        return {task.key: (done if task.key in done else results)[task.key] for task in every}
 
     def _map_dask(self, tasks, progress, step):
         from workflows.exec.watch import completed
@@ -204,17 +210,48 @@ def _chunk_step(fn, store_path, scene, chunk, step, fingerprint, params):
     step that leaves nothing in the store (its result is only returned).
     """
     view = ChunkView(store_path, scene, chunk, create=step in ASSEMBLING)
-    if step is not None and is_done(view.group, step, fingerprint):
-        stored = view.group.attrs.get("results", {})
-        if step in stored:  # None too: the summary of a step that returns nothing
-            return stored[step]
-        # a done-mark without its summary: run the step again (the same outputs), rather
-        # than hand the coordinator nothing
+    stored = _stored_result(view.group, step, fingerprint)
+    if stored is not _UNFINISHED:
+        return stored
     result = fn(view, params)
     if step is not None:
         results = {**view.group.attrs.get("results", {}), step: result}
         mark_done(view.group, step, fingerprint, results=results)
     return result
+
+
+#: What :func:`_stored_result` gives for a chunk the step has not finished.
+_UNFINISHED = object()
+
+
+def _stored_result(group, step: str | None, fingerprint: str):
+    """The summary a chunk's group keeps of ``step`` done with ``fingerprint`` (None too: a
+    step that returns nothing), or :data:`_UNFINISHED` (a done-mark without its summary: the
+    step runs again, the same outputs, rather than hand the coordinator nothing)."""
+    if step is None or not is_done(group, step, fingerprint):
+        return _UNFINISHED
+    return group.attrs.get("results", {}).get(step, _UNFINISHED)
+
+
+def finished_results(tasks: list[Task]) -> dict[str, Any]:
+    """{key: summary} of the chunk tasks (:func:`chunk_tasks`) whose chunk the step has
+    finished with the same fingerprint, read from the store's done-marks here: a finished
+    step is answered without sending its tasks to the workers."""
+    found, roots = {}, {}
+    for task in tasks:
+        kwargs = task.kwargs
+        if (task.fn is not _chunk_step or kwargs.get("step") is None
+                or not os.path.isdir(kwargs["store_path"])):
+            continue
+        if kwargs["store_path"] not in roots:
+            roots[kwargs["store_path"]] = open_store(kwargs["store_path"], mode="r")
+        root, path = roots[kwargs["store_path"]], chunk_path(kwargs["scene"], kwargs["chunk"])
+        if path not in root:
+            continue
+        stored = _stored_result(root[path], kwargs["step"], kwargs["fingerprint"])
+        if stored is not _UNFINISHED:
+            found[task.key] = stored
+    return found
 
 
 def chunk_tasks(run, layout: RunLayout, step: str, fn, params, fingerprint: str, verb: str, *,
@@ -238,7 +275,7 @@ def chunk_tasks(run, layout: RunLayout, step: str, fn, params, fingerprint: str,
                             step=step if marks else None, fingerprint=fingerprint,
                             params=params(info) if callable(params) else params),
                 where=f"chunk {chunk} of scene '{scene}' (tiles {', '.join(names)})",
-                reproduce=f"silva {verb} CONFIG --out {run.out} --chunk {scene}/{chunk}",
+                reproduce=run.rerun(verb, "--chunk", f"{scene}/{chunk}"),
             ))
     if only is not None and not tasks:
         check_chunk(layout, only)

@@ -49,8 +49,9 @@ def write_report(
         curves. Without it the report says the plot is missing.
     topdown : dict, optional
         ``{"x": float (m,), "y": float (m,), "label": int (m,) class indices,
-        "class_names": [C]}``, predicted classes of (a sample of) the points in map
-        coordinates, for the top-down map.
+        "class_names": [C]}`` and optionally ``"height": float (m,)`` (above the ground:
+        each cell of the map then shows its highest point), predicted classes of (a sample
+        of) the points in map coordinates, for the top-down map.
     title : str
     run_info : dict, optional
         Shown as a two-column table (command, date, software version, durations, ...).

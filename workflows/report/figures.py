@@ -248,7 +248,9 @@ def f1_per_stage_figure(stages: list[dict]) -> Figure:
 
 
 def topdown_figure(topdown: dict) -> Figure:
-    """Predicted class of every given point seen from above, in map coordinates."""
+    """Predicted class of the given points seen from above, in map coordinates: with
+    ``height`` (each point's height above the ground, or its elevation), the highest point
+    of each drawn cell, as a map is read; without, a fixed shuffle of them."""
     missing = [k for k in ("x", "y", "label", "class_names") if k not in topdown]
     if missing:
         raise InputError(f"topdown lacks {missing}: pass x, y, label and class_names")
@@ -266,8 +268,15 @@ def topdown_figure(topdown: dict) -> Figure:
             f"topdown label holds class indices outside [0, {len(names)}): pass predicted "
             "class indices"
         )
-    # A fixed shuffle, so that no class is systematically drawn over another.
-    order = np.random.default_rng(0).permutation(x.size)
+    if topdown.get("height") is not None:
+        height = np.asarray(topdown["height"], dtype=np.float64)
+        if height.shape != x.shape:
+            raise InputError(f"topdown height must be of the points' shape {x.shape}, got "
+                             f"{height.shape}")
+        # the highest drawn last: each cell shows its highest point (unknown heights lowest)
+        order = np.argsort(np.nan_to_num(height, nan=-np.inf), kind="stable")
+    else:  # a fixed shuffle, so that no class is systematically drawn over another
+        order = np.random.default_rng(0).permutation(x.size)
     x, y, label = x[order], y[order], label[order].astype(np.int64)
 
     span_x, span_y = span(x), span(y)
@@ -285,7 +294,8 @@ def topdown_figure(topdown: dict) -> Figure:
         ax.ticklabel_format(useOffset=False, style="plain")
         ax.set_xlabel("x (map units)")
         ax.set_ylabel("y (map units)")
-        ax.set_title(f"Predicted classes seen from above ({x.size:,} points)")
+        ax.set_title(f"Predicted classes seen from above ({x.size:,} points"
+                     + (", the highest of each cell drawn)" if "height" in topdown else ")"))
         shares = np.bincount(label, minlength=len(names)) / max(x.size, 1)
         handles = [Patch(color=class_colour(i)) for i in range(len(names))]
         labels = [f"{_mpl_text(n)}  {shares[i]:.1%}" for i, n in enumerate(names)]
@@ -417,7 +427,7 @@ def terrain_figure(terrain: dict) -> Figure:
             low = min(np.nanmin(r.values) for r in rasters)
             high = max(np.nanmax(r.values) for r in rasters)
             blocks = f", {len(rasters)} blocks" if len(rasters) > 1 else ""
-            ax.set_title(f"{_mpl_text(scene)}: terrain model, {low:.1f}-{high:.1f} m "
+            ax.set_title(f"{_mpl_text(scene)}: terrain model\n{low:.1f}-{high:.1f} m "
                          f"({rasters[0].cell:g} m cells{blocks})")
             ax.ticklabel_format(useOffset=False, style="plain")
             ax = fig.add_subplot(len(scenes), 2, 2 * row + 2)
@@ -434,7 +444,7 @@ def terrain_figure(terrain: dict) -> Figure:
             ax.set_ylim(extent[2], extent[3])
             ax.set_aspect("equal")
             ax.ticklabel_format(useOffset=False, style="plain")
-            ax.set_title(f"canopy height above the terrain ({x.size:,} sampled points)")
+            ax.set_title(f"canopy height above the terrain\n({x.size:,} sampled points)")
             fig.colorbar(colours, ax=ax, label="m above ground", shrink=0.8)
         fig.tight_layout()
     return fig

@@ -78,7 +78,8 @@ CAPTIONS = {
         "decrease of the Gini impurity, over all trees; a stage's columns sum to 1). Context "
         "columns take their class's colour, the point's own features are grey."
     ),
-    "topdown": "Final predicted class of a sample of the points, seen from above.",
+    "topdown": "Final predicted class of a sample of the points seen from above: in each "
+               "cell the highest of them, as a map is read.",
     "terrain": (
         "Left: the hillshade of each scene's terrain model (SMRF ground filter on the lowest "
         "point of each cell), every block of points far from the others at its place and "

@@ -18,7 +18,8 @@ from workflows.report.figures import (
 from workflows.report.html import CSS, _escape, _format_value, figure_html
 
 CAPTIONS = {
-    "topdown": "The predicted class of a sample of the points, seen from above.",
+    "topdown": "The predicted class of a sample of the points seen from above: in each cell "
+               "the highest of them, as a map is read.",
     "profile": "A side view through the middle of each scene: height above the terrain model "
                "of a sample of the points in a band across it, by predicted class.",
     "uncertain": "Where the model hesitates: the sampled points whose predicted class has a "
@@ -105,6 +106,7 @@ def survey_images(survey: dict, terrain: dict | None) -> dict:
         "topdown": topdown_figure({"x": np.concatenate([m[0] for m in maps]),
                                    "y": np.concatenate([m[1] for m in maps]),
                                    "label": np.concatenate([m[2] for m in maps]),
+                                   "height": np.concatenate([m[3] for m in maps]),
                                    "class_names": names}),
         "profile": profile_figure(survey),
         "uncertain": uncertain_figure(survey),

@@ -25,7 +25,8 @@ def trees_images(found: dict) -> dict[str, bytes]:
 
 
 def tops_figure(scenes: dict) -> Figure:
-    """Per scene, the canopy height model with the tree tops (or stem bases) on it."""
+    """Per scene, the canopy height model with the tree tops (or, trees found by their
+    stems, the stems) on it."""
     with matplotlib.rc_context(STYLE):
         fig = Figure(figsize=(7.5, 6.2 * len(scenes)), dpi=DPI)
         for row, (scene, entry) in enumerate(scenes.items()):
@@ -45,10 +46,35 @@ def tops_figure(scenes: dict) -> Figure:
     return fig
 
 
+def fitted_dbh(found: dict) -> np.ndarray:
+    """The DBH (m) of every tree of ``found`` whose stem was fitted."""
+    table = np.concatenate([f["table"] for f in found.values()])
+    return table["dbh"][np.isfinite(table["dbh"])]
+
+
+def map_caption(found: dict) -> str:
+    """The caption of ``trees_map``: its marks are the tops of trees found by their crowns
+    and the stems of trees found by their stems."""
+    methods = {f["method"] for f in found.values() if f.get("chm") is not None}
+    if methods == {"stems"}:
+        return "Stems (+, where each tree's stem stands) over the canopy height model."
+    if "stems" in methods:
+        return ("Tree tops (+), or stems where a scene's trees were found by their stems "
+                "(see each title), over the canopy height model.")
+    return "Tree tops (+) over the canopy height model."
+
+
+def histograms_caption(found: dict) -> str:
+    """The caption of ``trees_histograms``: DBH only where its histogram is drawn."""
+    if len(fitted_dbh(found)):
+        return "Heights, crown diameters and DBH (of the fitted stems) of the trees found."
+    return "Heights and crown diameters of the trees found (no stem was fitted: no DBH)."
+
+
 def histograms_figure(found: dict) -> Figure:
     """Histograms of the trees' heights, crown diameters and (where fitted) DBH."""
     table = np.concatenate([f["table"] for f in found.values()])
-    dbh = table["dbh"][np.isfinite(table["dbh"])]
+    dbh = fitted_dbh(found)
     panels = [("height", table["height"], "m"), ("crown diameter", table["crown_diameter"], "m")]
     if len(dbh):
         panels.append(("DBH", dbh * 100, "cm"))
@@ -86,9 +112,8 @@ def trees_html(found: dict, images: dict, scores: dict | None = None) -> str:
         parts.append('<table class="info">' + "".join(
             f"<tr><td>{e(k)}</td><td>{e(_format_value(v))}</td></tr>"
             for k, v in scores.items() if not isinstance(v, (dict, list))) + "</table>")
-    for name, caption in (("trees_map", "Tree tops (+) over the canopy height model."),
-                          ("trees_histograms", "Heights, crown diameters and DBH of the "
-                                               "trees found.")):
+    for name, caption in (("trees_map", map_caption(found)),
+                          ("trees_histograms", histograms_caption(found))):
         if name in images:
             parts.append(figure_html(images[name], name, caption))
     return "\n".join(parts)

@@ -18,6 +18,7 @@ import hashlib
 import json
 import logging
 import os
+import shlex
 import shutil
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -92,6 +93,13 @@ class Run:
     @property
     def report_path(self) -> Path:
         return self.out / "report.html"
+
+    def rerun(self, verb: str, *options: str) -> str:
+        """The command that runs ``silva VERB`` on this run's output directory with
+        ``options`` (:func:`rerun_command`; ``silva predict`` with the model it applies)."""
+        if verb == "predict" and self.model_dir is not None:
+            options = ("--model", str(self.model_dir), *options)
+        return rerun_command(self.out, verb, *options)
 
     @property
     def store(self):
@@ -213,6 +221,15 @@ class Run:
 
 class OutputError(SilvaError, OSError):
     """The output directory cannot be created or written."""
+
+
+def rerun_command(out, verb: str, *options: str) -> str:
+    """The command that runs ``silva VERB`` on the output directory ``out`` with
+    ``options``: with the configuration every command saves there (OUT/config.yaml), so that
+    it fits whatever command started the run, a 'silva predict' without a configuration
+    too (a later command on its output applies the same model)."""
+    out = Path(out)
+    return shlex.join(["silva", verb, str(out / "config.yaml"), "--out", str(out), *options])
 
 
 def prepare_output(out: Path, *, overwrite: bool, keep=(), command: str = "silva"):

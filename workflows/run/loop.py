@@ -5,13 +5,16 @@ Every command is a target: it runs the steps up to and including its own. Steps 
 a previous run finished with the same configuration, so rerunning a killed command resumes it.
 
 With ``output.keep_store: false`` a run that completed removes the chunks of its store and
-records what it completed (:func:`workflows.store.retention.remove_chunks`); the same run again then
-only says so, and any other command starts afresh from the input tiles.
+records what it completed (:func:`workflows.store.retention.remove_chunks`); the same run, or
+any step command of its configuration, again then only says so; the whole run with another
+configuration starts afresh from the input tiles, and a step command that would have to
+(or ``--chunk``) says so in one line instead.
 """
 
 import logging
 import os
 
+from pipeline.errors import StoreError
 from workflows.run.directory import Run
 from workflows.run.progress import say
 from workflows.run.state import RunState
@@ -28,9 +31,11 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     compiling in the background while ingest runs; waited for before the features step.
     """
     state = RunState(run, engine, target, only, command, kernels)
-    state.stamp = run.forget_stale_results()  # a rerun that changes nothing keeps metrics
-    if _already_complete(run, target, only, state.summary, state.stamp):
+    # before the stamp of metrics and report is renewed: a refusal keeps them
+    if _already_complete(run, target, only, state.summary, run.results_stamp()):
         return state.summary
+    state.stamp = run.forget_stale_results()  # a rerun that changes nothing keeps metrics
+    state.adds_durations = not run.report_path.is_file()  # complete: it costs nothing more
     try:
         for step in steps_until(target, run.cfg):
             if only is not None and not step.per_chunk:
@@ -74,16 +79,28 @@ def _finish(run: Run, target: str, only, summary: dict, stamp: str) -> None:
 
 def _already_complete(run: Run, target: str, only, summary: dict, stamp: str) -> bool:
     """Whether the store was removed after a complete run of this very configuration (results
-    stamp ``stamp``) whose outputs are all still there (then say so and fill ``summary``); a
-    removed store that does not qualify is cleared, so that the steps start afresh."""
+    stamp ``stamp``) whose outputs are all still there (then say so and fill ``summary``):
+    every step command's work is part of that run. Otherwise the whole run (its last
+    target) starts afresh from the input tiles, the removed store cleared; a step command or
+    ``--chunk``, which would redo everything for a part of it, is refused in one line that
+    says so and how to ask for it (StoreError)."""
     if not run.store_path.exists():  # never create the store before ingest checks the inputs
         return False
     record = removed_record(run.store)
     if record is None:
         return False
-    complete = (target == TARGETS[-1] and only is None
-                and record.get("completed") == stamp
-                and all((run.out / p).is_file() for p in record.get("outputs", ())))
+    same = record.get("completed") == stamp
+    missing = [p for p in record.get("outputs", ()) if not (run.out / p).is_file()]
+    complete = only is None and same and not missing
+    if not complete and (target != TARGETS[-1] or only is not None):
+        why = ("--chunk needs the chunks" if only is not None and same and not missing
+               else "it completed with another configuration, other inputs or another model"
+               if not same else f"{missing[0]} is no longer there")
+        raise StoreError(
+            f"{run.store_path}: its chunks were removed after the run completed "
+            f"(output.keep_store: false) and {why}; 'silva {target}' would compute every "
+            "step up to it again from the input tiles: to do so, rerun it with --overwrite "
+            "(set output.keep_store: true to keep the chunks of the next run)")
     if complete:
         summary.update(record.get("summary", {}))
         say(f"{run.out}: the results of this configuration are complete (its store was removed "

@@ -11,8 +11,8 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from pipeline.errors import ConfigError, ModelError
-from pipeline.features.sets import feature_set
-from pipeline.model import check_compatible, check_versions, verify_stage_files
+from pipeline.features.sets import ECHO_SETS, feature_set
+from pipeline.model import check_compatible, check_versions, forest_inputs, verify_stage_files
 from workflows.config import SilvaConfig
 from workflows.config.inputs import SCENES, expand_inputs
 
@@ -109,7 +109,9 @@ def check_model(cfg: SilvaConfig, model: AppliedModel) -> None:
     """
     description, path = model.description, model.path
     check_versions(description, path)
-    check_compatible(description, feature_description(cfg), path)
+    expected = feature_description(cfg)
+    check_echo_columns(cfg, description, path)
+    check_compatible(description, expected, path)
     for key in ("classes", "stages"):
         if not description.get(key):
             raise ModelError(f"model {path} records no {key}; retrain it")
@@ -122,3 +124,46 @@ def check_model(cfg: SilvaConfig, model: AppliedModel) -> None:
             f"{dict(zip(classes, class_codes))}; use the model's classes and codes"
         )
     verify_stage_files(path, description)
+    check_forest_inputs(description, path, len(expected["features.columns"]), len(names))
+
+
+def check_echo_columns(cfg: SilvaConfig, description: dict, path) -> None:
+    """ModelError when the feature columns ``description`` (a model.json) records are those
+    of the other value of its ``features.echoes`` (``cfg`` took the model's keys): the key
+    was edited after training, and the line names it."""
+    trained = description.get("features.columns")
+    params = replace(cfg.features.params, terrain=cfg.terrain.params)
+    if trained is None or trained == list(feature_set(params).columns):
+        return
+    if params.set not in ECHO_SETS:
+        return
+    other = replace(params, echoes=not params.echoes)
+    if trained != list(feature_set(other).columns):
+        return
+    echo = [name for name in trained if name not in feature_set(params).columns] or \
+        [name for name in feature_set(params).columns if name not in trained]
+    raise ModelError(
+        f"model {path} records features.echoes={json.dumps(params.echoes)}, but its feature "
+        f"columns are those of features.echoes={json.dumps(other.echoes)} (with"
+        f"{'' if other.echoes else 'out'} the {len(echo)} echo columns, {echo[0]}, ...): "
+        "features.echoes was edited in its model.json after training; restore the model's "
+        f"own model.json (features.echoes: {json.dumps(other.echoes)}) or retrain the model "
+        "with 'silva train'")
+
+
+def check_forest_inputs(description: dict, path, n_columns: int, n_classes: int) -> None:
+    """ModelError unless every stage forest of the model at ``path`` takes the inputs its
+    model.json ``description`` describes: ``n_columns`` feature columns and the context
+    (two columns per class, ``n_classes``), so that a model.json edited consistently (its
+    keys, columns and digest) is refused before any work, not by the forests."""
+    expected = n_columns + 2 * n_classes
+    for i, stage in enumerate(description["stages"]):
+        file = Path(path) / stage["file"]
+        got = forest_inputs(file)
+        if got != expected:
+            raise ModelError(
+                f"model {path}: the forest of stage {i + 1} ({file.name}) was fitted on {got} "
+                f"input columns, but its model.json describes {expected} ({n_columns} feature "
+                f"columns and 2 x {n_classes} context columns): its model.json was edited "
+                "after training (its keys, columns or classes no longer fit its forests); "
+                "restore the model's own model.json or retrain the model with 'silva train'")

@@ -31,6 +31,9 @@ class RunState:
     kernels: object = None
     summary: dict = field(default_factory=dict)
     stamp: str = ""  # what metrics and report follow from (Run.results_stamp)
+    # False when the run's results were complete when it started (the report of this very
+    # stamp): what it redoes (reading, checking, the report) adds nothing to what they cost
+    adds_durations: bool = True
     layout: RunLayout | None = None  # ingest's chunk layout
     counts: object = None  # the training points per class (features)
     staged: RunLayout | None = None  # the layout's scenes classified stage by stage
@@ -71,7 +74,8 @@ class RunState:
 
     def timed(self, step: str, fn, *args, **kwargs):
         """``fn(*args, **kwargs)``, its seconds added to ``step``'s in the summary's timings
-        and in the output directory's durations (a stopped or failed run's share too)."""
+        and, unless the results were complete already (``adds_durations``), in the output
+        directory's durations (a stopped or failed run's share too)."""
         timings = self.summary["timings"]
         started = time.monotonic()
         try:
@@ -80,7 +84,8 @@ class RunState:
             self.run.drop_results()  # a damaged store certifies no metrics made from it
             raise
         finally:
-            accumulate(self.run.out, {step: time.monotonic() - started})
+            if self.adds_durations:
+                accumulate(self.run.out, {step: time.monotonic() - started})
         timings[step] = round(timings.get(step, 0) + time.monotonic() - started, 2)
         return result
 

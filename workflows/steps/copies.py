@@ -22,6 +22,7 @@ that one of its copies trained.
 from dataclasses import replace
 
 from pipeline.cascade.thinning import cells_density, thinned_mask, thinning_fraction
+from workflows.run.progress import say
 from workflows.store.assembly import restart_unit
 from workflows.store.layout import copy_scene, unit_path
 from workflows.store.marks import is_done, mark_done
@@ -39,7 +40,9 @@ def plan_copies(scenes: dict[str, SceneLayout], densities, measure
 
     The training scene's layout records its ``density`` (``points``, ``cells``,
     ``value``); a copy's is its scene's (the same grid, halo, read units and part keys),
-    stage by stage, with its :class:`~workflows.store.scenes.Thinning`.
+    stage by stage, with its :class:`~workflows.store.scenes.Thinning`. A density whose
+    copy would keep about no point (fewer than half a point expected) makes none either: an
+    empty scene has no terrain and trains nothing (said by :func:`copy_lines`).
     """
     if not densities or SOURCE not in scenes:
         return scenes
@@ -56,9 +59,12 @@ def plan_copies(scenes: dict[str, SceneLayout], densities, measure
             if target >= density:
                 continue  # a copy is never denser than its scene (said by copy_lines)
             fraction = float(thinning_fraction(density, target))
+            expected = int(round(points * fraction))
+            if expected == 0:
+                continue  # the copy would be empty (said by copy_lines)
             result[copy_scene(scene, target)] = replace(
                 info, one_pass=False, estimate=None, thinning=Thinning(
-                    scene, target, fraction, int(round(points * fraction))))
+                    scene, target, fraction, expected))
     return result
 
 
@@ -79,6 +85,7 @@ def copy_lines(scenes: dict[str, SceneLayout], densities, seed: int,
     if SOURCE not in scenes:
         return [f"data.densities: no thinned copies: the run has no data.{SOURCE}"]
     density = scenes[SOURCE].density["value"]
+    points = scenes[SOURCE].density["points"]
     copies = {name: info.thinning for name, info in scenes.items() if info.thinning}
     lines = [f"copy {name}: scene {copy.copy_of} ({density:,.1f} points/m² in its "
              f"occupied 2 m cells) thinned to {copy.target:g} points/m², fraction "
@@ -86,11 +93,40 @@ def copy_lines(scenes: dict[str, SceneLayout], densities, seed: int,
              "trained on, not exported or scored"
              for name, copy in copies.items()]
     made = {copy.target for copy in copies.values()}
-    lines += [f"data.densities {target:g}: no copy of scene {SOURCE}, whose density is "
-              f"{density:,.1f} points/m² (a copy is never denser than its scene)"
+    lines += [no_copy_line(target, density, points)
               for target in sorted(set(map(float, densities)), reverse=True)
               if target not in made]
     return lines
+
+
+def no_copy_line(target: float, density: float, points: int) -> str:
+    """Why the density ``target`` of ``data.densities`` makes no copy of the training scene
+    (``density`` points per m², ``points`` points)."""
+    if target >= density:
+        return (f"data.densities {target:g}: no copy of scene {SOURCE}, whose density is "
+                f"{density:,.1f} points/m² (a copy is never denser than its scene)")
+    return (f"data.densities {target:g}: no copy of scene {SOURCE}: thinned from "
+            f"{density:,.1f} to {target:g} points/m², its {points:,} points would leave "
+            "about none (an empty copy has no terrain and trains nothing); remove "
+            f"{target:g} from data.densities or train on a larger scene")
+
+
+def without_empty_copies(scenes: dict[str, SceneLayout], quiet: bool = False
+                         ) -> dict[str, SceneLayout]:
+    """``scenes`` (ingest's layouts, their ``chunks`` set from the points written) without
+    the thinned copies in which the thinning kept no point after all (a few points
+    expected, none drawn), each said in one line."""
+    kept = {}
+    for name, info in scenes.items():
+        if info.thinning is not None and not info.chunks:
+            say(f"ingest: copy {name}: the thinning kept none of the points of scene "
+                f"{info.thinning.copy_of} (fraction {info.thinning.fraction:.4g}, about "
+                f"{info.thinning.expected:,} expected): skipped, an empty copy has no "
+                f"terrain and trains nothing; remove {info.thinning.target:g} from "
+                "data.densities to silence this", quiet=quiet)
+            continue
+        kept[name] = info
+    return kept
 
 
 def trained_copies(layout: RunLayout) -> list[dict]:

@@ -90,6 +90,7 @@ def evaluate(run: Run, engine, layout: RunLayout, n_stages: int) -> dict:
             "x": np.concatenate([r["map_x"] for r in results]),
             "y": np.concatenate([r["map_y"] for r in results]),
             "label": np.concatenate([r["map_label"] for r in results]),
+            "height": np.concatenate([r["map_height"] for r in results]),
             "class_names": run.classes,
         },
         "terrain": canopy_samples(run, {

@@ -36,7 +36,7 @@ from pipeline.tiling import BalancedLayout, Grid, global_ids
 from workflows.config.point_filter import PointFilter
 from workflows.config.schema import feature_dim_name
 from workflows.exec.engine import Task
-from workflows.run.directory import Run
+from workflows.run.directory import Run, rerun_command
 from workflows.run.progress import counted, say
 from workflows.steps.trees import REFERENCE_TREE_ID, TileTrees, TreeTask
 from workflows.store.layout import chunk_path, proba_array
@@ -441,7 +441,7 @@ def check_point_formats(run: Run, tiles: list[dict]) -> None:
 def export_command(out: Path) -> str:
     """The command that reruns the export of the run in ``out``: with the configuration the
     run saved there, which a 'silva predict' without a configuration has too."""
-    return f"silva export {Path(out) / 'config.yaml'} --out {out} --in-process"
+    return rerun_command(out, "export", "--in-process")
 
 
 def export(run: Run, engine, layout: RunLayout, final_stage: int, stage_fp: str

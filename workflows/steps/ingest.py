@@ -13,7 +13,9 @@ the training scene (``data.densities``, :mod:`workflows.steps.copies`) are writt
 same read, each of the points it keeps.
 """
 
+import logging
 import os
+import shlex
 from dataclasses import dataclass, replace
 from functools import cache, partial
 from pathlib import Path
@@ -23,9 +25,9 @@ import numpy as np
 from pipeline.cascade.one_pass import ring_width
 from pipeline.cascade.thinning import DEFAULT_DENSITY_CELL, cell_keys
 from pipeline.errors import ConfigError, InputError, StoreError
-from pipeline.features.echo import has_returns
+from pipeline.features.echo import return_counts
 from pipeline.io import iter_points, labels_from_codes, read_info, reads_ranges
-from pipeline.io.crs import check_metres, check_same_crs
+from pipeline.io.crs import check_metres, check_same_crs, crs_name
 from pipeline.store import Appender, open_store
 from pipeline.tiling import (
     GROUP_SHARE,
@@ -47,6 +49,7 @@ from workflows.run.echoes import EchoNeed, check_return_fields, echo_need
 from workflows.run.progress import counted, say
 from workflows.steps.copies import (
     copies_done, copies_of, copy_counts, copy_lines, plan_copies, with_copies,
+    without_empty_copies,
 )
 from workflows.steps.one_pass import MAX_BORDER_SHARE, border_share, wants_one_pass
 from workflows.store.assembly import restart_unit
@@ -55,6 +58,8 @@ from workflows.store.layout import (
 )
 from workflows.store.marks import is_done, mark_done
 from workflows.store.scenes import RunLayout, SceneLayout, read_units
+
+log = logging.getLogger(__name__)
 
 AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -128,9 +133,33 @@ def plan_tiles(run: Run) -> list[dict]:
     if not tiles:
         raise InputError("no input tiles: set data.train, data.test or data.predict")
     for scene in SCENES:  # one scene, one CRS: neighbourhoods cross the tiles' borders
-        check_same_crs([(t["path"], t["crs_wkt"]) for t in tiles if t["scene"] == scene],
-                       f"data.{scene}")
+        members = [t for t in tiles if t["scene"] == scene]
+        crs = check_same_crs([(t["path"], t["crs_wkt"]) for t in members], f"data.{scene}")
+        assume_crs(members, crs, f"data.{scene}")
     return tiles
+
+
+#: The tiles whose assumed CRS was said already in this process (plan_tiles runs twice).
+_said_assumed: set[str] = set()
+
+
+def assume_crs(tiles: list[dict], crs: str | None, where: str) -> None:
+    """Give the ``tiles`` (dicts) of one scene that record no CRS the scene's ``crs`` (the
+    WKT of its other tiles; None: no tile has one), in which their points are taken and
+    their rasters and trees written, with a warning naming it (once per tile)."""
+    if crs is None:
+        return
+    named = next(t["path"] for t in tiles if t["crs_wkt"])
+    for tile in tiles:
+        if tile["crs_wkt"]:
+            continue
+        tile["crs_wkt"] = crs
+        if tile["path"] not in _said_assumed:
+            _said_assumed.add(tile["path"])
+            log.warning("tile %s of %s records no CRS, beside tiles in %s (%s): it is taken "
+                        "as %s, and its rasters and trees are written in it; if it is in "
+                        "another CRS, reproject it or run it apart", tile["path"], where,
+                        crs_name(crs), named, crs_name(crs))
 
 
 def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict[str, SceneLayout]:
@@ -289,7 +318,8 @@ def _pass_over_tiles(run: Run, scene: str, members: list[dict], engine, name: st
         return [fn(**call) for call in calls]
     tasks = [Task(key=f"{name}-{scene}-{unit.key}{key}", fn=fn, kwargs=call,
                   where=f"{tiles_text(tiles)} (scene '{scene}')",
-                  reproduce=f"silva plan CONFIG (reads {tiles_text(tiles)})")
+                  reproduce=f"silva plan {shlex.quote(str(run.out / 'config.yaml'))} "
+                            f"(reads {tiles_text(tiles)})")
              for (unit, tiles), call in zip(units, calls)]
     results = engine.map(f"ingest ({name})", tasks)
     return [results[task.key] for task in tasks]
@@ -450,7 +480,8 @@ def ingest_tile(task: IngestTask) -> dict:
     marker (``excluded``).
 
     With ``echoes``, each point's return number and number of returns are stored too
-    (uint8), and a tile (or range) without a point that has returns is refused.
+    (uint8), and the counts of valid, empty and inverted return fields are returned per tile
+    index (``returns``), for :func:`check_returns_seen` to judge each tile whole.
     """
     store_path, scene, tiles, grid = task.store_path, task.scene, task.tiles, task.grid
     read_batch, fingerprint = task.read_batch, task.fingerprint
@@ -461,6 +492,7 @@ def ingest_tile(task: IngestTask) -> dict:
         return {"core_counts": marker.attrs["core_counts"],
                 "excluded": _excluded(marker.attrs, tiles),
                 "bounds": marker.attrs.get("bounds", {}),
+                "returns": marker.attrs.get("returns", {}),
                 **copy_counts(root, task.key, task.copies)}
     restart_unit(root, scene, marker)  # done only when a copy is not: written again with it
     writer = with_copies(_PartWriter(marker, grid, task.halo), root, task.key, task.copies,
@@ -469,20 +501,21 @@ def ingest_tile(task: IngestTask) -> dict:
     labelled = scene != "predict"
     excluded: dict[str, int] = {}
     bounds: dict[str, list] = {}  # tile index -> [mins, maxs] of the points read
+    returns: dict[str, list] = {}  # tile index -> its points' return counts (with echoes)
     fields = task.points_filter.fields(task.label_field if labelled else None)
     if task.echoes is not None:
         fields = tuple(dict.fromkeys(fields + RETURNS))
     pending, held = [], 0  # points read and not yet written: less than a read batch
     for tile in tiles:
         n_read = n_excluded = 0
-        seen_returns = False  # some point of the tile has returns (with echoes)
+        counts = (0, 0, 0)  # (valid, empty, above) return fields of the points read
         for batch in iter_points(tile["path"], batch_size=read_batch, fields=fields,
                                  start=start, stop=stop):
             n_read += len(batch.xyz)
             bounds[str(tile["index"])] = widened(bounds.get(str(tile["index"])), batch.xyz)
-            columns, n_dropped, some_returns = _stored_columns(task, tile, batch, labelled)
+            columns, n_dropped, batch_counts = _stored_columns(task, tile, batch, labelled)
             n_excluded += n_dropped
-            seen_returns = seen_returns or some_returns
+            counts = tuple(a + b for a, b in zip(counts, batch_counts))
             if len(columns[0]) == 0:
                 continue
             pending.append(columns)
@@ -495,21 +528,22 @@ def ingest_tile(task: IngestTask) -> dict:
                              f"points but {n_read} were read; the file is truncated or its "
                              "header is wrong: repair or re-export it")
         if task.echoes is not None:
-            task.echoes.check_read(tile["path"], seen_returns, task.span)
+            returns[str(tile["index"])] = list(counts)
         excluded[str(tile["index"])] = n_excluded
     if pending:
         writer.write(*(np.concatenate(column) for column in zip(*pending)))
     parts = writer.seal()
     mark_done(marker, "ingest", fingerprint, core_counts=writer.counts, excluded=excluded,
-              parts=parts, bounds=bounds)
+              parts=parts, bounds=bounds, returns=returns)
     return {"core_counts": writer.counts, "excluded": excluded, "bounds": bounds,
-            **copy_counts(root, task.key, task.copies)}
+            "returns": returns, **copy_counts(root, task.key, task.copies)}
 
 
 def _stored_columns(task: IngestTask, tile: dict, batch, labelled: bool):
     """What ingest stores of a read ``batch`` of ``tile``: the columns of its kept points
     (xyz, gid, label, role, and with echoes the return numbers), the number of its points
-    excluded by code or flag, and whether some point has returns."""
+    excluded by code or flag, and the return counts of its points (with echoes, else zeros:
+    :func:`pipeline.features.echo.return_counts`)."""
     xyz = batch.xyz
     gid = global_ids(tile["index"], batch.start, len(xyz))
     label = np.full(len(xyz), -1, dtype=np.int16)
@@ -517,14 +551,30 @@ def _stored_columns(task: IngestTask, tile: dict, batch, labelled: bool):
         raw = np.asarray(batch.fields[task.label_field]).astype(np.int64)
         label = labels_from_codes(raw, task.code_to_class)
     returns = () if task.echoes is None else batch_returns(batch.fields)
-    some_returns = bool(returns) and has_returns(*returns)
+    counts = return_counts(*returns) if returns else (0, 0, 0)
     kept, n_dropped = _kept(task.points_filter, batch, task.label_field if labelled else None)
     columns = (xyz, gid, label, *returns)
     if not kept.all():
         columns = tuple(values[kept] for values in columns)
     xyz, gid, label, *returns = columns
     return ((xyz, gid, label, point_roles(task.scene, xyz, task.split), *returns), n_dropped,
-            some_returns)
+            counts)
+
+
+def check_returns_seen(run: Run, tiles: list[dict], results: list[dict]) -> None:
+    """With echo features, InputError for a tile none of whose points has returns, from the
+    return counts its ingest tasks read (``results``' ``returns``, summed over the point
+    ranges of a big tile): the verdict is about the tile, the same for any read ranges."""
+    need = echo_need(run)
+    if need is None:
+        return
+    seen: dict[str, tuple] = {}
+    for result in results:
+        for index, counts in result.get("returns", {}).items():
+            seen[index] = tuple(a + b for a, b in zip(seen.get(index, (0, 0, 0)), counts))
+    for tile in tiles:
+        if str(tile["index"]) in seen:  # a store ingested before the counts: checked then
+            need.check_tile(tile["path"], seen[str(tile["index"])])
 
 
 def widened(box: list | None, xyz: np.ndarray) -> list:
@@ -674,6 +724,7 @@ def ingest(run: Run, engine) -> RunLayout:
     results = engine.map("ingest", tasks)
     scenes = {scene: replace(info, chunks=tuple(scene_chunks(scene, tasks, results)))
               for scene, info in scenes.items()}
+    scenes = without_empty_copies(scenes, run.quiet)
     excluded_by_tile: dict[str, int] = {}  # a tile read in ranges: the sum of its ranges'
     for task in tasks:
         for index, n in results[task.key]["excluded"].items():
@@ -681,6 +732,7 @@ def ingest(run: Run, engine) -> RunLayout:
     for tile in tiles:  # points the ingest filters left out (data.exclude_*)
         tile["excluded"] = int(excluded_by_tile.get(str(tile["index"]), 0))
     take_seen_bounds(tiles, [results[task.key] for task in tasks])
+    check_returns_seen(run, tiles, [results[task.key] for task in tasks])
     check_something_left(run, tiles)
     excluded = sum(t["excluded"] for t in tiles)
     if excluded:
@@ -728,6 +780,6 @@ def ingest_tasks(run: Run, scenes: dict[str, SceneLayout], tiles: list[dict],
                 where=(f"{tiles_text(list(members))}"
                        f"{f' (points {span[0]:,} to {span[1]:,})' if span else ''}"
                        f" (scene '{scene}')"),
-                reproduce=f"silva ingest CONFIG --out {run.out} --in-process",
+                reproduce=run.rerun("ingest", "--in-process"),
             ))
     return tasks

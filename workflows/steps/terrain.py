@@ -118,9 +118,10 @@ def terrain(run: Run, engine, layout: RunLayout) -> None:
         unseen = sum(c["unseen"] for c in mine) / max(sum(c["occupied"] for c in mine), 1)
         write_scene_terrain(root, scene, grid, blocks, unseen, fingerprint)
         if unseen > INTERPOLATED_WARNING:
-            say(f"warning: scene '{scene}': under {unseen:.0%} of its points' {params.cell:g} m "
-                "cells no ground was seen (dense canopy, roofs, or no ground in the scan); "
-                "the terrain model is interpolated there and heights above it are less certain")
+            say(f"warning: scene '{scene}': no ground was seen in {unseen:.0%} of the "
+                f"{params.cell:g} m cells that hold its points (dense canopy, roofs, or no "
+                "ground in the scan); the terrain model is interpolated there and heights "
+                "above it are less certain")
 
 
 def ground_under(view, xyz: np.ndarray) -> np.ndarray:
