@@ -54,11 +54,13 @@ PAIRS = "tree_pairs"
 @dataclass(frozen=True)
 class TreeTask:
     """What a chunk needs to find its part of the trees: the final stage's predictions, the
-    classes that make the canopy and the stems (indices), the parameters."""
+    classes that make the canopy and the stems, and those a tree may hold (indices), the
+    parameters."""
 
     final_stage: int
     canopy: tuple[int, ...]
     stems: tuple[int, ...]
+    candidates: tuple[int, ...]
     params: TreeParams
     fingerprint: str  # of the scene's tree model
 
@@ -68,27 +70,31 @@ class TreeTask:
         fingerprint, which the tree model follows from)."""
         cfg = run.cfg
         return cls(final_stage, tuple(cfg.canopy_classes), tuple(cfg.stem_classes),
-                   cfg.trees.params, f"{run.fingerprint('trees')}-{stage_fp}")
+                   tuple(cfg.tree_point_classes), cfg.trees.params,
+                   f"{run.fingerprint('trees')}-{stage_fp}")
 
 
 def chunk_points(view, task: TreeTask):
-    """The core points of one chunk with their heights above ground and class masks."""
+    """The core points of one chunk with their heights above ground and class masks
+    (canopy, stems, the points a tree may hold)."""
     xyz = view.read("xyz")
     label = labels_from_proba(view.read(proba_array(task.final_stage)))
     height = xyz[:, 2] - ground_under(view, xyz)
-    return xyz, height, np.isin(label, task.canopy), np.isin(label, task.stems)
+    return (xyz, height, np.isin(label, task.canopy), np.isin(label, task.stems),
+            np.isin(label, task.candidates))
 
 
 def chunk_tree_inputs(view, task: TreeTask) -> TreeInputs:
     """Worker task (pass 1): what the chunk's points give the scene's trees."""
-    return tree_inputs(*chunk_points(view, task), task.params)
+    xyz, height, canopy, stems, candidates = chunk_points(view, task)
+    return tree_inputs(xyz, height, canopy, stems, task.params, candidates)
 
 
 def chunk_tree_stats(view, task: TreeTask):
     """Worker task (pass 2): the chunk's points per tree, highest points, sums."""
-    xyz, height, canopy, stems = chunk_points(view, task)
+    xyz, height, canopy, stems, candidates = chunk_points(view, task)
     model = scene_trees(view.store_path, view.scene, task.fingerprint)
-    ids = assign_trees(model, xyz, height, canopy, stems, task.params)
+    ids = assign_trees(model, xyz, height, canopy, stems, task.params, candidates)
     return tree_stats(ids, xyz, height)
 
 
@@ -200,13 +206,15 @@ class TileTrees:
         self.model = scene_trees(store_path, scene, task.fingerprint)
         self.canopy = np.isin(np.arange(n_classes), task.canopy)
         self.stems = np.isin(np.arange(n_classes), task.stems)
+        self.candidates = np.isin(np.arange(n_classes), task.candidates)
 
     def assign(self, batch, height, best, found) -> np.ndarray:
         """uint32 tree IDs of a batch: 0 for the points never classified (``~found``)."""
         ids = np.zeros(len(best), dtype=np.uint32)
         label = best[found]
         ids[found] = assign_trees(self.model, batch.xyz[found], height[found],
-                                  self.canopy[label], self.stems[label], self.task.params)
+                                  self.canopy[label], self.stems[label], self.task.params,
+                                  self.candidates[label])
         reference = batch.fields.get(REFERENCE_TREE_ID)
         if self.score and reference is not None:
             self.pairs.append(pair_counts(reference[found], ids[found]))
