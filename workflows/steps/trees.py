@@ -30,7 +30,9 @@ from pipeline.io.vector import write_tree_csv, write_tree_gpkg
 from pipeline.store import open_store, write_arrays
 from pipeline.terrain import Raster
 from pipeline.trees import TreeModel, TreeParams, assign_trees, merge_stats, tree_stats, tree_table
+from pipeline.tiling.grid import tile_area
 from pipeline.trees.instances import match_pairs, matched_errors, merge_pairs, pair_counts
+from pipeline.trees.params import check_scan
 from pipeline.trees.scene import TreeInputs, merge_inputs, scene_model, tree_inputs
 from workflows.exec.engine import chunk_tasks, results_by_scene
 from workflows.run.progress import counted, say
@@ -96,6 +98,25 @@ def chunk_tree_stats(view, task: TreeTask):
     model = scene_trees(view.store_path, view.scene, task.fingerprint)
     ids = assign_trees(model, xyz, height, canopy, stems, task.params, candidates)
     return tree_stats(ids, xyz, height)
+
+
+def check_tree_settings(run, tiles: list[dict]) -> None:
+    """Refuse ``trees.*`` values that cannot give trees on a scene of ``tiles`` (the
+    headers' boxes and point counts before any work, the points' boxes once ingested): a
+    resolution finer than the points resolve or coarser than a crown, a canopy raster beyond
+    memory or the cell keys, a window wider than the scene (see
+    :func:`pipeline.trees.params.check_scan`). Raises ConfigError."""
+    if not run.cfg.output.trees:
+        return
+    for scene in sorted({t["scene"] for t in tiles}):
+        members = [t for t in tiles if t["scene"] == scene]
+        mins = np.min([t["mins"][:2] for t in members], axis=0)
+        maxs = np.max([t["maxs"][:2] for t in members], axis=0)
+        area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
+        density = sum(t["n_points"] for t in members) / area
+        width, depth = (float(v) for v in maxs - mins)
+        check_scan(run.cfg.trees.params, density, width, depth,
+                   float(np.abs(np.concatenate([mins, maxs])).max()))
 
 
 def model_path(scene: str) -> str:
