@@ -79,7 +79,8 @@ def standing_stems(stems: Stems, voxels: np.ndarray, params: TreeParams) -> Stem
     if not len(stems):
         return stems
     seeds = np.column_stack([stems.x, stems.y, stems.z_base + stems.fit_height])
-    grown = grow_from_stems(voxels, seeds, np.arange(1, len(stems) + 1, dtype=np.uint32))
+    grown = grow_from_stems(voxels, seeds, np.arange(1, len(stems) + 1, dtype=np.uint32),
+                            seed_radius=np.nan_to_num(stems.dbh / 2.0))
     top = np.full(len(stems), -np.inf)
     held = np.flatnonzero(grown.ids)
     if held.size:
@@ -99,7 +100,8 @@ def grow_trees(model: TreeModel, stems: Stems, voxels: np.ndarray):
                                             model.stem_y[trees].tolist())]
     section = stems.z_base[rows] + stems.fit_height[rows]
     seeds = np.column_stack([model.stem_x[trees], model.stem_y[trees], section])
-    return grow_from_stems(voxels, seeds, (trees + 1).astype(np.uint32))
+    return grow_from_stems(voxels, seeds, (trees + 1).astype(np.uint32),
+                           seed_radius=model.stem_radius[trees])
 
 
 def find_trees(xyz: np.ndarray, height: np.ndarray, canopy: np.ndarray, stem_mask: np.ndarray,
