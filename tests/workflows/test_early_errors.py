@@ -224,11 +224,17 @@ def test_the_scan_tells_too_fine_from_too_coarse():
     from pipeline.trees.params import check_scan
 
     plot = (40.0, 40.0, 5_500_040.0)  # metres wide, deep, and the largest coordinate
-    for resolution, density in ((0.5, 13.0), (0.5, 0.9), (0.05, 1700.0), (1.0, 0.5)):
+    # airborne tiles of 43, 25 and 0.9 points/m² (the pine patch, St Barth, Topography) and
+    # a terrestrial plot: the medians of points per tree at 0.1, 0.1 and 0.5 m were 2, 1, 2
+    for resolution, density in ((0.25, 43.0), (0.5, 25.0), (1.0, 0.9), (0.02, 1700.0),
+                                (2.0, 0.5)):
         check_scan(TreeParams(resolution=resolution), density, *plot)  # sensible: silent
-    for resolution, density in ((0.01, 25.0), (0.1, 0.9), (2.5, 13.0), (50.0, 13.0)):
+    for resolution, density in ((0.1, 43.0), (0.1, 25.0), (0.5, 0.9), (2.5, 13.0),
+                                (50.0, 13.0)):
         with pytest.raises(ConfigError, match="trees.resolution"):
             check_scan(TreeParams(resolution=resolution), density, *plot)
+    with pytest.raises(ConfigError, match=r"--set trees.resolution=1.1\)"):
+        check_scan(TreeParams(), 0.9, *plot)  # about the points' spacing
     with pytest.raises(ConfigError, match="trees.resolution=0.004 m gives cell indices beyond"):
         check_scan(TreeParams(resolution=0.004), 1e5, *plot)
     with pytest.raises(ConfigError, match="the scene's canopy height model"):
