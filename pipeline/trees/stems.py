@@ -202,15 +202,15 @@ def fit_stems(member: np.ndarray, params: TreeParams) -> list[tuple]:
     """Rows (x, y, z_base, dbh, quality, fit_height) of the stems of one cluster.
 
     ``member`` float64 (m, 4) the cluster's points, canonically sorted. The sections are
-    tried in the order of :func:`section_heights`; in each, circles are fitted one after the
-    other to the points no circle found so far explains (:func:`section_circles`), so two
-    stems a few centimetres apart, one cluster, are two stems, and a stem hidden at breast
-    height beside a seen one is still found at a fallback section. A cluster with no circle,
-    or with several, may be a leaning stem, whose sections are smeared across the slice and
-    stand apart: when :func:`stem_lean` finds its axis, the sections are fitted along it.
+    tried in the order of :func:`section_heights` until one gives circles, fitted one after
+    the other to the points no circle explains yet (:func:`section_circles`), so two stems a
+    few centimetres apart, one cluster, are two stems. A leaning stem's sections are smeared
+    across the slice and stand apart: when the cluster gives no circle, several, or one whose
+    section farthest from it stands off its axis by MIN_LEAN or more (:func:`_leans`), and
+    :func:`stem_lean` finds an axis, the sections are fitted along it.
     """
     rows = _fit_sections(member, params, np.zeros(2))
-    if len(rows) != 1:
+    if len(rows) != 1 or _leans(member, rows[0], params):
         lean = stem_lean(member, params)
         if lean is not None:
             rows = _fit_sections(member, params, lean)
@@ -219,22 +219,49 @@ def fit_stems(member: np.ndarray, params: TreeParams) -> list[tuple]:
 
 def _fit_sections(member: np.ndarray, params: TreeParams, lean: np.ndarray) -> list[tuple]:
     """:func:`fit_stems` along an axis that leans by ``lean`` (2,) metres per metre."""
-    rows, found = [], []  # found: (x, y, radius, height) of the circles so far
     for k, centre in enumerate(section_heights(params)):
         section = member[np.abs(member[:, 3] - centre) <= params.slice_half_width]
         # each point slid along the axis to the section's height, then across the axis
         uv = across_axis(section[:, :2] - np.outer(section[:, 3] - centre, lean), lean)
-        free = np.ones(len(section), dtype=bool)
-        for x, y, radius, height in found:
-            axis = across_axis(np.array([[x, y]]) + lean * (centre - height), lean)
-            free &= np.hypot(*(uv - axis).T) > radius + 2.0 * CIRCLE_TOLERANCE
-        for u, v, radius, near in section_circles(uv[free], params):
+        rows = []
+        for i, (u, v, radius, near) in enumerate(section_circles(uv, params)):
+            if i and not _stands(member, (u, v, radius), centre, lean, params):
+                continue  # a second circle on a branch or a shred of bark, not a stem
             x, y = across_axis(np.array([[u, v]]), lean, inverse=True)[0]
-            z_base = float(np.median(section[free][near, 2] - section[free][near, 3]))
+            z_base = float(np.median(section[near, 2] - section[near, 3]))
             quality = QUALITY_GOOD if k == 0 else QUALITY_FALLBACK
             rows.append((float(x), float(y), z_base, 2.0 * radius, quality, float(centre)))
-            found.append((x, y, radius, centre))
-    return rows
+        if rows:
+            return rows
+    return []
+
+
+def _stands(member: np.ndarray, circle: tuple, height: float, lean: np.ndarray,
+            params: TreeParams) -> bool:
+    """Whether the circle (u, v, radius) fitted across the axis at ``height`` is a stem's:
+    its ring holds ``stem_min_points`` points at two of the other sections (all of them when
+    fewer), as a column of bark does and a branch or a shred of bark at one height does not."""
+    others = [h for h in section_heights(params) if h != height]
+    seen = 0
+    for other in others:
+        section = member[np.abs(member[:, 3] - other) <= params.slice_half_width]
+        uv = across_axis(section[:, :2] - np.outer(section[:, 3] - height, lean), lean)
+        ring = np.abs(np.hypot(uv[:, 0] - circle[0], uv[:, 1] - circle[1]) - circle[2])
+        seen += int(np.count_nonzero(ring <= CIRCLE_TOLERANCE) >= params.stem_min_points)
+    return seen >= min(2, len(others))
+
+
+def _leans(member: np.ndarray, row: tuple, params: TreeParams) -> bool:
+    """Whether the section farthest from the one ``row`` was fitted at gives one circle
+    whose centre stands off ``row``'s by MIN_LEAN metres per metre of height or more."""
+    heights = section_heights(params)
+    other = heights[np.argmax(np.abs(heights - row[5]))]
+    section = member[np.abs(member[:, 3] - other) <= params.slice_half_width]
+    circles = section_circles(section[:, :2], params)
+    if len(circles) != 1 or other == row[5]:
+        return False
+    drift = np.hypot(circles[0][0] - row[0], circles[0][1] - row[1])
+    return bool(drift >= MIN_LEAN * abs(other - row[5]))
 
 
 def across_axis(xy: np.ndarray, lean: np.ndarray, inverse: bool = False) -> np.ndarray:

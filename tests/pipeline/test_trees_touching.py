@@ -90,3 +90,16 @@ def test_two_touching_stems_grow_two_trees():
     for k in (1, 2):
         share = np.mean(ids[stem & (truth == k)] == own[k - 1])
         assert share > 0.9, (k, share)
+
+
+def test_a_shred_of_bark_beside_a_stem_at_one_height_is_no_second_stem():
+    rng = np.random.default_rng(14)
+    stem = leaning_stem(rng, (0.0, 0.0), 0.20)
+    # a small ring of points around breast height only (a branch stub, a loose shred)
+    shred = leaning_stem(rng, (0.0, 0.17), 0.07, n=400)
+    shred = shred[np.abs(shred[:, 2] - ORIGIN[2] - 1.3) < 0.12]
+    stems = find_stems(slice_of(np.concatenate([stem, shred])), PARAMS)
+    assert len(stems) == 1 and stems.dbh[0] == pytest.approx(0.20, abs=0.01)
+    # the same ring all the way up is a second stem
+    sapling = leaning_stem(rng, (0.0, 0.17), 0.07, n=2000)
+    assert len(find_stems(slice_of(np.concatenate([stem, sapling])), PARAMS)) == 2
