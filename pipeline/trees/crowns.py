@@ -5,7 +5,9 @@
 2. Tops (:func:`find_tops`) are the cells at least ``min_height`` high that are the highest
    of a disk whose diameter grows with their height, ``window = a + b * h`` metres (lidR's
    variable window, Popescu and Wynne 2004). Cells of one flat top keep one seed, the first
-   in row-major order.
+   in row-major order. Apexes of a narrower window that rise half a metre above the saddle
+   to any higher canopy near them are tops too (:func:`find_apexes`): a blob of crowns with several
+   apexes of distinct height is several trees.
 3. Crowns grow from the tops by a marker-controlled watershed of the inverted smoothed CHM
    (scikit-image), over the cells whose CHM (holes filled by the smoothing) is at least
    ``min_height`` and within the largest crown radius ``a + b * h`` of some top (h the top's
@@ -16,7 +18,7 @@
 Every step is a deterministic function of the CHM and the parameters.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage
@@ -32,6 +34,16 @@ from pipeline.trees.params import TreeParams
 FILL_WEIGHT = 0.5
 #: Candidate tops whose disks are gathered at once (bounds the memory to ~100 MB at r = 10).
 DISK_BLOCK = 32_768
+#: Apexes within one window: the maxima of a window of APEX_WINDOW metres (at the same
+#: slope with height as ``trees.window``) that rise APEX_PROMINENCE metres or more above the
+#: saddle to any higher canopy within twice their top window (their prominence) are tops too, so a blob of crowns with
+#: several apexes of distinct height is several trees. Measured on the five synthetic plots
+#: of benchmarks/bench_trees.py (true classes): instance F1 of crowns 0.667 -> 0.703,
+#: detection F1 0.698 -> 0.724 (prominence 0.25, 0.5, 0.75, 1 and 2 m and windows of 0.5, 1
+#: and 2 m tried: 0.67-0.70); on the pine patch 20 -> 23 tops from the aircraft and the
+#: drone alike, 23 of 23 and 22 of 23 within 2 m of the other's.
+APEX_WINDOW = 1.0
+APEX_PROMINENCE = 0.5
 
 
 @dataclass(frozen=True)
@@ -134,6 +146,43 @@ def find_tops(smoothed: np.ndarray, raw: np.ndarray, cell: float,
     return rows.astype(np.int64), cols.astype(np.int64)
 
 
+def find_apexes(smoothed: np.ndarray, raw: np.ndarray, cell: float,
+                params: TreeParams) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns (int64, row-major order) of the tops of :func:`find_tops` and of
+    the apexes that stand out within a window (see :data:`APEX_WINDOW`)."""
+    rows, cols = find_tops(smoothed, raw, cell, params)
+    narrow = replace(params, window=(min(APEX_WINDOW, params.window[0]), params.window[1]))
+    apex_rows, apex_cols = find_tops(smoothed, raw, cell, narrow)
+    nx = smoothed.shape[1]
+    tops, apexes = rows * nx + cols, apex_rows * nx + apex_cols
+    new = ~np.isin(apexes, tops)
+    height = np.where(np.isfinite(smoothed), smoothed, -np.inf)
+    a, b = params.window
+    reach = 2 * np.maximum(np.rint((a + b * height[apex_rows[new], apex_cols[new]])
+                                   / (2.0 * cell)), 1).astype(int)
+    prominent = _prominent(height, apex_rows[new], apex_cols[new], reach, APEX_PROMINENCE)
+    flat = np.unique(np.concatenate([tops, apexes[new][prominent]]))
+    return (flat // nx).astype(np.int64), (flat % nx).astype(np.int64)
+
+
+def _prominent(height: np.ndarray, rows: np.ndarray, cols: np.ndarray, reach: np.ndarray,
+               drop: float) -> np.ndarray:
+    """bool (n,): whether no higher cell can be reached from the cell (rows[k], cols[k])
+    without going down by ``drop`` metres or more, within ``reach[k]`` cells of it (the
+    apex's dynamic, or prominence, seen locally: :func:`skimage.morphology.h_maxima` over
+    the whole raster would give the same where the saddle is that near)."""
+    keep = np.zeros(rows.shape[0], dtype=bool)
+    ny, nx = height.shape
+    for k, (i, j, r) in enumerate(zip(rows.tolist(), cols.tolist(), reach.tolist())):
+        i0, j0 = max(i - r, 0), max(j - r, 0)
+        patch = height[i0:min(i + r + 1, ny), j0:min(j + r + 1, nx)]
+        apex = patch[i - i0, j - j0]
+        regions, _ = ndimage.label(patch > apex - drop)
+        joined = regions == regions[i - i0, j - j0]
+        keep[k] = not np.any(patch[joined] > apex)
+    return keep
+
+
 def _reach(shape, rows, cols, radius_cells) -> np.ndarray:
     """bool (ny, nx): cells within radius_cells[k] (float) of some top (rows[k], cols[k])."""
     reach = np.zeros(shape, dtype=bool)
@@ -192,7 +241,7 @@ def segment_crowns(chm: Raster, params: TreeParams, seeds: np.ndarray | None = N
     """
     smoothed = smooth_chm(chm.values, params.smoothing)
     if seeds is None:
-        rows, cols = find_tops(smoothed, chm.values, chm.cell, params)
+        rows, cols = find_apexes(smoothed, chm.values, chm.cell, params)
         top_height = chm.values[rows, cols].copy()
     else:
         rows, cols = seed_cells(chm, np.asarray(seeds, np.float64).reshape(-1, 2))

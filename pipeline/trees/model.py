@@ -208,8 +208,21 @@ def _stem_ids(model: TreeModel, xy: np.ndarray, margin: float) -> np.ndarray:
     return ids
 
 
+def tree_points(canopy: np.ndarray, stem_mask: np.ndarray | None,
+                candidates: np.ndarray | None) -> np.ndarray:
+    """bool (N,) the points a tree grown from its stem may take: ``candidates`` (the points
+    whose class does not rule a tree out, such as everything but ground, buildings and noise),
+    or, without it, the points of the canopy and stem classes. A stem section the classifier
+    calls dead wood then does not cut its tree in two."""
+    if candidates is not None:
+        return np.asarray(candidates, bool)
+    return np.asarray(canopy, bool) | (False if stem_mask is None
+                                       else np.asarray(stem_mask, bool))
+
+
 def assign_trees(model: TreeModel, xyz: np.ndarray, height: np.ndarray, canopy: np.ndarray,
-                 stem_mask: np.ndarray | None, params: TreeParams) -> np.ndarray:
+                 stem_mask: np.ndarray | None, params: TreeParams,
+                 candidates: np.ndarray | None = None) -> np.ndarray:
     """uint32 (N,) the tree ID of each point, 0 for none; each depends only on its point.
 
     Canopy points (bool (N,) ``canopy``) at least ``min_height`` above ground (``height``
@@ -217,13 +230,14 @@ def assign_trees(model: TreeModel, xyz: np.ndarray, height: np.ndarray, canopy: 
     canopy height (:attr:`TreeModel.top`) by more than
     :func:`~pipeline.surface.spike_gap`: a stray point (a bird) is in no tree. Points of
     ``stem_mask`` (bool (N,) or None) left without a crown get the stem whose circle, widened
-    by ``stem_cluster_eps``, holds them in XY.
+    by ``stem_cluster_eps``, holds them in XY. With trees grown from their stems
+    (:attr:`TreeModel.voxels`), every point of :func:`tree_points` (``candidates``, bool (N,)
+    or None) at or above the ground gets the tree of its voxel.
     """
     xyz = np.asarray(xyz, dtype=np.float64)
     ids = np.zeros(xyz.shape[0], dtype=np.uint32)
     if model.voxels is not None:  # grown from the stems: a tree point's voxel tells
-        trees = np.asarray(canopy, bool) | (False if stem_mask is None
-                                            else np.asarray(stem_mask, bool))
+        trees = tree_points(canopy, stem_mask, candidates)
         at = np.flatnonzero(trees & (np.asarray(height, np.float64) >= 0.0))
         ids[at] = model.voxels.lookup(xyz[at])
         return ids

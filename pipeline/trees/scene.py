@@ -17,7 +17,7 @@ from pipeline.trees.cells import CanopyCells, canopy_cells, chm_raster, merge_ce
 from pipeline.trees.crowns import segment_crowns
 from pipeline.trees.graph import grow_from_stems, merge_voxels, tree_voxels
 from pipeline.trees.model import (
-    TreeModel, assign_trees, tree_model, tree_stats, tree_table, with_voxels,
+    TreeModel, assign_trees, tree_model, tree_points, tree_stats, tree_table, with_voxels,
 )
 from pipeline.trees.params import TreeParams
 from pipeline.trees.stems import Stems, find_stems, merge_slices, sees_stems, stem_slice
@@ -36,11 +36,13 @@ class TreeInputs:
 
 
 def tree_inputs(xyz: np.ndarray, height: np.ndarray, canopy: np.ndarray, stem_mask: np.ndarray,
-                params: TreeParams) -> TreeInputs:
+                params: TreeParams, candidates: np.ndarray | None = None) -> TreeInputs:
     """The inputs of a set of points (a chunk's core points): ``height`` above ground,
-    ``canopy`` and ``stem_mask`` bool masks of the points predicted as those classes."""
-    voxels = (tree_voxels(xyz, height, canopy | stem_mask) if params.method != "crowns"
-              else np.empty((0, 3), np.int64))
+    ``canopy`` and ``stem_mask`` bool masks of the points predicted as those classes,
+    ``candidates`` bool mask of the points that may belong to a tree (see
+    :func:`~pipeline.trees.model.tree_points`), through which trees grow from their stems."""
+    voxels = (tree_voxels(xyz, height, tree_points(canopy, stem_mask, candidates))
+              if params.method != "crowns" else np.empty((0, 3), np.int64))
     return TreeInputs(canopy_cells(xyz, height, canopy, params.resolution),
                       stem_slice(xyz, height, stem_mask, params), voxels)
 
@@ -63,10 +65,31 @@ def scene_model(inputs: TreeInputs, params: TreeParams, area: float
     chm = chm_raster(inputs.cells, params.resolution)
     if method == "crowns":
         return tree_model(segment_crowns(chm, params), None, params, chm), chm, method
-    stems = find_stems(inputs.slice, params)
+    stems = standing_stems(find_stems(inputs.slice, params), inputs.voxels, params)
     crowns = segment_crowns(chm, params, seeds=np.column_stack([stems.x, stems.y]))
     model = tree_model(crowns, stems, params, chm)
     return with_voxels(model, grow_trees(model, stems, inputs.voxels)), chm, method
+
+
+def standing_stems(stems: Stems, voxels: np.ndarray, params: TreeParams) -> Stems:
+    """The stems whose tree, grown from them through ``voxels``, reaches ``min_height``
+    above its stem's base: a stump, a rock or a shrub whose section looked like a stem
+    grows nothing tall and is no tree (the points a tree may hold are every point not surely
+    something else, so such sections are met)."""
+    if not len(stems):
+        return stems
+    seeds = np.column_stack([stems.x, stems.y, stems.z_base + stems.fit_height])
+    grown = grow_from_stems(voxels, seeds, np.arange(1, len(stems) + 1, dtype=np.uint32),
+                            seed_radius=np.nan_to_num(stems.dbh / 2.0))
+    top = np.full(len(stems), -np.inf)
+    held = np.flatnonzero(grown.ids)
+    if held.size:
+        # the voxels' upper faces: the z index is the last digit of the packed key
+        z_top = (grown.keys[held] % grown.shape[2] + grown.origin[2] + 1) * grown.size
+        np.maximum.at(top, grown.ids[held].astype(np.int64) - 1, z_top)
+    keep = top - stems.z_base >= params.min_height
+    return Stems(*(getattr(stems, name)[keep] for name in
+                   ("x", "y", "z_base", "dbh", "quality", "fit_height")))
 
 
 def grow_trees(model: TreeModel, stems: Stems, voxels: np.ndarray):
@@ -77,19 +100,21 @@ def grow_trees(model: TreeModel, stems: Stems, voxels: np.ndarray):
                                             model.stem_y[trees].tolist())]
     section = stems.z_base[rows] + stems.fit_height[rows]
     seeds = np.column_stack([model.stem_x[trees], model.stem_y[trees], section])
-    return grow_from_stems(voxels, seeds, (trees + 1).astype(np.uint32))
+    return grow_from_stems(voxels, seeds, (trees + 1).astype(np.uint32),
+                           seed_radius=model.stem_radius[trees])
 
 
 def find_trees(xyz: np.ndarray, height: np.ndarray, canopy: np.ndarray, stem_mask: np.ndarray,
-               params: TreeParams, area: float | None = None):
+               params: TreeParams, area: float | None = None,
+               candidates: np.ndarray | None = None):
     """The trees of a cloud in memory, as the workflow finds them: (tree ID of each point
     (uint32), the tree table, the model, the method). ``area`` defaults to the cloud's XY
-    bounding box."""
+    bounding box; ``candidates`` as for :func:`tree_inputs`."""
     xyz = np.asarray(xyz, np.float64)
     if area is None:
         span = xyz[:, :2].max(axis=0) - xyz[:, :2].min(axis=0) if len(xyz) else np.zeros(2)
         area = float(span[0] * span[1])
-    model, _, method = scene_model(tree_inputs(xyz, height, canopy, stem_mask, params),
-                                   params, area)
-    ids = assign_trees(model, xyz, height, canopy, stem_mask, params)
+    model, _, method = scene_model(
+        tree_inputs(xyz, height, canopy, stem_mask, params, candidates), params, area)
+    ids = assign_trees(model, xyz, height, canopy, stem_mask, params, candidates)
     return ids, tree_table(model, tree_stats(ids, xyz, height)), model, method

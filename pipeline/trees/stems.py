@@ -2,8 +2,10 @@
 
 As in the terrestrial tools (3DFin, FSCT, TreeLS), a stem is where the scan sees a vertical
 column of bark: the points of the stem classes between about 1 and 2 m above the ground are
-grouped in XY, and a circle is fitted to each group's section at breast height (1.3 m), or,
-when that section is hidden or spoiled by branches, at the sections above and below it.
+grouped in XY, and circles are fitted to each group's section at breast height (1.3 m), or,
+when that section is hidden or spoiled by branches, at the sections above and below it: one
+circle after the other, so that stems which touch (one group) are each a stem, and across
+the stem's axis when it leans, so that a leaning stem keeps its place and its diameter.
 
 1. Per chunk, :func:`stem_slice` keeps the stem points of the sections and thins them on a
    fixed global voxel grid (the lexicographically smallest point of each voxel), so thinning
@@ -43,7 +45,7 @@ RANSAC_SEED = 0
 RANSAC_NO_FIT = ("No inliers found", "Estimated model is not valid")
 #: A circle is credible when its inliers cover this share of ARC_SECTORS equal sectors
 #: (at least about 120 degrees: one scanner sees about half a stem, and a shorter arc leaves
-#: the radius loose), are this share of the section's points, and scatter about it (root
+#: the radius loose), are this share of the section's points near the circle, and scatter about it (root
 #: mean square) by at most RESIDUAL_FLOOR (the scanner's noise and the bark, which do not
 #: shrink with the stem) plus this share of its radius.
 ARC_SECTORS = 16
@@ -57,6 +59,15 @@ RESIDUAL_FLOOR = 0.005
 #: nearer the terrestrial side: stems taken on a drone scan would miss most of its trees,
 #: crowns taken on a terrestrial scan still find them.
 MIN_STEMS_PER_HECTARE = 80.0
+#: Circles fitted one after the other in one cluster's section: stems that touch.
+MAX_STEMS_PER_CLUSTER = 4
+#: A leaning stem's axis: circles on slabs of LEAN_SLAB metres every LEAN_STEP metres,
+#: spanning LEAN_SPAN metres at least; below MIN_LEAN metres per metre (about 6 degrees) a
+#: stem counts as vertical.
+LEAN_SLAB = 0.06
+LEAN_STEP = 0.2
+LEAN_SPAN = 0.5
+MIN_LEAN = 0.1
 
 
 @dataclass(frozen=True)
@@ -133,8 +144,8 @@ def canonical(points: np.ndarray) -> np.ndarray:
 def find_stems(points: np.ndarray, params: TreeParams) -> Stems:
     """The stems of a scene's slice (float (M, 4) [x, y, z, height], any order).
 
-    A cluster (:func:`stem_clusters`) becomes a stem when one of its sections, tried in the
-    order of :func:`section_heights`, fits a credible circle (:func:`fit_circle`); clusters
+    Each cluster (:func:`stem_clusters`) gives the stems of :func:`fit_stems`: one per
+    credible circle (:func:`fit_circle`), so two stems that touch are two stems; clusters
     without one (shrubs, branches, stems hidden at every section) are left out.
     """
     points = canonical(np.asarray(points, dtype=np.float64).reshape(-1, 4))
@@ -144,9 +155,7 @@ def find_stems(points: np.ndarray, params: TreeParams) -> Stems:
     bounds = np.searchsorted(labels[order], np.arange(labels.max(initial=-1) + 2))
     rows = []
     for start, stop in zip(bounds[:-1], bounds[1:]):
-        row = fit_stem(points[order[start:stop]], params)
-        if row is not None:
-            rows.append(row)
+        rows += fit_stems(points[order[start:stop]], params)
     table = distinct_stems(np.array(rows, dtype=np.float64).reshape(-1, 6), params)
     table = table[np.lexsort((table[:, 1], table[:, 0]))]
     return Stems(x=table[:, 0], y=table[:, 1], z_base=table[:, 2], dbh=table[:, 3],
@@ -189,20 +198,126 @@ def stem_clusters(points: np.ndarray, params: TreeParams) -> np.ndarray:
     return labels.astype(np.int64)[inverse.reshape(-1)]
 
 
-def fit_stem(member: np.ndarray, params: TreeParams):
-    """(x, y, z_base, dbh, quality, fit_height) of a cluster's first credible section, or None.
+def fit_stems(member: np.ndarray, params: TreeParams) -> list[tuple]:
+    """Rows (x, y, z_base, dbh, quality, fit_height) of the stems of one cluster.
 
-    ``member`` float64 (m, 4) the cluster's points, canonically sorted.
+    ``member`` float64 (m, 4) the cluster's points, canonically sorted. The sections are
+    tried in the order of :func:`section_heights` until one gives circles, fitted one after
+    the other to the points no circle explains yet (:func:`section_circles`), so two stems a
+    few centimetres apart, one cluster, are two stems. A leaning stem's sections are smeared
+    across the slice and stand apart: when the cluster gives no circle, several, or one whose
+    section farthest from it stands off its axis by MIN_LEAN or more (:func:`_leans`), and
+    :func:`stem_lean` finds an axis, the sections are fitted along it.
     """
+    rows = _fit_sections(member, params, np.zeros(2))
+    if len(rows) != 1 or _leans(member, rows[0], params):
+        lean = stem_lean(member, params)
+        if lean is not None:
+            rows = _fit_sections(member, params, lean)
+    return rows
+
+
+def _fit_sections(member: np.ndarray, params: TreeParams, lean: np.ndarray) -> list[tuple]:
+    """:func:`fit_stems` along an axis that leans by ``lean`` (2,) metres per metre."""
     for k, centre in enumerate(section_heights(params)):
         section = member[np.abs(member[:, 3] - centre) <= params.slice_half_width]
-        circle = fit_circle(section[:, :2], params)
-        if circle is not None:
-            x, y, radius = circle
-            z_base = float(np.median(section[:, 2] - section[:, 3]))
+        # each point slid along the axis to the section's height, then across the axis
+        uv = across_axis(section[:, :2] - np.outer(section[:, 3] - centre, lean), lean)
+        rows = []
+        for i, (u, v, radius, near) in enumerate(section_circles(uv, params)):
+            if i and not _stands(member, (u, v, radius), centre, lean, params):
+                continue  # a second circle on a branch or a shred of bark, not a stem
+            x, y = across_axis(np.array([[u, v]]), lean, inverse=True)[0]
+            z_base = float(np.median(section[near, 2] - section[near, 3]))
             quality = QUALITY_GOOD if k == 0 else QUALITY_FALLBACK
-            return x, y, z_base, 2.0 * radius, quality, float(centre)
-    return None
+            rows.append((float(x), float(y), z_base, 2.0 * radius, quality, float(centre)))
+        if rows:
+            return rows
+    return []
+
+
+def _stands(member: np.ndarray, circle: tuple, height: float, lean: np.ndarray,
+            params: TreeParams) -> bool:
+    """Whether the circle (u, v, radius) fitted across the axis at ``height`` is a stem's:
+    its ring holds ``stem_min_points`` points at two of the other sections (all of them when
+    fewer), as a column of bark does and a branch or a shred of bark at one height does not."""
+    others = [h for h in section_heights(params) if h != height]
+    seen = 0
+    for other in others:
+        section = member[np.abs(member[:, 3] - other) <= params.slice_half_width]
+        uv = across_axis(section[:, :2] - np.outer(section[:, 3] - height, lean), lean)
+        ring = np.abs(np.hypot(uv[:, 0] - circle[0], uv[:, 1] - circle[1]) - circle[2])
+        seen += int(np.count_nonzero(ring <= CIRCLE_TOLERANCE) >= params.stem_min_points)
+    return seen >= min(2, len(others))
+
+
+def _leans(member: np.ndarray, row: tuple, params: TreeParams) -> bool:
+    """Whether the section farthest from the one ``row`` was fitted at gives one circle
+    whose centre stands off ``row``'s by MIN_LEAN metres per metre of height or more."""
+    heights = section_heights(params)
+    other = heights[np.argmax(np.abs(heights - row[5]))]
+    section = member[np.abs(member[:, 3] - other) <= params.slice_half_width]
+    circles = section_circles(section[:, :2], params)
+    if len(circles) != 1 or other == row[5]:
+        return False
+    drift = np.hypot(circles[0][0] - row[0], circles[0][1] - row[1])
+    return bool(drift >= MIN_LEAN * abs(other - row[5]))
+
+
+def across_axis(xy: np.ndarray, lean: np.ndarray, inverse: bool = False) -> np.ndarray:
+    """The points xy (n, 2) of a horizontal section of a stem leaning by ``lean`` (2,)
+    metres per metre, seen across its axis: the section of a leaning cylinder is an ellipse
+    stretched by sqrt(1 + |lean|^2) along the lean, so shrinking it by that factor makes the
+    cylinder's own circle, whose diameter is the DBH a forester measures. ``inverse``: back."""
+    norm = float(np.hypot(*lean))
+    if norm == 0.0:
+        return xy
+    unit = np.asarray(lean, np.float64) / norm
+    stretch = np.sqrt(1.0 + norm * norm)
+    factor = (stretch if inverse else 1.0 / stretch) - 1.0
+    return xy + np.outer((xy @ unit) * factor, unit)
+
+
+def section_circles(xy: np.ndarray, params: TreeParams) -> list[tuple]:
+    """The credible circles of a section's points xy (m, 2), one after the other: each
+    (x, y, radius, near), ``near`` bool (m,) the points it explains; the next circle is fitted
+    to the points left. At most MAX_STEMS_PER_CLUSTER."""
+    circles, left = [], np.ones(len(xy), dtype=bool)
+    for _ in range(MAX_STEMS_PER_CLUSTER):
+        circle = fit_circle(xy[left], params)
+        if circle is None:
+            break
+        x, y, radius = circle
+        near = left & (np.hypot(xy[:, 0] - x, xy[:, 1] - y) <= radius + 2.0 * CIRCLE_TOLERANCE)
+        circles.append((x, y, radius, near))
+        left &= ~near
+    return circles
+
+
+def stem_lean(member: np.ndarray, params: TreeParams) -> np.ndarray | None:
+    """float64 (2,) the lean (metres per metre of height, x and y) of a cluster's stem, or
+    None: the centres of circles fitted to thin slabs up the slice (thin, so a leaning stem
+    smears them little), their slope over height by least squares. At least three
+    slabs' circles over LEAN_SPAN metres, and a lean of at least MIN_LEAN, are needed."""
+    heights = member[:, 3]
+    steps = np.arange(heights.min(initial=0.0), heights.max(initial=0.0), LEAN_STEP)
+    centres = []
+    for low in steps:
+        slab = member[(heights >= low) & (heights < low + LEAN_SLAB)]
+        circles = section_circles(slab[:, :2], params)
+        if len(circles) == 1:  # one stem in the cluster: its axis
+            centres.append((circles[0][0], circles[0][1], low + LEAN_SLAB / 2.0))
+    if len(centres) < 3:
+        return None
+    centres = np.asarray(centres)
+    h = centres[:, 2]
+    if np.ptp(h) < LEAN_SPAN:
+        return None
+    design = np.column_stack([np.ones_like(h), h - h.mean()])
+    (_, lean_x), *_ = np.linalg.lstsq(design, centres[:, 0] - centres[0, 0], rcond=None)
+    (_, lean_y), *_ = np.linalg.lstsq(design, centres[:, 1] - centres[0, 1], rcond=None)
+    lean = np.array([lean_x, lean_y])
+    return lean if np.hypot(*lean) >= MIN_LEAN else None
 
 
 def fit_circle(xy: np.ndarray, params: TreeParams):
@@ -232,11 +347,15 @@ def fit_circle(xy: np.ndarray, params: TreeParams):
 def credible_circle(model: CircleModel, xy: np.ndarray, inliers: np.ndarray,
                     params: TreeParams) -> bool:
     """Whether a fitted circle is a stem's section: a plausible diameter, enough inliers
-    spread around enough of the circle, and a small scatter relative to the radius."""
+    (of the points within ``stem_cluster_eps`` of the circle, so a stem touching another is
+    judged on its own points) spread around enough of the circle, and a small scatter
+    relative to the radius."""
     radius = float(model.radius)
     fitted = xy[inliers]
+    # the points near the circle: those farther belong to something else (a stem beside it)
+    near = np.hypot(*(xy - np.asarray(model.center)).T) <= radius + params.stem_cluster_eps
     if not (0.0 < 2.0 * radius <= params.max_dbh) or fitted.shape[0] < max(
-            params.stem_min_points, MIN_INLIER_SHARE * xy.shape[0]):
+            params.stem_min_points, MIN_INLIER_SHARE * np.count_nonzero(near)):
         return False
     rms = float(np.sqrt(np.mean(model.residuals(fitted) ** 2)))
     angle = np.arctan2(*(fitted - np.asarray(model.center)).T[::-1])

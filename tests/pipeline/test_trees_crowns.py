@@ -16,6 +16,7 @@ from pipeline.trees import (
     segment_crowns,
 )
 from pipeline.trees.cells import unpack_keys
+from pipeline.trees.crowns import find_tops
 
 #: Cone crowns (x, y, height, radius) apart from each other, radii within the default bound.
 CONES = [(10.0, 10.0, 20.0, 3.5), (22.0, 11.0, 12.0, 2.2), (14.0, 24.0, 30.0, 4.5),
@@ -127,7 +128,7 @@ def test_tops_against_a_loop_over_every_cell():
     values = ndimage.gaussian_filter(rng.normal(size=(40, 50)), 2.0) * 60.0 + 8.0
     values[rng.random(values.shape) < 0.05] = np.nan
     params = TreeParams(smoothing=0.0, window=(2.0, 0.15))
-    crowns = segment_crowns(Raster(values, 0.0, 0.0, 0.5), params)
+    rows, cols = find_tops(values, values, 0.5, params)
     expected = []
     for i, j in zip(*np.nonzero(values >= params.min_height)):
         r = max(int(np.rint((2.0 + 0.15 * values[i, j]) / 1.0)), 1)
@@ -138,7 +139,26 @@ def test_tops_against_a_loop_over_every_cell():
         if values[i, j] >= np.nanmax(around):
             expected.append((i, j))
     assert len(expected) > 5
-    assert list(zip(crowns.top_row.tolist(), crowns.top_col.tolist())) == expected
+    assert list(zip(rows.tolist(), cols.tolist())) == expected
+
+
+@pytest.mark.parametrize("second, tops", [("cone", 2), ("bump", 1)])
+def test_a_blob_with_two_apexes_of_distinct_height_is_two_trees(second, tops):
+    """A 20 m cone and, 2 m away (within one top window), a 17 m cone: its apex rises
+    above the saddle between them and is a tree of its own; a bump of 0.3 m on the first
+    cone's flank (less than APEX_PROMINENCE) is part of that crown."""
+    x, y = np.meshgrid(np.arange(0.25, 20.0, 0.5), np.arange(0.25, 20.0, 0.5))
+    values = 20.0 * (1.0 - np.hypot(x - 10.0, y - 10.0) / 4.0)
+    if second == "cone":
+        values = np.maximum(values, 17.0 * (1.0 - np.hypot(x - 12.0, y - 10.0) / 3.0))
+    else:
+        values += 0.3 * np.exp(-np.hypot(x - 12.0, y - 10.0) ** 2 / 0.1)
+    values[values <= 0.0] = np.nan
+    params = TreeParams(smoothing=0.0)
+    assert len(find_tops(values, values, 0.5, params)[0]) == 1  # one window holds both
+    crowns = segment_crowns(Raster(values, 0.0, 0.0, 0.5), params)
+    assert len(crowns) == tops
+    assert np.all(crowns.crown_cells() > 4)
 
 
 def test_every_cone_top_is_found_once_and_nothing_else():

@@ -116,3 +116,18 @@ def test_the_inputs_of_any_split_give_the_trees_of_the_whole_cloud():
     for name in a:
         assert np.array_equal(a[name], b[name], equal_nan=True), name
     assert len(table) == len(model) and ids.max() <= len(model)
+
+
+def test_a_crown_seen_in_patches_stays_with_its_stem():
+    """A gap of a voxel or so between the stem and its crown (the scanner saw neither
+    between them) does not cut the crown from the tree."""
+    rng = np.random.default_rng(8)
+    z = rng.uniform(0.0, 5.95, 3000)  # the stem up to 5.95 m, the crown from 6.25 m
+    stem = np.column_stack([0.1 * np.cos(z * 40), 0.1 * np.sin(z * 40), z])
+    zc = rng.uniform(6.25, 10.0, 3000)
+    r = (10.0 - zc) / 3.75 * np.sqrt(rng.uniform(0, 1, zc.size))
+    crown = np.column_stack([r * np.cos(zc * 17), r * np.sin(zc * 17), zc])
+    xyz = np.concatenate([stem, crown]) + [500000.05, 5500000.05, 0.0]
+    voxels = tree_voxels(xyz, xyz[:, 2], np.ones(len(xyz), bool))
+    grown = grow_from_stems(voxels, [[500000.05, 5500000.05, 1.3]], np.array([1], np.uint32))
+    assert np.all(grown.lookup(xyz) == 1)

@@ -206,3 +206,43 @@ def test_a_raster_resolution_too_fine_for_memory_is_refused_before_the_cluster_s
                             "--set", "output.raster_resolution=0.0001")
     assert "output.raster_resolution=0.0001" in line and "cells" in line, line
     assert "--set output.raster_resolution=1" in line
+
+
+@pytest.mark.parametrize("setting, words", [
+    ("trees.resolution=0.001", ["trees.resolution=0.001 m is finer than the points resolve",
+                                "points/m²", "--set trees.resolution=0.5"]),
+    ("trees.resolution=50", ["trees.resolution=50 m is coarser than the smallest crown",
+                             "--set trees.resolution=0.5"]),
+    ("trees.resolution=1e-9", ["trees.resolution=1e-09 m", "trees.resolution=0.5"]),
+    ("trees.window=[500,0]", ["trees.window=[500.0, 0.0]", "wider than the scene"]),
+])
+def test_tree_settings_that_cannot_give_trees_are_refused_before_the_cluster_starts(
+        tmp_path, survey, started, setting, words):
+    line = refused_at_start(tmp_path, survey, started, "run", "--set", "output.trees=true",
+                            "--set", setting)
+    assert all(w in line for w in words), line
+    assert "recentre" not in line and "\n" not in line
+    assert not (tmp_path / "out" / "store.zarr").exists()
+
+
+def test_the_scan_tells_too_fine_from_too_coarse():
+    from pipeline.errors import ConfigError
+    from pipeline.trees import TreeParams
+    from pipeline.trees.params import check_scan
+
+    plot = (40.0, 40.0, 5_500_040.0)  # metres wide, deep, and the largest coordinate
+    # airborne tiles of 43, 25 and 0.9 points/m² (the pine patch, St Barth, Topography) and
+    # a terrestrial plot: the medians of points per tree at 0.1, 0.1 and 0.5 m were 2, 1, 2
+    for resolution, density in ((0.25, 43.0), (0.5, 25.0), (1.0, 0.9), (0.02, 1700.0),
+                                (2.0, 0.5)):
+        check_scan(TreeParams(resolution=resolution), density, *plot)  # sensible: silent
+    for resolution, density in ((0.1, 43.0), (0.1, 25.0), (0.5, 0.9), (2.5, 13.0),
+                                (50.0, 13.0)):
+        with pytest.raises(ConfigError, match="trees.resolution"):
+            check_scan(TreeParams(resolution=resolution), density, *plot)
+    with pytest.raises(ConfigError, match=r"--set trees.resolution=1.1\)"):
+        check_scan(TreeParams(), 0.9, *plot)  # about the points' spacing
+    with pytest.raises(ConfigError, match="trees.resolution=0.004 m gives cell indices beyond"):
+        check_scan(TreeParams(resolution=0.004), 1e5, *plot)
+    with pytest.raises(ConfigError, match="the scene's canopy height model"):
+        check_scan(TreeParams(resolution=0.01), 1e5, 400_000.0, 400_000.0, 5_500_040.0)

@@ -35,6 +35,16 @@ def test_canopy_classes_default_to_the_vegetation_codes_else_all_but_ground():
     assert urban.canopy_classes == [1, 2]  # no vegetation class: every class but ground
 
 
+def test_a_tree_may_hold_every_class_but_ground_buildings_noise_and_water():
+    # forest.yaml: terrain [2], tree [4, 5], dead_wood [64], misc [1]
+    assert load().tree_point_classes == [1, 2, 3]
+    assert load().stem_classes == [1, 2, 3]  # a stem called dead wood is still found
+    assert load("trees.stem_classes=[tree]").stem_classes == [1]
+    urban = load("data.classes={ground: [2], building: [6], other: [1], water: [9]}",
+                 "data.background=[]")
+    assert urban.tree_point_classes == [2]
+
+
 def test_terrain_keys_change_every_step_but_ingest():
     resolved = ("features.r1=1", "features.voxel=0.2")
     base = load(*resolved)

@@ -507,7 +507,9 @@ class TreesConfig(Section):
     max_dbh: Number = Field(_TREES.max_dbh, description="Largest plausible DBH in metres.")
     stem_classes: list[str] | None = Field(
         None,
-        description="The classes whose points make stems; default: output.canopy_classes.")
+        description="The classes whose points make stems; default: every class that may "
+        "be a tree (all but those of ASPRS codes 2 ground, 6 building, 7 and 18 noise, 9 "
+        "water, 17 bridge deck), so that a stem the classifier calls dead wood is found.")
 
     @model_validator(mode="after")
     def _check_params(self) -> "TreesConfig":
@@ -574,6 +576,9 @@ SILVA_DIMS = ("PredictedClassification", "Confidence", "Entropy", "NoFeatures", 
               "HeightAboveGround")
 #: ASPRS classification codes: ground, and low, medium and high vegetation.
 GROUND_CODE, VEGETATION_CODES = 2, (3, 4, 5)
+#: ASPRS codes of what is surely not a tree: ground, building, low noise, water, bridge
+#: deck, high noise.
+NOT_TREE_CODES = (GROUND_CODE, 6, 7, 9, 17, 18)
 #: The rasters output.rasters may ask for.
 RASTERS = ("dtm", "dsm", "chm")
 
@@ -777,11 +782,25 @@ class SilvaConfig(Section):
         return vegetation or [i for i, code in enumerate(codes) if code != GROUND_CODE]
 
     @property
+    def tree_point_classes(self) -> list[int]:
+        """Indices of the classes whose points a tree may hold (grown from its stem, a tree
+        goes through them): every class whose first code is not one of
+        :data:`NOT_TREE_CODES` (ground, buildings, noise, water), and always the classes
+        that ``output.canopy_classes`` and ``trees.stem_classes`` name. A stem section the
+        classifier calls dead wood or misc then does not cut its tree in two."""
+        names = self.data.class_names
+        chosen = {i for i, code in enumerate(self.data.class_codes)
+                  if code not in NOT_TREE_CODES}
+        for given in (self.output.canopy_classes, self.trees.stem_classes):
+            chosen |= {names.index(name) for name in given or ()}
+        return sorted(chosen)
+
+    @property
     def stem_classes(self) -> list[int]:
         """Indices of the classes whose points make stems (see
-        :attr:`TreesConfig.stem_classes`)."""
+        :attr:`TreesConfig.stem_classes`; default: :attr:`tree_point_classes`)."""
         if self.trees.stem_classes is None:
-            return self.canopy_classes
+            return self.tree_point_classes
         return [self.data.class_names.index(name) for name in self.trees.stem_classes]
 
     @property

@@ -27,7 +27,7 @@ from workflows.steps.ingest import ingest
 from workflows.steps.one_pass import classify_in_one_pass, one_pass_scenes
 from workflows.steps.survey import canopy_samples, survey
 from workflows.steps.terrain import terrain
-from workflows.steps.trees import score_trees, trees
+from workflows.steps.trees import check_tree_settings, score_trees, trees
 from workflows.store.scenes import RunLayout
 
 
@@ -49,6 +49,8 @@ def ingest_step(state: RunState) -> None:
     state.summary["excluded points"] = sum(t.get("excluded", 0) for t in layout.tiles)
     check_point_formats(state.run, layout.tiles)  # output.point_format: keep, before work
     check_raster_size(state.run, layout.tiles)  # the points' boxes: a stale header hid them
+    if state.reaches("trees"):
+        check_tree_settings(state.run, layout.tiles)  # likewise, before the classification
 
 
 def terrain_step(state: RunState) -> None:

@@ -30,7 +30,9 @@ from pipeline.io.vector import write_tree_csv, write_tree_gpkg
 from pipeline.store import open_store, write_arrays
 from pipeline.terrain import Raster
 from pipeline.trees import TreeModel, TreeParams, assign_trees, merge_stats, tree_stats, tree_table
+from pipeline.tiling.grid import tile_area
 from pipeline.trees.instances import match_pairs, matched_errors, merge_pairs, pair_counts
+from pipeline.trees.params import check_scan
 from pipeline.trees.scene import TreeInputs, merge_inputs, scene_model, tree_inputs
 from workflows.exec.engine import chunk_tasks, results_by_scene
 from workflows.run.progress import counted, say
@@ -54,11 +56,13 @@ PAIRS = "tree_pairs"
 @dataclass(frozen=True)
 class TreeTask:
     """What a chunk needs to find its part of the trees: the final stage's predictions, the
-    classes that make the canopy and the stems (indices), the parameters."""
+    classes that make the canopy and the stems, and those a tree may hold (indices), the
+    parameters."""
 
     final_stage: int
     canopy: tuple[int, ...]
     stems: tuple[int, ...]
+    candidates: tuple[int, ...]
     params: TreeParams
     fingerprint: str  # of the scene's tree model
 
@@ -68,28 +72,51 @@ class TreeTask:
         fingerprint, which the tree model follows from)."""
         cfg = run.cfg
         return cls(final_stage, tuple(cfg.canopy_classes), tuple(cfg.stem_classes),
-                   cfg.trees.params, f"{run.fingerprint('trees')}-{stage_fp}")
+                   tuple(cfg.tree_point_classes), cfg.trees.params,
+                   f"{run.fingerprint('trees')}-{stage_fp}")
 
 
 def chunk_points(view, task: TreeTask):
-    """The core points of one chunk with their heights above ground and class masks."""
+    """The core points of one chunk with their heights above ground and class masks
+    (canopy, stems, the points a tree may hold)."""
     xyz = view.read("xyz")
     label = labels_from_proba(view.read(proba_array(task.final_stage)))
     height = xyz[:, 2] - ground_under(view, xyz)
-    return xyz, height, np.isin(label, task.canopy), np.isin(label, task.stems)
+    return (xyz, height, np.isin(label, task.canopy), np.isin(label, task.stems),
+            np.isin(label, task.candidates))
 
 
 def chunk_tree_inputs(view, task: TreeTask) -> TreeInputs:
     """Worker task (pass 1): what the chunk's points give the scene's trees."""
-    return tree_inputs(*chunk_points(view, task), task.params)
+    xyz, height, canopy, stems, candidates = chunk_points(view, task)
+    return tree_inputs(xyz, height, canopy, stems, task.params, candidates)
 
 
 def chunk_tree_stats(view, task: TreeTask):
     """Worker task (pass 2): the chunk's points per tree, highest points, sums."""
-    xyz, height, canopy, stems = chunk_points(view, task)
+    xyz, height, canopy, stems, candidates = chunk_points(view, task)
     model = scene_trees(view.store_path, view.scene, task.fingerprint)
-    ids = assign_trees(model, xyz, height, canopy, stems, task.params)
+    ids = assign_trees(model, xyz, height, canopy, stems, task.params, candidates)
     return tree_stats(ids, xyz, height)
+
+
+def check_tree_settings(run, tiles: list[dict]) -> None:
+    """Refuse ``trees.*`` values that cannot give trees on a scene of ``tiles`` (the
+    headers' boxes and point counts before any work, the points' boxes once ingested): a
+    resolution finer than the points resolve or coarser than a crown, a canopy raster beyond
+    memory or the cell keys, a window wider than the scene (see
+    :func:`pipeline.trees.params.check_scan`). Raises ConfigError."""
+    if not run.cfg.output.trees:
+        return
+    for scene in sorted({t["scene"] for t in tiles}):
+        members = [t for t in tiles if t["scene"] == scene]
+        mins = np.min([t["mins"][:2] for t in members], axis=0)
+        maxs = np.max([t["maxs"][:2] for t in members], axis=0)
+        area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
+        density = sum(t["n_points"] for t in members) / area
+        width, depth = (float(v) for v in maxs - mins)
+        check_scan(run.cfg.trees.params, density, width, depth,
+                   float(np.abs(np.concatenate([mins, maxs])).max()))
 
 
 def model_path(scene: str) -> str:
@@ -200,13 +227,15 @@ class TileTrees:
         self.model = scene_trees(store_path, scene, task.fingerprint)
         self.canopy = np.isin(np.arange(n_classes), task.canopy)
         self.stems = np.isin(np.arange(n_classes), task.stems)
+        self.candidates = np.isin(np.arange(n_classes), task.candidates)
 
     def assign(self, batch, height, best, found) -> np.ndarray:
         """uint32 tree IDs of a batch: 0 for the points never classified (``~found``)."""
         ids = np.zeros(len(best), dtype=np.uint32)
         label = best[found]
         ids[found] = assign_trees(self.model, batch.xyz[found], height[found],
-                                  self.canopy[label], self.stems[label], self.task.params)
+                                  self.canopy[label], self.stems[label], self.task.params,
+                                  self.candidates[label])
         reference = batch.fields.get(REFERENCE_TREE_ID)
         if self.score and reference is not None:
             self.pairs.append(pair_counts(reference[found], ids[found]))
