@@ -85,3 +85,43 @@ def test_the_run_weighs_its_steps_by_their_estimated_seconds(survey, tmp_path):
     copied = weights(5, densities=[50, 1e6])
     assert copied["features"] > few["features"] and copied["train"] > few["train"]
     assert weights(5, densities=[1e6])["features"] == few["features"]
+
+
+def test_plan_of_a_predict_run_shows_the_terrain_blocks_and_refuses_what_will_not_fit(
+        tmp_path, survey):
+    tiles = str(survey["test"] / "*.laz")
+    plan = ["plan", "--model", "forest-tls-synthetic", tiles]
+    result = CliRunner().invoke(main, plan)
+    assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    assert [line.split(":")[0] for line in lines if line.startswith("scene ")] == [
+        "scene predict"]
+    assert any(line.startswith("terrain: 1 block of ") for line in lines), lines
+    memory = next(line for line in lines if line.startswith("memory: "))
+    assert "GiB for a terrain block" in memory
+    for overrides, key in ((["terrain.block=30000"], "terrain.block"),
+                           (["output.trees=true", "trees.resolution=50"], "trees.resolution")):
+        sets = [arg for value in overrides for arg in ("--set", value)]
+        refused = CliRunner().invoke(main, [*plan, *sets])
+        assert refused.exit_code == 1 and key in refused.output, refused.output
+        assert "Traceback" not in refused.output
+    alone = CliRunner().invoke(main, ["plan", tiles])  # tiles without a model or a config
+    assert alone.exit_code != 0 and "--model" in alone.output, alone.output
+
+
+def test_a_terrain_block_too_big_for_a_worker_is_refused_naming_terrain_block(tmp_path, survey):
+    from workflows.cli.plan import check_memory, terrain_bytes
+    from workflows.config import load_config
+    from workflows.run.autoparams import resolve_run
+    from workflows.run.directory import Run
+
+    config = write_config(tmp_path / "c.yaml", survey, cluster={
+        "kind": "local", "n_workers": 1, "memory_limit": "1.5GB", "dashboard": False},
+        terrain={"block": 5000.0})
+    run = Run(resolve_run(load_config(config)), tmp_path)
+    tiles = [{"scene": "test", "index": 0, "n_points": 100_000, "mins": [0.0, 0.0, 0.0],
+              "maxs": [3000.0, 3000.0, 10.0]}]
+    assert terrain_bytes(run, tiles) > 1.5e9  # a 3 km block with its buffer at 1 m
+    with pytest.raises(Exception, match="terrain.block"):
+        check_memory(run, tiles)
+    assert terrain_bytes(run, [dict(tiles[0], maxs=[300.0, 300.0, 10.0])]) < 1e9

@@ -214,9 +214,16 @@ def training_seconds(run: Run, train_points: int, cores: int) -> float:
 def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
     """The lines ``silva plan`` prints; with ``picture``, a PNG of the chunk layouts.
     ConfigError, naming the key to change, for a run that will not fit (the memory of a
-    worker of the local cluster)."""
+    worker of the local cluster, the trees' and rasters' settings), as the run itself
+    refuses it before its cluster starts."""
+    from workflows.steps.export import check_raster_size
+    from workflows.steps.trees import check_tree_settings
+
     tiles = plan_tiles(run)
     check_memory(run, tiles)
+    check_raster_size(run, tiles)
+    if run.cfg.output.trees:
+        check_tree_settings(run, tiles)
     scenes = plan_scenes(run, tiles)
     params = run.features
     columns = len(feature_set(params).columns)
