@@ -62,10 +62,11 @@ def test_a_consistently_edited_model_is_refused_by_its_forests_inputs(model):
         run_config(None, model_dir=model)
 
 
-def test_a_consistently_edited_model_stops_predict_before_any_work(model, tmp_path):
+def test_a_consistently_edited_model_stops_predict_before_any_work(model, tmp_path, survey):
     _edited(model, _without_echo_columns)
     out = tmp_path / "out"
-    line = error_line(silva("predict", "--model", model, "--out", out, tmp_path / "t.laz",
+    tile = sorted(survey["test"].glob("*.laz"))[0]
+    line = error_line(silva("predict", "--model", model, "--out", out, tile,
                             "--in-process", "-q"))
     assert "was fitted on 79 input columns" in line and "retrain" in line
     assert not (out / "store.zarr").exists()
