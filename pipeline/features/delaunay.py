@@ -54,6 +54,8 @@ _CCW_BOUND = (3.0 + 16.0 * _EPS) * _EPS
 _ICC_BOUND = (10.0 + 96.0 * _EPS) * _EPS
 _EXPANSION_CAPACITY = 2048  # longest intermediate expansion of the exact incircle is 1536
 _GRID = 2.0**60  # points are rounded to multiples of 1 / _GRID after scaling to |x| < 1
+_CELL = 2.0**-60  # 1 / _GRID
+_SMALLEST_EXPONENT = -962  # of the largest coordinate for which 2**-exponent * _GRID is finite
 
 
 # --- error-free transformations --------------------------------------------------------------
@@ -388,7 +390,7 @@ def _incircle_idx(xy, a, b, c, d):
     return _incircle_exact(ax, ay, bx, by, cx, cy, dx, dy)
 
 
-@_jit
+@_inline
 def _snap_to_grid(xy, order, n):
     """Round xy[order[:n]] in place to the predicates' grid (module docstring)."""
     largest = 0.0
@@ -398,11 +400,20 @@ def _snap_to_grid(xy, order, n):
     if largest == 0.0:
         return
     exponent = math.frexp(largest)[1]  # largest < 2**exponent
+    if exponent < _SMALLEST_EXPONENT:  # 2**-exponent * _GRID would overflow
+        for i in range(n):
+            p = order[i]
+            for k in range(2):
+                # both multiplications by powers of two are exact; so is the rounding
+                xy[p, k] = np.round(math.ldexp(xy[p, k], -exponent) * _GRID) / _GRID
+        return
+    # the same in one multiplication by a power of two: exact where ldexp is, and where
+    # ldexp would lose bits to a subnormal result both round to a zero of the same sign
+    scale = math.ldexp(_GRID, -exponent)
     for i in range(n):
         p = order[i]
-        for k in range(2):
-            # both multiplications by powers of two are exact; so is the rounding
-            xy[p, k] = np.round(math.ldexp(xy[p, k], -exponent) * _GRID) / _GRID
+        xy[p, 0] = np.round(xy[p, 0] * scale) * _CELL
+        xy[p, 1] = np.round(xy[p, 1] * scale) * _CELL
 
 
 def snap_to_grid(xy: np.ndarray) -> np.ndarray:
@@ -751,7 +762,7 @@ def make_workspace(n):
 TRIANGLES = 4
 
 
-@_jit
+@_inline
 def triangulate_into(xy, order, n, workspace):
     """Delaunay triangulation of the points xy[order[:n]]; returns the number of triangles m.
 

@@ -51,6 +51,7 @@ logger = logging.getLogger(__name__)
 QUERY_BLOCK = 32768
 
 _jit = numba.njit(cache=True, nogil=True)
+_inline = numba.njit(cache=True, nogil=True, inline="always")
 
 
 #: A neighbourhood whose second principal variance is below this fraction of the first is a
@@ -59,7 +60,7 @@ _jit = numba.njit(cache=True, nogil=True)
 LINE_VARIANCE_RATIO = 1e-12
 
 
-@_jit
+@_inline
 def _plane_basis(rel, n, basis, a, v):
     """Unit vectors of the two largest principal axes of rel[:n] into basis[0], basis[1].
 
@@ -109,7 +110,7 @@ def _plane_basis(rel, n, basis, a, v):
     return a[i1, i1] > LINE_VARIANCE_RATIO * a[i0, i0]
 
 
-@_jit
+@_inline
 def _radial_order(xy, n, order, bucket):
     """order[:n] = the points by distance from their centroid, roughly (n buckets, stable).
 

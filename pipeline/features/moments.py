@@ -272,7 +272,7 @@ def add_mesh_moments_into(xyz, tri, m, out, corners, terms):
     _add_divided(sums, out)
 
 
-@_jit
+@_inline  # inlined where it is called, so no kernel is left to compile or cache on its own
 def add_mesh_moments(xyz, tri, m, out):
     """Add the 20 surface moments of the triangles xyz[tri[:m]] to ``out`` (float64 (20,)).
 

@@ -265,6 +265,20 @@ def test_snap_to_grid_moves_points_by_less_than_1e_18_of_their_size(points, shif
     np.testing.assert_array_equal(snap_to_grid(snapped), snapped)  # idempotent
 
 
+@pytest.mark.parametrize("magnitude", [1e-310, 1e-300, 2.0**-964, 2.0**-963, 1e-200, 1e-5, 1.0,
+                                       3.7e5, 1e300])
+def test_snap_is_the_rounding_formula_bit_for_bit_at_every_magnitude(magnitude):
+    """round(2^-e x 2^60) / 2^60, e the exponent of the largest magnitude, signed zeros and
+    subnormal inputs included, however the kernel computes it."""
+    xy = np.random.default_rng(3).uniform(-1, 1, size=(40, 2)) * magnitude
+    xy[0] = [5e-324, -1e-310]
+    xy[1] = [-5e-324, 0.0]
+    xy[2, 0] = -magnitude
+    exponent = np.frexp(np.abs(xy).max())[1]
+    want = np.round(np.ldexp(xy, -exponent) * 2.0**60) / 2.0**60
+    np.testing.assert_array_equal(snap_to_grid(xy).view(np.int64), want.view(np.int64))
+
+
 def test_snap_keeps_coordinates_near_the_largest():
     xy = np.random.default_rng(0).uniform(0.5, 1.0, size=(50, 2)) * 3.7e5
     np.testing.assert_array_equal(np.ldexp(snap_to_grid(xy), np.frexp(xy.max())[1]), xy)
