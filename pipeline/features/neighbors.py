@@ -224,6 +224,7 @@ def _search_block(
     # sides away, up to the rounding of cell indices (see CELL_MARGIN): k * shell is a safe
     # strict bound on its distance
     shell = cell * (1.0 - 1e-5)
+    margin = cell * 1e-5
     # the queries come in cell order, a cell's one after the other: the column runs of the
     # first ring are looked up once per cell (a binary search each) and kept
     first_far = 1 if capped else span
@@ -240,7 +241,16 @@ def _search_block(
             reuse = far == first_far and kept == (cx, cy, cz)
             column = 0
             for gx in range(max(cx - far, 0), min(cx + far + 1, nx)):
+                # distance from the query to the column's extent, less a margin for the
+                # rounding of cell indices: no point of a column farther than the bound
+                # can be a candidate
+                x0 = origin[0] + gx * cell
+                dx = max(x0 - xq, xq - (x0 + cell), 0.0)
+                dx = max(dx - margin, 0.0)
                 for gy in range(max(cy - far, 0), min(cy + far + 1, ny)):
+                    y0 = origin[1] + gy * cell
+                    dy = max(y0 - yq, yq - (y0 + cell), 0.0)
+                    dy = max(dy - margin, 0.0)
                     if reuse:
                         start = run_start[column]
                         stop = run_stop[column]
@@ -253,6 +263,8 @@ def _search_block(
                             run_start[column] = start
                             run_stop[column] = stop
                     column += 1
+                    if dx * dx + dy * dy > bound:
+                        continue
                     if n + stop - start > capacity:
                         while n + stop - start > capacity:
                             capacity *= 2
