@@ -54,6 +54,8 @@ _CCW_BOUND = (3.0 + 16.0 * _EPS) * _EPS
 _ICC_BOUND = (10.0 + 96.0 * _EPS) * _EPS
 _EXPANSION_CAPACITY = 2048  # longest intermediate expansion of the exact incircle is 1536
 _GRID = 2.0**60  # points are rounded to multiples of 1 / _GRID after scaling to |x| < 1
+_CELL = 2.0**-60  # 1 / _GRID
+_SMALLEST_EXPONENT = -962  # of the largest coordinate for which 2**-exponent * _GRID is finite
 
 
 # --- error-free transformations --------------------------------------------------------------
@@ -328,29 +330,67 @@ def incircle(ax, ay, bx, by, cx, cy, dx, dy):
     return _incircle_exact(ax, ay, bx, by, cx, cy, dx, dy)
 
 
-@_jit  # not inlined by numba at its six call sites: as fast, and a second less to compile
+#: Once the points are on the predicates' grid (|x|, |y| <= 1), every difference is at most 2
+#: in magnitude, so the floating-point sums of absolute products that scale the filters'
+#: error bounds are at most 8 for orient2d (|detleft| + |detright|) and 192 for incircle (the
+#: permanent: 3 x (4 + 4) x 8). A determinant larger than the bound those maxima give has the
+#: sign the adaptive filter would give it, without computing the sums.
+_CCW_STATIC = _CCW_BOUND * 8.0
+_ICC_STATIC = _ICC_BOUND * 192.0
+
+
+@_inline
 def _orient_idx(xy, a, b, c):
-    """orient2d of points a, b, c of xy; the exact evaluation only when the filter fails."""
-    det = _orient2d_filtered(xy[a, 0], xy[a, 1], xy[b, 0], xy[b, 1], xy[c, 0], xy[c, 1])
+    """orient2d of points a, b, c of xy, which lie on the predicates' grid: a static error
+    bound decides almost every call, then the adaptive filter, then the exact evaluation."""
+    ax = xy[a, 0]
+    ay = xy[a, 1]
+    bx = xy[b, 0]
+    by = xy[b, 1]
+    cx = xy[c, 0]
+    cy = xy[c, 1]
+    det = (ax - cx) * (by - cy) - (ay - cy) * (bx - cx)
+    if abs(det) > _CCW_STATIC:
+        return det
+    det = _orient2d_filtered(ax, ay, bx, by, cx, cy)
     if det == det:
         return det
-    return _orient2d_exact(xy[a, 0], xy[a, 1], xy[b, 0], xy[b, 1], xy[c, 0], xy[c, 1])
+    return _orient2d_exact(ax, ay, bx, by, cx, cy)
 
 
 @_inline
 def _incircle_idx(xy, a, b, c, d):
-    """incircle of points a, b, c, d of xy; the exact evaluation only when the filter fails."""
-    det = _incircle_filtered(
-        xy[a, 0], xy[a, 1], xy[b, 0], xy[b, 1], xy[c, 0], xy[c, 1], xy[d, 0], xy[d, 1]
-    )
+    """incircle of points a, b, c, d of xy, which lie on the predicates' grid: a static
+    error bound decides almost every call, then the adaptive filter, then the exact
+    evaluation."""
+    ax = xy[a, 0]
+    ay = xy[a, 1]
+    bx = xy[b, 0]
+    by = xy[b, 1]
+    cx = xy[c, 0]
+    cy = xy[c, 1]
+    dx = xy[d, 0]
+    dy = xy[d, 1]
+    adx = ax - dx
+    bdx = bx - dx
+    cdx = cx - dx
+    ady = ay - dy
+    bdy = by - dy
+    cdy = cy - dy
+    alift = adx * adx + ady * ady
+    blift = bdx * bdx + bdy * bdy
+    clift = cdx * cdx + cdy * cdy
+    det = (alift * (bdx * cdy - cdx * bdy) + blift * (cdx * ady - adx * cdy)
+           + clift * (adx * bdy - bdx * ady))  # fmt: skip
+    if abs(det) > _ICC_STATIC:
+        return det
+    det = _incircle_filtered(ax, ay, bx, by, cx, cy, dx, dy)
     if det == det:
         return det
-    return _incircle_exact(
-        xy[a, 0], xy[a, 1], xy[b, 0], xy[b, 1], xy[c, 0], xy[c, 1], xy[d, 0], xy[d, 1]
-    )
+    return _incircle_exact(ax, ay, bx, by, cx, cy, dx, dy)
 
 
-@_jit
+@_inline
 def _snap_to_grid(xy, order, n):
     """Round xy[order[:n]] in place to the predicates' grid (module docstring)."""
     largest = 0.0
@@ -360,11 +400,20 @@ def _snap_to_grid(xy, order, n):
     if largest == 0.0:
         return
     exponent = math.frexp(largest)[1]  # largest < 2**exponent
+    if exponent < _SMALLEST_EXPONENT:  # 2**-exponent * _GRID would overflow
+        for i in range(n):
+            p = order[i]
+            for k in range(2):
+                # both multiplications by powers of two are exact; so is the rounding
+                xy[p, k] = np.round(math.ldexp(xy[p, k], -exponent) * _GRID) / _GRID
+        return
+    # the same in one multiplication by a power of two: exact where ldexp is, and where
+    # ldexp would lose bits to a subnormal result both round to a zero of the same sign
+    scale = math.ldexp(_GRID, -exponent)
     for i in range(n):
         p = order[i]
-        for k in range(2):
-            # both multiplications by powers of two are exact; so is the rounding
-            xy[p, k] = np.round(math.ldexp(xy[p, k], -exponent) * _GRID) / _GRID
+        xy[p, 0] = np.round(xy[p, 0] * scale) * _CELL
+        xy[p, 1] = np.round(xy[p, 1] * scale) * _CELL
 
 
 def snap_to_grid(xy: np.ndarray) -> np.ndarray:
@@ -438,7 +487,8 @@ def _hash_key(x, y, cx, cy, size):
         return 0
     p = dx / s
     a = (3.0 - p if dy > 0.0 else 1.0 + p) / 4.0  # in [0, 1]
-    return int(a * size) % size
+    key = int(a * size)  # size when a == 1
+    return key - size if key >= size else key
 
 
 @_jit
@@ -499,49 +549,6 @@ def _insert_on_edge(ver, nbr, hull_next, hull_prev, hull_tri, n_tri, t, e, p, st
 
 
 @_jit
-def _legalize(xy, ver, nbr, hull_tri, stack, sp):
-    """Lawson flips from the triangles on the stack, each with the new point at index 0.
-
-    t = (p, b, c) and its neighbour u = (d, c, b) across b-c become t = (p, b, d) and
-    u = (p, d, c) when d lies strictly inside the circumcircle of (p, b, c).
-    """
-    while sp > 0:
-        sp -= 1
-        t = stack[sp]
-        u = nbr[t, 0]
-        if u < 0:
-            continue
-        j = _index_in_row(nbr, u, t)
-        p = ver[t, 0]
-        b = ver[t, 1]
-        c = ver[t, 2]
-        d = ver[u, j]
-        if not _incircle_idx(xy, p, b, c, d) > 0.0:
-            continue
-        n_pb = nbr[t, 2]
-        n_cp = nbr[t, 1]
-        j1 = j + 1 if j < 2 else 0
-        j2 = j1 + 1 if j1 < 2 else 0
-        n_bd = nbr[u, j1]
-        n_dc = nbr[u, j2]
-        _set_triangle(ver, nbr, t, p, b, d, n_bd, u, n_pb)
-        _set_triangle(ver, nbr, u, p, d, c, n_dc, n_cp, t)
-        # the edges c -> p and b -> d changed triangle; written out, as through
-        # _hand_over_edge numba would count references to the arrays in this hot loop
-        if n_cp >= 0:
-            _replace_neighbor(nbr, n_cp, t, u)
-        else:
-            hull_tri[c] = u
-        if n_bd >= 0:
-            _replace_neighbor(nbr, n_bd, u, t)
-        else:
-            hull_tri[b] = t
-        stack[sp] = t
-        stack[sp + 1] = u
-        sp += 2
-
-
-@_jit
 def _locate(xy, ver, nbr, n_tri, start, p):
     """Triangle holding p (inside or on the hull) and where: returns (t, e, on_edge).
 
@@ -589,7 +596,8 @@ def _locate(xy, ver, nbr, n_tri, start, p):
 
 @_jit
 def _triangulate_core(xy, order, n, workspace):
-    """See :func:`triangulate_into`."""
+    """See :func:`triangulate_into`; xy[order[:n]] must already be on the predicates' grid
+    (:func:`_snap_to_grid`), which the static error bounds of the predicates rely on."""
     hull_next, hull_prev, hull_tri, hull_hash, ver, nbr, stack = workspace
     if n < 3:
         return 0
@@ -638,7 +646,7 @@ def _triangulate_core(xy, order, n, workspace):
         h = _hash_key(px, py, hx, hy, n_hash)
         start = a
         for j in range(n_hash):
-            s = hull_hash[(h + j) % n_hash]
+            s = hull_hash[h + j if h + j < n_hash else h + j - n_hash]
             if s >= 0 and hull_next[s] >= 0:
                 start = s
                 break
@@ -662,40 +670,75 @@ def _triangulate_core(xy, order, n, workspace):
                 n_tri, sp = _insert_on_edge(
                     ver, nbr, hull_next, hull_prev, hull_tri, n_tri, t, edge, p, stack
                 )
-            _legalize(xy, ver, nbr, hull_tri, stack, sp)
-            continue
-        # the whole visible chain first -> ... -> last
-        first = e
-        while _orient_idx(xy, hull_prev[first], first, p) < 0.0:
-            first = hull_prev[first]
-        last = hull_next[e]
-        while _orient_idx(xy, last, hull_next[last], p) < 0.0:
-            last = hull_next[last]
-        sp = 0
-        previous = -1
-        v = first
-        while v != last:
-            w = hull_next[v]
-            t = n_tri
-            n_tri += 1
-            old = hull_tri[v]  # holds the edge v -> w
-            _set_triangle(ver, nbr, t, p, w, v, old, previous, -1)
-            nbr[old, (_index_in_row(ver, old, w) + 1) % 3] = t  # across v -> w, ending at w
-            if previous >= 0:
-                nbr[previous, 2] = t
-                hull_next[v] = -1  # v leaves the hull
+        else:
+            # the whole visible chain first -> ... -> last
+            first = e
+            while _orient_idx(xy, hull_prev[first], first, p) < 0.0:
+                first = hull_prev[first]
+            last = hull_next[e]
+            while _orient_idx(xy, last, hull_next[last], p) < 0.0:
+                last = hull_next[last]
+            sp = 0
+            previous = -1
+            v = first
+            while v != last:
+                w = hull_next[v]
+                t = n_tri
+                n_tri += 1
+                old = hull_tri[v]  # holds the edge v -> w
+                _set_triangle(ver, nbr, t, p, w, v, old, previous, -1)
+                nbr[old, (_index_in_row(ver, old, w) + 1) % 3] = t  # across v -> w, ending at w
+                if previous >= 0:
+                    nbr[previous, 2] = t
+                    hull_next[v] = -1  # v leaves the hull
+                else:
+                    hull_tri[v] = t  # new hull edge first -> p
+                previous = t
+                stack[sp] = t
+                sp += 1
+                v = w
+            hull_tri[p] = previous  # new hull edge p -> last
+            _link_hull(hull_next, hull_prev, first, p)
+            _link_hull(hull_next, hull_prev, p, last)
+            hull_hash[h] = p
+            hull_hash[_hash_key(xy[first, 0], xy[first, 1], hx, hy, n_hash)] = first
+        # Lawson flips from the new triangles on the stack, each with p at index 0:
+        # t = (p, b, c) and its neighbour u = (d, c, b) across b-c become t = (p, b, d) and
+        # u = (p, d, c) when d lies strictly inside the circumcircle of (p, b, c). (Written
+        # out here, once: as a function, called or inlined, numba would count references to
+        # its five arrays at every insertion, a fifth of the triangulation's time.)
+        while sp > 0:
+            sp -= 1
+            t = stack[sp]
+            u = nbr[t, 0]
+            if u < 0:
+                continue
+            j = _index_in_row(nbr, u, t)
+            b = ver[t, 1]
+            c = ver[t, 2]
+            d = ver[u, j]
+            if not _incircle_idx(xy, p, b, c, d) > 0.0:
+                continue
+            n_pb = nbr[t, 2]
+            n_cp = nbr[t, 1]
+            j1 = j + 1 if j < 2 else 0
+            j2 = j1 + 1 if j1 < 2 else 0
+            n_bd = nbr[u, j1]
+            n_dc = nbr[u, j2]
+            _set_triangle(ver, nbr, t, p, b, d, n_bd, u, n_pb)
+            _set_triangle(ver, nbr, u, p, d, c, n_dc, n_cp, t)
+            # the edges c -> p and b -> d changed triangle
+            if n_cp >= 0:
+                _replace_neighbor(nbr, n_cp, t, u)
             else:
-                hull_tri[v] = t  # new hull edge first -> p
-            previous = t
+                hull_tri[c] = u
+            if n_bd >= 0:
+                _replace_neighbor(nbr, n_bd, u, t)
+            else:
+                hull_tri[b] = t
             stack[sp] = t
-            sp += 1
-            v = w
-        hull_tri[p] = previous  # new hull edge p -> last
-        _link_hull(hull_next, hull_prev, first, p)
-        _link_hull(hull_next, hull_prev, p, last)
-        hull_hash[h] = p
-        hull_hash[_hash_key(xy[first, 0], xy[first, 1], hx, hy, n_hash)] = first
-        _legalize(xy, ver, nbr, hull_tri, stack, sp)
+            stack[sp + 1] = u
+            sp += 2
     return n_tri
 
 
@@ -719,7 +762,7 @@ def make_workspace(n):
 TRIANGLES = 4
 
 
-@_jit
+@_inline
 def triangulate_into(xy, order, n, workspace):
     """Delaunay triangulation of the points xy[order[:n]]; returns the number of triangles m.
 

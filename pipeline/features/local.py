@@ -34,7 +34,7 @@ from pipeline.features.delaunay import TRIANGLES, make_workspace, triangulate_in
 from pipeline.features.density import neighbourhood_members
 from pipeline.features.eigen import jacobi3
 from pipeline.features.invariants import INVARIANT_NAMES, moment_invariants
-from pipeline.features.moments import N_MOMENTS, add_mesh_moments
+from pipeline.features.moments import N_MOMENTS, add_mesh_moments_into, mesh_workspace
 from pipeline.features.neighbors import (
     RadiusIndex,
     _check_cloud,
@@ -51,6 +51,7 @@ logger = logging.getLogger(__name__)
 QUERY_BLOCK = 32768
 
 _jit = numba.njit(cache=True, nogil=True)
+_inline = numba.njit(cache=True, nogil=True, inline="always")
 
 
 #: A neighbourhood whose second principal variance is below this fraction of the first is a
@@ -59,7 +60,7 @@ _jit = numba.njit(cache=True, nogil=True)
 LINE_VARIANCE_RATIO = 1e-12
 
 
-@_jit
+@_inline
 def _plane_basis(rel, n, basis, a, v):
     """Unit vectors of the two largest principal axes of rel[:n] into basis[0], basis[1].
 
@@ -109,7 +110,7 @@ def _plane_basis(rel, n, basis, a, v):
     return a[i1, i1] > LINE_VARIANCE_RATIO * a[i0, i0]
 
 
-@_jit
+@_inline
 def _radial_order(xy, n, order, bucket):
     """order[:n] = the points by distance from their centroid, roughly (n buckets, stable).
 
@@ -159,6 +160,7 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, horizontal, out):
     basis = np.empty((2, 3))
     cov = np.empty((3, 3))
     axes = np.empty((3, 3))
+    corners, terms = mesh_workspace()
     for row in range(n_query):
         for col in range(out.shape[1]):
             out[row, col] = 0.0
@@ -183,7 +185,7 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, horizontal, out):
             xy[k, 1] = rel[k, 0] * basis[1, 0] + rel[k, 1] * basis[1, 1] + rel[k, 2] * basis[1, 2]
         _radial_order(xy, n, order, bucket)
         m = triangulate_into(xy, order, n, workspace)
-        add_mesh_moments(rel, tri, m, out[row])
+        add_mesh_moments_into(rel, tri, m, out[row], corners, terms)
 
 
 def local_moments(xyz, nbr_idx, nbr_ptr, query) -> np.ndarray:

@@ -106,15 +106,10 @@ _NO_SUMS = (0.0,) * N_MOMENTS
 
 
 @_inline
-def _add_weighted_sums(sums, ax, ay, az, bx, by, bz, cx, cy, cz):
-    """``sums`` (a 20-tuple) plus the moments of triangle (a, b, c) times ``_DIVISORS``.
-
-    The terms A, A S_i, A (S_i S_j + Q_ij) and A (S_i S_j S_k + ... + 2 C_ijk) of the module
-    docstring, in ``MOMENT_EXPONENTS`` order: summed over triangles before the division, they
-    keep a loop's running sums in registers.
-    """
-    (s0, s1x, s1y, s1z, s2xx, s2xy, s2xz, s2yy, s2yz, s2zz,
-     s3xxx, s3xxy, s3xxz, s3xyy, s3xyz, s3xzz, s3yyy, s3yyz, s3yzz, s3zzz) = sums  # fmt: skip
+def _triangle_terms(ax, ay, az, bx, by, bz, cx, cy, cz):
+    """The moments of triangle (a, b, c) times ``_DIVISORS``, a 20-tuple in
+    ``MOMENT_EXPONENTS`` order: the terms A, A S_i, A (S_i S_j + Q_ij) and
+    A (S_i S_j S_k + ... + 2 C_ijk) of the module docstring."""
     ux = bx - ax
     uy = by - ay
     uz = bz - az
@@ -145,27 +140,47 @@ def _add_weighted_sums(sums, ax, ay, az, bx, by, bz, cx, cy, cz):
     cyzz = ay * az * az + by * bz * bz + cy * cz * cz
     czzz = az * az * az + bz * bz * bz + cz * cz * cz
     return (
-        s0 + area,
-        s1x + area * sx,
-        s1y + area * sy,
-        s1z + area * sz,
-        s2xx + area * (sx * sx + qxx),
-        s2xy + area * (sx * sy + qxy),
-        s2xz + area * (sx * sz + qxz),
-        s2yy + area * (sy * sy + qyy),
-        s2yz + area * (sy * sz + qyz),
-        s2zz + area * (sz * sz + qzz),
-        s3xxx + area * (sx * sx * sx + 3.0 * qxx * sx + 2.0 * cxxx),
-        s3xxy + area * (sx * sx * sy + qxx * sy + 2.0 * qxy * sx + 2.0 * cxxy),
-        s3xxz + area * (sx * sx * sz + qxx * sz + 2.0 * qxz * sx + 2.0 * cxxz),
-        s3xyy + area * (sx * sy * sy + qyy * sx + 2.0 * qxy * sy + 2.0 * cxyy),
-        s3xyz + area * (sx * sy * sz + qxy * sz + qxz * sy + qyz * sx + 2.0 * cxyz),
-        s3xzz + area * (sx * sz * sz + qzz * sx + 2.0 * qxz * sz + 2.0 * cxzz),
-        s3yyy + area * (sy * sy * sy + 3.0 * qyy * sy + 2.0 * cyyy),
-        s3yyz + area * (sy * sy * sz + qyy * sz + 2.0 * qyz * sy + 2.0 * cyyz),
-        s3yzz + area * (sy * sz * sz + qzz * sy + 2.0 * qyz * sz + 2.0 * cyzz),
-        s3zzz + area * (sz * sz * sz + 3.0 * qzz * sz + 2.0 * czzz),
+        area,
+        area * sx,
+        area * sy,
+        area * sz,
+        area * (sx * sx + qxx),
+        area * (sx * sy + qxy),
+        area * (sx * sz + qxz),
+        area * (sy * sy + qyy),
+        area * (sy * sz + qyz),
+        area * (sz * sz + qzz),
+        area * (sx * sx * sx + 3.0 * qxx * sx + 2.0 * cxxx),
+        area * (sx * sx * sy + qxx * sy + 2.0 * qxy * sx + 2.0 * cxxy),
+        area * (sx * sx * sz + qxx * sz + 2.0 * qxz * sx + 2.0 * cxxz),
+        area * (sx * sy * sy + qyy * sx + 2.0 * qxy * sy + 2.0 * cxyy),
+        area * (sx * sy * sz + qxy * sz + qxz * sy + qyz * sx + 2.0 * cxyz),
+        area * (sx * sz * sz + qzz * sx + 2.0 * qxz * sz + 2.0 * cxzz),
+        area * (sy * sy * sy + 3.0 * qyy * sy + 2.0 * cyyy),
+        area * (sy * sy * sz + qyy * sz + 2.0 * qyz * sy + 2.0 * cyyz),
+        area * (sy * sz * sz + qzz * sy + 2.0 * qyz * sz + 2.0 * cyzz),
+        area * (sz * sz * sz + 3.0 * qzz * sz + 2.0 * czzz),
     )
+
+
+@_inline
+def _add_weighted_sums(sums, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """``sums`` (a 20-tuple) plus :func:`_triangle_terms` of triangle (a, b, c).
+
+    Summed over triangles before the division by ``_DIVISORS``, they keep a loop's running
+    sums in registers.
+    """
+    (s0, s1x, s1y, s1z, s2xx, s2xy, s2xz, s2yy, s2yz, s2zz,
+     s3xxx, s3xxy, s3xxz, s3xyy, s3xyz, s3xzz, s3yyy, s3yyz, s3yzz, s3zzz) = sums  # fmt: skip
+    (t0, t1x, t1y, t1z, t2xx, t2xy, t2xz, t2yy, t2yz, t2zz,
+     t3xxx, t3xxy, t3xxz, t3xyy, t3xyz, t3xzz, t3yyy, t3yyz, t3yzz, t3zzz) = _triangle_terms(
+        ax, ay, az, bx, by, bz, cx, cy, cz)  # fmt: skip
+    return (
+        s0 + t0, s1x + t1x, s1y + t1y, s1z + t1z,
+        s2xx + t2xx, s2xy + t2xy, s2xz + t2xz, s2yy + t2yy, s2yz + t2yz, s2zz + t2zz,
+        s3xxx + t3xxx, s3xxy + t3xxy, s3xxz + t3xxz, s3xyy + t3xyy, s3xyz + t3xyz,
+        s3xzz + t3xzz, s3yyy + t3yyy, s3yyz + t3yyz, s3yzz + t3yzz, s3zzz + t3zzz,
+    )  # fmt: skip
 
 
 @_inline
@@ -187,21 +202,84 @@ def add_triangle_moments(a, b, c, axes, out):
     _add_divided(sums, out)
 
 
+#: Triangles per block of :func:`add_mesh_moments_into`: a compile-time row length of its
+#: work arrays lets LLVM compute the terms of several triangles in one SIMD instruction.
+MESH_BLOCK = 64
+
+
 @_jit
+def mesh_workspace():
+    """Work arrays of :func:`add_mesh_moments_into`: the corners and the terms of a block
+    of triangles, float64 (9 * MESH_BLOCK,) and (20 * MESH_BLOCK,)."""
+    return np.empty(9 * MESH_BLOCK), np.empty(N_MOMENTS * MESH_BLOCK)
+
+
+@_inline
+def _add_block_terms(sums, terms, i):
+    """``sums`` (a 20-tuple) plus the terms of triangle i of a block."""
+    b = MESH_BLOCK
+    return (
+        sums[0] + terms[i], sums[1] + terms[b + i], sums[2] + terms[2 * b + i],
+        sums[3] + terms[3 * b + i], sums[4] + terms[4 * b + i], sums[5] + terms[5 * b + i],
+        sums[6] + terms[6 * b + i], sums[7] + terms[7 * b + i], sums[8] + terms[8 * b + i],
+        sums[9] + terms[9 * b + i], sums[10] + terms[10 * b + i],
+        sums[11] + terms[11 * b + i], sums[12] + terms[12 * b + i],
+        sums[13] + terms[13 * b + i], sums[14] + terms[14 * b + i],
+        sums[15] + terms[15 * b + i], sums[16] + terms[16 * b + i],
+        sums[17] + terms[17 * b + i], sums[18] + terms[18 * b + i],
+        sums[19] + terms[19 * b + i],
+    )  # fmt: skip
+
+
+@_jit
+def add_mesh_moments_into(xyz, tri, m, out, corners, terms):
+    """:func:`add_mesh_moments` with its work arrays from :func:`mesh_workspace`.
+
+    The same bits: the terms of each triangle are the same expressions, and each column's
+    sum still runs over the triangles in order. Only the computation of the terms is split
+    from the sums, so that it runs on blocks of triangles in SIMD registers (twice as fast).
+    """
+    b = MESH_BLOCK
+    sums = _NO_SUMS
+    for first in range(0, m, b):
+        size = min(b, m - first)
+        for i in range(size):
+            t = first + i
+            p = tri[t, 0]
+            q = tri[t, 1]
+            r = tri[t, 2]
+            corners[i] = xyz[p, 0]
+            corners[b + i] = xyz[p, 1]
+            corners[2 * b + i] = xyz[p, 2]
+            corners[3 * b + i] = xyz[q, 0]
+            corners[4 * b + i] = xyz[q, 1]
+            corners[5 * b + i] = xyz[q, 2]
+            corners[6 * b + i] = xyz[r, 0]
+            corners[7 * b + i] = xyz[r, 1]
+            corners[8 * b + i] = xyz[r, 2]
+        for i in range(size):
+            (terms[i], terms[b + i], terms[2 * b + i], terms[3 * b + i], terms[4 * b + i],
+             terms[5 * b + i], terms[6 * b + i], terms[7 * b + i], terms[8 * b + i],
+             terms[9 * b + i], terms[10 * b + i], terms[11 * b + i], terms[12 * b + i],
+             terms[13 * b + i], terms[14 * b + i], terms[15 * b + i], terms[16 * b + i],
+             terms[17 * b + i], terms[18 * b + i], terms[19 * b + i]) = _triangle_terms(
+                corners[i], corners[b + i], corners[2 * b + i], corners[3 * b + i],
+                corners[4 * b + i], corners[5 * b + i], corners[6 * b + i],
+                corners[7 * b + i], corners[8 * b + i],
+            )  # fmt: skip
+        for i in range(size):
+            sums = _add_block_terms(sums, terms, i)
+    _add_divided(sums, out)
+
+
+@_inline  # inlined where it is called, so no kernel is left to compile or cache on its own
 def add_mesh_moments(xyz, tri, m, out):
     """Add the 20 surface moments of the triangles xyz[tri[:m]] to ``out`` (float64 (20,)).
 
     ``xyz`` is float64 (n, 3), ``tri`` int64 (>= m, 3) vertex indices. The formulas of
     :func:`add_triangle_moments`, each column's area-weighted sum taken over all the triangles
-    before its one division (so the last bits may differ from a call per triangle).
+    in order before its one division (so the last bits may differ from a call per triangle).
+    A loop over many meshes should call :func:`add_mesh_moments_into` with one workspace.
     """
-    sums = _NO_SUMS
-    for t in range(m):
-        a = tri[t, 0]
-        b = tri[t, 1]
-        c = tri[t, 2]
-        sums = _add_weighted_sums(
-            sums, xyz[a, 0], xyz[a, 1], xyz[a, 2], xyz[b, 0], xyz[b, 1], xyz[b, 2],
-            xyz[c, 0], xyz[c, 1], xyz[c, 2],
-        )  # fmt: skip
-    _add_divided(sums, out)
+    corners, terms = mesh_workspace()
+    add_mesh_moments_into(xyz, tri, m, out, corners, terms)

@@ -224,19 +224,47 @@ def _search_block(
     # sides away, up to the rounding of cell indices (see CELL_MARGIN): k * shell is a safe
     # strict bound on its distance
     shell = cell * (1.0 - 1e-5)
+    margin = cell * 1e-5
+    # the queries come in cell order, a cell's one after the other: the column runs of the
+    # first ring are looked up once per cell (a binary search each) and kept
+    first_far = 1 if capped else span
+    run_start = np.empty((2 * first_far + 1) ** 2, dtype=np.int64)
+    run_stop = np.empty((2 * first_far + 1) ** 2, dtype=np.int64)
+    kept = (-1, -1, -1)
     for b in range(qrows.shape[0]):
         xq, yq, zq, cx, cy, cz = _query_cell(xyz, qrows[b], origin, cell, dims)
-        far = 1 if capped else span
+        far = first_far
         while True:
             # the cells within Chebyshev distance `far`, points closer than `far` sides
             bound = r2 if far >= span else min(r2, (far * shell) ** 2)
             n = np.int64(0)  # not a literal: numba would compile _select for it too
+            reuse = far == first_far and kept == (cx, cy, cz)
+            column = 0
             for gx in range(max(cx - far, 0), min(cx + far + 1, nx)):
+                # distance from the query to the column's extent, less a margin for the
+                # rounding of cell indices: no point of a column farther than the bound
+                # can be a candidate
+                x0 = origin[0] + gx * cell
+                dx = max(x0 - xq, xq - (x0 + cell), 0.0)
+                dx = max(dx - margin, 0.0)
                 for gy in range(max(cy - far, 0), min(cy + far + 1, ny)):
-                    z0 = max(cz - far, 0)
-                    z1 = min(cz + far, nz - 1)
-                    base = (gx * ny + gy) * nz
-                    start, stop = _column_run(ukeys, ustart, base + z0, base + z1)
+                    y0 = origin[1] + gy * cell
+                    dy = max(y0 - yq, yq - (y0 + cell), 0.0)
+                    dy = max(dy - margin, 0.0)
+                    if reuse:
+                        start = run_start[column]
+                        stop = run_stop[column]
+                    else:
+                        z0 = max(cz - far, 0)
+                        z1 = min(cz + far, nz - 1)
+                        base = (gx * ny + gy) * nz
+                        start, stop = _column_run(ukeys, ustart, base + z0, base + z1)
+                        if far == first_far:
+                            run_start[column] = start
+                            run_stop[column] = stop
+                    column += 1
+                    if dx * dx + dy * dy > bound:
+                        continue
                     if n + stop - start > capacity:
                         while n + stop - start > capacity:
                             capacity *= 2
@@ -250,13 +278,17 @@ def _search_block(
                         perm = np.empty(capacity, dtype=np.int64)
                         bucket_end = np.empty(capacity + 1, dtype=np.int64)
                         scratch = np.empty(capacity, dtype=np.int64)
+                    # every candidate is written at n, which moves on only for those
+                    # within the bound: no branch for the processor to mispredict on the
+                    # fifth or so of a column's points that are in the sphere
                     for s in range(start, stop):
                         d2 = squared_distance(sxyz, s, xq, yq, zq)
-                        if d2 <= bound:
-                            cd2[n] = d2
-                            cid[n] = sids[s]
-                            crow[n] = srows[s]
-                            n += 1
+                        cd2[n] = d2
+                        cid[n] = sids[s]
+                        crow[n] = srows[s]
+                        n += d2 <= bound
+            if far == first_far:
+                kept = (cx, cy, cz)
             if far >= span or n >= m:
                 break
             far += 1

@@ -11,6 +11,8 @@ from scipy.spatial import Delaunay
 from pipeline.errors import InputError
 from pipeline.features.delaunay import (
     TRIANGLES,
+    _incircle_idx,
+    _orient_idx,
     incircle,
     make_workspace,
     orient2d,
@@ -170,6 +172,43 @@ def test_predicates_exact_on_integer_degeneracies():
     assert sign(orient2d(0.1, 0.1, 0.2, 0.2, 0.3, 0.3)) == exact
 
 
+def grid_quadruples(rng, count):
+    """Quadruples of points as the triangulation sees them (|x|, |y| <= 1 after
+    ``snap_to_grid``): nearly collinear or co-circular ones, and ones at the corners of the
+    square where the differences, and so the sums that scale the filters' error bounds, are
+    largest."""
+    for k in range(count):
+        kind = k % 3
+        if kind == 0:  # three on a line, up to an ulp, spanning the square
+            a, b = rng.uniform(-1, 1, size=(2, 2))
+            pts = np.vstack([a, b, a + rng.uniform(-1, 2) * (b - a), rng.uniform(-1, 1, 2)])
+        elif kind == 1:  # four on a circle, up to an ulp
+            angles = rng.uniform(0, 2 * np.pi, size=4)
+            pts = rng.uniform(-0.1, 0.1, 2) + rng.uniform(0.01, 0.9) * np.column_stack(
+                [np.cos(angles), np.sin(angles)])
+        else:  # corners of the square, nudged
+            pts = rng.choice([-1.0, 1.0], size=(4, 2)) * rng.choice([1.0, 1 - 2**-52, 0.5],
+                                                                   size=(4, 2))
+        pts = np.clip(np.nextafter(pts, pts + rng.choice([-1.0, 0.0, 1.0], size=pts.shape)),
+                      -1.0, 1.0)
+        # the snap keeps points whose largest coordinate is a power of two below 1 as they are
+        yield snap_to_grid(np.vstack([pts, [[1.0, 1.0]]]))[:4]
+
+
+def test_grid_predicates_give_exact_signs():
+    """The triangulation's own predicates decide most calls with a static error bound that
+    holds for points on the grid only: their signs must still be exact there."""
+    rng = np.random.default_rng(7)
+    for xy in grid_quadruples(rng, 3000):
+        a, b, c, d = xy
+        assert sign(_orient_idx(xy, 0, 1, 2)) == sign(exact_orient(a, b, c))
+        assert sign(_orient_idx(xy, 3, 1, 0)) == sign(exact_orient(d, b, a))
+        if exact_orient(a, b, c) < 0:
+            xy = xy[[0, 2, 1, 3]]
+            a, b, c, d = xy
+        assert sign(_incircle_idx(xy, 0, 1, 2, 3)) == sign(exact_incircle(a, b, c, d))
+
+
 # --- triangulation ------------------------------------------------------------------------------
 
 
@@ -224,6 +263,20 @@ def test_snap_to_grid_moves_points_by_less_than_1e_18_of_their_size(points, shif
     # on the grid: 2^60 times a coordinate is an integer
     assert np.all(snapped * 2.0**60 == np.round(snapped * 2.0**60))
     np.testing.assert_array_equal(snap_to_grid(snapped), snapped)  # idempotent
+
+
+@pytest.mark.parametrize("magnitude", [1e-310, 1e-300, 2.0**-964, 2.0**-963, 1e-200, 1e-5, 1.0,
+                                       3.7e5, 1e300])
+def test_snap_is_the_rounding_formula_bit_for_bit_at_every_magnitude(magnitude):
+    """round(2^-e x 2^60) / 2^60, e the exponent of the largest magnitude, signed zeros and
+    subnormal inputs included, however the kernel computes it."""
+    xy = np.random.default_rng(3).uniform(-1, 1, size=(40, 2)) * magnitude
+    xy[0] = [5e-324, -1e-310]
+    xy[1] = [-5e-324, 0.0]
+    xy[2, 0] = -magnitude
+    exponent = np.frexp(np.abs(xy).max())[1]
+    want = np.round(np.ldexp(xy, -exponent) * 2.0**60) / 2.0**60
+    np.testing.assert_array_equal(snap_to_grid(xy).view(np.int64), want.view(np.int64))
 
 
 def test_snap_keeps_coordinates_near_the_largest():

@@ -4,8 +4,12 @@ import numpy as np
 import pytest
 
 from pipeline.features.moments import (
+    MESH_BLOCK,
     MOMENT_AXES,
     MOMENT_EXPONENTS,
+    _DIVISORS,
+    _NO_SUMS,
+    _add_weighted_sums,
     add_mesh_moments,
     add_triangle_moments,
     moment_index,
@@ -172,6 +176,24 @@ def test_mesh_moments_equal_sums_over_triangles():
     add_mesh_moments(xyz, tri, 10, head)  # only the first m triangles
     np.testing.assert_allclose(head, surface_moments(xyz[tri[:10]]).sum(axis=0), rtol=1e-12,
                                atol=1e-12)  # fmt: skip
+
+
+@pytest.mark.parametrize("m", [0, 1, MESH_BLOCK - 1, MESH_BLOCK, MESH_BLOCK + 1, 3 * MESH_BLOCK + 5])
+def test_mesh_moments_are_the_running_sums_bit_for_bit(m):
+    """The blocked, SIMD kernel gives the bits of the plain loop it replaced: each column's
+    sum of the same terms over the triangles in order, then one division."""
+    rng = np.random.default_rng(m)
+    xyz = rng.normal(scale=0.3, size=(50, 3))
+    tri = rng.integers(0, 50, size=(max(m, 1), 3)).astype(np.int64)
+    sums = _NO_SUMS
+    for a, b, c in tri[:m]:
+        sums = _add_weighted_sums(sums, *xyz[a], *xyz[b], *xyz[c])
+    want = np.zeros(20)
+    for k in range(20):
+        want[k] += sums[k] / _DIVISORS[k]
+    got = np.zeros(20)
+    add_mesh_moments(xyz, tri, m, got)
+    np.testing.assert_array_equal(got.view(np.int64), want.view(np.int64))
 
 
 @pytest.mark.parametrize("shape", [(4, 3), (4, 3, 2), (3, 3), (4, 2, 3), (2, 4, 3, 3)])
