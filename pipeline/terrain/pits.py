@@ -107,6 +107,19 @@ def deep_pits(z: np.ndarray, data: np.ndarray, cell: float, radius: int) -> np.n
     return pits
 
 
+def grown(seed: np.ndarray, footprint: np.ndarray, within: np.ndarray) -> np.ndarray:
+    """bool: the cells of ``within`` reached from ``seed`` (inside it) by steps of
+    ``footprint`` (centre included) through cells of ``within``. One dilation at a time:
+    scipy's repeated dilation (``iterations`` other than 1, with or without a mask) writes
+    beyond its buffers in scipy 1.17 and crashes the process later."""
+    group = seed
+    while True:
+        step = ndimage.binary_dilation(group, structure=footprint) & within
+        if np.array_equal(step, group):
+            return group
+        group = step
+
+
 def _pit(z: np.ndarray, data: np.ndarray, at: tuple[int, int], footprint: np.ndarray,
          cell: float, widest: float) -> np.ndarray | None:
     """bool mask of the group topped by the cell ``at`` of a box (``z``, ``data``) around
@@ -118,7 +131,7 @@ def _pit(z: np.ndarray, data: np.ndarray, at: tuple[int, int], footprint: np.nda
     seed[at] = True
     with np.errstate(invalid="ignore"):
         below = data & (z <= top)
-    group = ndimage.binary_dilation(seed, structure=footprint, iterations=0, mask=below)
+    group = grown(seed, footprint, below)
     rows, cols = np.nonzero(group)
     extent = max(rows.max() - rows.min() + 1, cols.max() - cols.min() + 1) * cell
     if extent > widest:

@@ -456,3 +456,63 @@ def test_topography_tile_ground_rmse():
     ground = np.asarray(las.classification) == 2
     error = xyz[ground, 2] - ground_elevation(model.dtm, xyz[ground, :2])
     assert np.sqrt(np.mean(error**2)) <= 0.15  # 0.09 m measured with the defaults
+
+
+def test_a_pit_grows_through_its_linked_cells_as_a_masked_dilation_would():
+    """The group of a deep pit is grown one dilation at a time (scipy's repeated dilation
+    corrupts memory): the cells reached from the seed through the mask, by the footprint."""
+    from scipy import ndimage
+    from scipy.sparse import csgraph, csr_matrix
+
+    from pipeline.terrain.pits import disk_offsets, grown
+
+    rng = np.random.default_rng(3)
+    footprint = np.zeros((5, 5), dtype=bool)
+    footprint[tuple((disk_offsets(2) + 2).T)] = True
+    footprint[2, 2] = True
+    for _ in range(20):
+        within = rng.random((15, 17)) < 0.45
+        seed = np.zeros(within.shape, dtype=bool)
+        seed[tuple(np.argwhere(within)[0])] = True
+        cells = np.argwhere(within)
+        gap = np.abs(cells[:, None, :] - cells[None, :, :])
+        linked = (gap ** 2).sum(axis=2) <= 4  # within the footprint's radius of 2
+        _, label = csgraph.connected_components(csr_matrix(linked), directed=False)
+        expected = np.zeros(within.shape, dtype=bool)
+        expected[tuple(cells[label == label[0]].T)] = True
+        assert np.array_equal(grown(seed, footprint, within), expected)
+        one_step = ndimage.binary_dilation(seed, structure=footprint) & within
+        assert grown(seed, footprint, within).sum() >= one_step.sum()
+
+
+#: Grows thousands of pits in a fresh process, allocating between them: the repeated
+#: dilation of scipy 1.17 wrote beyond its buffers and the process died of it.
+PIT_LOOP = """
+import gc
+import numpy as np
+from pipeline.terrain.pits import _pit, disk_offsets
+rng = np.random.default_rng(0)
+footprint = np.zeros((11, 11), dtype=bool)
+footprint[tuple((disk_offsets(5) + 5).T)] = True
+footprint[5, 5] = True
+for k in range(3000):
+    shape = tuple(rng.integers(5, 60, 2))
+    z = rng.uniform(0.0, 30.0, shape)
+    data = rng.random(shape) < 0.6
+    at = (int(rng.integers(0, shape[0])), int(rng.integers(0, shape[1])))
+    data[at] = True
+    _pit(z, data, at, footprint, 1.0, 30.0)
+    if k % 100 == 0:
+        junk = [np.empty(10**6) for _ in range(5)]
+        gc.collect()
+print("done")
+"""
+
+
+def test_growing_many_pits_leaves_the_process_whole():
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", PIT_LOOP], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0 and done.stdout.strip() == "done", done.stderr[-500:]
