@@ -125,3 +125,10 @@ def test_a_terrain_block_too_big_for_a_worker_is_refused_naming_terrain_block(tm
     with pytest.raises(Exception, match="terrain.block"):
         check_memory(run, tiles)
     assert terrain_bytes(run, [dict(tiles[0], maxs=[300.0, 300.0, 10.0])]) < 1e9
+
+
+def test_a_sparse_survey_shows_its_density():
+    from workflows.cli.plan import density_text
+
+    assert [density_text(d) for d in (338.24, 1.0, 0.0625, 0.01)] == [
+        "338.2", "1.0", "0.062", "0.01"]

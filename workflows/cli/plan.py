@@ -276,7 +276,7 @@ def _scene_line(scene: str, info: SceneLayout, members: list[dict]) -> tuple[str
     area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
     way = "one pass" if info.one_pass else "stage by stage"
     head = (f"scene {scene}: {counted(len(members), 'tile')}, "
-            f"{counted(points, 'point')}, {points / area:,.1f} points/m²; "
+            f"{counted(points, 'point')}, {density_text(points / area)} points/m²; "
             f"halo {info.halo:g} m ({way}); ")
     if isinstance(grid, Grid):
         per_chunk = grid_window(members, grid.size, info.halo)
@@ -288,6 +288,12 @@ def _scene_line(scene: str, info: SceneLayout, members: list[dict]) -> tuple[str
             "points in a core (min / median / max) "
             f"{' / '.join(f'{v:,}' for v in core)}, with its halo "
             f"{' / '.join(f'{v:,}' for v in window)}", window[2])
+
+
+def density_text(density: float) -> str:
+    """Points per m² as ``silva plan`` shows them: one decimal, two significant digits
+    below 1 (a sparse survey's 0.01 is not 0.0)."""
+    return f"{density:,.1f}" if density >= 1 else f"{density:.2g}"
 
 
 def echoes_text(echoes: bool) -> str:
