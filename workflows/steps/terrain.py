@@ -108,7 +108,7 @@ def terrain(run: Run, engine, layout: RunLayout) -> None:
                          chunks=overlapping_chunks(todo.scenes[scene], grid, (bx, by)),
                          grid=grid, params=params, fingerprint=fingerprint),
              where=f"terrain block {bx}_{by} of scene '{scene}'",
-             reproduce=f"silva features CONFIG --out {run.out} --in-process")
+             reproduce=run.rerun("features", "--in-process"))
         for scene, blocks in occupied.items() for bx, by in blocks.tolist()]
     counts = engine.map("ingest (terrain blocks)", block_tasks)  # ingest's end in the progress
     for scene, blocks in occupied.items():
