@@ -36,6 +36,7 @@ from typing import Callable
 
 import numpy as np
 
+from pipeline.errors import ConfigError
 from pipeline.features.conditioning import condition_invariants
 from pipeline.features.covariance import multiscale_covariance, multiscale_halo, multiscale_names
 from pipeline.features.density import capped_halo
@@ -112,36 +113,36 @@ class FeatureParams:
 
     def __post_init__(self):
         if self.set not in FEATURE_SETS:
-            raise ValueError(f"unknown feature set {self.set!r}; use one of "
+            raise ConfigError(f"unknown feature set {self.set!r}; use one of "
                              + ", ".join(repr(s) for s in FEATURE_SETS))
         if not isinstance(self.echoes, (bool, np.bool_)):
-            raise ValueError(f"features.echoes must be true or false, got {self.echoes!r}")
+            raise ConfigError(f"features.echoes must be true or false, got {self.echoes!r}")
         object.__setattr__(self, "echoes", bool(self.echoes))
         if self.echoes and self.set not in ECHO_SETS:
-            raise ValueError(
+            raise ConfigError(
                 f"features.echoes needs features.set {' or '.join(map(repr, ECHO_SETS))}, got "
                 f"{self.set!r} (the published invariants have no echo columns): set "
                 "features.set to 'covariance' or 'default', or features.echoes to false")
         # the messages name the configuration's keys: the schema hands these checks to us
         if not self.r1 > 0:
-            raise ValueError(f"features.r1 must be > 0, got {self.r1!r}")
+            raise ConfigError(f"features.r1 must be > 0, got {self.r1!r}")
         if self.r2 is None:
             object.__setattr__(self, "r2", self.r1 / 2)  # the paper's r2 = r1 / 2
         if not 0 < self.r2 <= self.r1:
-            raise ValueError(f"features.r2 must be > 0 and <= features.r1 ({self.r1!r}), "
+            raise ConfigError(f"features.r2 must be > 0 and <= features.r1 ({self.r1!r}), "
                              f"got {self.r2!r}")
         if self.plane not in PLANES:
-            raise ValueError(f"features.plane must be one of {PLANES}, got {self.plane!r}")
+            raise ConfigError(f"features.plane must be one of {PLANES}, got {self.plane!r}")
         if not self.scales or min(self.scales) <= 0 or len(set(self.scales)) < len(self.scales):
-            raise ValueError("features.scales must be distinct numbers > 0 (multiples of "
+            raise ConfigError("features.scales must be distinct numbers > 0 (multiples of "
                              f"features.r1), got {list(self.scales)!r}")
         if not self.column > 0:
-            raise ValueError(f"features.column must be > 0, got {self.column!r}")
+            raise ConfigError(f"features.column must be > 0, got {self.column!r}")
         if not 0 < self.cell <= self.column:
-            raise ValueError(f"features.cell ({self.cell!r}) must not exceed features.column "
+            raise ConfigError(f"features.cell ({self.cell!r}) must not exceed features.column "
                              f"({self.column!r}): the column is made of cells")
         if self.voxel is not None and not self.voxel > 0:
-            raise ValueError(f"features.voxel must be > 0 or unset, got {self.voxel!r}")
+            raise ConfigError(f"features.voxel must be > 0 or unset, got {self.voxel!r}")
         for name in ("r1", "r2", "column", "cell"):
             object.__setattr__(self, name, float(getattr(self, name)))
         object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))

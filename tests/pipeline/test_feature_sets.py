@@ -78,13 +78,18 @@ def test_every_column_has_a_spread_a_forest_can_split(plot):
     assert not flat, flat
 
 
-def test_bad_parameters_are_refused():
-    with pytest.raises(ValueError, match="unknown feature set"):
+def test_bad_parameters_are_refused_as_configuration_errors():
+    from pipeline.errors import ConfigError
+
+    # a ConfigError, as the terrain's and the trees' parameters raise (it is a ValueError)
+    with pytest.raises(ConfigError, match="unknown feature set"):
         FeatureParams(set="fancy")
-    with pytest.raises(ValueError, match="plane"):
+    with pytest.raises(ConfigError, match="plane"):
         FeatureParams(plane="yz")
-    with pytest.raises(ValueError, match="scales"):
+    with pytest.raises(ConfigError, match="scales"):
         FeatureParams(scales=(1.0, 1.0))
+    with pytest.raises(ConfigError, match="features.r1"):
+        FeatureParams(r1=-1.0)
 
 
 def test_a_part_giving_fewer_columns_than_it_names_is_refused():
