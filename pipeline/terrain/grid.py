@@ -20,8 +20,8 @@ logger = logging.getLogger(__name__)
 
 #: Largest cell key magnitude: keys and their differences stay exact in float64 and int64.
 MAX_KEY = 2**50
-#: Largest raster :func:`minima_raster` builds, and largest sum of a scene's block rasters
-#: (float64 values: 1.6 GB).
+#: Largest raster Silva builds (float64 values: 1.6 GB): a terrain block's region
+#: (:func:`minima_raster`), a canopy height model.
 MAX_CELLS = 200_000_000
 
 

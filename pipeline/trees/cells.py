@@ -17,13 +17,12 @@ import numpy as np
 from pipeline.errors import InputError
 from pipeline.surface import despike
 from pipeline.terrain import Raster
+from pipeline.terrain.grid import MAX_CELLS  # the largest raster, a canopy's as a terrain's
 
 #: Largest cell index magnitude on either axis: two indices pack into one int64 key.
 MAX_INDEX = 2**30
 #: Keys are (ky + MAX_INDEX) * KEY_ROW + (kx + MAX_INDEX).
 KEY_ROW = 2**31
-#: Largest raster :func:`chm_raster` builds (float64 values: 1.6 GB).
-MAX_CELLS = 200_000_000
 
 
 @dataclass(frozen=True)
