@@ -14,9 +14,11 @@ from tests.workflows.conftest import (
     assert_chunked,
     covariance_config,
     read_predictions,
+    sigkill_when,
     silva,
+    write_config,
 )
-from workflows.store.terrain import read_scene_terrain
+from workflows.store.terrain import read_scene_terrain, terrain_done
 
 pytestmark = pytest.mark.slow
 
@@ -119,3 +121,37 @@ def test_an_export_done_already_keeps_its_rasters(runs, survey, tmp_path):
     result = silva("export", config, "--out", out, "--in-process", "-q")
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in (out / "rasters").iterdir()) == before
+
+
+def _done_blocks(out) -> dict:
+    """The terrain blocks of the scene 'predict' marked done, with their metadata's times."""
+    blocks = out / "store.zarr" / "scenes" / "predict" / "terrain" / "blocks"
+    if not blocks.is_dir():
+        return {}
+    return {p.parent.name: p.stat().st_mtime_ns for p in blocks.glob("*/zarr.json")
+            if '"terrain"' in p.read_text()}
+
+
+def test_a_run_killed_among_the_terrain_blocks_resumes_to_the_same_model(survey, tmp_path):
+    """Blocks of 3 m (25 for a 14 m scene): killed once some are done, the run keeps them,
+    models the rest, and ends with the model of an uninterrupted run, bit for bit."""
+    def config(name):
+        return write_config(tmp_path / f"{name}.yaml", survey, data={
+            "train": [], "test": [], "predict": [str(survey["test"] / "*.laz")]},
+            terrain={"block": 3.0})
+
+    out = tmp_path / "killed"
+    sigkill_when(["features", config("k"), "--out", out, "--quiet", "--in-process"],
+                 lambda: len(_done_blocks(out)) >= 5)
+    kept = _done_blocks(out)
+    store = out / "store.zarr"
+    assert kept and terrain_done(open_store(store), "predict") is None
+    assert silva("features", config("k"), "--out", out, "--quiet", "--in-process").exit_code == 0
+    after = _done_blocks(out)
+    assert all(after[name] == mtime for name, mtime in kept.items())  # not modelled again
+    whole = tmp_path / "whole"
+    assert silva("features", config("w"), "--out", whole, "--quiet", "--in-process").exit_code == 0
+    a, b = (read_scene_terrain(open_store(p / "store.zarr"), "predict") for p in (out, whole))
+    assert np.array_equal(a.blocks, b.blocks) and len(a.blocks) > 9
+    xy = np.concatenate([laspy.read(p).xyz for p in sorted(survey["test"].glob("*.laz"))])[:, :2]
+    assert np.array_equal(ground_elevation(a, xy), ground_elevation(b, xy))
