@@ -132,3 +132,19 @@ def test_a_sparse_survey_shows_its_density():
 
     assert [density_text(d) for d in (338.24, 1.0, 0.0625, 0.01)] == [
         "338.2", "1.0", "0.062", "0.01"]
+
+
+def test_a_sparse_survey_plans_more_terrain_time_per_cell(tmp_path, survey):
+    from workflows.cli.plan import TERRAIN_SECONDS_PER_CELL, terrain_seconds_per_cell
+    from workflows.config import load_config
+    from workflows.run.autoparams import resolve_run
+    from workflows.run.directory import Run
+
+    run = Run(resolve_run(load_config(write_config(tmp_path / "c.yaml", survey))), tmp_path)
+
+    def tiles(points):
+        return [{"scene": "test", "n_points": points, "mins": [0, 0, 0], "maxs": [1000, 1000, 1]}]
+
+    assert terrain_seconds_per_cell(run, tiles(3_000_000)) == TERRAIN_SECONDS_PER_CELL
+    assert terrain_seconds_per_cell(run, tiles(10_000)) == pytest.approx(
+        3 * TERRAIN_SECONDS_PER_CELL)

@@ -61,9 +61,17 @@ TREE_SECONDS = 8.5e-8
 #: minima), measured on regions of 1,114 x 1,114 cells at 1 m: 440 MiB above the process
 #: with 3 M points, 480 with 300,000, 560 with 30,000 (sparser blocks fill more cells).
 TERRAIN_BYTES_PER_CELL = 480
-#: Seconds one core spends per cell of a terrain block's region: 1 km blocks at 1 m took
-#: 16-33 s (dense to sparse) on the reference machine.
+#: Seconds one core spends per cell of a terrain block's region with a point a cell or
+#: more, and that much again for each tenfold fewer (the fills of the empty cells): 1 km
+#: blocks at 1 m took 33 s with 2.4 points a cell, 65 s with 0.024, and about 90 s with
+#: 0.008 (a survey of 100 km²), on a loaded machine.
 TERRAIN_SECONDS_PER_CELL = 2e-5
+
+
+def terrain_seconds_per_cell(run: Run, tiles: list[dict]) -> float:
+    """:data:`TERRAIN_SECONDS_PER_CELL` at the tiles' mean points per terrain cell."""
+    per_cell = mean_density(tiles) * run.terrain.cell ** 2 if tiles else 1.0
+    return TERRAIN_SECONDS_PER_CELL * (1.0 + max(0.0, -math.log10(max(per_cell, 1e-3))))
 
 
 def worker_bytes(points: float, columns: int) -> float:
@@ -256,7 +264,7 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
         + f", {terrain_bytes(run, tiles) / 2**30:.2f} GiB for a terrain block",
         f"disk: about {disk / 2**30:.2f} GiB for store.zarr",
         f"time: about {clock(seconds + training)} on {counted(workers, 'worker')}: "
-        f"{clock(seconds)} for the features, context and predictions, {clock(training)} "
+        f"{clock(seconds)} for the terrain, features, context and predictions, {clock(training)} "
         "for the forests' training" + (" (from the training tiles' points: labelled ones "
                                         "are fewer)" if training else ""),
     ]
@@ -329,7 +337,7 @@ def estimated_seconds(run: Run, tiles: list[dict], workers: int,
     cells = terrain_blocks(run, tiles)[1]
     return {"features": points / workers / FEATURE_RATES[run.features.set],
             "other": points / workers / OTHER_RATE
-            + cells * TERRAIN_SECONDS_PER_CELL / workers,
+            + cells * terrain_seconds_per_cell(run, tiles) / workers,
             "training": training_seconds(run, train_points, os.cpu_count() or 1)}
 
 
