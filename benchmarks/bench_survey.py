@@ -106,7 +106,8 @@ def main(argv=None) -> int:
     parser.add_argument("--rasters", action="store_true")
     parser.add_argument("--out", type=Path, default=Path("bench-survey"))
     args = parser.parse_args(argv)
-    print(f"{'km2':>6s} {'points':>11s} {'coord GiB':>9s} {'worker GiB':>10s} {'wall':>8s}  steps (s)")
+    print(f"{'km2':>6s} {'points':>11s} {'coord GiB':>9s} {'worker GiB':>10s} {'wall':>8s}  "
+          "steps (s)")
     for km2 in args.areas:
         points = int(args.density * km2 * 1e6) if args.density else args.points
         name = f"{km2:g}km2-{points}"

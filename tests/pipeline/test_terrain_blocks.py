@@ -154,7 +154,8 @@ def test_scattered_points_cost_their_cells():
 def test_positions_beyond_the_blocks_read_the_nearest_block_each_on_its_own():
     xyz = np.concatenate([_plot(5, 0.0, 0.0, 10.0), _plot(6, 3000.0, 0.0, 10.0)])
     terrain = scene_terrain(xyz, PARAMS)
-    queries = np.array([[-50.0, 5.0], [1400.0, 5.0], [2100.0, 5.0], [5000.0, 40.0]])  # centres 500, 3500
+    # the blocks' centres: x 500 and 3,500
+    queries = np.array([[-50.0, 5.0], [1400.0, 5.0], [2100.0, 5.0], [5000.0, 40.0]])
     assert terrain.block_of(queries).tolist() == [0, 0, 1, 1]
     alone = [ground_elevation(terrain, q[None]) for q in queries]
     assert np.array_equal(np.concatenate(alone), ground_elevation(terrain, queries))
