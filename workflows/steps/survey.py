@@ -40,13 +40,6 @@ class SurveyTask:
     boxes: dict | None = None  # of the scene's chunks: name -> (xmin, ymin, xmax, ymax)
 
 
-def chunk_boxes(info) -> dict:
-    """The core box of each chunk of a scene's layout, by name (infinite at the edges)."""
-    boxes = info.grid.boxes()
-    names = {info.grid.chunk_name(i): i for i in range(len(boxes))}
-    return {chunk: tuple(boxes[names[chunk]].tolist()) for chunk in info.chunks}
-
-
 def inner_cells(keys: np.ndarray, box, cell: float) -> np.ndarray:
     """bool (M,): the cells (keys (M, 2)) that lie a cell or more inside the chunk's core
     ``box``: no other chunk holds a point of them (the margin absorbs rounding)."""
@@ -143,7 +136,7 @@ def survey(run: Run, engine, layout: RunLayout, final_stage: int, *,
                       tuple((s, v[:3]) for s, v in profiles.items()),
                       min(1.0, PROFILE_POINTS / max(band_points, 1.0)))
     tasks = chunk_tasks(run, layout, "survey", chunk_survey,
-                        lambda info: replace(task, boxes=chunk_boxes(info)),
+                        lambda info: replace(task, boxes=info.chunk_boxes),
                         run.fingerprint("export"), "report", marks=False)
     by_scene = results_by_scene(tasks, engine.map(f"{counted_in} (survey)", tasks))
     counts = sum(r["counts"] for rs in by_scene.values() for r in rs)

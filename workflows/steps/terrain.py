@@ -81,11 +81,8 @@ def overlapping_chunks(info: SceneLayout, grid: BlockGrid, block) -> tuple[str, 
     wider on each side, against rounding)."""
     x0, y0, x1, y1 = grid.region_box(block)
     pad = grid.cell
-    boxes = info.grid.boxes()
-    near = ((boxes[:, 0] < x1 + pad) & (boxes[:, 2] > x0 - pad)
-            & (boxes[:, 1] < y1 + pad) & (boxes[:, 3] > y0 - pad))
-    names = {info.grid.chunk_name(i) for i in np.flatnonzero(near)}
-    return tuple(chunk for chunk in info.chunks if chunk in names)
+    return tuple(chunk for chunk, (a, b, c, d) in info.chunk_boxes.items()
+                 if a < x1 + pad and c > x0 - pad and b < y1 + pad and d > y0 - pad)
 
 
 def terrain(run: Run, engine, layout: RunLayout) -> None:
@@ -102,6 +99,9 @@ def terrain(run: Run, engine, layout: RunLayout) -> None:
     occupied = {scene: np.unique(np.array([b for r in results for b in r["blocks"]],
                                           dtype=np.int64).reshape(-1, 2), axis=0)
                 for scene, results in minima.items()}
+    for scene, blocks in occupied.items():
+        if not len(blocks):
+            raise InputError(f"scene '{scene}' holds no points to build a terrain from")
     block_tasks = [
         Task(key=f"terrain-{scene}-{bx}_{by}-{fingerprint[:8]}", fn=model_block,
              kwargs=dict(store_path=str(run.store_path), scene=scene, block=(bx, by),
@@ -110,11 +110,10 @@ def terrain(run: Run, engine, layout: RunLayout) -> None:
              where=f"terrain block {bx}_{by} of scene '{scene}'",
              reproduce=run.rerun("features", "--in-process"))
         for scene, blocks in occupied.items() for bx, by in blocks.tolist()]
-    counts = engine.map("ingest (terrain blocks)", block_tasks)  # ingest's end in the progress
+    # the blocks' tasks end ingest in the run's progress
+    counts = results_by_scene(block_tasks, engine.map("ingest (terrain blocks)", block_tasks))
     for scene, blocks in occupied.items():
-        if not len(blocks):
-            raise InputError(f"scene '{scene}' holds no points to build a terrain from")
-        mine = [counts[t.key] for t in block_tasks if t.kwargs["scene"] == scene]
+        mine = counts[scene]
         unseen = sum(c["unseen"] for c in mine) / max(sum(c["occupied"] for c in mine), 1)
         write_scene_terrain(root, scene, grid, blocks, unseen, fingerprint)
         if unseen > INTERPOLATED_WARNING:

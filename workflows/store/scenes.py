@@ -8,6 +8,7 @@ reading.
 """
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 from pipeline.tiling import BalancedLayout, Grid, layout_from_dict
 from workflows.store.layout import is_copy
@@ -93,6 +94,14 @@ class SceneLayout:
         """The keys the scene's points are stored under: the first tile of each group,
         "i.k" for range k of tile i."""
         return tuple(unit.key for unit in self.read_units)
+
+    @cached_property
+    def chunk_boxes(self) -> dict[str, tuple[float, float, float, float]]:
+        """The core box (xmin, ymin, xmax, ymax) of each of its chunks, by name, in the
+        order of :attr:`chunks` (infinite at the layout's outer edges)."""
+        boxes = self.grid.boxes()
+        index = {self.grid.chunk_name(i): i for i in range(len(boxes))}
+        return {chunk: tuple(boxes[index[chunk]].tolist()) for chunk in self.chunks}
 
     @property
     def chunk_size(self) -> float | None:
