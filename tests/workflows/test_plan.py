@@ -110,7 +110,7 @@ def test_plan_of_a_predict_run_shows_the_terrain_blocks_and_refuses_what_will_no
 
 
 def test_a_terrain_block_too_big_for_a_worker_is_refused_naming_terrain_block(tmp_path, survey):
-    from workflows.cli.plan import check_memory, terrain_bytes
+    from workflows.cli.plan import check_memory, terrain_bytes, terrain_footprint
     from workflows.config import load_config
     from workflows.run.autoparams import resolve_run
     from workflows.run.directory import Run
@@ -121,10 +121,12 @@ def test_a_terrain_block_too_big_for_a_worker_is_refused_naming_terrain_block(tm
     run = Run(resolve_run(load_config(config)), tmp_path)
     tiles = [{"scene": "test", "index": 0, "n_points": 100_000, "mins": [0.0, 0.0, 0.0],
               "maxs": [3000.0, 3000.0, 10.0]}]
-    assert terrain_bytes(run, tiles) > 1.5e9  # a 3 km block with its buffer at 1 m
+    # a 3 km block with its buffer at 1 m
+    assert terrain_bytes(terrain_footprint(run, tiles)) > 1.5e9
     with pytest.raises(Exception, match="terrain.block"):
         check_memory(run, tiles)
-    assert terrain_bytes(run, [dict(tiles[0], maxs=[300.0, 300.0, 10.0])]) < 1e9
+    small = [dict(tiles[0], maxs=[300.0, 300.0, 10.0])]
+    assert terrain_bytes(terrain_footprint(run, small)) < 1e9
 
 
 def test_a_sparse_survey_shows_its_density():

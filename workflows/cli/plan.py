@@ -12,6 +12,7 @@ import logging
 import math
 import os
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -149,7 +150,7 @@ def check_memory(run: Run, tiles: list[dict]) -> None:
             f"needs about {format_bytes(needed)} for the largest chunk ({points:,} points "
             f"with its halo, {columns} feature columns); raise cluster.memory_limit, or "
             "lower tiling.target_points (or cluster.n_workers, with memory_limit: auto)")
-    needed = terrain_bytes(run, tiles)
+    needed = terrain_bytes(terrain_footprint(run, tiles))
     if needed > limit:
         side = run.cfg.terrain.grid.size * run.terrain.cell
         raise ConfigError(
@@ -158,10 +159,19 @@ def check_memory(run: Run, tiles: list[dict]) -> None:
             "terrain.block, or raise cluster.memory_limit")
 
 
-def terrain_blocks(run: Run, tiles: list[dict]) -> tuple[int, float, float]:
-    """The terrain blocks the tiles' boxes touch (an upper bound of the occupied ones), the
-    cells of their regions that hold the tiles (each tile's cells with its blocks' share of
-    buffer), and the cells of the largest region (the box of the tiles in it)."""
+class TerrainFootprint(NamedTuple):
+    """What the terrain of a run's tiles will model, from their headers: the ``blocks``
+    their boxes touch (an upper bound of the occupied ones), the ``cells`` of the blocks'
+    regions that hold the tiles (each tile's cells with its blocks' share of buffer), and
+    the cells of the ``largest`` region (the box of the tiles in it)."""
+
+    blocks: int
+    cells: float
+    largest: float
+
+
+def terrain_footprint(run: Run, tiles: list[dict]) -> TerrainFootprint:
+    """The :class:`TerrainFootprint` of ``tiles``."""
     grid = run.cfg.terrain.grid
     side, buffer = grid.size * grid.cell, grid.buffer * grid.cell
     boxes, cells = {}, 0.0  # per block, the box of the tiles in its region
@@ -180,12 +190,12 @@ def terrain_blocks(run: Run, tiles: list[dict]) -> tuple[int, float, float]:
             grid.region_side / grid.size) ** 2
     largest = max((float(np.prod(np.maximum(high - low, 0) / grid.cell + 1))
                    for low, high in boxes.values()), default=0.0)
-    return len(boxes), cells, largest
+    return TerrainFootprint(len(boxes), cells, largest)
 
 
-def terrain_bytes(run: Run, tiles: list[dict]) -> float:
+def terrain_bytes(footprint: TerrainFootprint) -> float:
     """Estimated peak resident bytes of a worker modelling the largest terrain block."""
-    return WORKER_BASE_BYTES + TERRAIN_BYTES_PER_CELL * terrain_blocks(run, tiles)[2]
+    return WORKER_BASE_BYTES + TERRAIN_BYTES_PER_CELL * footprint.largest
 
 
 def features_tried(max_features, columns: int) -> int:
@@ -254,19 +264,19 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
     memory = worker_bytes(largest, columns)
     spent = estimated_seconds(run, tiles, workers, copied)
     seconds, training = spent["features"] + spent["other"], spent["training"]
-    grid, blocks = run.cfg.terrain.grid, terrain_blocks(run, tiles)[0]
+    grid, footprint = run.cfg.terrain.grid, terrain_footprint(run, tiles)
     lines += [
-        f"terrain: {counted(blocks, 'block')} of {grid.size * grid.cell:g} m at most "
+        f"terrain: {counted(footprint.blocks, 'block')} of {grid.size * grid.cell:g} m at most "
         f"(a buffer of {grid.buffer * grid.cell:g} m around each), modelled on the workers",
         f"memory: about {memory / 2**30:.2f} GiB per worker in the largest chunk" + (
             " at the mean density (dense parts of a chunk hold more; tiling.target_points "
             "bounds it)" if any(info.estimate is None for info in outputs.values()) else "")
-        + f", {terrain_bytes(run, tiles) / 2**30:.2f} GiB for a terrain block",
+        + f", {terrain_bytes(footprint) / 2**30:.2f} GiB for a terrain block",
         f"disk: about {disk / 2**30:.2f} GiB for store.zarr",
         f"time: about {clock(seconds + training)} on {counted(workers, 'worker')}: "
-        f"{clock(seconds)} for the terrain, features, context and predictions, {clock(training)} "
-        "for the forests' training" + (" (from the training tiles' points: labelled ones "
-                                        "are fewer)" if training else ""),
+        f"{clock(seconds)} for the terrain, features, context and predictions, "
+        f"{clock(training)} for the forests' training"
+        + (" (from the training tiles' points: labelled ones are fewer)" if training else ""),
     ]
     if run.cfg.output.trees:
         lines.append(trees_line(run, tiles))
@@ -334,7 +344,7 @@ def estimated_seconds(run: Run, tiles: list[dict], workers: int,
     scene (data.densities), which are computed and trained on too."""
     points = sum(t["n_points"] for t in tiles) + copies
     train_points = sum(t["n_points"] for t in tiles if t["scene"] == "train") + copies
-    cells = terrain_blocks(run, tiles)[1]
+    cells = terrain_footprint(run, tiles).cells
     return {"features": points / workers / FEATURE_RATES[run.features.set],
             "other": points / workers / OTHER_RATE
             + cells * terrain_seconds_per_cell(run, tiles) / workers,
