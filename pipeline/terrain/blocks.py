@@ -178,6 +178,10 @@ class BlockGrid:
                 float(high[0] * self.cell), float(high[1] * self.cell))
 
 
+#: The arrays of :meth:`BlockTerrain.to_arrays`, by name.
+BLOCK_ARRAYS = ("boxes", "values", "tiles", "tile_groups", "reach")
+
+
 @dataclass(frozen=True)
 class BlockTerrain:
     """The terrain model of one block's core: a DTM per group of cells near each other.
@@ -229,8 +233,8 @@ class BlockTerrain:
         boxes = np.array([(round(d.x0 / cell), round(d.y0 / cell), d.shape[1], d.shape[0])
                           for d in self.dtms], dtype=np.int64)
         values = np.concatenate([d.values.reshape(-1) for d in self.dtms])
-        return {"boxes": boxes, "values": values, "tiles": self.tiles,
-                "tile_groups": self.tile_groups, "reach": np.array([self.reach], np.int64)}
+        return dict(zip(BLOCK_ARRAYS, (boxes, values, self.tiles, self.tile_groups,
+                                       np.array([self.reach], np.int64))))
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], cell: float) -> "BlockTerrain":

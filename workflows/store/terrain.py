@@ -10,6 +10,7 @@ import zarr
 from pipeline.errors import StoreError
 from pipeline.store import open_store, write_arrays
 from pipeline.terrain import BlockGrid, BlockModel, BlockTerrain, Raster, SceneTerrain
+from pipeline.terrain.blocks import BLOCK_ARRAYS
 from workflows.store.layout import terrain_path
 from workflows.store.marks import is_done, mark_done, read_array
 
@@ -71,8 +72,7 @@ def read_scene_terrain(root: zarr.Group, scene: str) -> SceneTerrain:
     @lru_cache(maxsize=CACHED_BLOCKS)
     def load(row: int) -> BlockTerrain:
         block_group = root[block_path(scene, blocks[row])]
-        arrays = {name: read_array(block_group, name)
-                  for name in ("boxes", "values", "tiles", "tile_groups", "reach")}
+        arrays = {name: read_array(block_group, name) for name in BLOCK_ARRAYS}
         return BlockTerrain.from_arrays(arrays, grid.cell)
 
     return SceneTerrain(grid, blocks, load)
@@ -99,8 +99,8 @@ def terrain_overview(root: zarr.Group, scene: str, max_cells: int = OVERVIEW_CEL
     block by block, so a survey of any area is drawn in bounded memory."""
     terrain = read_scene_terrain(root, scene)
     grid = terrain.grid
-    side = (grid.size + 2) ** 2 * len(terrain.blocks) / max_cells
-    step = max(1, int(np.ceil(np.sqrt(side))))
+    excess = (grid.size + 2) ** 2 * len(terrain.blocks) / max_cells  # cells over the bound
+    step = max(1, int(np.ceil(np.sqrt(excess))))
     rasters = []
     for row in range(len(terrain.blocks)):
         for dtm in terrain.load(row).dtms:
