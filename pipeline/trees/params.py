@@ -116,7 +116,7 @@ def check_scan(params: TreeParams, density: float, width: float, depth: float,
     coordinates reach ``reach`` metres from 0 (largest absolute value): a canopy height cell
     finer than the points resolve (trees of a point) or coarser than the smallest crown the
     window and crown radius allow (one cell, one crown for several trees), a raster beyond
-    memory or the cell keys, a top window wider than the scene. Raises ConfigError."""
+    memory (stems, found on the whole scene; crowns are found in blocks) or the cell keys, a top window wider than the scene. Raises ConfigError."""
     r = params.resolution
     fix = "(e.g. --set trees.resolution={:g})"
     if density > 0 and math.isfinite(density):
@@ -143,7 +143,7 @@ def check_scan(params: TreeParams, density: float, width: float, depth: float,
             f"the tiles' coordinates (up to {reach:,.0f} m from 0); use a coarser resolution "
             + fix.format(TreeParams.resolution))
     cells = math.ceil(width / r + 1) * math.ceil(depth / r + 1)
-    if cells > MAX_CELLS:
+    if params.method == "stems" and cells > MAX_CELLS:  # crowns are found in blocks
         raise ConfigError(
             f"config error: trees.resolution={r:g} m gives the scene's canopy height model "
             f"about {cells:,} cells ({width:,.0f} x {depth:,.0f} m), more than {MAX_CELLS:,}; "

@@ -13,11 +13,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.terrain import Raster
+from pipeline.trees.blocks import WholeTrees, crowns_in_blocks, tree_grid
 from pipeline.trees.cells import CanopyCells, canopy_cells, chm_raster, merge_cells
 from pipeline.trees.crowns import segment_crowns
 from pipeline.trees.graph import grow_from_stems, merge_voxels, tree_voxels
 from pipeline.trees.model import (
-    TreeModel, assign_trees, tree_model, tree_points, tree_stats, tree_table, with_voxels,
+    TreeModel, tree_model, tree_points, tree_stats, tree_table, with_voxels,
 )
 from pipeline.trees.params import TreeParams
 from pipeline.trees.stems import Stems, find_stems, merge_slices, sees_stems, stem_slice
@@ -55,13 +56,21 @@ def merge_inputs(parts, params: TreeParams) -> TreeInputs:
                       merge_voxels([p.voxels for p in parts]))
 
 
+def chosen_method(slice_: np.ndarray, area: float, params: TreeParams) -> str:
+    """The method that finds the scene's trees: ``trees.method``, or with ``auto`` stems
+    where the scan sees them in the merged stem ``slice_`` of a scene of ``area`` m²."""
+    if params.method != "auto":
+        return params.method
+    return "stems" if sees_stems(slice_, area, params) else "crowns"
+
+
 def scene_model(inputs: TreeInputs, params: TreeParams, area: float
                 ) -> tuple[TreeModel, Raster, str]:
-    """The scene's tree model, its canopy height model and the method used (``area``: the
-    scene's square metres, for ``method: auto``)."""
-    method = params.method
-    if method == "auto":
-        method = "stems" if sees_stems(inputs.slice, area, params) else "crowns"
+    """The scene's tree model on the whole scene, its canopy height model and the method
+    used (``area``: the scene's square metres, for ``method: auto``). The tree step finds
+    crowns in blocks instead (:mod:`pipeline.trees.blocks`), which equals this on a scene
+    within a block's region."""
+    method = chosen_method(inputs.slice, area, params)
     chm = chm_raster(inputs.cells, params.resolution)
     if method == "crowns":
         return tree_model(segment_crowns(chm, params), None, params, chm), chm, method
@@ -106,15 +115,21 @@ def grow_trees(model: TreeModel, stems: Stems, voxels: np.ndarray):
 
 def find_trees(xyz: np.ndarray, height: np.ndarray, canopy: np.ndarray, stem_mask: np.ndarray,
                params: TreeParams, area: float | None = None,
-               candidates: np.ndarray | None = None):
+               candidates: np.ndarray | None = None, block: float | None = None):
     """The trees of a cloud in memory, as the workflow finds them: (tree ID of each point
-    (uint32), the tree table, the model, the method). ``area`` defaults to the cloud's XY
-    bounding box; ``candidates`` as for :func:`tree_inputs`."""
+    (uint32), the tree table, the per-tree model, the method). ``area`` defaults to the
+    cloud's XY bounding box; ``candidates`` as for :func:`tree_inputs`; ``block``: the side
+    in metres of the blocks crowns are found in (``trees.block``, None: its default)."""
     xyz = np.asarray(xyz, np.float64)
     if area is None:
         span = xyz[:, :2].max(axis=0) - xyz[:, :2].min(axis=0) if len(xyz) else np.zeros(2)
         area = float(span[0] * span[1])
-    model, _, method = scene_model(
-        tree_inputs(xyz, height, canopy, stem_mask, params, candidates), params, area)
-    ids = assign_trees(model, xyz, height, canopy, stem_mask, params, candidates)
+    inputs = tree_inputs(xyz, height, canopy, stem_mask, params, candidates)
+    method = chosen_method(inputs.slice, area, params)
+    if method == "crowns":
+        model, trees = crowns_in_blocks(inputs.cells, params, tree_grid(params, block))
+    else:
+        model = scene_model(inputs, params, area)[0]
+        trees = WholeTrees(model)
+    ids = trees.assign(xyz, height, canopy, stem_mask, params, candidates)
     return ids, tree_table(model, tree_stats(ids, xyz, height)), model, method

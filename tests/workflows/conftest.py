@@ -88,12 +88,17 @@ ONE_STAGE = {"stages": 1, "n_estimators": 6, "min_samples_leaf": 15, "max_train_
              "seed": 3}
 RASTERS = {"rasters": ["dtm", "dsm", "chm"], "raster_resolution": 2.0}
 TREES_AND_RASTERS = {"trees": True, **RASTERS}
+#: The side in metres of the blocks the shared runs find crowns in: several a plot.
+TREE_BLOCK = 4.0
 
 
 def covariance_config(path: Path, survey: dict, chunk_size: float, cluster=None,
                       output=TREES_AND_RASTERS, **sections) -> Path:
     """The config of :func:`covariance_runs` with ``chunk_size``, on ``cluster`` (a config's
-    cluster section; None: the default, for a run in this process)."""
+    cluster section; None: the default, for a run in this process); trees are found by
+    their crowns in blocks of 4 m (:data:`TREE_BLOCK`), so that a plot's trees span
+    several blocks (the stems of its terrestrial scan have a test of their own)."""
+    sections = {"trees": {"block": TREE_BLOCK, "method": "crowns"}, **sections}
     return write_config(path, survey, features=COVARIANCE, cascade=ONE_STAGE,
                         tiling={"chunk_size": chunk_size}, output=output,
                         cluster=cluster or {}, **sections)

@@ -244,5 +244,9 @@ def test_the_scan_tells_too_fine_from_too_coarse():
         check_scan(TreeParams(), 0.9, *plot)  # about the points' spacing
     with pytest.raises(ConfigError, match="trees.resolution=0.004 m gives cell indices beyond"):
         check_scan(TreeParams(resolution=0.004), 1e5, *plot)
+    # stems are found on the whole scene; crowns in blocks, whatever the scene's extent
     with pytest.raises(ConfigError, match="the scene's canopy height model"):
-        check_scan(TreeParams(resolution=0.01), 1e5, 400_000.0, 400_000.0, 5_500_040.0)
+        check_scan(TreeParams(resolution=0.01, method="stems"), 1e5, 400_000.0, 400_000.0,
+                   5_500_040.0)
+    check_scan(TreeParams(resolution=0.01, method="crowns"), 1e5, 400_000.0, 400_000.0,
+               5_500_040.0)

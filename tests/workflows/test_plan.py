@@ -100,7 +100,8 @@ def test_plan_of_a_predict_run_shows_the_terrain_blocks_and_refuses_what_will_no
     memory = next(line for line in lines if line.startswith("memory: "))
     assert "GiB for a terrain block" in memory
     for overrides, key in ((["terrain.block=30000"], "terrain.block"),
-                           (["output.trees=true", "trees.resolution=50"], "trees.resolution")):
+                           (["output.trees=true", "trees.resolution=50"], "trees.resolution"),
+                           (["output.trees=true", "trees.block=10000"], "trees.block")):
         sets = [arg for value in overrides for arg in ("--set", value)]
         refused = CliRunner().invoke(main, [*plan, *sets])
         assert refused.exit_code == 1 and key in refused.output, refused.output
@@ -150,3 +151,23 @@ def test_a_sparse_survey_plans_more_terrain_time_per_cell(tmp_path, survey):
     assert terrain_seconds_per_cell(run, tiles(3_000_000)) == TERRAIN_SECONDS_PER_CELL
     assert terrain_seconds_per_cell(run, tiles(10_000)) == pytest.approx(
         3 * TERRAIN_SECONDS_PER_CELL)
+
+
+def test_a_tree_block_too_big_for_a_worker_is_refused_naming_trees_block(tmp_path, survey):
+    from workflows.cli.plan import check_memory
+    from workflows.config import load_config
+    from workflows.run.autoparams import resolve_run
+    from workflows.run.directory import Run
+
+    tiles = [{"scene": "test", "index": 0, "n_points": 10_000, "mins": [0.0, 0.0, 0.0],
+              "maxs": [300.0, 300.0, 10.0]}]
+
+    def run_with(block):
+        config = write_config(tmp_path / "c.yaml", survey, cluster={
+            "kind": "local", "n_workers": 1, "memory_limit": "1GB", "dashboard": False},
+            output={"trees": True}, trees={"block": block, "method": "crowns"})
+        return Run(resolve_run(load_config(config)), tmp_path)
+
+    with pytest.raises(Exception, match="trees.block"):  # 2.5 km: 5,190² cells, ~3 GiB
+        check_memory(run_with(2500.0), tiles)
+    check_memory(run_with(500.0), tiles)

@@ -10,6 +10,7 @@ import pyogrio
 import pytest
 
 from tests.workflows.conftest import (
+    TREE_BLOCK,
     assert_chunked,
     covariance_config,
     read_predictions,
@@ -52,9 +53,12 @@ def test_tree_ids_and_tables_do_not_depend_on_chunks_or_workers(runs):
 
 
 def test_points_and_tables_agree(runs):
+    assert_points_and_tables_agree(runs[0])
+
+
+def assert_points_and_tables_agree(out):
     """Within a scene (the survey's train plot is seed 1, its test plot seed 2) every tree
     has one row, and its count of points is that of the points carrying its ID."""
-    out = runs[0]
     predictions = read_predictions(out)
     for scene in ("plot_s1", "plot_s2"):
         ids = np.concatenate([d["PredictedTreeID"] for tile, d in predictions.items()
@@ -131,6 +135,49 @@ def test_the_plan_shows_the_trees_step(survey, tmp_path):
     result = silva("plan", config)
     assert result.exit_code == 0, result.output
     line = [x for x in result.output.splitlines() if x.startswith("trees:")]
-    assert len(line) == 1 and "method auto" in line[0] and "0.5 m cells" in line[0]
+    assert len(line) == 1 and "method crowns" in line[0] and "0.5 m cells" in line[0]
+    # two 14 m plots far apart, each over the corners of 4 m blocks: 16 blocks each at most
+    assert f"blocks of {TREE_BLOCK:g} m at most" in line[0] and "on the workers" in line[0]
+    assert "stems" not in line[0]
+    auto = silva("plan", config, "--set", "trees.method=auto").output
+    assert "stems on the whole scene" in auto and "crowns in" in auto
     plain = write_config(tmp_path / "plain.yaml", survey)
     assert "trees:" not in silva("plan", plain).output
+
+
+def test_crowns_are_found_in_blocks_and_numbered_across_them(runs):
+    """The shared runs find crowns in blocks of 4 m: each scene's trees come from several
+    blocks, and a crown reaching over a block's edge keeps one ID on both sides."""
+    from pipeline.store import open_store
+
+    for out in runs:
+        root = open_store(out / "store.zarr", mode="r")
+        for scene in ("train", "test"):
+            group = root[f"scenes/{scene}/trees"]
+            assert group.attrs["method"] == "crowns"
+            assert len(list(group["blocks"].group_keys())) > 1
+    predictions = read_predictions(runs[0])
+    xy = np.concatenate([d["xyz"][:, :2] for d in predictions.values()])
+    ids = np.concatenate([d["PredictedTreeID"] for d in predictions.values()])
+    block = np.floor(xy / TREE_BLOCK).astype(np.int64)
+    spans = {tree: len(np.unique(block[ids == tree], axis=0)) for tree in np.unique(ids[ids > 0])}
+    assert max(spans.values()) > 1
+
+
+def test_stems_are_found_on_the_whole_scene_from_what_the_chunks_stored(survey, tmp_path):
+    """Trees found by their stems (the plots' terrestrial scan, 2 x 2 chunks a scene): one
+    model of the whole scene, no blocks, the points and the tables agreeing, stems with a
+    DBH."""
+    from pipeline.store import open_store
+
+    config = covariance_config(tmp_path / "stems.yaml", survey, 8.0,
+                               trees={"method": "stems"})
+    result = silva("run", config, "--out", tmp_path / "out", "-q", "--in-process")
+    assert result.exit_code == 0, result.output
+    assert_chunked(tmp_path / "out", 4)
+    group = open_store(tmp_path / "out" / "store.zarr", mode="r")["scenes/test/trees"]
+    assert group.attrs["method"] == "stems" and "blocks" not in group
+    assert_points_and_tables_agree(tmp_path / "out")
+    rows = [row for path in sorted((tmp_path / "out" / "trees").glob("*.csv"))
+            for row in read_table(path)]
+    assert any(row["dbh"] for row in rows)

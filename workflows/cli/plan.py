@@ -157,6 +157,13 @@ def check_memory(run: Run, tiles: list[dict]) -> None:
             f"cluster.memory_limit ({format_bytes(limit)} per worker) is too small: a worker "
             f"needs about {format_bytes(needed)} for a terrain block of {side:g} m; lower "
             "terrain.block, or raise cluster.memory_limit")
+    grid = run.cfg.trees.grid
+    needed = grid.region_side ** 2 * CROWN_BYTES_PER_CELL
+    if run.cfg.output.trees and run.cfg.trees.method != "stems" and needed > limit:
+        raise ConfigError(
+            f"cluster.memory_limit ({format_bytes(limit)} per worker) is too small: a worker "
+            f"needs about {format_bytes(needed)} for the crowns of a block of "
+            f"{grid.size * grid.cell:g} m; lower trees.block, or raise cluster.memory_limit")
 
 
 class TerrainFootprint(NamedTuple):
@@ -320,20 +327,51 @@ def echoes_text(echoes: bool) -> str:
             if echoes else "echoes off")
 
 
+#: Bytes a block's crowns take on a worker per cell of its region: 156 MiB at most for a
+#: region of 1,190 x 1,190 cells of dense cone crowns (tracemalloc's peak of
+#: :func:`pipeline.trees.blocks.block_crowns`), about 116 bytes a cell.
+CROWN_BYTES_PER_CELL = 120
+#: Bytes of a canopy cell in a whole-scene model (stems): its raster, smoothing and labels.
+WHOLE_BYTES_PER_CELL = 16
+
+
+def tree_blocks(run: Run, tiles: list[dict]) -> int:
+    """The blocks of the trees' grid the tiles' boxes touch (an upper bound of those whose
+    crowns will be found)."""
+    grid = run.cfg.trees.grid
+    side = grid.size * grid.cell
+    touched = set()
+    for tile in tiles:
+        (bx0, by0), (bx1, by1) = (np.floor(np.asarray(t[:2], np.float64) / side).astype(int)
+                                  for t in (tile["mins"], tile["maxs"]))
+        touched.update((bx, by, tile["scene"]) for bx in range(bx0, bx1 + 1)
+                       for by in range(by0, by1 + 1))
+    return len(touched)
+
+
 def trees_line(run: Run, tiles: list[dict]) -> str:
-    """What the trees step (output.trees) will do: its method and the size of each scene's
-    canopy height model, which the coordinator holds."""
-    params = run.cfg.trees.params
-    cells = 0.0
-    for scene in {t["scene"] for t in tiles}:
-        members = [t for t in tiles if t["scene"] == scene]
-        lo = np.min([t["mins"][:2] for t in members], axis=0)
-        hi = np.max([t["maxs"][:2] for t in members], axis=0)
-        cells += float(np.prod(np.floor((hi - lo) / params.resolution) + 1))
+    """What the trees step (output.trees) will do: its method, the blocks crowns are found
+    in on the workers and, for stems, the canopy cells of the whole scene the coordinator
+    holds."""
+    params, grid = run.cfg.trees.params, run.cfg.trees.grid
     method = {"auto": "auto (stems where the scan sees them, else crowns)",
               "crowns": "crowns", "stems": "stems"}[params.method]
-    return (f"trees: method {method}; canopy height in {params.resolution:g} m cells, "
-            f"{cells:,.0f} in all (about {cells * 16 / 2**20:,.0f} MiB on the coordinator)")
+    line = f"trees: method {method}; canopy height in {params.resolution:g} m cells"
+    if params.method != "stems":
+        line += (f"; crowns in {counted(tree_blocks(run, tiles), 'block')} of "
+                 f"{grid.size * grid.cell:g} m at most (a buffer of {grid.buffer * grid.cell:g} "
+                 f"m around each) on the workers, about "
+                 f"{grid.region_side ** 2 * CROWN_BYTES_PER_CELL / 2**20:,.0f} MiB a block")
+    if params.method != "crowns":
+        cells = 0.0
+        for scene in {t["scene"] for t in tiles}:
+            members = [t for t in tiles if t["scene"] == scene]
+            lo = np.min([t["mins"][:2] for t in members], axis=0)
+            hi = np.max([t["maxs"][:2] for t in members], axis=0)
+            cells = max(cells, float(np.prod(np.floor((hi - lo) / params.resolution) + 1)))
+        line += (f"; stems on the whole scene: {cells:,.0f} cells in the largest (about "
+                 f"{cells * WHOLE_BYTES_PER_CELL / 2**20:,.0f} MiB on the coordinator)")
+    return line
 
 
 def estimated_seconds(run: Run, tiles: list[dict], workers: int,

@@ -21,6 +21,7 @@ from pipeline.features.sets import (
 from pipeline.io.base import LAS_NAME_BYTES
 from pipeline.terrain import BlockGrid, TerrainParams
 from pipeline.trees import TreeParams
+from pipeline.trees.blocks import tree_grid
 from workflows.config.fields import (
     AutoBool,
     AutoLength,
@@ -511,20 +512,34 @@ class TreesConfig(Section):
         "be a tree (all but those of ASPRS codes 2 ground, 6 building, 7 and 18 noise, 9 "
         "water, 17 bridge deck), so that a stem the classifier calls dead wood is found.")
 
+    block: AutoLength = Field(
+        "auto",
+        description="Side in metres of the square blocks crowns are found in, each on a "
+        "worker from its canopy and a buffer around it, anchored at multiples of it in map "
+        "coordinates: the memory of a block follows it, not the survey's area. 'auto': "
+        "1,000 canopy cells (500 m at 0.5 m cells). The trees depend on it only where a "
+        "crown's top sits near a block's edge, never on the chunking or the workers.")
+
     @model_validator(mode="after")
     def _check_params(self) -> "TreesConfig":
-        self.params  # noqa: B018 -- TreeParams checks the values, at load time
-        return self
+        self.params  # noqa: B018 -- TreeParams checks the values, at load time (the blocks
+        return self  # once the scan is known: check_tree_settings)
 
     @property
     def params(self) -> TreeParams:
         """The tree step's parameters (validated by TreeParams)."""
-        values = self.model_dump(exclude={"stem_classes"})
+        values = self.model_dump(exclude={"stem_classes", "block"})
         values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
         try:
             return TreeParams(**values)
         except ValueError as err:
             raise fail(str(err)) from None
+
+    @property
+    def grid(self) -> BlockGrid:
+        """The fixed blocks crowns are found in (ConfigError: blocks beyond a raster's
+        size, refused with the scan's other reasons by the tree step's checks)."""
+        return tree_grid(self.params, None if self.block == "auto" else self.block)
 
 
 # -- cascade ---------------------------------------------------------------------------------

@@ -25,20 +25,29 @@ def trees_images(found: dict) -> dict[str, bytes]:
 
 
 def tops_figure(scenes: dict) -> Figure:
-    """Per scene, the canopy height model with the tree tops (or, trees found by their
-    stems, the stems) on it."""
+    """Per scene, the canopy height model (a list of Rasters, e.g. one per block, drawn
+    coarser on a large survey) with the tree tops (or, trees found by their stems, the
+    stems) on it."""
     with matplotlib.rc_context(STYLE):
         fig = Figure(figsize=(7.5, 6.2 * len(scenes)), dpi=DPI)
         for row, (scene, entry) in enumerate(scenes.items()):
-            chm, table = entry["chm"], entry["table"]
-            ny, nx = chm.values.shape
-            extent = (chm.x0, chm.x0 + nx * chm.cell, chm.y0, chm.y0 + ny * chm.cell)
+            pieces, table = entry["chm"], entry["table"]  # the canopy height, by block
+            low = min(np.nanmin(p.values) if np.isfinite(p.values).any() else np.inf
+                      for p in pieces)
+            high = max(np.nanmax(p.values) if np.isfinite(p.values).any() else -np.inf
+                       for p in pieces)
+            limits = (low, high) if np.isfinite(low) else (0.0, 1.0)
             ax = fig.add_subplot(len(scenes), 1, row + 1)
-            shown = ax.imshow(chm.values, origin="lower", extent=extent, cmap="viridis",
-                              interpolation="nearest")
+            for piece in pieces:
+                ny, nx = piece.values.shape
+                extent = (piece.x0, piece.x0 + nx * piece.cell, piece.y0,
+                          piece.y0 + ny * piece.cell)
+                shown = ax.imshow(piece.values, origin="lower", extent=extent, cmap="viridis",
+                                  interpolation="nearest", vmin=limits[0], vmax=limits[1])
+            ax.autoscale()
             ax.plot(table["x"], table["y"], "+", color="#d62728", markersize=5, mew=1.0)
             ax.set_title(f"{_mpl_text(scene)}: {len(table):,} trees ({entry['method']}) over "
-                         f"the canopy height ({chm.cell:g} m cells)")
+                         f"the canopy height ({pieces[0].cell:g} m cells)")
             ax.set_aspect("equal")
             ax.ticklabel_format(useOffset=False, style="plain")
             fig.colorbar(shown, ax=ax, label="m above ground", shrink=0.8)

@@ -1,17 +1,23 @@
 """Trees: every tree of a scene, with its ID, top, height, crown and stem (``output.trees``).
 
-Per scene, after the cascade, in two passes over the chunks:
+Per scene, after the cascade:
 
 1. every chunk reduces its core points to the highest canopy point of each canopy-height
-   cell and to the thinned breast-height slice of its stem-class points; both reductions are
-   exact and associative, so what the coordinator merges does not depend on the chunking or
-   on the order of the tasks. The coordinator segments the crowns and fits the stems
-   (:mod:`pipeline.trees`), numbers the trees by where they stand and stores the scene's
-   tree model once;
-2. every chunk assigns its core points to trees (:func:`pipeline.trees.assign_trees`, a pure
-   function of the point and the model) and sums per tree; the coordinator merges the sums
-   into the tree table, written per input tile (the tile holding the tree's top or stem
-   base) as ``trees/<tile>.csv`` and ``trees/<tile>.gpkg``.
+   cell, the voxels of the points a tree may hold and the thinned breast-height slice of its
+   stem-class points; all are exact and associative, so what is merged does not depend on
+   the chunking or on the order of the tasks. The chunk stores its cells and voxels and
+   returns its slice and the blocks of the scene's tree grid its cells fall in;
+2. the coordinator merges the slices, which decide the method (``trees.method``). Trees
+   found by their crowns are found **in blocks on the workers**
+   (:mod:`pipeline.trees.blocks`): each occupied block segments the canopy of its region
+   from the cells of the chunks that overlap it and stores its core's crowns; the
+   coordinator numbers the trees from the tops the blocks own (small arrays, never a
+   raster) and gives each block its crowns' IDs. Trees found by their stems (terrestrial
+   plots) are found on the whole scene, on the coordinator;
+3. every chunk assigns its core points to trees (:func:`pipeline.trees.assign_trees`, a pure
+   function of the point and the model of its block) and sums per tree; the coordinator
+   merges the sums into the tree table, and a worker per input tile writes its trees (those
+   whose top or stem base it holds) as ``trees/<tile>.csv`` and ``trees/<tile>.gpkg``.
 
 The export assigns every point with the same function (``PredictedTreeID``), so the points
 and the tables always agree.
@@ -19,7 +25,6 @@ and the tables always agree.
 
 import logging
 from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -28,51 +33,65 @@ from pipeline.atomic import remove_parts, remove_stale
 from pipeline.cascade import labels_from_proba
 from pipeline.io.vector import write_tree_csv, write_tree_gpkg
 from pipeline.store import open_store, write_arrays
-from pipeline.terrain import Raster
-from pipeline.trees import TreeModel, TreeParams, assign_trees, merge_stats, tree_stats, tree_table
+from pipeline.terrain import BlockGrid
 from pipeline.tiling.grid import tile_area
+from pipeline.trees import TreeParams, merge_stats, tree_stats, tree_table
+from pipeline.trees.blocks import (
+    TALLEST_TREE, block_crowns, crown_table_model, number_trees, occupied_blocks,
+    region_cells,
+)
+from pipeline.trees.cells import CanopyCells, merge_cells
+from pipeline.trees.graph import merge_voxels
 from pipeline.trees.instances import match_pairs, matched_errors, merge_pairs, pair_counts
 from pipeline.trees.params import check_scan
-from pipeline.trees.scene import TreeInputs, merge_inputs, scene_model, tree_inputs
-from workflows.exec.engine import chunk_tasks, results_by_scene
+from pipeline.trees.scene import TreeInputs, chosen_method, scene_model, tree_inputs
+from pipeline.trees.stems import merge_slices
+from workflows.exec.engine import Task, chunk_tasks, results_by_scene
 from workflows.run.progress import counted, say
-from workflows.steps.terrain import ground_under
-from workflows.store.layout import proba_array
-from workflows.store.marks import is_done, mark_done, read_array
+from workflows.steps.terrain import ground_under, overlapping_chunks
+from workflows.store.layout import chunk_path, proba_array
+from workflows.store.marks import read_array
 from workflows.store.scenes import RunLayout
+from workflows.store.trees import (
+    block_done, canopy_overview, crown_labels, read_tree_model, stored_trees, trees_done,
+    write_block, write_block_ids, write_scene_trees,
+)
 
 log = logging.getLogger(__name__)
 
-#: The store group of a scene's tree model.
-MODEL_GROUP = "scenes/{scene}/trees"
 #: The dimension of labelled tiles that holds each point's reference tree (silva synth's).
 REFERENCE_TREE_ID = "TreeID"
-#: The store array of a scene's canopy height model, kept with its tree model.
-CHM = "chm"
 #: The export marker's array of points per (reference tree, predicted tree) pair.
 PAIRS = "tree_pairs"
+#: The pack of a chunk's canopy cells and tree voxels.
+PACK = "trees"
+#: A chunk's canopy cells in its pack, by field of :class:`CanopyCells`.
+CELLS = {"keys": "canopy_keys", "height": "canopy_height", "x": "canopy_x", "y": "canopy_y",
+         "z": "canopy_z", "second": "canopy_second"}
+VOXELS = "tree_voxels"
 
 
 @dataclass(frozen=True)
 class TreeTask:
     """What a chunk needs to find its part of the trees: the final stage's predictions, the
     classes that make the canopy and the stems, and those a tree may hold (indices), the
-    parameters."""
+    parameters and the blocks crowns are found in."""
 
     final_stage: int
     canopy: tuple[int, ...]
     stems: tuple[int, ...]
     candidates: tuple[int, ...]
     params: TreeParams
-    fingerprint: str  # of the scene's tree model
+    grid: BlockGrid
+    fingerprint: str  # of the scene's trees
 
     @classmethod
     def of(cls, run, final_stage: int, stage_fp: str) -> "TreeTask":
         """The trees of ``run`` from its final stage (``stage_fp``: that stage's
-        fingerprint, which the tree model follows from)."""
+        fingerprint, which the trees follow from)."""
         cfg = run.cfg
         return cls(final_stage, tuple(cfg.canopy_classes), tuple(cfg.stem_classes),
-                   tuple(cfg.tree_point_classes), cfg.trees.params,
+                   tuple(cfg.tree_point_classes), cfg.trees.params, cfg.trees.grid,
                    f"{run.fingerprint('trees')}-{stage_fp}")
 
 
@@ -86,18 +105,43 @@ def chunk_points(view, task: TreeTask):
             np.isin(label, task.candidates))
 
 
-def chunk_tree_inputs(view, task: TreeTask) -> TreeInputs:
-    """Worker task (pass 1): what the chunk's points give the scene's trees."""
+def chunk_tree_inputs(view, task: TreeTask) -> dict:
+    """Worker task (pass 1): store what the chunk's points give the scene's trees (canopy
+    cells, voxels); return their stem slice and the blocks their cells fall in."""
     xyz, height, canopy, stems, candidates = chunk_points(view, task)
-    return tree_inputs(xyz, height, canopy, stems, task.params, candidates)
+    inputs = tree_inputs(xyz, height, canopy, stems, task.params, candidates)
+    write_arrays(view.group, {**{name: getattr(inputs.cells, field)
+                                 for field, name in CELLS.items()},
+                              VOXELS: inputs.voxels}, pack=PACK)
+    return {"slice": inputs.slice,
+            "blocks": occupied_blocks(task.grid, inputs.cells).tolist()}
+
+
+def stored_cells(group) -> CanopyCells:
+    """The canopy cells a chunk stored (:func:`chunk_tree_inputs`)."""
+    return CanopyCells(**{field: read_array(group, name) for field, name in CELLS.items()})
 
 
 def chunk_tree_stats(view, task: TreeTask):
-    """Worker task (pass 2): the chunk's points per tree, highest points, sums."""
+    """Worker task (pass 3): the chunk's points per tree, highest points, sums."""
     xyz, height, canopy, stems, candidates = chunk_points(view, task)
-    model = scene_trees(view.store_path, view.scene, task.fingerprint)
-    ids = assign_trees(model, xyz, height, canopy, stems, task.params, candidates)
-    return tree_stats(ids, xyz, height)
+    trees = stored_trees(view.store_path, view.scene, task.fingerprint)
+    return tree_stats(trees.assign(xyz, height, canopy, stems, task.params, candidates),
+                      xyz, height)
+
+
+def find_block(store_path: str, scene: str, block: tuple[int, int], chunks: tuple[str, ...],
+               task: TreeTask) -> dict:
+    """Worker task: the crowns of one block from the canopy cells of the ``chunks`` that
+    overlap its region (kept done: a rerun returns what the stored crowns give)."""
+    root = open_store(store_path)
+    done = block_done(root, scene, block, task.fingerprint)
+    if done is not None:
+        return done
+    cells = merge_cells(region_cells(stored_cells(root[chunk_path(scene, chunk)]), task.grid,
+                                     block) for chunk in chunks)
+    return write_block(root, scene, block, block_crowns(cells, task.grid, block, task.params),
+                       task.fingerprint)
 
 
 def check_tree_settings(run, tiles: list[dict]) -> None:
@@ -105,7 +149,8 @@ def check_tree_settings(run, tiles: list[dict]) -> None:
     headers' boxes and point counts before any work, the points' boxes once ingested): a
     resolution finer than the points resolve or coarser than a crown, a canopy raster beyond
     memory or the cell keys, a window wider than the scene (see
-    :func:`pipeline.trees.params.check_scan`). Raises ConfigError."""
+    :func:`pipeline.trees.params.check_scan`), blocks too big (``trees.block``). Raises
+    ConfigError."""
     if not run.cfg.output.trees:
         return
     for scene in sorted({t["scene"] for t in tiles}):
@@ -117,34 +162,7 @@ def check_tree_settings(run, tiles: list[dict]) -> None:
         width, depth = (float(v) for v in maxs - mins)
         check_scan(run.cfg.trees.params, density, width, depth,
                    float(np.abs(np.concatenate([mins, maxs])).max()))
-
-
-def model_path(scene: str) -> str:
-    return MODEL_GROUP.format(scene=scene)
-
-
-def store_model(root, scene: str, model: TreeModel, chm: Raster, method: str,
-                fingerprint: str) -> None:
-    """Keep the scene's tree model, with its canopy height model (for the report) and the
-    method used, and mark it done with ``fingerprint``."""
-    arrays, attrs = model.to_arrays()
-    group = root.require_group(model_path(scene))
-    write_arrays(group, {**arrays, CHM: np.asarray(chm.values, np.float64)})
-    mark_done(group, "trees", fingerprint, model=attrs, tree_arrays=sorted(arrays), method=method,
-              chm={"x0": float(chm.x0), "y0": float(chm.y0), "cell": float(chm.cell)})
-
-
-def stored_chm(root, scene: str) -> Raster:
-    group = root[model_path(scene)]
-    return Raster(read_array(group, CHM), **group.attrs["chm"])
-
-
-@lru_cache(maxsize=4)
-def scene_trees(store_path: str, scene: str, fingerprint: str) -> TreeModel:
-    """The stored tree model of ``scene`` (read once per worker process and version)."""
-    group = open_store(store_path)[model_path(scene)]
-    arrays = {name: read_array(group, name) for name in group.attrs["tree_arrays"]}
-    return TreeModel.from_arrays(arrays, group.attrs["model"])
+    run.cfg.trees.grid  # noqa: B018 -- a block too big for a raster (after the scan's reasons)
 
 
 def scene_area(tiles: list[dict]) -> float:
@@ -168,51 +186,107 @@ def tile_of(table: np.ndarray, tiles: list[dict]) -> np.ndarray:
     return owner
 
 
+def find_crowns(run, engine, todo: RunLayout, task: TreeTask, occupied: dict) -> None:
+    """The trees of the scenes of ``occupied`` ({scene: int64 (B, 2) blocks}) found by their
+    crowns, block by block on the workers, numbered and stored."""
+    grid = task.grid
+    block_tasks = [
+        Task(key=f"trees-{scene}-{bx}_{by}-{task.fingerprint[:8]}", fn=find_block,
+             kwargs=dict(store_path=str(run.store_path), scene=scene, block=(bx, by),
+                         chunks=overlapping_chunks(todo.scenes[scene], grid, (bx, by)),
+                         task=task),
+             where=f"tree block {bx}_{by} of scene '{scene}'",
+             reproduce=run.rerun("trees", "--in-process"))
+        for scene, blocks in occupied.items() for bx, by in blocks.tolist()]
+    found = results_by_scene(block_tasks, engine.map("trees (blocks)", block_tasks))
+    root = run.store
+    for scene, blocks in occupied.items():
+        numbers = number_trees((b["keys"], b["cells"], b["owned"]) for b in found[scene])
+        for block, ids in zip(blocks.tolist(), numbers.ids):
+            write_block_ids(root, scene, block, ids)
+        write_scene_trees(root, scene, crown_table_model(numbers, grid.cell), "crowns",
+                          task.fingerprint, grid=grid, blocks=blocks)
+
+
 def trees(run, engine, layout: RunLayout, final_stage: int, stage_fp: str) -> dict:
     """Find the trees of every scene of ``layout`` and write their tables; return, per
     scene, the method used and the number of trees, and the files written."""
     task = TreeTask.of(run, final_stage, stage_fp)
-    fingerprint = task.fingerprint
     root = run.store
-    todo = layout.with_scenes(lambda s: not (model_path(s) in root and is_done(
-        root[model_path(s)], "trees", fingerprint)))
+    todo = layout.with_scenes(lambda s: not trees_done(root, s, task.fingerprint))
     if todo.scenes:
         tasks = chunk_tasks(run, todo, "trees", chunk_tree_inputs, task,
-                            fingerprint, "trees", marks=False)
+                            task.fingerprint, "trees", marks=False)
+        crowns = {}
         for scene, results in results_by_scene(tasks, engine.map("trees", tasks)).items():
+            merged = merge_slices([r["slice"] for r in results], task.params)
             area = scene_area(layout.tiles_of(scene))
-            store_model(root, scene, *scene_model(merge_inputs(results, task.params),
-                                                  task.params, area), fingerprint)
-    tasks = chunk_tasks(run, layout, "tree-stats", chunk_tree_stats, task, fingerprint,
+            if chosen_method(merged, area, task.params) == "crowns":
+                crowns[scene] = np.unique(np.array([b for r in results for b in r["blocks"]],
+                                                   dtype=np.int64).reshape(-1, 2), axis=0)
+            else:
+                whole_trees(run, todo.scenes[scene].chunks, scene, task, merged, area)
+        if crowns:
+            find_crowns(run, engine, todo, task, crowns)
+    tasks = chunk_tasks(run, layout, "tree-stats", chunk_tree_stats, task, task.fingerprint,
                         "trees", marks=False)
     out_dir = run.out / "trees"
     out_dir.mkdir(parents=True, exist_ok=True)
     remove_parts(out_dir)
-    found, written = {}, []
+    found, tile_tasks = {}, []
     for scene, results in results_by_scene(tasks, engine.map("trees (stats)", tasks)).items():
-        model = scene_trees(str(run.store_path), scene, fingerprint)
+        model, method = read_tree_model(root, scene)
         table = tree_table(model, merge_stats(results))
         tiles = layout.tiles_of(scene)
         owner = tile_of(table, tiles)
-        for tile in tiles:
-            rows = table[owner == tile["index"]]
-            written += write_tile_trees(out_dir, tile, rows, model)
-        found[scene] = {"method": root[model_path(scene)].attrs["method"], "table": table,
-                        "chm": stored_chm(root, scene), "area": scene_area(tiles)}
-        say(f"trees: scene '{scene}': {counted(len(table), 'tree')} "
-            f"({found[scene]['method']})", quiet=run.quiet)
+        tile_tasks += [Task(key=f"trees-write-{tile['name']}-{task.fingerprint[:8]}",
+                            fn=write_tile_trees,
+                            kwargs=dict(store_path=str(run.store_path), scene=scene,
+                                        out_dir=out_dir, tile=tile,
+                                        rows=table[owner == tile["index"]],
+                                        params=task.params),
+                            where=f"the trees of tile {tile['name']}",
+                            reproduce=run.rerun("trees", "--in-process"))
+                       for tile in tiles]
+        found[scene] = {"method": method, "table": table,
+                        "chm": canopy_overview(root, scene), "area": scene_area(tiles)}
+        say(f"trees: scene '{scene}': {counted(len(table), 'tree')} ({method})",
+            quiet=run.quiet)
+    written = [path for paths in engine.map("trees (tables)", tile_tasks).values()
+               for path in paths]
     remove_stale(out_dir, written, suffixes=(".csv", ".gpkg"))  # tiles no longer in the run
-    return {"scenes": found, "files": written}
+    return {"scenes": found, "files": sorted(written)}
 
 
-def write_tile_trees(out_dir: Path, tile: dict, rows: np.ndarray, model: TreeModel) -> list[str]:
-    """trees/<tile>.csv and trees/<tile>.gpkg of the trees whose top or base is in ``tile``."""
+def whole_trees(run, chunks, scene: str, task: TreeTask, merged_slice, area: float) -> None:
+    """The trees of one scene found on the whole scene (by their stems), from the cells and
+    voxels its chunks stored, stored."""
+    root = run.store
+    groups = [root[chunk_path(scene, chunk)] for chunk in chunks]
+    inputs = TreeInputs(merge_cells(stored_cells(g) for g in groups), merged_slice,
+                        merge_voxels(read_array(g, VOXELS) for g in groups))
+    model, chm, method = scene_model(inputs, task.params, area)
+    write_scene_trees(root, scene, model, method, task.fingerprint, chm=chm)
+
+
+def write_tile_trees(store_path: str, scene: str, out_dir: Path, tile: dict, rows: np.ndarray,
+                     params: TreeParams) -> list[str]:
+    """Worker task: trees/<tile>.csv and trees/<tile>.gpkg of the trees whose top or base is
+    in ``tile`` (``rows`` of the scene's table), their crowns traced from the cells of the
+    blocks they reach."""
     csv, gpkg = out_dir / f"{tile['name']}.csv", out_dir / f"{tile['name']}.gpkg"
     write_tree_csv(csv, rows)
-    write_tree_gpkg(gpkg, rows, model.labels, model.x0, model.y0, model.cell,
-                    tile.get("crs_wkt"))
+    labels, grid = np.zeros((0, 0), np.uint32), (0.0, 0.0, params.resolution)
+    located = rows[np.isfinite(rows["x"]) & np.isfinite(rows["y"])]
+    if len(located):
+        heights = located["height"][np.isfinite(located["height"])]
+        tallest = heights.max() if heights.size else TALLEST_TREE
+        reach = params.crown_radius[0] + params.crown_radius[1] * tallest + params.resolution
+        box = (located["x"].min() - reach, located["y"].min() - reach,
+               located["x"].max() + reach, located["y"].max() + reach)
+        labels, *grid = crown_labels(open_store(store_path), scene, box)
+    write_tree_gpkg(gpkg, rows, labels, *grid, tile.get("crs_wkt"))
     return [str(csv), str(gpkg)]
-
 
 
 class TileTrees:
@@ -224,7 +298,7 @@ class TileTrees:
         self.task, self.score, self.pairs = task, score, []
         if task is None:
             return
-        self.model = scene_trees(store_path, scene, task.fingerprint)
+        self.trees = stored_trees(store_path, scene, task.fingerprint)
         self.canopy = np.isin(np.arange(n_classes), task.canopy)
         self.stems = np.isin(np.arange(n_classes), task.stems)
         self.candidates = np.isin(np.arange(n_classes), task.candidates)
@@ -233,9 +307,9 @@ class TileTrees:
         """uint32 tree IDs of a batch: 0 for the points never classified (``~found``)."""
         ids = np.zeros(len(best), dtype=np.uint32)
         label = best[found]
-        ids[found] = assign_trees(self.model, batch.xyz[found], height[found],
-                                  self.canopy[label], self.stems[label], self.task.params,
-                                  self.candidates[label])
+        ids[found] = self.trees.assign(batch.xyz[found], height[found], self.canopy[label],
+                                       self.stems[label], self.task.params,
+                                       self.candidates[label])
         reference = batch.fields.get(REFERENCE_TREE_ID)
         if self.score and reference is not None:
             self.pairs.append(pair_counts(reference[found], ids[found]))

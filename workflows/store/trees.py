@@ -1,0 +1,183 @@
+"""Each scene's trees in the store: the per-tree model (for the tables) and, for trees found
+by their crowns, the crowns of every occupied block of the scene's grid, each marked done on
+its own; trees found by their stems are one model of the whole scene, with its canopy
+height model."""
+
+from functools import lru_cache
+
+import numpy as np
+import zarr
+
+from pipeline.errors import StoreError
+from pipeline.store import open_store, write_arrays
+from pipeline.terrain import BlockGrid, Raster
+from pipeline.trees import TreeModel
+from pipeline.trees.blocks import CROWN_ARRAYS, BlockCrowns, SceneCrowns, WholeTrees
+from workflows.store.marks import is_done, mark_done, read_array
+
+#: The store group of a scene's trees.
+TREES_GROUP = "scenes/{scene}/trees"
+#: The whole-scene canopy height model kept with a stems model (for the report).
+CHM = "chm"
+#: A block's tree IDs of its crowns, written once the scene's trees are numbered.
+BLOCK_IDS = "ids"
+#: Block models a worker keeps read (a chunk's points lie in a few blocks).
+CACHED_BLOCKS = 9
+
+
+def trees_path(scene: str) -> str:
+    return TREES_GROUP.format(scene=scene)
+
+
+def block_path(scene: str, block) -> str:
+    return f"{trees_path(scene)}/blocks/{int(block[0])}_{int(block[1])}"
+
+
+def write_block(root: zarr.Group, scene: str, block, crowns: BlockCrowns,
+                fingerprint: str) -> dict:
+    """Store the crowns of one block and mark them done; return what numbering needs
+    (:func:`block_done` returns the same)."""
+    group = root.require_group(block_path(scene, block))
+    write_arrays(group, crowns.to_arrays())
+    mark_done(group, "trees", fingerprint)
+    return numbering_of(crowns)
+
+
+def numbering_of(crowns: BlockCrowns) -> dict:
+    """What the coordinator needs of a block to number the scene's trees."""
+    return {"keys": crowns.keys, "cells": crowns.cells, "owned": crowns.owned}
+
+
+def block_done(root: zarr.Group, scene: str, block, fingerprint: str) -> dict | None:
+    """:func:`numbering_of` the block's stored crowns when done with ``fingerprint``."""
+    path = block_path(scene, block)
+    if path not in root or not is_done(root[path], "trees", fingerprint):
+        return None
+    return {name: read_array(root[path], name) for name in ("keys", "cells", "owned")}
+
+
+def write_block_ids(root: zarr.Group, scene: str, block, ids: np.ndarray) -> None:
+    write_arrays(root[block_path(scene, block)], {BLOCK_IDS: np.asarray(ids, np.uint32)})
+
+
+def write_scene_trees(root: zarr.Group, scene: str, model: TreeModel, method: str,
+                      fingerprint: str, *, grid: BlockGrid | None = None,
+                      blocks: np.ndarray | None = None, chm: Raster | None = None) -> None:
+    """Keep the scene's per-tree model and mark the scene's trees done with
+    ``fingerprint``: with ``grid`` and ``blocks`` (found in blocks, whose crowns are
+    stored), or a whole model with its canopy height model ``chm``."""
+    arrays, attrs = model.to_arrays()
+    if chm is not None:
+        arrays[CHM] = np.asarray(chm.values, np.float64)
+        attrs["chm"] = {"x0": float(chm.x0), "y0": float(chm.y0), "cell": float(chm.cell)}
+    if grid is not None:
+        arrays["blocks"] = np.asarray(blocks, np.int64).reshape(-1, 2)
+        attrs["grid"] = {"cell": grid.cell, "size": grid.size, "buffer": grid.buffer,
+                         "reach": grid.reach}
+    group = root.require_group(trees_path(scene))
+    write_arrays(group, arrays, pack="model")  # not "blocks": the group of the blocks
+    mark_done(group, "trees", fingerprint, model=attrs, tree_arrays=sorted(arrays),
+              method=method)
+
+
+def trees_done(root: zarr.Group, scene: str, fingerprint: str) -> bool:
+    path = trees_path(scene)
+    return path in root and is_done(root[path], "trees", fingerprint)
+
+
+def _group(root: zarr.Group, scene: str) -> zarr.Group:
+    path = trees_path(scene)
+    if path not in root or "method" not in root[path].attrs:
+        raise StoreError(f"the trees of scene '{scene}' are missing from the store; run the "
+                         "same command again (or start afresh with --overwrite)")
+    return root[path]
+
+
+def read_tree_model(root: zarr.Group, scene: str) -> tuple[TreeModel, str]:
+    """The scene's per-tree model (a whole model with its labels, or the per-tree arrays
+    of blocked crowns) and the method that found its trees."""
+    group = _group(root, scene)
+    arrays = {name: read_array(group, name) for name in group.attrs["tree_arrays"]}
+    return TreeModel.from_arrays(arrays, group.attrs["model"]), group.attrs["method"]
+
+
+def read_scene_trees(root: zarr.Group, scene: str):
+    """What assigns the scene's points to its trees: :class:`SceneCrowns` whose blocks are
+    read when first needed (and kept, up to :data:`CACHED_BLOCKS`), or :class:`WholeTrees`."""
+    group = _group(root, scene)
+    attrs = group.attrs["model"]
+    if "grid" not in attrs:
+        return WholeTrees(read_tree_model(root, scene)[0])
+    grid = BlockGrid(**attrs["grid"])
+    blocks = read_array(group, "blocks")
+
+    @lru_cache(maxsize=CACHED_BLOCKS)
+    def load(row: int) -> TreeModel:
+        return read_block(root, scene, blocks[row]).model(
+            read_array(root[block_path(scene, blocks[row])], BLOCK_IDS), grid.cell)
+
+    return SceneCrowns(grid, blocks, load)
+
+
+def read_block(root: zarr.Group, scene: str, block) -> BlockCrowns:
+    group = root[block_path(scene, block)]
+    return BlockCrowns.from_arrays({name: read_array(group, name) for name in CROWN_ARRAYS})
+
+
+@lru_cache(maxsize=4)
+def stored_trees(store_path: str, scene: str, fingerprint: str):
+    """:func:`read_scene_trees`, opened once per worker process and version."""
+    return read_scene_trees(open_store(store_path), scene)
+
+
+#: Canopy cells of a scene drawn in the report at most (a large survey is drawn coarser).
+OVERVIEW_CELLS = 4_000_000
+
+
+def canopy_overview(root: zarr.Group, scene: str, max_cells: int = OVERVIEW_CELLS
+                    ) -> list[Raster]:
+    """The canopy height of a scene to draw (Rasters), every k-th cell along both axes, k
+    such that about ``max_cells`` are drawn: block by block, in bounded memory."""
+    group = _group(root, scene)
+    attrs = group.attrs["model"]
+    if "grid" not in attrs:
+        chm = Raster(read_array(group, CHM), **attrs["chm"])
+        rasters, cells = [chm], chm.values.size
+    else:
+        grid = BlockGrid(**attrs["grid"])
+        blocks = read_array(group, "blocks")
+        rasters, cells = None, grid.size ** 2 * len(blocks)
+    step = max(1, int(np.ceil(np.sqrt(cells / max_cells))))
+    if rasters is None:
+        rasters = []
+        for block in blocks:
+            crowns = read_block(root, scene, block)
+            rasters.append(Raster(crowns.top[::step, ::step].astype(np.float64),
+                                  float(crowns.origin[0] * grid.cell),
+                                  float(crowns.origin[1] * grid.cell), grid.cell * step))
+        return rasters
+    return [Raster(r.values[::step, ::step], r.x0, r.y0, r.cell * step) for r in rasters]
+
+
+def crown_labels(root: zarr.Group, scene: str, box) -> tuple[np.ndarray, float, float, float]:
+    """The tree ID of each canopy cell over ``box`` (xmin, ymin, xmax, ymax) (or more), as
+    (labels uint32 (ny, nx), x0, y0, cell): the blocks' cores pieced together, or the whole
+    model's labels."""
+    trees = read_scene_trees(root, scene)
+    if isinstance(trees, WholeTrees):
+        m = trees.model
+        return m.labels, m.x0, m.y0, m.cell
+    grid = trees.grid
+    low = np.floor(np.asarray(box[:2]) / grid.cell).astype(np.int64)
+    high = np.floor(np.asarray(box[2:]) / grid.cell).astype(np.int64) + 1
+    wanted = (grid.blocks_of(low), grid.blocks_of(high - 1))
+    rows = np.flatnonzero(((trees.blocks >= wanted[0]) & (trees.blocks <= wanted[1])).all(axis=1))
+    labels = np.zeros((int(high[1] - low[1]), int(high[0] - low[0])), dtype=np.uint32)
+    for row in rows.tolist():
+        model = trees.load(row)
+        origin = np.array([round(model.x0 / grid.cell), round(model.y0 / grid.cell)])
+        ny, nx = model.labels.shape
+        (j0, i0), (j1, i1) = (np.clip(k, low, high) - low for k in (origin, origin + [nx, ny]))
+        si, sj = i0 + low[1] - origin[1], j0 + low[0] - origin[0]
+        labels[i0:i1, j0:j1] = model.labels[si:si + i1 - i0, sj:sj + j1 - j0]
+    return labels, float(low[0] * grid.cell), float(low[1] * grid.cell), grid.cell
