@@ -157,6 +157,16 @@ def check_scan(params: TreeParams, density: float, width: float, depth: float,
             f"{list(TreeParams.window)})")
 
 
+def auto_resolution(density: float) -> float:
+    """The canopy height cell (m) for a scan of ``density`` points per m² (all points):
+    the default 0.5 m, or where the points are sparser the finest cell they resolve
+    (:data:`FINEST_CELL_PER_SPACING` of their spacing, rounded up to two digits): 0.75 m at
+    1 point/m², 1.5 m at 0.25."""
+    if not (density > 0 and math.isfinite(density)):
+        return TreeParams.resolution
+    return max(TreeParams.resolution, _up(FINEST_CELL_PER_SPACING / math.sqrt(density)))
+
+
 def _coarsest(params: TreeParams) -> float:
     """The coarsest canopy cell that still tells crowns apart (m): the narrowest top window
     or the smallest crown's diameter, whichever is less."""

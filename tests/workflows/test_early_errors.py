@@ -250,3 +250,20 @@ def test_the_scan_tells_too_fine_from_too_coarse():
                    5_500_040.0)
     check_scan(TreeParams(resolution=0.01, method="crowns"), 1e5, 400_000.0, 400_000.0,
                5_500_040.0)
+
+
+def test_the_auto_resolution_is_one_the_sparsest_scene_resolves(tmp_path, survey):
+    from pipeline.trees import TreeParams
+    from pipeline.trees.params import auto_resolution, check_scan
+    from workflows.config import load_config
+    from workflows.run.autoparams import resolve_run, sparsest_density
+
+    plot = (400.0, 400.0, 5_500_400.0)
+    assert [auto_resolution(d) for d in (1700.0, 43.0, 1.0, 0.25)] == [0.5, 0.5, 0.75, 1.5]
+    for density in (43.0, 2.0, 1.0, 0.9, 0.25):  # a survey at 1 point/m² gets its trees
+        check_scan(TreeParams(resolution=auto_resolution(density)), density, *plot)
+    config = write_config(tmp_path / "c.yaml", survey, output={"trees": True})
+    cfg = resolve_run(load_config(config)).cfg
+    assert cfg.trees.resolution == auto_resolution(sparsest_density(cfg)) == 0.5
+    off = resolve_run(load_config(write_config(tmp_path / "d.yaml", survey))).cfg
+    assert off.trees.resolution == "auto" and off.trees.params.resolution == 0.5

@@ -72,6 +72,11 @@ PathList = Annotated[list[str], BeforeValidator(_path_list)]
 def _chunk_size(value: Any) -> Any:
     if isinstance(value, str) and value == "auto":
         return value
+    if isinstance(value, str):  # YAML 1.1 reads 1e-9 (no dot) as text
+        try:
+            value = float(value)
+        except ValueError:
+            pass
     if isinstance(value, bool) or not isinstance(value, (int, float)) \
             or not math.isfinite(value) or value <= 0:
         raise field_error("must be 'auto' or a number of metres > 0")

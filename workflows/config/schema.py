@@ -476,8 +476,11 @@ class TreesConfig(Section):
         "(terrestrial scans); auto: stems where the scan sees them, crowns otherwise.")
     min_height: Number = Field(_TREES.min_height,
                                description="Lowest tree height in metres above ground.")
-    resolution: Number = Field(_TREES.resolution,
-                               description="Side in metres of the canopy height cells.")
+    resolution: AutoLength = Field(
+        "auto",
+        description="Side in metres of the canopy height cells. 'auto': 0.5 m, or on a scan "
+        "sparser than about 2 points/m² the finest cell its points resolve (three quarters "
+        "of their mean spacing in the sparsest scene's headers: 0.75 m at 1 point/m²).")
     smoothing: Number = Field(
         _TREES.smoothing,
         description="Gaussian smoothing of the canopy height (sigma in cells; 0: none).")
@@ -529,6 +532,8 @@ class TreesConfig(Section):
     def params(self) -> TreeParams:
         """The tree step's parameters (validated by TreeParams)."""
         values = self.model_dump(exclude={"stem_classes", "block"})
+        if values["resolution"] == "auto":  # resolved from the tiles as a run starts
+            values["resolution"] = _TREES.resolution
         values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
         try:
             return TreeParams(**values)

@@ -25,6 +25,7 @@ from pipeline.features.sets import auto_radius, auto_voxel
 from pipeline.io import read_info
 from pipeline.model import LATER_KEYS, read_model_file
 from pipeline.tiling import tile_area
+from pipeline.trees.params import auto_resolution
 from workflows.config import SilvaConfig, validate_config
 from workflows.config.inputs import expand_inputs
 from workflows.config.loading import load_raw
@@ -33,22 +34,51 @@ from workflows.run.plan import AppliedModel, RunPlan, check_model, find_inputs
 log = logging.getLogger(__name__)
 
 
+def _points_and_area(cfg: SilvaConfig, scene: str) -> tuple[int, float]:
+    """The points and the sum of the tiles' XY boxes (m²) of ``data.<scene>``'s headers."""
+    points, area = 0, 0.0
+    for path in expand_inputs(list(getattr(cfg.data, scene)), key=f"data.{scene}"):
+        info = read_info(path)
+        points += int(info.n_points)
+        area += tile_area(info.mins, info.maxs)
+    return points, area
+
+
 def header_density(cfg: SilvaConfig) -> float:
     """Points per m² (XY) of the training tiles (of all tiles without training tiles), from
     their headers: the sum of points over the sum of the tiles' XY boxes."""
     scenes = ["train"] if cfg.data.train else ["test", "predict"]
-    points, area = 0, 0.0
-    for scene in scenes:
-        for path in expand_inputs(list(getattr(cfg.data, scene)), key=f"data.{scene}"):
-            info = read_info(path)
-            points += int(info.n_points)
-            area += tile_area(info.mins, info.maxs)
-    return points / area if area else 0.0
+    counts = [_points_and_area(cfg, scene) for scene in scenes]
+    area = sum(a for _, a in counts)
+    return sum(p for p, _ in counts) / area if area else 0.0
+
+
+def sparsest_density(cfg: SilvaConfig) -> float:
+    """Points per m² of the sparsest of the run's scenes (``data.train``, ``test``,
+    ``predict``), from their headers; 0 without tiles."""
+    counts = [_points_and_area(cfg, scene) for scene in ("train", "test", "predict")]
+    return min((p / a for p, a in counts if a > 0), default=0.0)
+
+
+def resolve_tree_resolution(cfg: SilvaConfig) -> SilvaConfig:
+    """``cfg`` with ``trees.resolution: auto`` as a number (:func:`auto_resolution` of the
+    sparsest scene's density), when the run finds trees."""
+    if not cfg.output.trees or cfg.trees.resolution != "auto":
+        return cfg
+    density = sparsest_density(cfg)
+    resolution = auto_resolution(density)
+    log.info("trees.resolution auto: %.3g points/m² in the sparsest scene -> %g m", density,
+             resolution)
+    raw = cfg.model_dump(mode="json")
+    raw["trees"]["resolution"] = resolution
+    return validate_config(raw)
 
 
 def resolve_auto(cfg: SilvaConfig) -> SilvaConfig:
     """``cfg`` with ``features.r1`` and ``features.voxel`` as numbers (a model applied has
-    set them already: :func:`adopt_model`)."""
+    set them already: :func:`adopt_model`), and ``trees.resolution``
+    (:func:`resolve_tree_resolution`)."""
+    cfg = resolve_tree_resolution(cfg)
     features = cfg.features
     if features.resolved:
         return cfg
