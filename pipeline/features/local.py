@@ -43,6 +43,7 @@ from pipeline.features.neighbors import (
     _check_radius,
 )
 from pipeline.errors import InputError
+from pipeline.progress import advance
 
 logger = logging.getLogger(__name__)
 
@@ -270,6 +271,7 @@ def local_surface(xyz, r1, max_neighbors=64, *, query=None, ids=None, normalise=
         out[rows] = moment_invariants(moments, normalise)
         area[rows] = moments[:, 0]
         counts[rows] = np.diff(nbr_ptr)
+        advance(start + len(rows), len(query))  # a chunk's surfaces are most of its time
     n_degenerate = int(np.count_nonzero(area == 0.0))
     if n_degenerate:
         logger.info(

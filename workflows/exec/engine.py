@@ -13,11 +13,13 @@ import os
 import time
 import traceback
 from dataclasses import dataclass
+from functools import partial
 from typing import Any, Callable
 
 import numpy as np
 
 from pipeline.errors import ChunkError, InputError, SilvaError
+from pipeline.progress import reporting
 from pipeline.store import open_store, write_arrays
 from workflows.run.progress import StepProgress, say, uncounted
 from workflows.store.assembly import chunk_points
@@ -43,10 +45,40 @@ class Task:
     reproduce: str  # the command that reruns just this item in the foreground
 
 
+#: The topic of the share of a long task done, from the workers to the run's bar.
+PROGRESS_TOPIC = "silva-progress"
+#: Seconds between two reports of one task's share done.
+PROGRESS_EVERY = 2.0
+
+
+def throttled(tell: Callable[[float], None], every: float = PROGRESS_EVERY
+              ) -> Callable[[float], None]:
+    """``tell`` called at most once every ``every`` seconds (the work's first report
+    waits that long too: a short task never reports)."""
+    last = [time.monotonic()]
+
+    def listener(fraction: float) -> None:
+        now = time.monotonic()
+        if now - last[0] >= every:
+            last[0] = now
+            tell(fraction)
+
+    return listener
+
+
+def _tell_the_run(fraction: float) -> None:
+    """On a worker: send the share done of the task it runs to the client."""
+    from distributed import get_worker
+
+    worker = get_worker()
+    worker.log_event(PROGRESS_TOPIC, {"key": worker.get_current_task(), "fraction": fraction})
+
+
 def _run_task(fn, kwargs, where, reproduce):
     """Runs on the worker: turns any failure into one picklable, self-describing error."""
     try:
-        return fn(**kwargs)
+        with reporting(throttled(_tell_the_run)):
+            return fn(**kwargs)
     except Exception as err:  # noqa: BLE001 - every failure must name its chunk
         reason = str(err).splitlines()[0] if str(err) else type(err).__name__
         if not isinstance(err, SilvaError):
@@ -103,7 +135,8 @@ class Engine:
             if self.client is None:
                 for task in tasks:
                     try:
-                        results[task.key] = task.fn(**task.kwargs)
+                        with reporting(throttled(partial(progress.partial, task.key))):
+                            results[task.key] = task.fn(**task.kwargs)
                     except SilvaError:
                         raise
                     except Exception as err:
@@ -111,7 +144,7 @@ class Engine:
                             raise
                         log.debug("%s failed:\n%s", task.key, traceback.format_exc())
                         raise ChunkError(f"{task.where}: {type(err).__name__}: {err}") from err
-                    progress.advance()
+                    progress.advance(task.key)
             else:
                 results, failures = self._map_dask(tasks, progress, step)
         log.info("%s: %d tasks in %.1f s", step, len(tasks), time.monotonic() - started)
@@ -122,6 +155,17 @@ class Engine:
         return {task.key: (done if task.key in done else results)[task.key] for task in every}
 
     def _map_dask(self, tasks, progress, step):
+        def on_report(event) -> None:  # on the client's event loop
+            _, message = event
+            progress.partial(message["key"], message["fraction"])
+
+        self.client.subscribe_topic(PROGRESS_TOPIC, on_report)
+        try:
+            return self._submit_all(tasks, progress, step)
+        finally:
+            self.client.unsubscribe_topic(PROGRESS_TOPIC)
+
+    def _submit_all(self, tasks, progress, step):
         from workflows.exec.watch import completed
 
         futures = {}
@@ -147,7 +191,7 @@ class Engine:
             except Exception as err:  # a worker that died too often, a lost connection
                 failures.append(f"{task.where}: {type(err).__name__}: {err} "
                                 f"(reproduce with: {task.reproduce})")
-            progress.advance()
+            progress.advance(task.key)
             future.release()
         return results, failures
 

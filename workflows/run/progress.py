@@ -247,6 +247,8 @@ class StepProgress:
     def __init__(self, step: str, total: int, *, quiet: bool = False):
         self.step, self.total, self.quiet = step, total, quiet
         self.done = 0
+        self._partial: dict[str, float] = {}  # the share done of long tasks under way
+        self._finished: set[str] = set()
         self._bar = None
         self._run = _RUN
 
@@ -278,12 +280,31 @@ class StepProgress:
     def _run_status(self) -> str:
         return "" if self._run is None else f"| {self._run.status(short=True)}"
 
-    def advance(self) -> None:
+    def advance(self, key: str | None = None) -> None:
+        """One more item (the task ``key``) is finished."""
         self.done += 1
+        self._partial.pop(key, None)
+        self._finished.add(key)
+        self._show()
+
+    def partial(self, key: str, fraction: float) -> None:
+        """The task ``key``, under way, is ``fraction`` done: the bar moves during a long
+        chunk (a report that comes after the task finished is ignored)."""
+        if key in self._finished:
+            return
+        self._partial[key] = max(self._partial.get(key, 0.0), min(float(fraction), 1.0))
+        self._show()
+
+    @property
+    def completed(self) -> float:
+        """Items finished, and the shares done of those under way."""
+        return self.done + sum(self._partial.values())
+
+    def _show(self) -> None:
         if self._run is not None:
-            self._run.update(self.done)
+            self._run.update(self.completed)
         if self._bar is not None:
-            self._bar.update(self._task, advance=1, run=self._run_status())
+            self._bar.update(self._task, completed=self.completed, run=self._run_status())
 
     def __exit__(self, *exc):
         if self._run is not None:
