@@ -120,3 +120,14 @@ def test_the_buffer_covers_a_tall_trees_reach_and_a_huge_block_is_refused():
     assert crown_buffer(TreeParams(resolution=1.0)) < crown_buffer(PARAMS)
     with pytest.raises(ConfigError, match="trees.block"):
         tree_grid(PARAMS, 20_000.0)
+
+
+def test_a_scene_without_canopy_has_no_blocks_and_no_trees(forest):
+    xyz, height, _ = forest
+    none = np.zeros(len(xyz), bool)
+    cells = canopy_cells(xyz, height, none, PARAMS.resolution)
+    model, trees = crowns_in_blocks(cells, PARAMS, tree_grid(PARAMS))
+    assert len(model) == 0 and trees.blocks.shape == (0, 2)
+    assert not trees.assign(xyz, height, none, None, PARAMS).any()
+    ids, table, _, _ = find_trees(xyz, height, none, none, TreeParams(method="crowns"))
+    assert not ids.any() and len(table) == 0

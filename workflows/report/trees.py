@@ -15,7 +15,7 @@ HECTARE = 10_000.0  # square metres
 def trees_images(found: dict) -> dict[str, bytes]:
     """PNG figures of the trees of every scene: ``trees_map`` (tops over the canopy height)
     and ``trees_histograms``."""
-    scenes = {s: f for s, f in found.items() if f.get("chm") is not None}
+    scenes = {s: f for s, f in found.items() if f.get("chm")}  # no canopy: nothing to draw
     images = {}
     if scenes:
         images["trees_map"] = png_bytes(tops_figure(scenes))
@@ -64,7 +64,7 @@ def fitted_dbh(found: dict) -> np.ndarray:
 def map_caption(found: dict) -> str:
     """The caption of ``trees_map``: its marks are the tops of trees found by their crowns
     and the stems of trees found by their stems."""
-    methods = {f["method"] for f in found.values() if f.get("chm") is not None}
+    methods = {f["method"] for f in found.values() if f.get("chm")}
     if methods == {"stems"}:
         return "Stems (+, where each tree's stem stands) over the canopy height model."
     if "stems" in methods:

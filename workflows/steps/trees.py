@@ -201,7 +201,8 @@ def find_crowns(run, engine, todo: RunLayout, task: TreeTask, occupied: dict) ->
     found = results_by_scene(block_tasks, engine.map("trees (blocks)", block_tasks))
     root = run.store
     for scene, blocks in occupied.items():
-        numbers = number_trees((b["keys"], b["cells"], b["owned"]) for b in found[scene])
+        numbers = number_trees((b["keys"], b["cells"], b["owned"])
+                               for b in found.get(scene, ()))  # no canopy: no blocks
         for block, ids in zip(blocks.tolist(), numbers.ids):
             write_block_ids(root, scene, block, ids)
         write_scene_trees(root, scene, crown_table_model(numbers, grid.cell), "crowns",
