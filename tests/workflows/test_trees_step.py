@@ -181,3 +181,33 @@ def test_stems_are_found_on_the_whole_scene_from_what_the_chunks_stored(survey, 
     rows = [row for path in sorted((tmp_path / "out" / "trees").glob("*.csv"))
             for row in read_table(path)]
     assert any(row["dbh"] for row in rows)
+
+
+def test_no_canopy_raster_is_larger_than_a_blocks_region(runs, survey, tmp_path, monkeypatch):
+    """Crowns of at most 0.5 m and 1 m windows in 2 m blocks: a region is 13 m across, less
+    than a 14 m plot, and every canopy raster the trees step builds (in this process: the
+    workers' too) fits in one region, whatever the plot's extent."""
+    import pipeline.trees.blocks as blocks
+
+    shapes = []
+    chm_raster = blocks.chm_raster
+
+    def recorded(cells, cell):
+        raster = chm_raster(cells, cell)
+        shapes.append(raster.values.shape)
+        return raster
+
+    monkeypatch.setattr(blocks, "chm_raster", recorded)
+    trees = {"block": 2.0, "method": "crowns", "crown_radius": [0.5, 0.0],
+             "window": [1.0, 0.0], "smoothing": 0.0}
+    out = tmp_path / "out"
+    shutil.copytree(runs[1], out)  # the steps before the trees are done
+    config = covariance_config(tmp_path / "small.yaml", survey, 8.0, trees=trees)
+    result = silva("trees", config, "--out", out, "-q", "--in-process")
+    assert result.exit_code == 0, result.output
+    params = {k: tuple(v) if isinstance(v, list) else v for k, v in trees.items()}
+    grid = blocks.tree_grid(blocks.TreeParams(**{k: v for k, v in params.items()
+                                                 if k != "block"}), 2.0)
+    assert grid.region_side * grid.cell < 14.0
+    assert shapes and max(max(s) for s in shapes) <= grid.region_side
+    assert any(read_table(path) for path in (out / "trees").glob("*.csv"))
