@@ -59,7 +59,7 @@ def synthetic_scene(
     Same ``seed``, same points and labels; a different seed gives a different plot.
     """
     seed, size, origin = check_plot_args(seed, size, origin)
-    xyz, labels, ids, order, layout = scanned_plot(seed, size)
+    xyz, labels, ids, order, layout, shares = scanned_plot(seed, size)
     xyz = xyz[order]
     xyz += np.asarray(origin)
     labels = labels[order]
@@ -75,7 +75,7 @@ def synthetic_scene(
         size=size,
         seed=seed,
         tree_ids=ids,
-        trees=tree_truth(layout, origin, np.unique(ids[ids > 0])),
+        trees=tree_truth(layout, origin, np.unique(ids[ids > 0]), shares),
     )
 
 
@@ -84,16 +84,18 @@ def scanned_plot(seed: int, size: float):
 
     Returns xyz (N, 3) float64 in the local frame, labels (N,) uint8, tree IDs (N,) uint32,
     ``order`` (N,) int64 (the plot's points are ``xyz[order] + origin``, ``labels[order]``: no
-    spatial or per-class order in the output) and the :class:`~pipeline.synth.layout.Layout`.
+    spatial or per-class order in the output), the :class:`~pipeline.synth.layout.Layout` and
+    each tree's share of its surface inside the plot (a dict by tree ID).
     Arguments are trusted (see :func:`check_plot_args`). Memory: about 41 bytes per point.
     """
     rng = np.random.default_rng(seed)
     layout = random_layout(rng, size)
-    parts = sample_surfaces(rng, layout)
+    shares = {}
+    parts = sample_surfaces(rng, layout, shares)
     xyz, labels, ids, _ = scan(rng, parts, layout)
     order = rng.permutation(len(xyz))
     log.debug("synthetic plot seed=%d size=%.1f m: %d points", seed, size, len(xyz))
-    return xyz, labels, ids, order, layout
+    return xyz, labels, ids, order, layout, shares
 
 
 def synthetic_plot(

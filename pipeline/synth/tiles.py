@@ -135,8 +135,10 @@ def _write_tiles(out_dir: Path, work: Path, seed: int, size: float, tile_size: f
     shadows = Shadows(layout)
     by_scanner = _ScannerFiles(work)
     n_samples = 0
+    shares = {}
     with open(samples, "wb") as f:
-        for xyz, labels, trees, owner in captured(rng, sample_surfaces(rng, layout), layout):
+        for xyz, labels, trees, owner in captured(rng, sample_surfaces(rng, layout, shares),
+                                                  layout):
             batch = np.empty(len(xyz), dtype=SAMPLE)
             batch["xyz"], batch["label"], batch["tree"], batch["owner"] = xyz, labels, trees, owner
             batch.tofile(f)
@@ -217,6 +219,6 @@ def _write_tiles(out_dir: Path, work: Path, seed: int, size: float, tile_size: f
             )
         )
         (work / f"tile{k}.bin").unlink()
-    write_truth_csv(out_dir / TRUTH_CSV, tree_truth(layout, origin, present))
+    write_truth_csv(out_dir / TRUTH_CSV, tree_truth(layout, origin, present, shares))
     log.info("wrote %d synthetic tiles (%d points) to %s", len(paths), n_points, out_dir)
     return [Path(p) for p in paths]

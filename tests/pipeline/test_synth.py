@@ -258,6 +258,24 @@ def test_a_trees_z_is_its_tops_elevation_as_in_silvas_tree_tables(scene):
     assert np.median(gaps) < 0.3  # the scanner sees most tops
 
 
+def test_trees_standing_outside_the_plot_are_marked_with_their_share_inside(scene):
+    """A tree whose stem stands outside the plot has ``inside`` 0 and only part of its
+    surface in the plot; one standing inside has ``inside`` 1 and most of it there. The share
+    follows the points: a tree with little of its surface inside has few points."""
+    trees = scene.trees
+    ox, oy, _ = scene.origin
+    stands_in = ((trees["x"] >= ox) & (trees["x"] < ox + scene.size)
+                 & (trees["y"] >= oy) & (trees["y"] < oy + scene.size))
+    assert np.array_equal(trees["inside"], stands_in.astype(np.uint8))
+    assert 0 < np.count_nonzero(~stands_in) < len(trees)  # the default plot has both kinds
+    assert np.all((trees["share"] > 0) & (trees["share"] <= 1))
+    assert np.all(trees["share"][~stands_in] < 1)  # a crown cut by the edge
+    assert np.median(trees["share"][stands_in]) > np.median(trees["share"][~stands_in])
+    counts = np.array([np.count_nonzero(scene.tree_ids == t) for t in trees["tree_id"]])
+    cut = trees["share"] < 0.2
+    assert counts[cut].max() < np.median(counts[~cut])
+
+
 def test_tiles_carry_the_tree_ids_and_trees_csv_their_truth(tmp_path):
     from pipeline.io import read_points
 
@@ -270,7 +288,7 @@ def test_tiles_carry_the_tree_ids_and_trees_csv_their_truth(tmp_path):
     _, idx = cKDTree(scene.xyz).query(xyz)
     assert np.array_equal(ids, scene.tree_ids[idx])
     table = np.genfromtxt(tmp_path / "trees.csv", delimiter=",", names=True)
-    assert table.dtype.names == ("tree_id", "x", "y", "z", "height", "dbh")
+    assert table.dtype.names == ("tree_id", "x", "y", "z", "height", "dbh", "inside", "share")
     assert np.array_equal(table["tree_id"].astype(np.uint32), np.unique(ids[ids > 0]))
     for name in table.dtype.names[1:]:
         assert np.allclose(table[name], scene.trees[name], rtol=0, atol=5.1e-5)
