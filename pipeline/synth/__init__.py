@@ -35,7 +35,9 @@ from pipeline.synth.params import (
     DEFAULT_TILE_SIZE,
     MAX_SIZE,
     MIN_SIZE,
+    REAL_STAND,
     SYNTH_CLASSES,
+    Stand,
 )
 from pipeline.synth.scene import SynthScene, synthetic_plot, synthetic_scene
 from pipeline.synth.terrain import Terrain
@@ -48,7 +50,9 @@ __all__ = [
     "DEFAULT_TILE_SIZE",
     "MAX_SIZE",
     "MIN_SIZE",
+    "REAL_STAND",
     "SYNTH_CLASSES",
+    "Stand",
     "Stem",
     "SynthScene",
     "Terrain",
