@@ -1,18 +1,18 @@
 """Individual trees (pipeline.trees) on the ponderosa-pine patch of ../shared/data/trees.
 
     python benchmarks/bench_trees.py [--resolution R] [--smoothing S] [--window A B]
-                                     [--peer-window W] [--png PATH]
+                                     [--peer lidr|window] [--peer-window W] [--png PATH]
     python benchmarks/bench_trees.py --stems [--stem-png-dir DIR]
-    python benchmarks/bench_trees.py --instances [--peer-window W]
+    python benchmarks/bench_trees.py --instances [--real-stand] [--peer lidr|window]
 
 The same patch scanned from an aircraft (ALS_Clip) and a drone (UAS_Clip); classes 2 ground,
 3-5 vegetation, 7 noise (dropped). There is no reference list of trees: the bench counts
 trees, their heights and crowns, and how well the two platforms agree (ALS tops with a UAS
 top within 2 m). Heights are above the ground model of pipeline.terrain; the canopy is classes
 3-5. Silva's chain (canopy cells, CHM, variable-window tops, bounded watershed crowns) is shown
-beside a plain peer: lidR's documented ``lmf`` with a fixed circular window of
-``--peer-window`` metres diameter and hmin = min_height, run with scikit-image on the same
-unsmoothed CHM. ``--png`` draws the ALS CHM with both sets of tops and the crown outlines.
+beside the peer's tops (below: lidR's ``lmf`` variable window, or its re-implemented fixed
+window of ``--peer-window`` metres on the same unsmoothed CHM as the fallback). ``--png``
+draws the ALS CHM with both sets of tops and the crown outlines.
 
 ``--stems`` measures the stems instead: on synthetic plots (seeds SYNTH_SEEDS, the true tree
 class as the stem mask, heights above the ground model) the stems found against trees.csv
@@ -22,11 +22,20 @@ and their DBH; on the four scans of the patch what sees_stems says. ``--stem-png
 each plot's breast-height section with the fitted circles.
 
 ``--instances`` scores whole trees on synthetic plots written as ``silva synth`` writes them
-(seeds SYNTH_SEEDS, 30 m, tiles with TreeID and trees.csv), the true tree class as canopy and
-stem mask: find_trees with method stems and crowns beside the peer (lmf tops, crowns by a
-marker watershed of the same CHM): point-level instance precision, recall and F1 against
-TreeID, detection F1 against trees.csv (2 m, height within 40 %), height and DBH RMSE of the
-matched trees, and how many true trees stand outside the plot.
+(seeds SYNTH_SEEDS, 30 m, tiles with TreeID and trees.csv; ``--real-stand``: with touching
+crowns, suppressed trees and leaning stems), the true tree class as canopy and stem mask:
+find_trees with method stems and crowns beside the peer: point-level instance precision,
+recall and F1 against TreeID, detection F1 against trees.csv (2 m, height within 40 %),
+height and DBH RMSE of the matched trees, with and without the buffer rule (the trees
+standing outside the plot, and the trees matched to them, left out).
+
+The peer (``--peer lidr``, the default) is lidR itself, run through ``Rscript`` on the same
+points written to LAS with their height above Silva's ground model as Z: ``locate_trees(las,
+lmf(function(x) x * 0.07 + 3))`` then ``segment_trees`` with dalponte2016 and silva2016 on
+its own p2r CHM; R finds lidR on its library path (``R_LIBS=DIR``). Where Rscript or lidR is
+absent the bench says so in one line and uses its fallback, the re-implemented window peer
+(``--peer window``: lmf with a fixed ``--peer-window`` on Silva's CHM, crowns by a marker
+watershed of that CHM), named as such in every row.
 """
 
 import argparse
@@ -347,14 +356,16 @@ HEIGHT_TOLERANCE = 0.4  # a matched tree's height within 40 % of the true height
 WINDOW_PEER = "lmf re-implemented"
 
 
-def read_synthetic_plot(out_dir: Path, seed: int, realism=None):
-    """Write the plot of ``seed`` as tiles into ``out_dir`` (as ``silva synth`` does) and read
-    them back: xyz (N, 3), class (N,), TreeID (N,) and the trees.csv truth table."""
+def read_synthetic_plot(out_dir: Path, seed: int, stand=None):
+    """Write the plot of ``seed`` (with ``stand``'s realism, pipeline.synth.Stand, or none)
+    as tiles into ``out_dir`` (as ``silva synth`` does) and read them back: xyz (N, 3), class
+    (N,), TreeID (N,) and the trees.csv truth table."""
     import laspy
 
-    from pipeline.synth import write_synthetic_plot
+    from pipeline.synth import Stand, write_synthetic_plot
 
-    tiles = [laspy.read(path) for path in write_synthetic_plot(out_dir, seed)]
+    paths = write_synthetic_plot(out_dir, seed, stand=stand or Stand())
+    tiles = [laspy.read(path) for path in paths]
     xyz = np.concatenate([np.column_stack((t.x, t.y, t.z)) for t in tiles]).astype(np.float64)
     code = np.concatenate([np.asarray(t.classification) for t in tiles])
     tree_id = np.concatenate([np.asarray(t["TreeID"]) for t in tiles]).astype(np.uint32)
@@ -446,7 +457,7 @@ def method_trees(method: str, xyz, height, tree, peer_window: float):
     return ids, table
 
 
-def synthetic_instances(peer_window: float, peer: str, realism=None) -> int:
+def synthetic_instances(peer_window: float, peer: str, stand=None) -> int:
     """Silva stems, Silva crowns and the peer on the synthetic plots SYNTH_SEEDS: point
     instances against every point's TreeID, detection against trees.csv. Each plot's rows
     leave out the trees standing outside the plot (trees.csv's ``inside`` 0: their crowns
@@ -461,7 +472,7 @@ def synthetic_instances(peer_window: float, peer: str, realism=None) -> int:
     outside, total = 0, 0
     for seed in SYNTH_SEEDS:
         with tempfile.TemporaryDirectory() as tmp:
-            xyz, code, true_ids, truth = read_synthetic_plot(Path(tmp), seed, realism)
+            xyz, code, true_ids, truth = read_synthetic_plot(Path(tmp), seed, stand)
         height = xyz[:, 2] - ground_elevation(terrain_model(xyz).dtm, xyz[:, :2])
         tree = code == TREE_CLASS
         left_out = truth["tree_id"][truth["inside"] == 0]
@@ -498,11 +509,17 @@ def main(argv=None) -> int:
                         help="measure the stems instead (synthetic truth, terrestrial plots)")
     parser.add_argument("--instances", action="store_true",
                         help="score stems, crowns and the peer on synthetic plots instead")
+    parser.add_argument("--real-stand", action="store_true",
+                        help="with --instances: plots with touching crowns, suppressed trees "
+                             "and leaning stems (pipeline.synth.REAL_STAND)")
     parser.add_argument("--stem-png-dir", type=Path, default=None,
                         help="draw each plot's section and circles as stems-<plot>.png here")
     args = parser.parse_args(argv)
     if args.instances:
-        return synthetic_instances(args.peer_window, args.peer)
+        from pipeline.synth import REAL_STAND
+
+        return synthetic_instances(args.peer_window, args.peer,
+                                   REAL_STAND if args.real_stand else None)
     if args.stems:
         if not DATA.is_dir():
             print(f"no data at {DATA}: nothing to measure", file=sys.stderr)

@@ -55,7 +55,7 @@ class Stand:
     suppressed : suppressed trees per dominant tree (0-1): small trees standing under a
         dominant tree's crown, their top 45-85 % of its crown base.
     lean : degrees (0-15): every stem leans by between half this and this, in a random
-        direction (0: the plain plot's slight lean of about 1 degree).
+        direction (0: the plain plot's slight lean, 1-2 degrees).
     """
 
     touching: float = 0.0
