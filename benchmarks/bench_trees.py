@@ -280,18 +280,22 @@ def stems_main(params: TreeParams, png_dir: Path | None) -> int:
 # --- lidR itself ------------------------------------------------------------------------------
 #: lidR's documented variable window (the same as Silva's default window) and its two crown
 #: segmentations that grow from tops on a CHM. Arguments: LAS in, tree IDs out (int32 per
-#: point, in the file's order, 0 in no tree), CHM cell, algorithm, tops table out (CSV).
+#: point, in the file's order, 0 in no tree), CHM cell, algorithm (none: tops only, every
+#: ID 0), tops table out (CSV), hmin.
 LIDR_SCRIPT = r"""
 options(rgl.useNULL = TRUE, lidR.progress = FALSE)
 suppressPackageStartupMessages(library(lidR))
 a <- commandArgs(trailingOnly = TRUE)
 las <- readLAS(a[1], select = "xyz")
-chm <- rasterize_canopy(las, res = as.numeric(a[3]), algorithm = p2r())
 tops <- locate_trees(las, lmf(function(x) x * 0.07 + 3, hmin = as.numeric(a[6])))
-algo <- if (a[4] == "silva2016") silva2016(chm, tops) else dalponte2016(chm, tops)
-las <- segment_trees(las, algo)
-ids <- las$treeID
-ids[is.na(ids)] <- 0L
+ids <- integer(npoints(las))
+if (a[4] != "none") {
+  chm <- rasterize_canopy(las, res = as.numeric(a[3]), algorithm = p2r())
+  algo <- if (a[4] == "silva2016") silva2016(chm, tops) else dalponte2016(chm, tops)
+  las <- segment_trees(las, algo)
+  ids <- las$treeID
+  ids[is.na(ids)] <- 0L
+}
 writeBin(as.integer(ids), a[2], size = 4, endian = "little")
 xyz <- sf::st_coordinates(tops)
 data.table::fwrite(data.table::data.table(tree_id = tops$treeID, x = xyz[, 1], y = xyz[, 2],
@@ -318,8 +322,9 @@ def lidr_missing() -> str | None:
 def lidr_trees(xyz, height, mask, params: TreeParams, algorithm: str):
     """lidR's trees of the ``mask`` points, given with their height above Silva's ground
     model as Z (lidR's normalised cloud, so both see the same heights): lmf tops (variable
-    window 3 + 0.07 h, hmin = min_height), crowns by ``algorithm`` on lidR's own p2r CHM of
-    ``params.resolution``. Returns (tree ID per point (N,) uint32, table of the tops)."""
+    window 3 + 0.07 h, hmin = min_height), crowns by ``algorithm`` (none: tops only) on lidR's
+    own p2r CHM of ``params.resolution``. Returns (tree ID per point (N,) uint32, table of
+    the tops)."""
     from pipeline.io import write_las
 
     with tempfile.TemporaryDirectory(prefix="lidr-") as tmp:
@@ -531,8 +536,9 @@ def main(argv=None) -> int:
         print(f"no data at {DATA}: nothing to measure", file=sys.stderr)
         return 0
     print(params)
-    peer = "lidR" if args.peer == "lidr" and peer_methods("lidr") != (WINDOW_PEER,) else "lmf"
-    print(f"{'tile':14} {'points':>8} {'method':>8} {'trees':>6} {'height min med max':>18} "
+    peer = (WINDOW_PEER if args.peer == "window" or peer_methods("lidr") == (WINDOW_PEER,)
+            else "lidR")
+    print(f"{'tile':14} {'points':>8} {'method':>18} {'trees':>6} {'height min med max':>18} "
           f"{'crown m2':>9} {'time s':>7}")
     tops = {}
     for name in PLATFORMS:
@@ -541,23 +547,23 @@ def main(argv=None) -> int:
         table, crowns, chm = silva_trees(xyz, height, canopy, params)
         seconds = time.perf_counter() - start
         start = time.perf_counter()
-        if peer == "lidR":  # lidR's tops (its crowns are not drawn)
-            found = lidr_trees(xyz, height, canopy, params, LIDR_ALGORITHMS[0])[1]
+        if peer == "lidR":  # lidR's tops only (no crowns are drawn)
+            found = lidr_trees(xyz, height, canopy, params, "none")[1]
             others = np.column_stack((found["x"], found["y"], found["height"]))
         else:
             others = lmf_tops(chm, args.peer_window, params.min_height)
         peer_seconds = time.perf_counter() - start
         tops[name] = {"silva": np.column_stack((table["x"], table["y"])), peer: others[:, :2]}
-        print(f"{name:14} {len(xyz):8d} {'silva':>8} {len(table):6d} "
+        print(f"{name:14} {len(xyz):8d} {'silva':>18} {len(table):6d} "
               f"{_heights(table['height']):>18} {np.median(table['crown_area']):9.1f} "
               f"{seconds:7.2f}")
-        print(f"{'':14} {'':8} {peer:>8} {len(others):6d} {_heights(others[:, 2]):>18} "
+        print(f"{'':14} {'':8} {peer:>18} {len(others):6d} {_heights(others[:, 2]):>18} "
               f"{'':9} {peer_seconds:7.2f}")
         if args.png is not None and name == PLATFORMS[0]:
             draw(args.png, chm, table, crowns, others, peer)
     als, uas = PLATFORMS
     for method in ("silva", peer):
-        print(f"{method:>5}: ALS tops with a UAS top within {AGREEMENT:g} m: "
+        print(f"{method:>18}: ALS tops with a UAS top within {AGREEMENT:g} m: "
               f"{agreement(tops[als][method], tops[uas][method])}, UAS tops with an ALS top: "
               f"{agreement(tops[uas][method], tops[als][method])}")
     return 0
