@@ -171,3 +171,27 @@ def test_tables_leave_out_after_matching_with_every_tree():
     assert m.precision == 1.0 and m.recall == 0.5
     with pytest.raises(ValueError, match="left_out must be integer tree IDs"):
         match_tables(truth, found, 2.0, left_out=[-1])
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_left_out_in_batches_equals_the_rule_on_brute_force_pairs(seed):
+    """The buffer rule on pair counts merged from batches equals the rule applied by hand to
+    the brute-force matching of all points: matches without the left-out trees, true trees
+    less those left out, found trees less those matched to them."""
+    from pipeline.trees.instances import match_pairs, merge_pairs, pair_counts
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(20, 200))
+    true = rng.integers(0, 8, n)
+    pred = np.where(rng.random(n) < 0.8, true * 3 + 1, rng.integers(0, 30, n))
+    left_out = rng.choice(np.arange(1, 8), size=int(rng.integers(0, 4)), replace=False)
+    full = match_instances(true, pred)
+    cuts = np.sort(rng.integers(0, n, 3))
+    parts = [pair_counts(t, p) for t, p in zip(np.split(true, cuts), np.split(pred, cuts))]
+    m = match_pairs(merge_pairs(parts[::-1]), left_out)
+    keep = ~np.isin(full.true_ids, left_out)
+    assert m.true_ids.tolist() == full.true_ids[keep].tolist()
+    assert m.pred_ids.tolist() == full.pred_ids[keep].tolist()
+    assert m.n_true == len(set(true.tolist()) - {0} - set(left_out.tolist()))
+    assert m.n_pred == full.n_pred - int(np.count_nonzero(~keep))
+    assert (m.left_true, m.left_pred) == (full.n_true - m.n_true, int(np.count_nonzero(~keep)))
