@@ -142,27 +142,7 @@ def random_layout(rng: np.random.Generator, size: float, stand: Stand = Stand())
     taken = _Occupancy()
     taken.add(scanners[:, :2], 0.6)
 
-    trees = []
-    lo, hi = -TREE_MARGIN, size + TREE_MARGIN
-    n_trees = _count(rng, TREE_DENSITY, (hi - lo) ** 2, minimum=1)
-    for i in range(n_trees):
-        if i and stand.touching and rng.random() < stand.touching:
-            tree = _beside(rng, _random_tree(rng, np.zeros(2), terrain), trees, lo, hi,
-                           terrain, taken)
-            if tree is not None:
-                trees.append(tree)
-                taken.add(tree.stem.base[:2], 1.0)
-                continue
-        # The first tree stands inside the plot so that even a small plot has a stem.
-        xy = _place(rng, 1.0, size - 1.0, 1.2, taken) if i == 0 else _place(rng, lo, hi, 1.2,
-                                                                             taken)
-        if xy is not None:
-            trees.append(_random_tree(rng, xy, terrain))
-            taken.add(xy, 1.0)
-    if stand.suppressed:
-        trees += _suppressed(rng, trees, stand.suppressed, lo, hi, terrain, taken)
-    if stand.lean:
-        trees = [_leaning(rng, tree, stand.lean) for tree in trees]
+    trees = _place_trees(rng, size, terrain, taken, stand)
 
     snags = []
     for _ in range(_count(rng, SNAG_DENSITY, size * size, minimum=1)):
@@ -263,6 +243,34 @@ def _leaning(rng, tree: Tree, degrees: float) -> Tree:
     azimuth = rng.uniform(0.0, 2 * np.pi)
     lean = tilt * np.array([np.cos(azimuth), np.sin(azimuth)])
     return replace(tree, stem=replace(tree.stem, lean=lean))
+
+
+def _place_trees(rng, size: float, terrain: Terrain, taken: _Occupancy,
+                 stand: Stand) -> list[Tree]:
+    """The living trees, in and up to TREE_MARGIN around the plot, with ``stand``'s
+    realism (touching crowns, then suppressed trees, then leaning stems)."""
+    trees = []
+    lo, hi = -TREE_MARGIN, size + TREE_MARGIN
+    n_trees = _count(rng, TREE_DENSITY, (hi - lo) ** 2, minimum=1)
+    for i in range(n_trees):
+        if i and stand.touching and rng.random() < stand.touching:
+            tree = _beside(rng, _random_tree(rng, np.zeros(2), terrain), trees, lo, hi,
+                           terrain, taken)
+            if tree is not None:
+                trees.append(tree)
+                taken.add(tree.stem.base[:2], 1.0)
+                continue
+        # The first tree stands inside the plot so that even a small plot has a stem.
+        xy = _place(rng, 1.0, size - 1.0, 1.2, taken) if i == 0 else _place(rng, lo, hi, 1.2,
+                                                                             taken)
+        if xy is not None:
+            trees.append(_random_tree(rng, xy, terrain))
+            taken.add(xy, 1.0)
+    if stand.suppressed:
+        trees += _suppressed(rng, trees, stand.suppressed, lo, hi, terrain, taken)
+    if stand.lean:
+        trees = [_leaning(rng, tree, stand.lean) for tree in trees]
+    return trees
 
 
 def _stem_profile(height: float, radius: float, flare: float, top_radius: float):

@@ -133,8 +133,6 @@ class _ScannerFiles:
 def _write_tiles(out_dir: Path, work: Path, seed: int, size: float, tile_size: float,
                  stand: Stand):
     """:func:`write_synthetic_plot` with its temporary files in ``work``."""
-    from pipeline.io import ExtraDim, write_las
-
     rng = np.random.default_rng(seed)
     layout = random_layout(rng, size, stand)
     origin = np.asarray(DEFAULT_ORIGIN)
@@ -205,8 +203,19 @@ def _write_tiles(out_dir: Path, work: Path, seed: int, size: float, tile_size: f
             "delete them or choose an empty directory"
         )
 
-    # 4. the shuffle of the whole plot (no spatial or per-class order in the files): the
-    # position of each row, then each tile's points in that order
+    # 4. the shuffle of the whole plot (no spatial or per-class order in the files)
+    paths = _write_shuffled(out_dir, work, rng, n_points, keys, names, origin)
+    write_truth_csv(out_dir / TRUTH_CSV, tree_truth(layout, origin, present, shares))
+    log.info("wrote %d synthetic tiles (%d points) to %s", len(paths), n_points, out_dir)
+    return [Path(p) for p in paths]
+
+
+def _write_shuffled(out_dir: Path, work: Path, rng, n_points: int, keys, names, origin):
+    """Each tile's file ``work/tile{k}.bin`` (of ``keys``) written as LAZ ``names`` in the
+    order of the whole plot's shuffle (the draws of rng.permutation(n_points)): the position
+    of each row, then each tile's points in that order. Returns the paths written."""
+    from pipeline.io import ExtraDim, write_las
+
     shuffled = np.arange(n_points, dtype=np.int32 if n_points < 2**31 else np.int64)
     rng.shuffle(shuffled)  # the draws of rng.permutation(n_points), in half the memory
     position = np.empty_like(shuffled)
@@ -230,6 +239,4 @@ def _write_tiles(out_dir: Path, work: Path, seed: int, size: float, tile_size: f
             )
         )
         (work / f"tile{k}.bin").unlink()
-    write_truth_csv(out_dir / TRUTH_CSV, tree_truth(layout, origin, present, shares))
-    log.info("wrote %d synthetic tiles (%d points) to %s", len(paths), n_points, out_dir)
-    return [Path(p) for p in paths]
+    return paths
