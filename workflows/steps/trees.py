@@ -310,5 +310,9 @@ def reference_table(directories) -> dict | None:
              "height": np.array([number(r.get("height")) for r in rows]),
              "dbh": np.array([number(r.get("dbh")) for r in rows])}
     if all(r.get("inside") not in ("", None) for r in rows):
-        table["inside"] = np.array([int(r["inside"]) for r in rows])
+        try:
+            table["inside"] = np.array([int(float(r["inside"])) for r in rows])
+        except ValueError:
+            log.warning("trees: the inside column of %s is not 0 or 1; every reference tree "
+                        "is scored", REFERENCE_TABLE)
     return table
