@@ -1,18 +1,18 @@
 """Individual trees (pipeline.trees) on the ponderosa-pine patch of ../shared/data/trees.
 
     python benchmarks/bench_trees.py [--resolution R] [--smoothing S] [--window A B]
-                                     [--peer-window W] [--png PATH]
+                                     [--peer lidr|window] [--peer-window W] [--png PATH]
     python benchmarks/bench_trees.py --stems [--stem-png-dir DIR]
-    python benchmarks/bench_trees.py --instances [--peer-window W]
+    python benchmarks/bench_trees.py --instances [--real-stand] [--peer lidr|window]
 
 The same patch scanned from an aircraft (ALS_Clip) and a drone (UAS_Clip); classes 2 ground,
 3-5 vegetation, 7 noise (dropped). There is no reference list of trees: the bench counts
 trees, their heights and crowns, and how well the two platforms agree (ALS tops with a UAS
 top within 2 m). Heights are above the ground model of pipeline.terrain; the canopy is classes
 3-5. Silva's chain (canopy cells, CHM, variable-window tops, bounded watershed crowns) is shown
-beside a plain peer: lidR's documented ``lmf`` with a fixed circular window of
-``--peer-window`` metres diameter and hmin = min_height, run with scikit-image on the same
-unsmoothed CHM. ``--png`` draws the ALS CHM with both sets of tops and the crown outlines.
+beside the peer's tops (below: lidR's ``lmf`` variable window, or its re-implemented fixed
+window of ``--peer-window`` metres on the same unsmoothed CHM as the fallback). ``--png``
+draws the ALS CHM with both sets of tops and the crown outlines.
 
 ``--stems`` measures the stems instead: on synthetic plots (seeds SYNTH_SEEDS, the true tree
 class as the stem mask, heights above the ground model) the stems found against trees.csv
@@ -22,22 +22,35 @@ and their DBH; on the four scans of the patch what sees_stems says. ``--stem-png
 each plot's breast-height section with the fitted circles.
 
 ``--instances`` scores whole trees on synthetic plots written as ``silva synth`` writes them
-(seeds SYNTH_SEEDS, 30 m, tiles with TreeID and trees.csv), the true tree class as canopy and
-stem mask: find_trees with method stems and crowns beside the peer (lmf tops, crowns by a
-marker watershed of the same CHM): point-level instance precision, recall and F1 against
-TreeID, detection F1 against trees.csv (2 m, height within 40 %), height and DBH RMSE of the
-matched trees, and how many true trees stand outside the plot.
+(seeds SYNTH_SEEDS, 30 m, tiles with TreeID and trees.csv; ``--real-stand``: with touching
+crowns, suppressed trees and leaning stems), the true tree class as canopy and stem mask:
+find_trees with method stems and crowns beside the peer: point-level instance precision,
+recall and F1 against TreeID, detection F1 against trees.csv (2 m, height within 40 %),
+height and DBH RMSE of the matched trees, with and without the buffer rule (the trees
+standing outside the plot, and the trees matched to them, left out).
+
+The peer (``--peer lidr``, the default) is lidR itself, run through ``Rscript`` on the same
+points written to LAS with their height above Silva's ground model as Z: ``locate_trees(las,
+lmf(function(x) x * 0.07 + 3))`` then ``segment_trees`` with dalponte2016 and silva2016 on
+its own p2r CHM; R finds lidR on its library path (``R_LIBS=DIR``). Where Rscript or lidR is
+absent the bench says so in one line and uses its fallback, the re-implemented window peer
+(``--peer window``: lmf with a fixed ``--peer-window`` on Silva's CHM, crowns by a marker
+watershed of that CHM), named as such in every row.
 """
 
 import argparse
+import os
+import shutil
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.synth import SYNTH_CLASSES
+from pipeline.synth import CRS_WKT, SYNTH_CLASSES
 from pipeline.terrain import ground_elevation, terrain_model
 from pipeline.trees import (
     TreeParams,
@@ -109,7 +122,7 @@ def _heights(h: np.ndarray) -> str:
     return f"{h.min():5.1f} {np.median(h):5.1f} {h.max():5.1f}"
 
 
-def draw(path, chm, table, crowns, peer) -> None:
+def draw(path, chm, table, crowns, peer, peer_name: str) -> None:
     """The CHM with Silva's tops and crown outlines and the peer's tops, as a PNG."""
     import matplotlib
 
@@ -125,7 +138,7 @@ def draw(path, chm, table, crowns, peer) -> None:
     outline[find_boundaries(crowns.labels, mode="inner") & (crowns.labels > 0)] = (0, 0, 0, 0.7)
     ax.imshow(outline, origin="lower", extent=extent)
     ax.plot(table["x"], table["y"], "r^", ms=8, label=f"silva ({len(table)})")
-    ax.plot(peer[:, 0], peer[:, 1], "wx", ms=7, label=f"lmf peer ({len(peer)})")
+    ax.plot(peer[:, 0], peer[:, 1], "wx", ms=7, label=f"{peer_name} ({len(peer)})")
     ax.legend(loc="upper right")
     fig.colorbar(shown, ax=ax, label="canopy height (m)")
     ax.set_title("ALS_Clip: canopy height model, tree tops and crowns")
@@ -264,26 +277,105 @@ def stems_main(params: TreeParams, png_dir: Path | None) -> int:
     return 0
 
 
+# --- lidR itself ------------------------------------------------------------------------------
+#: lidR's documented variable window (the same as Silva's default window) and its two crown
+#: segmentations that grow from tops on a CHM. Arguments: LAS in, tree IDs out (int32 per
+#: point, in the file's order, 0 in no tree), CHM cell, algorithm (none: tops only, every
+#: ID 0), tops table out (CSV), hmin.
+LIDR_SCRIPT = r"""
+options(rgl.useNULL = TRUE, lidR.progress = FALSE)
+suppressPackageStartupMessages(library(lidR))
+a <- commandArgs(trailingOnly = TRUE)
+las <- readLAS(a[1], select = "xyz")
+tops <- locate_trees(las, lmf(function(x) x * 0.07 + 3, hmin = as.numeric(a[6])))
+ids <- integer(npoints(las))
+if (a[4] != "none") {
+  chm <- rasterize_canopy(las, res = as.numeric(a[3]), algorithm = p2r())
+  algo <- if (a[4] == "silva2016") silva2016(chm, tops) else dalponte2016(chm, tops)
+  las <- segment_trees(las, algo)
+  ids <- las$treeID
+  ids[is.na(ids)] <- 0L
+}
+writeBin(as.integer(ids), a[2], size = 4, endian = "little")
+xyz <- sf::st_coordinates(tops)
+data.table::fwrite(data.table::data.table(tree_id = tops$treeID, x = xyz[, 1], y = xyz[, 2],
+                                          height = xyz[, 3]), a[5])
+"""
+LIDR_ALGORITHMS = ("dalponte2016", "silva2016")
+TABLE_DTYPE = [("tree_id", "u4"), ("x", "f8"), ("y", "f8"), ("height", "f8"), ("dbh", "f8")]
+
+
+def lidr_missing() -> str | None:
+    """None when ``Rscript`` runs and loads lidR (from R's library path, e.g. ``R_LIBS``),
+    else why not, in one line."""
+    if shutil.which("Rscript") is None:
+        return "Rscript not found"
+    done = subprocess.run(["Rscript", "-e", "suppressPackageStartupMessages(library(lidR))"],
+                          capture_output=True, text=True, env={**os.environ,
+                                                               "RGL_USE_NULL": "TRUE"})
+    if done.returncode:
+        lines = done.stderr.strip().splitlines() or ["no message"]
+        return f"lidR does not load ({lines[0]})"
+    return None
+
+
+def lidr_trees(xyz, height, mask, params: TreeParams, algorithm: str):
+    """lidR's trees of the ``mask`` points, given with their height above Silva's ground
+    model as Z (lidR's normalised cloud, so both see the same heights): lmf tops (variable
+    window 3 + 0.07 h, hmin = min_height), crowns by ``algorithm`` (none: tops only) on lidR's
+    own p2r CHM of ``params.resolution``. Returns (tree ID per point (N,) uint32, table of
+    the tops)."""
+    from pipeline.io import write_las
+
+    with tempfile.TemporaryDirectory(prefix="lidr-") as tmp:
+        work = Path(tmp)
+        (work / "trees.R").write_text(LIDR_SCRIPT)
+        points = np.column_stack((xyz[mask, :2], height[mask]))
+        # lidR's rasters need a CRS; nothing is reprojected, so any projected one gives the
+        # same trees
+        write_las(work / "points.las", points, crs_wkt=CRS_WKT,
+                  offset=(*np.floor(points[:, :2].min(axis=0)), 0.0))
+        done = subprocess.run(["Rscript", str(work / "trees.R"), str(work / "points.las"),
+                               str(work / "ids.bin"), str(params.resolution), algorithm,
+                               str(work / "tops.csv"), str(params.min_height)],
+                              capture_output=True, text=True,
+                              env={**os.environ, "RGL_USE_NULL": "TRUE"})
+        if done.returncode:
+            raise RuntimeError(f"lidR {algorithm} failed: {done.stderr.strip()[-500:]}")
+        found = np.fromfile(work / "ids.bin", dtype="<i4")
+        tops = np.loadtxt(work / "tops.csv", delimiter=",", skiprows=1, ndmin=2)
+    ids = np.zeros(len(xyz), np.uint32)
+    ids[mask] = found
+    table = np.zeros(len(tops), dtype=TABLE_DTYPE)
+    for column, name in enumerate(("tree_id", "x", "y", "height")):
+        table[name] = tops[:, column]
+    table["dbh"] = np.nan
+    return ids, table
+
+
 # --- synthetic instances ----------------------------------------------------------------------
 TREE_CLASS = SYNTH_CLASSES["tree"]
 TREE_MATCH = 2.0  # metres between a true stem base and a found tree counted as a match
 HEIGHT_TOLERANCE = 0.4  # a matched tree's height within 40 % of the true height
-INSTANCE_METHODS = ("stems", "crowns", "lmf")
+#: The re-implemented peer, used only when lidR itself cannot run here.
+WINDOW_PEER = "lmf re-implemented"
 
 
-def read_synthetic_plot(out_dir: Path, seed: int):
-    """Write the plot of ``seed`` as tiles into ``out_dir`` (as ``silva synth`` does) and read
-    them back: xyz (N, 3), class (N,), TreeID (N,) and the trees.csv truth table."""
+def read_synthetic_plot(out_dir: Path, seed: int, stand=None):
+    """Write the plot of ``seed`` (with ``stand``'s realism, pipeline.synth.Stand, or none)
+    as tiles into ``out_dir`` (as ``silva synth`` does) and read them back: xyz (N, 3), class
+    (N,), TreeID (N,) and the trees.csv truth table."""
     import laspy
 
-    from pipeline.synth import write_synthetic_plot
+    from pipeline.synth import Stand, write_synthetic_plot
 
-    tiles = [laspy.read(path) for path in write_synthetic_plot(out_dir, seed)]
+    paths = write_synthetic_plot(out_dir, seed, stand=stand or Stand())
+    tiles = [laspy.read(path) for path in paths]
     xyz = np.concatenate([np.column_stack((t.x, t.y, t.z)) for t in tiles]).astype(np.float64)
     code = np.concatenate([np.asarray(t.classification) for t in tiles])
     tree_id = np.concatenate([np.asarray(t["TreeID"]) for t in tiles]).astype(np.uint32)
     truth = np.genfromtxt(out_dir / "trees.csv", delimiter=",", names=True,
-                          dtype=["u4"] + ["f8"] * 5)
+                          dtype=["u4"] + ["f8"] * 5 + ["u1", "f8"])
     return xyz, code, tree_id, np.atleast_1d(truth)
 
 
@@ -312,15 +404,16 @@ def lmf_trees(xyz, height, tree, params: TreeParams, window: float):
     return ids, table
 
 
-def instance_scores(true_ids, pred_ids, truth, table) -> dict:
-    """Point-level instance and detection scores of one method on one plot."""
+def instance_scores(true_ids, pred_ids, truth, table, left_out=None) -> dict:
+    """Point-level instance and detection scores of one method on one plot; ``left_out``
+    the true trees left out of the counts (the buffer rule), None for every tree."""
     from pipeline.trees.instances import match_instances, match_tables, matched_errors
 
-    points = match_instances(true_ids, pred_ids)
-    detection = match_tables(truth, table, TREE_MATCH, HEIGHT_TOLERANCE)
+    points = match_instances(true_ids, pred_ids, left_out)
+    detection = match_tables(truth, table, TREE_MATCH, HEIGHT_TOLERANCE, left_out)
     errors = matched_errors(detection, truth, table)
     return {"precision": points.precision, "recall": points.recall, "f1": points.f1,
-            "detection_f1": detection.f1, "found": len(table),
+            "detection_f1": detection.f1, "found": points.n_pred,
             "height": errors["height"], "dbh": errors["dbh"]}
 
 
@@ -329,7 +422,7 @@ def _rmse_cell(error: dict, scale: float) -> str:
 
 
 def print_instance_row(label: str, method: str, s: dict) -> None:
-    print(f"{label:>4} {method:>6} {s['found']:5d} {s['precision']:9.3f} {s['recall']:6.3f} "
+    print(f"{label:>10} {method:>18} {s['found']:5d} {s['precision']:9.3f} {s['recall']:6.3f} "
           f"{s['f1']:6.3f} {s['detection_f1']:7.3f} {_rmse_cell(s['height'], 1.0):>12} "
           f"{_rmse_cell(s['dbh'], 100.0):>12}")
 
@@ -346,38 +439,61 @@ def pooled(scores: list[dict]) -> dict:
             "height": pool("height"), "dbh": pool("dbh")}
 
 
-def synthetic_instances(peer_window: float) -> int:
-    """Silva stems, Silva crowns and the lmf peer on the synthetic plots SYNTH_SEEDS: point
-    instances against every point's TreeID, detection against trees.csv, and how many true
-    trees stand outside the plot (base outside the square: crowns reach in, stems cannot)."""
-    import tempfile
+def peer_methods(peer: str) -> tuple[str, ...]:
+    """The peer's rows: lidR's segmentations when ``peer`` is lidr and lidR runs here, else
+    (with one line saying why) the re-implemented window peer."""
+    if peer == "lidr":
+        missing = lidr_missing()
+        if missing is None:
+            return tuple(f"lidR {name}" for name in LIDR_ALGORITHMS)
+        print(f"lidR peer skipped: {missing}; the re-implemented lmf window peer instead")
+    return (WINDOW_PEER,)
 
-    from pipeline.synth import DEFAULT_ORIGIN, DEFAULT_SIZE
+
+def method_trees(method: str, xyz, height, tree, peer_window: float):
+    """(tree ID per point, tree table) of one method's row on one plot."""
     from pipeline.trees import find_trees
 
-    print(f"{'seed':>4} {'method':>6} {'trees':>5} {'precision':>9} {'recall':>6} {'F1':>6} "
+    if method == WINDOW_PEER:
+        return lmf_trees(xyz, height, tree, TreeParams(), peer_window)
+    if method.startswith("lidR "):
+        return lidr_trees(xyz, height, tree, TreeParams(), method.split()[1])
+    ids, table, _, _ = find_trees(xyz, height, tree, tree, TreeParams(method=method))
+    return ids, table
+
+
+def synthetic_instances(peer_window: float, peer: str, stand=None) -> int:
+    """Silva stems, Silva crowns and the peer on the synthetic plots SYNTH_SEEDS: point
+    instances against every point's TreeID, detection against trees.csv. Each plot's rows
+    leave out the trees standing outside the plot (trees.csv's ``inside`` 0: their crowns
+    reach in, their stems cannot be found) and the found trees matched to them, as a forest
+    inventory's buffer rule does; the pooled rows are given with and without that rule."""
+    from pipeline.synth import DEFAULT_ORIGIN
+
+    methods = ("stems", "crowns") + peer_methods(peer)
+    print(f"{'seed':>10} {'method':>18} {'trees':>5} {'precision':>9} {'recall':>6} {'F1':>6} "
           f"{'det. F1':>7} {'height RMSE m':>12} {'DBH RMSE cm':>12}")
-    scores = {method: [] for method in INSTANCE_METHODS}
+    scores = {(method, rule): [] for method in methods for rule in ("every tree", "buffer")}
     outside, total = 0, 0
     for seed in SYNTH_SEEDS:
         with tempfile.TemporaryDirectory() as tmp:
-            xyz, code, true_ids, truth = read_synthetic_plot(Path(tmp), seed)
+            xyz, code, true_ids, truth = read_synthetic_plot(Path(tmp), seed, stand)
         height = xyz[:, 2] - ground_elevation(terrain_model(xyz).dtm, xyz[:, :2])
         tree = code == TREE_CLASS
-        ox, oy, _ = DEFAULT_ORIGIN
-        inside = ((truth["x"] >= ox) & (truth["x"] < ox + DEFAULT_SIZE)
-                  & (truth["y"] >= oy) & (truth["y"] < oy + DEFAULT_SIZE))
-        outside, total = outside + int(np.count_nonzero(~inside)), total + len(truth)
-        for method in INSTANCE_METHODS:
-            if method == "lmf":
-                ids, table = lmf_trees(xyz, height, tree, TreeParams(), peer_window)
-            else:
-                ids, table, _, _ = find_trees(xyz, height, tree, tree, TreeParams(method=method))
-            scores[method].append(instance_scores(true_ids, ids, truth, table))
-            print_instance_row(str(seed), method, scores[method][-1])
-    for method in INSTANCE_METHODS:
-        print_instance_row("all", method, pooled(scores[method]))
-    print(f"true trees (trees.csv): {total}, of which {outside} stand outside the plot")
+        left_out = truth["tree_id"][truth["inside"] == 0]
+        outside, total = outside + len(left_out), total + len(truth)
+        for method in methods:
+            ids, table = method_trees(method, xyz, height, tree, peer_window)
+            scores[method, "every tree"].append(instance_scores(true_ids, ids, truth, table))
+            scores[method, "buffer"].append(instance_scores(true_ids, ids, truth, table,
+                                                            left_out))
+            print_instance_row(str(seed), method, scores[method, "buffer"][-1])
+    for rule in ("every tree", "buffer"):
+        for method in methods:
+            print_instance_row(f"all {rule}", method, pooled(scores[method, rule]))
+    print(f"true trees (trees.csv): {total}, of which {outside} stand outside the plot "
+          f"(left out by the buffer rule, with the trees matched to them); origin "
+          f"{DEFAULT_ORIGIN[:2]}")
     return 0
 
 
@@ -388,17 +504,27 @@ def main(argv=None) -> int:
     parser.add_argument("--smoothing", type=float, default=defaults.smoothing)
     parser.add_argument("--window", type=float, nargs=2, default=defaults.window,
                         metavar=("A", "B"), help="tops' window diameter A + B * height (m)")
-    parser.add_argument("--peer-window", type=float, default=3.0)
+    parser.add_argument("--peer", choices=("lidr", "window"), default="lidr",
+                        help="lidR itself through Rscript (lidR from R's library path, e.g. "
+                             "R_LIBS); window: the re-implemented lmf, lidR's fallback")
+    parser.add_argument("--peer-window", type=float, default=3.0,
+                        help="the re-implemented peer's fixed window diameter (m)")
     parser.add_argument("--png", type=Path, default=None)
     parser.add_argument("--stems", action="store_true",
                         help="measure the stems instead (synthetic truth, terrestrial plots)")
     parser.add_argument("--instances", action="store_true",
                         help="score stems, crowns and the peer on synthetic plots instead")
+    parser.add_argument("--real-stand", action="store_true",
+                        help="with --instances: plots with touching crowns, suppressed trees "
+                             "and leaning stems (pipeline.synth.REAL_STAND)")
     parser.add_argument("--stem-png-dir", type=Path, default=None,
                         help="draw each plot's section and circles as stems-<plot>.png here")
     args = parser.parse_args(argv)
     if args.instances:
-        return synthetic_instances(args.peer_window)
+        from pipeline.synth import REAL_STAND
+
+        return synthetic_instances(args.peer_window, args.peer,
+                                   REAL_STAND if args.real_stand else None)
     if args.stems:
         if not DATA.is_dir():
             print(f"no data at {DATA}: nothing to measure", file=sys.stderr)
@@ -410,7 +536,9 @@ def main(argv=None) -> int:
         print(f"no data at {DATA}: nothing to measure", file=sys.stderr)
         return 0
     print(params)
-    print(f"{'tile':14} {'points':>8} {'method':>8} {'trees':>6} {'height min med max':>18} "
+    peer = (WINDOW_PEER if args.peer == "window" or peer_methods("lidr") == (WINDOW_PEER,)
+            else "lidR")
+    print(f"{'tile':14} {'points':>8} {'method':>18} {'trees':>6} {'height min med max':>18} "
           f"{'crown m2':>9} {'time s':>7}")
     tops = {}
     for name in PLATFORMS:
@@ -418,17 +546,24 @@ def main(argv=None) -> int:
         start = time.perf_counter()
         table, crowns, chm = silva_trees(xyz, height, canopy, params)
         seconds = time.perf_counter() - start
-        peer = lmf_tops(chm, args.peer_window, params.min_height)
-        tops[name] = {"silva": np.column_stack((table["x"], table["y"])), "lmf": peer[:, :2]}
-        print(f"{name:14} {len(xyz):8d} {'silva':>8} {len(table):6d} "
+        start = time.perf_counter()
+        if peer == "lidR":  # lidR's tops only (no crowns are drawn)
+            found = lidr_trees(xyz, height, canopy, params, "none")[1]
+            others = np.column_stack((found["x"], found["y"], found["height"]))
+        else:
+            others = lmf_tops(chm, args.peer_window, params.min_height)
+        peer_seconds = time.perf_counter() - start
+        tops[name] = {"silva": np.column_stack((table["x"], table["y"])), peer: others[:, :2]}
+        print(f"{name:14} {len(xyz):8d} {'silva':>18} {len(table):6d} "
               f"{_heights(table['height']):>18} {np.median(table['crown_area']):9.1f} "
               f"{seconds:7.2f}")
-        print(f"{'':14} {'':8} {'lmf':>8} {len(peer):6d} {_heights(peer[:, 2]):>18}")
+        print(f"{'':14} {'':8} {peer:>18} {len(others):6d} {_heights(others[:, 2]):>18} "
+              f"{'':9} {peer_seconds:7.2f}")
         if args.png is not None and name == PLATFORMS[0]:
-            draw(args.png, chm, table, crowns, peer)
+            draw(args.png, chm, table, crowns, others, peer)
     als, uas = PLATFORMS
-    for method in ("silva", "lmf"):
-        print(f"{method:>5}: ALS tops with a UAS top within {AGREEMENT:g} m: "
+    for method in ("silva", peer):
+        print(f"{method:>18}: ALS tops with a UAS top within {AGREEMENT:g} m: "
               f"{agreement(tops[als][method], tops[uas][method])}, UAS tops with an ALS top: "
               f"{agreement(tops[uas][method], tops[als][method])}")
     return 0

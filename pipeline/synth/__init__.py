@@ -17,6 +17,12 @@ them are dropped, and range noise is added along the beam. Everything is vectori
 object; one :class:`numpy.random.Generator`, seeded once, draws everything in a fixed order,
 so the same seed gives the same points and labels bit for bit.
 
+A :class:`~pipeline.synth.params.Stand` makes the stand closer to real ones: crowns that touch
+and interlock, suppressed trees under dominant crowns, stems leaning a few degrees
+(:data:`REAL_STAND` has all three); the default stand is the plain plot, bit for bit.
+The truth table marks the trees standing outside the plot whose crowns reach in
+(:mod:`~pipeline.synth.truth`).
+
 Coordinates are put at UTM-like positions (``DEFAULT_ORIGIN``) so that code reading the plot
 meets coordinates in the millions, as with real survey tiles.
 
@@ -35,7 +41,9 @@ from pipeline.synth.params import (
     DEFAULT_TILE_SIZE,
     MAX_SIZE,
     MIN_SIZE,
+    REAL_STAND,
     SYNTH_CLASSES,
+    Stand,
 )
 from pipeline.synth.scene import SynthScene, synthetic_plot, synthetic_scene
 from pipeline.synth.terrain import Terrain
@@ -48,7 +56,9 @@ __all__ = [
     "DEFAULT_TILE_SIZE",
     "MAX_SIZE",
     "MIN_SIZE",
+    "REAL_STAND",
     "SYNTH_CLASSES",
+    "Stand",
     "Stem",
     "SynthScene",
     "Terrain",

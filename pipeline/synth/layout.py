@@ -6,12 +6,13 @@ Everything is in the local frame: plot corner at (0, 0), ground near z = 0.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from pipeline.synth.params import (
     FALLEN_BRANCH_DENSITY,
+    Stand,
     LOG_DENSITY,
     ROCK_DENSITY,
     SCANNER_HEIGHT,
@@ -130,23 +131,18 @@ def _count(rng, density: float, area: float, minimum: int = 0) -> int:
     return max(minimum, round(density * area * rng.uniform(0.75, 1.25)))
 
 
-def random_layout(rng: np.random.Generator, size: float) -> Layout:
-    """Place the scanners, then trees, snags, logs, fallen branches, shrubs and rocks."""
+def random_layout(rng: np.random.Generator, size: float, stand: Stand = Stand()) -> Layout:
+    """Place the scanners, then trees, snags, logs, fallen branches, shrubs and rocks.
+
+    ``stand`` adds touching crowns, suppressed trees and leaning stems; each draws from
+    ``rng`` only when switched on, so the default stand gives the plain plot's draws.
+    """
     terrain = random_terrain(rng, size)
     scanners = scanner_positions(rng, size, terrain)
     taken = _Occupancy()
     taken.add(scanners[:, :2], 0.6)
 
-    trees = []
-    lo, hi = -TREE_MARGIN, size + TREE_MARGIN
-    n_trees = _count(rng, TREE_DENSITY, (hi - lo) ** 2, minimum=1)
-    for i in range(n_trees):
-        # The first tree stands inside the plot so that even a small plot has a stem.
-        xy = _place(rng, 1.0, size - 1.0, 1.2, taken) if i == 0 else _place(rng, lo, hi, 1.2,
-                                                                             taken)
-        if xy is not None:
-            trees.append(_random_tree(rng, xy, terrain))
-            taken.add(xy, 1.0)
+    trees = _place_trees(rng, size, terrain, taken, stand)
 
     snags = []
     for _ in range(_count(rng, SNAG_DENSITY, size * size, minimum=1)):
@@ -198,6 +194,85 @@ def random_layout(rng: np.random.Generator, size: float) -> Layout:
     return Layout(size, terrain, scanners, trees, snags, logs, fallen, shrubs, rocks, occluders)
 
 
+def _moved(tree: Tree, xy, terrain: Terrain) -> Tree:
+    """``tree`` standing at ``xy`` (its base sunk as :func:`_random_tree` sinks it)."""
+    base = np.array([xy[0], xy[1], float(terrain.height(xy[0], xy[1])) - 0.1])
+    return replace(tree, stem=replace(tree.stem, base=base))
+
+
+def _beside(rng, tree: Tree, trees: list[Tree], lo: float, hi: float, terrain: Terrain,
+            taken: _Occupancy, tries: int = 10) -> Tree | None:
+    """``tree`` moved beside one of ``trees`` so that their crowns touch and interlock
+    (stems 75-95 % of the sum of the crown radii apart), or None when no place is free."""
+    if not trees:
+        return None
+    for _ in range(tries):
+        other = trees[int(rng.integers(len(trees)))]
+        gap = (other.crown_radius + tree.crown_radius) * rng.uniform(0.75, 0.95)
+        azimuth = rng.uniform(0.0, 2 * np.pi)
+        xy = other.stem.base[:2] + gap * np.array([np.cos(azimuth), np.sin(azimuth)])
+        if np.all((xy >= lo) & (xy < hi)) and taken.free(xy, 1.2):
+            return _moved(tree, xy, terrain)
+    return None
+
+
+def _suppressed(rng, dominant: list[Tree], per_tree: float, lo: float, hi: float,
+                terrain: Terrain, taken: _Occupancy, tries: int = 10) -> list[Tree]:
+    """Small trees under the crowns of ``dominant`` trees (``per_tree`` of them per dominant
+    tree), their top 45-85 % of the dominant's crown base (3 m at least); one that finds no
+    host and free place in ``tries`` draws is not grown."""
+    hosts = [tree for tree in dominant if tree.crown_base * 0.85 >= 3.0]
+    trees = []
+    for _ in range(round(per_tree * len(dominant)) if hosts else 0):
+        for _ in range(tries):
+            host = hosts[int(rng.integers(len(hosts)))]
+            height = max(3.0, host.crown_base * rng.uniform(0.45, 0.85))
+            distance = rng.uniform(1.0, max(1.1, 0.7 * host.crown_radius))
+            azimuth = rng.uniform(0.0, 2 * np.pi)
+            xy = host.stem.base[:2] + distance * np.array([np.cos(azimuth), np.sin(azimuth)])
+            if np.all((xy >= lo) & (xy < hi)) and taken.free(xy, 0.4):
+                trees.append(_random_tree(rng, xy, terrain, height))
+                taken.add(xy, 0.6)
+                break
+    return trees
+
+
+def _leaning(rng, tree: Tree, degrees: float) -> Tree:
+    """``tree`` with its stem leaning by between half ``degrees`` and ``degrees``."""
+    tilt = math.tan(math.radians(rng.uniform(0.5 * degrees, degrees)))
+    azimuth = rng.uniform(0.0, 2 * np.pi)
+    lean = tilt * np.array([np.cos(azimuth), np.sin(azimuth)])
+    return replace(tree, stem=replace(tree.stem, lean=lean))
+
+
+def _place_trees(rng, size: float, terrain: Terrain, taken: _Occupancy,
+                 stand: Stand) -> list[Tree]:
+    """The living trees, in and up to TREE_MARGIN around the plot, with ``stand``'s
+    realism (touching crowns, then suppressed trees, then leaning stems)."""
+    trees = []
+    lo, hi = -TREE_MARGIN, size + TREE_MARGIN
+    n_trees = _count(rng, TREE_DENSITY, (hi - lo) ** 2, minimum=1)
+    for i in range(n_trees):
+        if i and stand.touching and rng.random() < stand.touching:
+            tree = _beside(rng, _random_tree(rng, np.zeros(2), terrain), trees, lo, hi,
+                           terrain, taken)
+            if tree is not None:
+                trees.append(tree)
+                taken.add(tree.stem.base[:2], 1.0)
+                continue
+        # The first tree stands inside the plot so that even a small plot has a stem.
+        xy = _place(rng, 1.0, size - 1.0, 1.2, taken) if i == 0 else _place(rng, lo, hi, 1.2,
+                                                                             taken)
+        if xy is not None:
+            trees.append(_random_tree(rng, xy, terrain))
+            taken.add(xy, 1.0)
+    if stand.suppressed:
+        trees += _suppressed(rng, trees, stand.suppressed, lo, hi, terrain, taken)
+    if stand.lean:
+        trees = [_leaning(rng, tree, stand.lean) for tree in trees]
+    return trees
+
+
 def _stem_profile(height: float, radius: float, flare: float, top_radius: float):
     """Knot heights (denser near the ground) and radii of a tapered stem with a butt flare."""
     z = height * np.linspace(0.0, 1.0, 14) ** 1.6
@@ -206,9 +281,9 @@ def _stem_profile(height: float, radius: float, flare: float, top_radius: float)
     return z, r
 
 
-def _random_tree(rng, xy: np.ndarray, terrain: Terrain) -> Tree:
-    """A conifer or broadleaf of 8-25 m standing at ``xy``."""
-    height = rng.uniform(8.0, 25.0)
+def _random_tree(rng, xy: np.ndarray, terrain: Terrain, height: float | None = None) -> Tree:
+    """A conifer or broadleaf of 8-25 m (or ``height``) standing at ``xy``."""
+    height = rng.uniform(8.0, 25.0) if height is None else height
     radius = 0.02 + height * rng.uniform(0.0055, 0.0085)
     conifer = bool(rng.random() < 0.5)
     lean = rng.normal(0.0, 0.02, 2)

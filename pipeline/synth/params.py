@@ -1,5 +1,7 @@
 """The numbers that shape a synthetic plot: classes, sizes, CRS, scanner model, scene content."""
 
+from dataclasses import dataclass
+
 #: LAS classification code of each class (dead wood uses a user-definable code >= 64).
 SYNTH_CLASSES: dict[str, int] = {"terrain": 2, "tree": 5, "dead_wood": 64, "misc": 1}
 
@@ -41,3 +43,26 @@ ROCK_DENSITY = 0.006
 FOLIAGE_AREA = 0.8  # foliage samples per m^2 of crown envelope, relative to BASE_DENSITY
 SHRUB_AREA = 1.2  # the same for shrubs
 BATCH = 1 << 20  # candidate samples scanned at once (bounds temporary memory)
+
+
+@dataclass(frozen=True)
+class Stand:
+    """What makes a synthetic stand closer to a real one; the default is the plain plot (the
+    same points, bit for bit, as without it).
+
+    touching : share (0-1) of the trees set beside an earlier tree so that their crowns touch
+        and interlock (stems 75-95 % of the sum of the two crown radii apart).
+    suppressed : suppressed trees per dominant tree (0-1): small trees standing under a
+        dominant tree's crown, their top 45-85 % of its crown base.
+    lean : degrees (0-15): every stem leans by between half this and this, in a random
+        direction (0: the plain plot's slight lean, 1-2 degrees).
+    """
+
+    touching: float = 0.0
+    suppressed: float = 0.0
+    lean: float = 0.0
+
+
+#: A stand with every kind of realism switched on (``silva synth``'s plain plot is Stand()).
+REAL_STAND = Stand(touching=0.5, suppressed=0.3, lean=5.0)
+MAX_LEAN = 15.0  # degrees

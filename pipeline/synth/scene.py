@@ -10,7 +10,14 @@ import numpy as np
 
 from pipeline.errors import ConfigError
 from pipeline.synth.layout import random_layout
-from pipeline.synth.params import DEFAULT_ORIGIN, DEFAULT_SIZE, MAX_SIZE, MIN_SIZE
+from pipeline.synth.params import (
+    DEFAULT_ORIGIN,
+    DEFAULT_SIZE,
+    MAX_LEAN,
+    MAX_SIZE,
+    MIN_SIZE,
+    Stand,
+)
 from pipeline.synth.scanner import scan
 from pipeline.synth.surfaces import sample_surfaces
 from pipeline.synth.terrain import Terrain
@@ -50,16 +57,19 @@ class SynthScene:
 
 
 def synthetic_scene(
-    seed: int = 0, size: float = DEFAULT_SIZE, *, origin=DEFAULT_ORIGIN
+    seed: int = 0, size: float = DEFAULT_SIZE, *, origin=DEFAULT_ORIGIN, stand: Stand = Stand()
 ) -> SynthScene:
     """Generate a labelled synthetic forest plot of ``size`` x ``size`` metres.
 
     The plot covers [origin_x, origin_x + size) x [origin_y, origin_y + size); the ground is
     near ``origin_z``. About 220 points per m^2 of plot (200,000 at the default 30 m).
     Same ``seed``, same points and labels; a different seed gives a different plot.
+    ``stand`` (:class:`~pipeline.synth.params.Stand`) adds touching crowns, suppressed trees
+    and leaning stems; the default adds none and changes nothing.
     """
     seed, size, origin = check_plot_args(seed, size, origin)
-    xyz, labels, ids, order, layout = scanned_plot(seed, size)
+    stand = check_stand(stand)
+    xyz, labels, ids, order, layout, shares = scanned_plot(seed, size, stand)
     xyz = xyz[order]
     xyz += np.asarray(origin)
     labels = labels[order]
@@ -75,32 +85,34 @@ def synthetic_scene(
         size=size,
         seed=seed,
         tree_ids=ids,
-        trees=tree_truth(layout, origin, np.unique(ids[ids > 0])),
+        trees=tree_truth(layout, origin, np.unique(ids[ids > 0]), shares),
     )
 
 
-def scanned_plot(seed: int, size: float):
+def scanned_plot(seed: int, size: float, stand: Stand = Stand()):
     """The scanned points of a plot before they are shuffled, and the shuffle.
 
     Returns xyz (N, 3) float64 in the local frame, labels (N,) uint8, tree IDs (N,) uint32,
     ``order`` (N,) int64 (the plot's points are ``xyz[order] + origin``, ``labels[order]``: no
-    spatial or per-class order in the output) and the :class:`~pipeline.synth.layout.Layout`.
+    spatial or per-class order in the output), the :class:`~pipeline.synth.layout.Layout` and
+    each tree's share of its surface inside the plot (a dict by tree ID).
     Arguments are trusted (see :func:`check_plot_args`). Memory: about 41 bytes per point.
     """
     rng = np.random.default_rng(seed)
-    layout = random_layout(rng, size)
-    parts = sample_surfaces(rng, layout)
+    layout = random_layout(rng, size, stand)
+    shares = {}
+    parts = sample_surfaces(rng, layout, shares)
     xyz, labels, ids, _ = scan(rng, parts, layout)
     order = rng.permutation(len(xyz))
     log.debug("synthetic plot seed=%d size=%.1f m: %d points", seed, size, len(xyz))
-    return xyz, labels, ids, order, layout
+    return xyz, labels, ids, order, layout, shares
 
 
 def synthetic_plot(
-    seed: int = 0, size: float = DEFAULT_SIZE, *, origin=DEFAULT_ORIGIN
+    seed: int = 0, size: float = DEFAULT_SIZE, *, origin=DEFAULT_ORIGIN, stand: Stand = Stand()
 ) -> tuple[np.ndarray, np.ndarray]:
     """Points and labels of :func:`synthetic_scene`: xyz (N, 3) float64, labels (N,) uint8."""
-    scene = synthetic_scene(seed, size, origin=origin)
+    scene = synthetic_scene(seed, size, origin=origin, stand=stand)
     return scene.xyz, scene.labels
 
 
@@ -112,6 +124,24 @@ def check_positive(name: str, value) -> float:
     if not (math.isfinite(value) and value > 0):
         raise ConfigError(f"{name} must be a positive number of metres, got {value!r}")
     return value
+
+
+def check_stand(stand) -> Stand:
+    """``stand`` checked: a :class:`Stand` whose shares are in 0-1 and lean in 0-MAX_LEAN."""
+    if not isinstance(stand, Stand):
+        raise ConfigError(f"stand must be a pipeline.synth.Stand, got {stand!r}")
+    limits = {"touching": 1.0, "suppressed": 1.0, "lean": MAX_LEAN}
+    for name, top in limits.items():
+        value = getattr(stand, name)
+        try:
+            ok = math.isfinite(float(value)) and 0.0 <= float(value) <= top
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            unit = " degrees" if name == "lean" else ""
+            raise ConfigError(f"stand.{name} must be a number from 0 to {top:g}{unit}, got "
+                              f"{value!r}")
+    return stand
 
 
 def check_plot_args(seed, size, origin) -> tuple[int, float, tuple[float, float, float]]:

@@ -217,26 +217,31 @@ def _inside_solids(points: np.ndarray, layout: Layout) -> np.ndarray:
     return inside
 
 
-def sample_surfaces(rng, layout: Layout):
+def sample_surfaces(rng, layout: Layout, shares: dict | None = None):
     """Uniform candidate samples of every object as (points (n, 3), LAS code, tree ID).
 
     The tree ID (see :func:`tree_ids`) is that of the living tree the points belong to, 0 for
-    every other object.
+    every other object. ``shares``, when given, receives for each tree ID the share of that
+    tree's surface samples (above the ground) that lie inside the plot, before any scanning:
+    a crown cut by the plot's edge has a share below 1. It changes no draw.
     """
     size, terrain, density = layout.size, layout.terrain, BASE_DENSITY
     codes = SYNTH_CLASSES
 
-    def inside(points: np.ndarray, above_ground: bool = False) -> np.ndarray:
+    def inside(points: np.ndarray, above_ground: bool = False, tree_id: int = 0) -> np.ndarray:
         """Drop samples outside the plot, and those buried in the ground when asked."""
         keep = np.all((points[:, :2] >= 0.0) & (points[:, :2] < size), axis=1)
         if above_ground:
-            keep &= points[:, 2] >= terrain.height(points[:, 0], points[:, 1])
+            standing = points[:, 2] >= terrain.height(points[:, 0], points[:, 1])
+            keep &= standing
+            if shares is not None and tree_id:
+                shares[int(tree_id)] = int(keep.sum()) / max(int(standing.sum()), 1)
         return points[keep]
 
     for part in terrain_surface(rng, terrain, size, density):
         yield part[~_inside_solids(part, layout)], codes["terrain"], 0
     for tree, tree_id in zip(layout.trees, tree_ids(layout)):
-        yield inside(_tree_surfaces(rng, tree, density), True), codes["tree"], tree_id
+        yield inside(_tree_surfaces(rng, tree, density), True, tree_id), codes["tree"], tree_id
     for stem, jag in layout.snags:
         yield inside(_snag_surface(rng, stem, jag, density), True), codes["dead_wood"], 0
     for item in layout.logs + layout.fallen:

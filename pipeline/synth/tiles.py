@@ -25,9 +25,16 @@ import numpy as np
 
 from pipeline.errors import ConfigError
 from pipeline.synth.layout import random_layout
-from pipeline.synth.params import BATCH, CRS_WKT, DEFAULT_ORIGIN, DEFAULT_SIZE, DEFAULT_TILE_SIZE
+from pipeline.synth.params import (
+    BATCH,
+    CRS_WKT,
+    DEFAULT_ORIGIN,
+    DEFAULT_SIZE,
+    DEFAULT_TILE_SIZE,
+    Stand,
+)
 from pipeline.synth.scanner import Shadows, beam_noise, captured, in_plot
-from pipeline.synth.scene import check_plot_args, check_positive
+from pipeline.synth.scene import check_plot_args, check_positive, check_stand
 from pipeline.synth.surfaces import sample_surfaces
 from pipeline.synth.truth import tree_truth, write_truth_csv
 
@@ -42,7 +49,8 @@ log = logging.getLogger(__name__)
 
 
 def write_synthetic_plot(
-    out_dir, seed: int = 0, size: float = DEFAULT_SIZE, tile_size: float = DEFAULT_TILE_SIZE
+    out_dir, seed: int = 0, size: float = DEFAULT_SIZE, tile_size: float = DEFAULT_TILE_SIZE,
+    stand: Stand = Stand(),
 ) -> list[Path]:
     """Write :func:`synthetic_plot` as LAZ tiles of a regular ``tile_size`` grid in ``out_dir``.
 
@@ -51,11 +59,13 @@ def write_synthetic_plot(
     ``TreeID`` (uint32, 0 in no living tree). Tile (ix, iy) holds the points of the half-open
     cell [ox + ix t, ox + (ix+1) t) x [oy + iy t, oy + (iy+1) t), so every point is in exactly
     one tile; empty tiles are not written. The trees' truth goes to ``out_dir/trees.csv``.
+    ``stand`` adds realism as in :func:`~pipeline.synth.scene.synthetic_scene`.
     Returns the paths ``plot_s{seed}_{ix}_{iy}.laz`` sorted by (ix, iy). Memory grows with the
     plot by 1 byte per recorded sample and 8 per point only (module docstring).
     """
     seed, size, _ = check_plot_args(seed, size, DEFAULT_ORIGIN)
     tile_size = check_positive("tile_size", tile_size)
+    stand = check_stand(stand)
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise ConfigError(f"output directory {out_dir} is a file; choose a directory path")
@@ -63,7 +73,7 @@ def write_synthetic_plot(
     out_dir.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".synth-s{seed}-", dir=out_dir))
     try:
-        return _write_tiles(out_dir, work, seed, size, tile_size)
+        return _write_tiles(out_dir, work, seed, size, tile_size, stand)
     except BaseException:
         if created:
             shutil.rmtree(out_dir, ignore_errors=True)
@@ -120,12 +130,11 @@ class _ScannerFiles:
         return records["row"], np.ascontiguousarray(records["xyz"])
 
 
-def _write_tiles(out_dir: Path, work: Path, seed: int, size: float, tile_size: float):
+def _write_tiles(out_dir: Path, work: Path, seed: int, size: float, tile_size: float,
+                 stand: Stand):
     """:func:`write_synthetic_plot` with its temporary files in ``work``."""
-    from pipeline.io import ExtraDim, write_las
-
     rng = np.random.default_rng(seed)
-    layout = random_layout(rng, size)
+    layout = random_layout(rng, size, stand)
     origin = np.asarray(DEFAULT_ORIGIN)
     n_tiles = max(1, math.ceil(size / tile_size))
 
@@ -135,8 +144,10 @@ def _write_tiles(out_dir: Path, work: Path, seed: int, size: float, tile_size: f
     shadows = Shadows(layout)
     by_scanner = _ScannerFiles(work)
     n_samples = 0
+    shares = {}
     with open(samples, "wb") as f:
-        for xyz, labels, trees, owner in captured(rng, sample_surfaces(rng, layout), layout):
+        for xyz, labels, trees, owner in captured(rng, sample_surfaces(rng, layout, shares),
+                                                  layout):
             batch = np.empty(len(xyz), dtype=SAMPLE)
             batch["xyz"], batch["label"], batch["tree"], batch["owner"] = xyz, labels, trees, owner
             batch.tofile(f)
@@ -192,8 +203,19 @@ def _write_tiles(out_dir: Path, work: Path, seed: int, size: float, tile_size: f
             "delete them or choose an empty directory"
         )
 
-    # 4. the shuffle of the whole plot (no spatial or per-class order in the files): the
-    # position of each row, then each tile's points in that order
+    # 4. the shuffle of the whole plot (no spatial or per-class order in the files)
+    paths = _write_shuffled(out_dir, work, rng, n_points, keys, names, origin)
+    write_truth_csv(out_dir / TRUTH_CSV, tree_truth(layout, origin, present, shares))
+    log.info("wrote %d synthetic tiles (%d points) to %s", len(paths), n_points, out_dir)
+    return [Path(p) for p in paths]
+
+
+def _write_shuffled(out_dir: Path, work: Path, rng, n_points: int, keys, names, origin):
+    """Each tile's file ``work/tile{k}.bin`` (of ``keys``) written as LAZ ``names`` in the
+    order of the whole plot's shuffle (the draws of rng.permutation(n_points)): the position
+    of each row, then each tile's points in that order. Returns the paths written."""
+    from pipeline.io import ExtraDim, write_las
+
     shuffled = np.arange(n_points, dtype=np.int32 if n_points < 2**31 else np.int64)
     rng.shuffle(shuffled)  # the draws of rng.permutation(n_points), in half the memory
     position = np.empty_like(shuffled)
@@ -217,6 +239,4 @@ def _write_tiles(out_dir: Path, work: Path, seed: int, size: float, tile_size: f
             )
         )
         (work / f"tile{k}.bin").unlink()
-    write_truth_csv(out_dir / TRUTH_CSV, tree_truth(layout, origin, present))
-    log.info("wrote %d synthetic tiles (%d points) to %s", len(paths), n_points, out_dir)
-    return [Path(p) for p in paths]
+    return paths

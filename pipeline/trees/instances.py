@@ -13,6 +13,12 @@ Two ways to pair predicted trees with true trees, both one-to-one:
 
 A :class:`Matching` gives instance precision, recall and F1; :func:`matched_errors` gives the
 RMSE and bias (predicted minus true) of the matched trees' heights and DBH.
+
+Both take ``left_out``: the true trees left out of the counts, as a forest inventory's buffer
+rule leaves out the trees whose stem stands outside the plot although their crown reaches in.
+The matching is made with every tree first, so that a predicted tree that is a left-out tree
+pairs with it; then the left-out true trees and the predicted trees paired with them are
+neither matches, nor misses, nor false trees.
 """
 
 from __future__ import annotations
@@ -32,7 +38,8 @@ class Matching:
 
     true_ids, pred_ids uint32 (k,) the matched trees' IDs, by ascending true ID; score
     float64 (k,) the pair's IoU (instances) or XY distance in metres (tables); n_true, n_pred
-    the trees on each side.
+    the trees on each side; left_true, left_pred the trees left out of all of these (the
+    true trees named ``left_out`` that are present, the predicted trees paired with them).
     """
 
     true_ids: np.ndarray
@@ -40,6 +47,8 @@ class Matching:
     score: np.ndarray
     n_true: int
     n_pred: int
+    left_true: int = 0
+    left_pred: int = 0
 
     @property
     def precision(self) -> float:
@@ -57,14 +66,15 @@ class Matching:
         return 2.0 * len(self.true_ids) / total if total else float("nan")
 
 
-def match_instances(true_ids: np.ndarray, pred_ids: np.ndarray) -> Matching:
+def match_instances(true_ids: np.ndarray, pred_ids: np.ndarray, left_out=None) -> Matching:
     """Match the trees of two labellings of the same points (integer (N,) each, 0 = none) on
-    an intersection over union above MIN_IOU."""
+    an intersection over union above MIN_IOU; ``left_out`` (integer (m,) or None) the true
+    trees left out of the counts (module docstring)."""
     true_ids, pred_ids = _as_ids(true_ids, "true_ids"), _as_ids(pred_ids, "pred_ids")
     if true_ids.shape != pred_ids.shape:
         raise ValueError(f"true_ids and pred_ids must label the same points, got "
                          f"{true_ids.shape[0]} and {pred_ids.shape[0]} labels")
-    return match_pairs(pair_counts(true_ids, pred_ids))
+    return match_pairs(pair_counts(true_ids, pred_ids), left_out)
 
 
 def pair_counts(true_ids: np.ndarray, pred_ids: np.ndarray) -> np.ndarray:
@@ -89,7 +99,7 @@ def merge_pairs(parts) -> np.ndarray:
     return np.column_stack([keys.reshape(-1, 2), counts])
 
 
-def match_pairs(pairs: np.ndarray) -> Matching:
+def match_pairs(pairs: np.ndarray, left_out=None) -> Matching:
     """:func:`match_instances` from the points counted per (true ID, predicted ID) pair."""
     pairs = np.asarray(pairs, np.int64).reshape(-1, 3)
     true_trees, true_at = np.unique(pairs[:, 0], return_inverse=True)
@@ -103,10 +113,27 @@ def match_pairs(pairs: np.ndarray) -> Matching:
     keep = iou > MIN_IOU
     matched = pairs[both][keep]
     order = np.argsort(matched[:, 0], kind="stable")
-    return Matching(true_ids=matched[order, 0].astype(np.uint32),
-                    pred_ids=matched[order, 1].astype(np.uint32), score=iou[keep][order],
-                    n_true=int(np.count_nonzero(true_trees > 0)),
-                    n_pred=int(np.count_nonzero(pred_trees > 0)))
+    matching = Matching(true_ids=matched[order, 0].astype(np.uint32),
+                        pred_ids=matched[order, 1].astype(np.uint32), score=iou[keep][order],
+                        n_true=int(np.count_nonzero(true_trees > 0)),
+                        n_pred=int(np.count_nonzero(pred_trees > 0)))
+    return _leave_out(matching, true_trees[true_trees > 0], left_out)
+
+
+def _leave_out(matching: Matching, true_trees: np.ndarray, left_out) -> Matching:
+    """``matching`` without the true trees ``left_out`` among ``true_trees`` (every true
+    tree's ID) and the predicted trees paired with them."""
+    if left_out is None:
+        return matching
+    left_out = _as_ids(left_out, "left_out")
+    gone = np.isin(matching.true_ids, left_out)
+    left_true = int(np.count_nonzero(np.isin(np.asarray(true_trees, np.int64),
+                                             left_out.astype(np.int64))))
+    left_pred = int(np.count_nonzero(gone))
+    return Matching(true_ids=matching.true_ids[~gone], pred_ids=matching.pred_ids[~gone],
+                    score=matching.score[~gone], n_true=matching.n_true - left_true,
+                    n_pred=matching.n_pred - left_pred, left_true=left_true,
+                    left_pred=left_pred)
 
 
 def _as_ids(ids, name: str) -> np.ndarray:
@@ -120,11 +147,12 @@ def _as_ids(ids, name: str) -> np.ndarray:
 
 
 def match_tables(true_table: np.ndarray, pred_table: np.ndarray, max_distance: float,
-                 height_tolerance: float | None = None) -> Matching:
+                 height_tolerance: float | None = None, left_out=None) -> Matching:
     """Match two tree tables (structured arrays with ``tree_id``, ``x``, ``y`` and, for the
     height rule, ``height``) one-to-one: the most pairs within ``max_distance`` metres in XY
     (and with |predicted - true| height <= height_tolerance * true height where both are
-    known, when ``height_tolerance`` is given), then the smallest total distance."""
+    known, when ``height_tolerance`` is given), then the smallest total distance. ``left_out``
+    (integer (m,) or None): the true trees left out of the counts (module docstring)."""
     distance = np.hypot(true_table["x"][:, None] - pred_table["x"][None, :],
                         true_table["y"][:, None] - pred_table["y"][None, :])
     allowed = distance <= max_distance
@@ -140,9 +168,11 @@ def match_tables(true_table: np.ndarray, pred_table: np.ndarray, max_distance: f
     rows, cols = rows[ok], cols[ok]
     order = np.argsort(true_table["tree_id"][rows], kind="stable")
     rows, cols = rows[order], cols[order]
-    return Matching(true_ids=true_table["tree_id"][rows].astype(np.uint32),
-                    pred_ids=pred_table["tree_id"][cols].astype(np.uint32),
-                    score=distance[rows, cols], n_true=len(true_table), n_pred=len(pred_table))
+    matching = Matching(true_ids=true_table["tree_id"][rows].astype(np.uint32),
+                        pred_ids=pred_table["tree_id"][cols].astype(np.uint32),
+                        score=distance[rows, cols], n_true=len(true_table),
+                        n_pred=len(pred_table))
+    return _leave_out(matching, true_table["tree_id"], left_out)
 
 
 def matched_errors(matching: Matching, true_table: np.ndarray, pred_table: np.ndarray,

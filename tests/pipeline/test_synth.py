@@ -9,12 +9,15 @@ from pipeline.synth import (
     CRS_WKT,
     DEFAULT_ORIGIN,
     DEFAULT_SIZE,
+    REAL_STAND,
     SYNTH_CLASSES,
+    Stand,
     Stem,
     synthetic_plot,
     synthetic_scene,
     write_synthetic_plot,
 )
+from pipeline.synth.layout import random_layout
 from pipeline.synth.scanner import occluded
 
 TERRAIN, TREE = SYNTH_CLASSES["terrain"], SYNTH_CLASSES["tree"]
@@ -258,6 +261,24 @@ def test_a_trees_z_is_its_tops_elevation_as_in_silvas_tree_tables(scene):
     assert np.median(gaps) < 0.3  # the scanner sees most tops
 
 
+def test_trees_standing_outside_the_plot_are_marked_with_their_share_inside(scene):
+    """A tree whose stem stands outside the plot has ``inside`` 0 and only part of its
+    surface in the plot; one standing inside has ``inside`` 1 and most of it there. The share
+    follows the points: a tree with little of its surface inside has few points."""
+    trees = scene.trees
+    ox, oy, _ = scene.origin
+    stands_in = ((trees["x"] >= ox) & (trees["x"] < ox + scene.size)
+                 & (trees["y"] >= oy) & (trees["y"] < oy + scene.size))
+    assert np.array_equal(trees["inside"], stands_in.astype(np.uint8))
+    assert 0 < np.count_nonzero(~stands_in) < len(trees)  # the default plot has both kinds
+    assert np.all((trees["share"] > 0) & (trees["share"] <= 1))
+    assert np.all(trees["share"][~stands_in] < 1)  # a crown cut by the edge
+    assert np.median(trees["share"][stands_in]) > np.median(trees["share"][~stands_in])
+    counts = np.array([np.count_nonzero(scene.tree_ids == t) for t in trees["tree_id"]])
+    cut = trees["share"] < 0.2
+    assert counts[cut].max() < np.median(counts[~cut])
+
+
 def test_tiles_carry_the_tree_ids_and_trees_csv_their_truth(tmp_path):
     from pipeline.io import read_points
 
@@ -270,7 +291,7 @@ def test_tiles_carry_the_tree_ids_and_trees_csv_their_truth(tmp_path):
     _, idx = cKDTree(scene.xyz).query(xyz)
     assert np.array_equal(ids, scene.tree_ids[idx])
     table = np.genfromtxt(tmp_path / "trees.csv", delimiter=",", names=True)
-    assert table.dtype.names == ("tree_id", "x", "y", "z", "height", "dbh")
+    assert table.dtype.names == ("tree_id", "x", "y", "z", "height", "dbh", "inside", "share")
     assert np.array_equal(table["tree_id"].astype(np.uint32), np.unique(ids[ids > 0]))
     for name in table.dtype.names[1:]:
         assert np.allclose(table[name], scene.trees[name], rtol=0, atol=5.1e-5)
@@ -294,3 +315,100 @@ def test_writing_leaves_no_temporary_file_nor_a_new_folder_when_it_fails(tmp_pat
     with pytest.raises(OSError, match="No space"):
         write_synthetic_plot(tmp_path / "b" / "c", seed=7, size=8.0, tile_size=4.0)
     assert not (tmp_path / "b" / "c").exists()
+
+
+# --- a stand closer to real ones --------------------------------------------------------------
+def layout_of(seed: int, stand: Stand, size: float = DEFAULT_SIZE):
+    return random_layout(np.random.default_rng(seed), size, stand)
+
+
+def interlocked(trees) -> np.ndarray:
+    """Whether each tree's crown reaches 5 % of the two radii into a neighbour's: (T,) bool."""
+    xy = np.array([t.stem.base[:2] for t in trees])
+    r = np.array([t.crown_radius for t in trees])
+    d = np.linalg.norm(xy[:, None] - xy[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    return np.any(d <= 0.95 * (r[:, None] + r[None]), axis=1)
+
+
+def test_the_default_stand_is_the_plain_plot(scene):
+    plain = synthetic_scene(0, stand=Stand())
+    assert np.array_equal(plain.xyz, scene.xyz) and np.array_equal(plain.tree_ids,
+                                                                   scene.tree_ids)
+
+
+def test_leaning_stems_lean_by_the_angle_asked_and_their_points_follow():
+    """Every stem leans by 2.5-5 degrees, and the bark 3-6 m above the base lies on the
+    leaning stem (median distance to its axis within 1 cm of the radius), not on a vertical
+    one (10 cm and more off, the lean's drift there)."""
+    trees = layout_of(0, Stand(lean=5.0)).trees
+    angle = np.degrees(np.arctan([np.hypot(*t.stem.lean) for t in trees]))
+    assert angle.min() >= 2.5 and angle.max() <= 5.0
+    plain = np.degrees(np.arctan([np.hypot(*t.stem.lean) for t in layout_of(0, Stand()).trees]))
+    assert np.median(plain) < 2.5 and np.median(angle) > 3.5
+    scene = synthetic_scene(0, stand=Stand(lean=5.0))
+    checked = 0
+    for row in scene.trees[scene.trees["inside"] == 1]:
+        stem = trees[row["tree_id"] - 1].stem  # IDs are 1.. in placement order
+        xyz = scene.xyz[scene.tree_ids == row["tree_id"]] - (stem.base + scene.origin)
+        z = xyz[:, 2]
+        leaning = np.hypot(*(xyz[:, :2] - stem.lean * z[:, None]).T)
+        bark = (z > 3.0) & (z < 6.0) & (leaning < stem.radius(z) + 0.05)
+        if np.count_nonzero(bark) < 20:
+            continue  # hidden, or a crown's branches there
+        assert np.median(np.abs(leaning[bark] - stem.radius(z[bark]))) < 0.01
+        vertical = np.hypot(*xyz[bark, :2].T)
+        assert np.median(np.abs(vertical - stem.radius(z[bark]))) > 0.1
+        checked += 1
+    assert checked >= 5
+
+
+def test_touching_crowns_interlock_more_often():
+    plain = [interlocked(layout_of(seed, Stand()).trees).mean() for seed in range(4)]
+    touching = [interlocked(layout_of(seed, Stand(touching=0.8)).trees).mean()
+                for seed in range(4)]
+    assert np.mean(touching) > np.mean(plain) + 0.1
+    assert min(touching) > 0.7
+
+
+def test_suppressed_trees_stand_under_a_dominant_crown_and_are_scanned():
+    """Each suppressed tree's top is below the crown base of a tree whose crown covers its
+    stem; the plain plot has none such. Their points carry their own IDs."""
+    def under(trees):
+        count = 0
+        for t in trees:
+            for other in trees:
+                d = np.hypot(*(t.stem.base[:2] - other.stem.base[:2]))
+                if other is not t and d < other.crown_radius and \
+                        t.stem.height < other.crown_base:
+                    count += 1
+                    break
+        return count
+    plain = layout_of(1, Stand()).trees
+    trees = layout_of(1, Stand(suppressed=0.3)).trees
+    assert under(plain) == 0
+    assert under(trees) >= 0.2 * len(plain) and len(trees) - len(plain) == under(trees)
+    scene = synthetic_scene(1, stand=Stand(suppressed=0.3))
+    small = scene.trees[(scene.trees["height"] < 8.0) & (scene.trees["inside"] == 1)]
+    assert len(small) >= 3  # the plain plot's trees are 8-25 m
+    assert all(np.count_nonzero(scene.tree_ids == i) > 200 for i in small["tree_id"])
+
+
+def test_real_stand_tiles_are_the_scene(tmp_path):
+    from pipeline.io import read_points
+
+    scene = synthetic_scene(4, 12.0, stand=REAL_STAND)
+    paths = write_synthetic_plot(tmp_path, seed=4, size=12.0, tile_size=6.0, stand=REAL_STAND)
+    xyz = np.concatenate([read_points(p).xyz for p in paths])
+    assert len(xyz) == len(scene.xyz)
+    assert np.allclose(np.sort(xyz[:, 2]), np.sort(scene.xyz[:, 2]), atol=5e-4)
+
+
+@pytest.mark.parametrize("stand, name", [(Stand(touching=1.5), "stand.touching"),
+                                         (Stand(suppressed=-0.1), "stand.suppressed"),
+                                         (Stand(lean=20.0), "stand.lean"),
+                                         (Stand(lean="a"), "stand.lean"),
+                                         ({"lean": 5}, "stand must be")])
+def test_invalid_stands_are_refused(stand, name):
+    with pytest.raises(ConfigError, match=name):
+        synthetic_scene(0, 8.0, stand=stand)

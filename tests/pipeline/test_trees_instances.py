@@ -137,3 +137,61 @@ def test_pair_counts_of_batches_merge_to_those_of_all_points():
     a, b = match_pairs(merged), match_instances(true_ids, pred_ids)
     assert np.array_equal(a.true_ids, b.true_ids) and np.array_equal(a.pred_ids, b.pred_ids)
     assert len(a.true_ids) == 11  # every tree but 0 keeps most of its points
+
+
+def test_trees_left_out_are_neither_matches_misses_nor_false_trees():
+    """The buffer rule: true tree 2 stands outside the plot. Left out, its match (7) is not
+    a found tree and it is not a miss; tree 3 (unmatched) stays a miss, 8 a false tree."""
+    true = [1, 1, 1, 2, 2, 2, 3, 3, 0, 0]
+    pred = [5, 5, 5, 7, 7, 0, 0, 0, 8, 8]
+    full = match_instances(true, pred)
+    assert (full.n_true, full.n_pred, len(full.true_ids)) == (3, 3, 2)
+    m = match_instances(true, pred, left_out=[2, 40])  # 40: in no tree here, no effect
+    assert m.true_ids.tolist() == [1] and m.pred_ids.tolist() == [5]
+    assert (m.n_true, m.n_pred, m.left_true, m.left_pred) == (2, 2, 1, 1)
+    assert m.precision == m.recall == pytest.approx(0.5)
+    # a left-out tree that was not matched: out of the true count only
+    m = match_instances(true, pred, left_out=[3])
+    assert (m.n_true, m.n_pred, len(m.true_ids)) == (2, 3, 2) and m.recall == 1.0
+    none, empty = match_instances(true, pred, None), match_instances(true, pred, left_out=[])
+    assert (none.n_true, none.n_pred, none.true_ids.tolist()) == (
+        empty.n_true, empty.n_pred, empty.true_ids.tolist())
+
+
+def test_tables_leave_out_after_matching_with_every_tree():
+    """A found tree nearest a left-out true tree pairs with it (and leaves with it) rather
+    than with the next true tree, whose score is then a miss, as without the rule."""
+    truth = table([(1, 0.0, 0.0, 20.0, 0.3), (2, 1.5, 0.0, 20.0, 0.3), (3, 9.0, 9.0, 15.0, 0.2)])
+    found = table([(1, 1.4, 0.0, 20.0, np.nan), (2, 9.0, 9.1, 15.0, np.nan)])
+    full = match_tables(truth, found, 2.0)
+    assert full.true_ids.tolist() == [2, 3] and (full.n_true, full.n_pred) == (3, 2)
+    m = match_tables(truth, found, 2.0, left_out=np.array([2]))
+    assert m.true_ids.tolist() == [3] and m.pred_ids.tolist() == [2]
+    assert (m.n_true, m.n_pred, m.left_true, m.left_pred) == (2, 1, 1, 1)
+    assert m.precision == 1.0 and m.recall == 0.5
+    with pytest.raises(ValueError, match="left_out must be integer tree IDs"):
+        match_tables(truth, found, 2.0, left_out=[-1])
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_left_out_in_batches_equals_the_rule_on_brute_force_pairs(seed):
+    """The buffer rule on pair counts merged from batches equals the rule applied by hand to
+    the brute-force matching of all points: matches without the left-out trees, true trees
+    less those left out, found trees less those matched to them."""
+    from pipeline.trees.instances import match_pairs, merge_pairs, pair_counts
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(20, 200))
+    true = rng.integers(0, 8, n)
+    pred = np.where(rng.random(n) < 0.8, true * 3 + 1, rng.integers(0, 30, n))
+    left_out = rng.choice(np.arange(1, 8), size=int(rng.integers(0, 4)), replace=False)
+    full = match_instances(true, pred)
+    cuts = np.sort(rng.integers(0, n, 3))
+    parts = [pair_counts(t, p) for t, p in zip(np.split(true, cuts), np.split(pred, cuts))]
+    m = match_pairs(merge_pairs(parts[::-1]), left_out)
+    keep = ~np.isin(full.true_ids, left_out)
+    assert m.true_ids.tolist() == full.true_ids[keep].tolist()
+    assert m.pred_ids.tolist() == full.pred_ids[keep].tolist()
+    assert m.n_true == len(set(true.tolist()) - {0} - set(left_out.tolist()))
+    assert m.n_pred == full.n_pred - int(np.count_nonzero(~keep))
+    assert (m.left_true, m.left_pred) == (full.n_true - m.n_true, int(np.count_nonzero(~keep)))

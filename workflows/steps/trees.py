@@ -330,19 +330,24 @@ REFERENCE_TABLE = "trees.csv"
 def score_trees(run, layout: RunLayout, found: dict) -> dict | None:
     """Instance scores of the trees of the test tiles that carry a reference ``TreeID``, with
     the height and DBH errors of the matched trees where a reference table (``trees.csv``
-    beside the tiles) gives them; None when no test tile has reference trees."""
+    beside the tiles) gives them; None when no test tile has reference trees. Reference trees
+    the table marks as standing outside the plot (``inside`` 0) are left out of the counts,
+    with the predicted trees matched to them (the buffer rule)."""
     root = run.store
     tiles = layout.tiles_of("test")
     parts = [read_array(root[f"exports/{t['index']}"], PAIRS) for t in tiles
              if f"exports/{t['index']}/{PAIRS}" in root]
     if not parts or "test" not in found:
         return None
-    matching = match_pairs(merge_pairs(parts))
+    reference = reference_table({Path(t["path"]).parent for t in tiles})
+    outside = (None if reference is None or "inside" not in reference
+               else reference["tree_id"][reference["inside"] == 0])
+    matching = match_pairs(merge_pairs(parts), outside)
     scores = {"precision": matching.precision, "recall": matching.recall, "f1": matching.f1,
               "reference_trees": matching.n_true, "predicted_trees": matching.n_pred,
               "matched_trees": len(matching.true_ids),
-              "mean_iou": float(np.mean(matching.score)) if len(matching.score) else None}
-    reference = reference_table({Path(t["path"]).parent for t in tiles})
+              "mean_iou": float(np.mean(matching.score)) if len(matching.score) else None,
+              "left_out_trees": matching.left_true}
     if reference is not None:
         try:
             scores.update(matched_errors(matching, reference, found["test"]["table"]))
@@ -362,7 +367,8 @@ def json_safe(value):
 
 
 def reference_table(directories) -> dict | None:
-    """The reference trees (``tree_id``, ``height``, ``dbh``) of the tables found in
+    """The reference trees (``tree_id``, ``height``, ``dbh`` and, where every table has it,
+    ``inside``: 0 for a tree standing outside the plot) of the tables found in
     ``directories``, or None."""
     import csv
 
@@ -375,6 +381,13 @@ def reference_table(directories) -> dict | None:
     if not rows:
         return None
     number = lambda v: float(v) if v not in ("", None) else np.nan  # noqa: E731
-    return {"tree_id": np.array([int(r["tree_id"]) for r in rows]),
-            "height": np.array([number(r.get("height")) for r in rows]),
-            "dbh": np.array([number(r.get("dbh")) for r in rows])}
+    table = {"tree_id": np.array([int(r["tree_id"]) for r in rows]),
+             "height": np.array([number(r.get("height")) for r in rows]),
+             "dbh": np.array([number(r.get("dbh")) for r in rows])}
+    if all(r.get("inside") not in ("", None) for r in rows):
+        try:
+            table["inside"] = np.array([int(float(r["inside"])) for r in rows])
+        except ValueError:
+            log.warning("trees: the inside column of %s is not 0 or 1; every reference tree "
+                        "is scored", REFERENCE_TABLE)
+    return table
