@@ -41,3 +41,22 @@ def test_synth_bad_size_is_one_error_line(tmp_path):
     assert result.output.startswith("silva: error: size")
     assert "Traceback" not in result.output
     assert not (tmp_path / "plot").exists()
+
+
+def test_synth_writes_a_real_stand_on_request(tmp_path):
+    """--stand real: suppressed trees and touching crowns make more trees than the plain
+    plot of the same seed; the plain stand is the default."""
+    import csv
+
+    def trees(*extra):
+        out = tmp_path / "-".join(("plot", *extra))
+        result = silva("synth", out, "--seed", 4, "--size", 20, *extra)
+        assert result.exit_code == 0, result.output
+        with open(out / "trees.csv", newline="") as f:
+            return list(csv.DictReader(f))
+
+    plain, real = trees(), trees("--stand", "real")
+    assert trees("--stand", "plain") == plain
+    assert len(real) > len(plain)
+    refused = silva("synth", tmp_path / "x", "--stand", "dense")
+    assert refused.exit_code != 0 and "--stand" in refused.output

@@ -425,17 +425,24 @@ def demo(out, quiet, in_process, overwrite, overrides, plot_size, verbose):
 @click.option("--seed", default=0, show_default=True, help="Random seed: same seed, same points.")
 @click.option("--size", default=None, type=float, help="Side of the square plot in metres.")
 @click.option("--tile-size", default=None, type=float, help="Side of the square LAZ tiles.")
-def synth(out_dir, seed, size, tile_size):
-    """Write a labelled synthetic forest plot as LAZ tiles into OUT_DIR.
+@click.option("--stand", type=click.Choice(["plain", "real"]), default="plain",
+              show_default=True,
+              help="real: touching crowns, suppressed trees under dominant ones and stems "
+                   "leaning up to 5 degrees, as in real stands.")
+def synth(out_dir, seed, size, tile_size, stand):
+    """Write a labelled synthetic forest plot as LAZ tiles into OUT_DIR, with the trees'
+    truth in OUT_DIR/trees.csv.
 
     \b
     Examples:
       silva synth plots/train --seed 1
       silva synth plots/test --seed 2 --size 30 --tile-size 15
+      silva synth plots/real --seed 3 --stand real
     """
-    from pipeline.synth import write_synthetic_plot
+    from pipeline.synth import REAL_STAND, Stand, write_synthetic_plot
 
     kwargs = {k: v for k, v in {"size": size, "tile_size": tile_size}.items() if v is not None}
+    kwargs["stand"] = REAL_STAND if stand == "real" else Stand()
     paths = write_synthetic_plot(out_dir, seed=seed, **kwargs)
     for path in paths:
         click.echo(str(path))
