@@ -128,8 +128,8 @@ def check_scan(params: TreeParams, density: float, width: float, depth: float,
                 f"{_amount(density)} points/m² (about {spacing:.2g} m apart) most canopy cells would "
                 f"hold no point and every tree would be a point or two; use at least "
                 f"{_up(finest):g} m " + fix.format(
-                    min(max(TreeParams.resolution, _up(spacing)), _coarsest(params))))
-    coarsest = _coarsest(params)
+                    min(max(TreeParams.resolution, _up(spacing)), coarsest_cell(params))))
+    coarsest = coarsest_cell(params)
     if r > coarsest:
         raise ConfigError(
             f"config error: trees.resolution={r:g} m is coarser than the smallest crown the "
@@ -157,17 +157,26 @@ def check_scan(params: TreeParams, density: float, width: float, depth: float,
             f"{list(TreeParams.window)})")
 
 
-def auto_resolution(density: float) -> float:
+def auto_resolution(density: float, params: TreeParams = TreeParams()) -> float:
     """The canopy height cell (m) for a scan of ``density`` points per m² (all points):
     the default 0.5 m, or where the points are sparser the finest cell they resolve
     (:data:`FINEST_CELL_PER_SPACING` of their spacing, rounded up to two digits): 0.75 m at
-    1 point/m², 1.5 m at 0.25."""
+    1 point/m², 1.5 m at 0.25. Raises ConfigError when that cell is coarser than the
+    smallest crown ``params`` allow: the scan is too sparse for trees."""
     if not (density > 0 and math.isfinite(density)):
         return TreeParams.resolution
-    return max(TreeParams.resolution, _up(FINEST_CELL_PER_SPACING / math.sqrt(density)))
+    cell = max(TreeParams.resolution, _up(FINEST_CELL_PER_SPACING / math.sqrt(density)))
+    if cell > coarsest_cell(params):
+        raise ConfigError(
+            f"config error: at {_amount(density)} points/m² the points are too sparse for "
+            f"trees: the finest canopy cell they resolve ({cell:g} m, trees.resolution auto) "
+            f"is coarser than the smallest crown the settings allow ({coarsest_cell(params):g} "
+            "m across: trees.window and trees.crown_radius); set output.trees=false, or "
+            "widen trees.window and trees.crown_radius for large crowns only")
+    return cell
 
 
-def _coarsest(params: TreeParams) -> float:
+def coarsest_cell(params: TreeParams) -> float:
     """The coarsest canopy cell that still tells crowns apart (m): the narrowest top window
     or the smallest crown's diameter, whichever is less."""
     return min(params.window[0], 2.0 * params.crown_radius[0])

@@ -253,6 +253,7 @@ def test_the_scan_tells_too_fine_from_too_coarse():
 
 
 def test_the_auto_resolution_is_one_the_sparsest_scene_resolves(tmp_path, survey):
+    from pipeline.errors import ConfigError
     from pipeline.trees import TreeParams
     from pipeline.trees.params import auto_resolution, check_scan
     from workflows.config import load_config
@@ -262,6 +263,8 @@ def test_the_auto_resolution_is_one_the_sparsest_scene_resolves(tmp_path, survey
     assert [auto_resolution(d) for d in (1700.0, 43.0, 1.0, 0.25)] == [0.5, 0.5, 0.75, 1.5]
     for density in (43.0, 2.0, 1.0, 0.9, 0.25):  # a survey at 1 point/m² gets its trees
         check_scan(TreeParams(resolution=auto_resolution(density)), density, *plot)
+    with pytest.raises(ConfigError, match="too sparse for trees.*output.trees=false"):
+        auto_resolution(0.01)  # 7.5 m cells: coarser than the smallest crown (2 m)
     config = write_config(tmp_path / "c.yaml", survey, output={"trees": True})
     cfg = resolve_run(load_config(config)).cfg
     assert cfg.trees.resolution == auto_resolution(sparsest_density(cfg)) == 0.5

@@ -66,7 +66,7 @@ def resolve_tree_resolution(cfg: SilvaConfig) -> SilvaConfig:
     if not cfg.output.trees or cfg.trees.resolution != "auto":
         return cfg
     density = sparsest_density(cfg)
-    resolution = auto_resolution(density)
+    resolution = auto_resolution(density, cfg.trees.params)
     log.info("trees.resolution auto: %.3g points/m² in the sparsest scene -> %g m", density,
              resolution)
     raw = cfg.model_dump(mode="json")
