@@ -136,27 +136,30 @@ OVERVIEW_CELLS = 4_000_000
 
 def canopy_overview(root: zarr.Group, scene: str, max_cells: int = OVERVIEW_CELLS
                     ) -> list[Raster]:
-    """The canopy height of a scene to draw (Rasters), every k-th cell along both axes, k
-    such that about ``max_cells`` are drawn: block by block, in bounded memory."""
+    """The canopy height of a scene to draw (Rasters: the whole model's, or one per block),
+    every k-th cell along both axes, k such that about ``max_cells`` are drawn: block by
+    block, in bounded memory."""
     group = _group(root, scene)
     attrs = group.attrs["model"]
     if "grid" not in attrs:
-        chm = Raster(read_array(group, CHM), **attrs["chm"])
-        rasters, cells = [chm], chm.values.size
+        chm = Raster(read_array(group, CHM), **attrs["chm"])  # a plot's: small
+        pieces, cells = [lambda: chm], float(chm.values.size)
     else:
         grid = BlockGrid(**attrs["grid"])
         blocks = read_array(group, "blocks")
-        rasters, cells = None, grid.size ** 2 * len(blocks)
+        pieces = [lambda block=block: block_canopy(root, scene, block, grid.cell)
+                  for block in blocks]
+        cells = float(grid.size ** 2 * len(blocks))
     step = max(1, int(np.ceil(np.sqrt(cells / max_cells))))
-    if rasters is None:
-        rasters = []
-        for block in blocks:
-            crowns = read_block(root, scene, block)
-            rasters.append(Raster(crowns.top[::step, ::step].astype(np.float64),
-                                  float(crowns.origin[0] * grid.cell),
-                                  float(crowns.origin[1] * grid.cell), grid.cell * step))
-        return rasters
-    return [Raster(r.values[::step, ::step], r.x0, r.y0, r.cell * step) for r in rasters]
+    return [Raster(r.values[::step, ::step], r.x0, r.y0, r.cell * step)
+            for r in (piece() for piece in pieces)]
+
+
+def block_canopy(root: zarr.Group, scene: str, block, cell: float) -> Raster:
+    """The canopy height model of a block's core."""
+    crowns = read_block(root, scene, block)
+    return Raster(crowns.top.astype(np.float64), float(crowns.origin[0] * cell),
+                  float(crowns.origin[1] * cell), cell)
 
 
 def crown_labels(root: zarr.Group, scene: str, box) -> tuple[np.ndarray, float, float, float]:
