@@ -94,7 +94,7 @@ def region_cells(cells: CanopyCells, grid: BlockGrid, block) -> CanopyCells:
 
 
 #: The arrays of :meth:`BlockCrowns.to_arrays`, by name.
-CROWN_ARRAYS = ("labels", "top", "origin", "keys", "cells", "owned")
+CROWN_ARRAYS = ("labels", "top", "shape", "origin", "keys", "cells", "owned")
 
 
 @dataclass(frozen=True)
@@ -116,11 +116,17 @@ class BlockCrowns:
     owned: np.ndarray
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        return {name: getattr(self, name) for name in CROWN_ARRAYS}
+        """Named one-dimensional arrays (the rasters flattened, a store keeps rows of few
+        bytes best) for :meth:`from_arrays`."""
+        return {"labels": self.labels.reshape(-1), "top": self.top.reshape(-1),
+                "shape": np.array(self.labels.shape, np.int64), "origin": self.origin,
+                "keys": self.keys, "cells": self.cells, "owned": self.owned}
 
     @classmethod
     def from_arrays(cls, arrays) -> "BlockCrowns":
-        return cls(np.asarray(arrays["labels"], np.int32), np.asarray(arrays["top"], np.float32),
+        shape = tuple(int(v) for v in arrays["shape"])
+        return cls(np.asarray(arrays["labels"], np.int32).reshape(shape),
+                   np.asarray(arrays["top"], np.float32).reshape(shape),
                    np.asarray(arrays["origin"], np.int64).reshape(2),
                    np.asarray(arrays["keys"], np.int64), np.asarray(arrays["cells"], np.int64),
                    np.asarray(arrays["owned"], bool))

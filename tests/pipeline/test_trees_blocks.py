@@ -90,8 +90,11 @@ def test_the_crowns_of_a_block_round_trip_through_arrays(forest):
     cells, _, _ = whole_scene(*forest)
     grid = tree_grid(PARAMS, 45.0)
     crowns = block_crowns(cells, grid, occupied_blocks(grid, cells)[0], PARAMS)
-    again = BlockCrowns.from_arrays(crowns.to_arrays())
-    for name, value in crowns.to_arrays().items():
+    arrays = crowns.to_arrays()
+    assert all(value.ndim == 1 for value in arrays.values())  # rows of few bytes in a store
+    again = BlockCrowns.from_arrays(arrays)
+    for name in ("labels", "top", "origin", "keys", "cells", "owned"):
+        value = getattr(crowns, name)
         assert np.array_equal(getattr(again, name), value, equal_nan=True) and \
             getattr(again, name).dtype == value.dtype, name
 
