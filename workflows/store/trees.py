@@ -74,10 +74,21 @@ def write_scene_trees(root: zarr.Group, scene: str, model: TreeModel, method: st
         arrays["blocks"] = np.asarray(blocks, np.int64).reshape(-1, 2)
         attrs["grid"] = {"cell": grid.cell, "size": grid.size, "buffer": grid.buffer,
                          "reach": grid.reach}
+    # rasters flat, their shapes beside them: a store keeps rows of few bytes best
+    shapes = {name: list(a.shape) for name, a in arrays.items() if np.ndim(a) > 1}
+    arrays = {name: np.asarray(a).reshape(-1) if name in shapes else a
+              for name, a in arrays.items()}
     group = root.require_group(trees_path(scene))
     write_arrays(group, arrays, pack="model")  # not "blocks": the group of the blocks
     mark_done(group, "trees", fingerprint, model=attrs, tree_arrays=sorted(arrays),
-              method=method)
+              shapes=shapes, method=method)
+
+
+def _read(group, name: str) -> np.ndarray:
+    """An array of the scene's model, a raster in its shape."""
+    shape = group.attrs.get("shapes", {}).get(name)
+    array = read_array(group, name)
+    return array if shape is None else array.reshape(shape)
 
 
 def trees_done(root: zarr.Group, scene: str, fingerprint: str) -> bool:
@@ -97,7 +108,7 @@ def read_tree_model(root: zarr.Group, scene: str) -> tuple[TreeModel, str]:
     """The scene's per-tree model (a whole model with its labels, or the per-tree arrays
     of blocked crowns) and the method that found its trees."""
     group = _group(root, scene)
-    arrays = {name: read_array(group, name) for name in group.attrs["tree_arrays"]}
+    arrays = {name: _read(group, name) for name in group.attrs["tree_arrays"]}
     return TreeModel.from_arrays(arrays, group.attrs["model"]), group.attrs["method"]
 
 
@@ -109,7 +120,7 @@ def read_scene_trees(root: zarr.Group, scene: str):
     if "grid" not in attrs:
         return WholeTrees(read_tree_model(root, scene)[0])
     grid = BlockGrid(**attrs["grid"])
-    blocks = read_array(group, "blocks")
+    blocks = _read(group, "blocks")
 
     @lru_cache(maxsize=CACHED_BLOCKS)
     def load(row: int) -> TreeModel:
@@ -142,11 +153,11 @@ def canopy_overview(root: zarr.Group, scene: str, max_cells: int = OVERVIEW_CELL
     group = _group(root, scene)
     attrs = group.attrs["model"]
     if "grid" not in attrs:
-        chm = Raster(read_array(group, CHM), **attrs["chm"])  # a plot's: small
+        chm = Raster(_read(group, CHM), **attrs["chm"])  # a plot's: small
         pieces, cells = [lambda: chm], float(chm.values.size)
     else:
         grid = BlockGrid(**attrs["grid"])
-        blocks = read_array(group, "blocks")
+        blocks = _read(group, "blocks")
         pieces = [lambda block=block: block_canopy(root, scene, block, grid.cell)
                   for block in blocks]
         cells = float(grid.size ** 2 * len(blocks))
