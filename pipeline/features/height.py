@@ -194,18 +194,22 @@ GROUND_HEIGHT_NAMES: tuple[str, ...] = (
 )
 
 
+#: Residuals are summed as integers of this many units per metre: exact in any order.
+_RESIDUAL_SCALE = 2.0**32
+
+
 @_jit
-def _band_columns(ukeys, starts, residual, high, cells, ny, nx, bound, level, col_high):
-    """Per cell of ``cells``: the median of the ``residual`` values of the points of its
-    column (occupied cells ``ukeys``, their points ``starts[i]:starts[i + 1]`` of
-    ``residual``, NaN for points outside the band), 0.0 without any; and the column's top."""
+def _band_columns(ukeys, band_count, band_sum, high, cells, ny, nx, bound, level, col_high):
+    """Per cell of ``cells`` (indices into the occupied cells ``ukeys``): the mean residual
+    of its column's points in the band (their count and integer sum per cell), 0.0 without
+    any; and the column's top."""
     reach = int(math.sqrt(bound)) + 1
-    buffer = np.empty(64)
     for out_row in range(cells.shape[0]):
         key = ukeys[cells[out_row]]
         gx = key // ny
         gy = key - gx * ny
         count = 0
+        total = 0
         top = -np.inf
         for dx in range(-reach, reach + 1):
             if gx + dx < 0 or gx + dx >= nx or dx * dx > bound:
@@ -220,14 +224,10 @@ def _band_columns(ukeys, starts, residual, high, cells, ny, nx, bound, level, co
             i = np.searchsorted(ukeys, key0)
             while i < ukeys.shape[0] and ukeys[i] <= key1:
                 top = max(top, high[i])
-                for p in range(starts[i], starts[i + 1]):
-                    if residual[p] == residual[p]:  # not NaN: in the band
-                        if count == buffer.shape[0]:
-                            buffer = np.concatenate((buffer, np.empty(count)))
-                        buffer[count] = residual[p]
-                        count += 1
+                count += band_count[i]
+                total += band_sum[i]
                 i += 1
-        level[out_row] = np.median(buffer[:count]) if count else 0.0
+        level[out_row] = total / count / _RESIDUAL_SCALE if count else 0.0
         col_high[out_row] = top
 
 
@@ -238,9 +238,10 @@ def ground_heights(xyz, ids, query, ground, radius=DEFAULT_RADIUS, cell=DEFAULT_
     The terrain model under a point (``ground``, float64 (N,), one per row of ``xyz``) is
     the reference, not the lowest points seen: under a canopy a sparse survey sees few of
     them, a dense one many. The model itself is made of cell minima, which sink as a cell
-    holds more points; so the ground level of a column is the terrain model plus the median
+    holds more points; so the ground level of a column is the terrain model plus the mean
     residual z - ground of the column's points within :data:`GROUND_BAND` of it (0 when it
-    has none), a location that does not follow the point count. Columns and cells are those
+    has none), a location that does not follow the point count (summed as integers of
+    2^-32 m: exact in any order). Columns and cells are those
     of :func:`height_features`. Returns float32 (Q, 3) in :data:`GROUND_HEIGHT_NAMES`
     order: z - level, (z - level) / (top - level) (0 where top <= level), top - level;
     chunk-invariant with a halo of :func:`height_halo` when ``ground`` is.
@@ -261,14 +262,16 @@ def ground_heights(xyz, ids, query, ground, radius=DEFAULT_RADIUS, cell=DEFAULT_
     ukeys, low, high = np.empty(n, dtype=np.int64), np.empty(n), np.empty(n)
     m = _cell_extremes(linear[order], xyz[order, 2], ukeys, low, high)
     ukeys, high = ukeys[:m], high[:m]
-    starts = np.searchsorted(linear[order], ukeys).astype(np.int64)
-    starts = np.append(starts, n)
-    residual = xyz[order, 2] - ground[order]
-    residual = np.where(np.abs(residual) <= GROUND_BAND, residual, np.nan)
+    residual = xyz[:, 2] - ground
+    band = np.abs(residual) <= GROUND_BAND
+    band_cell = np.searchsorted(ukeys, linear[band])
+    band_count = np.bincount(band_cell, minlength=m).astype(np.int64)
+    band_sum = np.zeros(m, dtype=np.int64)  # integers: the same sums in any order
+    np.add.at(band_sum, band_cell, np.rint(residual[band] * _RESIDUAL_SCALE).astype(np.int64))
     cells, cell_of_query = np.unique(np.searchsorted(ukeys, linear[query]), return_inverse=True)
     level, col_high = np.empty(len(cells)), np.empty(len(cells))
-    _band_columns(ukeys, starts, residual, high, cells, ny, nx, (radius / cell) ** 2, level,
-                  col_high)  # fmt: skip
+    _band_columns(ukeys, band_count, band_sum, high, cells, ny, nx, (radius / cell) ** 2,
+                  level, col_high)  # fmt: skip
     base = ground[query] + level[cell_of_query]
     above = xyz[query, 2] - base
     top = col_high[cell_of_query] - base
