@@ -20,6 +20,10 @@ so it is exact, and every point of a cell shares its column. Over the column:
   highest - z, column_extent highest - lowest, relative_height (z - lowest) / extent (0 where
   the extent is 0). A point below the robust lowest (noise) gets a negative height.
 
+:func:`ground_heights` (feature version 2) takes the same columns' heights above the terrain
+model instead, corrected by the mean residual of the column's points near it: references
+that do not follow the point density, as the lowest points seen do.
+
 Heights are differences of coordinates of the same cloud, computed in float64: a constant
 offset in z changes them only by the rounding of the shifted coordinates. Cell extremes and the
 ranks are exact comparisons. Every point of a column lies within R + sqrt(2) c of the query

@@ -13,6 +13,9 @@ and a saved model records the set's name and columns.
   of radius ``column`` metres (:mod:`pipeline.features.height`), and the heights above the
   scene's terrain model of the point and of its column's top (:mod:`pipeline.terrain`): the
   usual features of the field, the peer baseline inside Silva.
+  With ``version`` 2 (:data:`FEATURE_VERSION`) the heights are those of
+  :func:`pipeline.features.height.ground_heights`, above the column's ground level, and the
+  points far under the terrain model (:func:`low_noise`) enter no other point's features.
 - ``default``: ``covariance`` plus the moment invariants, the size of S1 (log point count)
   and the log area of its triangulated surface — size cues the paper leaves out.
 
