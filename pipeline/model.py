@@ -247,8 +247,10 @@ def load_forest(path: Path):
 
 
 #: Keys a model description gained after models were first saved, with what a model.json
-#: without them means: a model saved before echoes existed was trained without them.
-LATER_KEYS = {"features.echoes": False}
+#: without them means: a model saved before echoes existed was trained without them, one
+#: saved before feature versions existed on version 1
+#: (:data:`pipeline.features.sets.FEATURE_VERSION`).
+LATER_KEYS = {"features.echoes": False, "features.version": 1}
 
 
 def recorded(description: dict, key: str):

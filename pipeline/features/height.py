@@ -20,6 +20,10 @@ so it is exact, and every point of a cell shares its column. Over the column:
   highest - z, column_extent highest - lowest, relative_height (z - lowest) / extent (0 where
   the extent is 0). A point below the robust lowest (noise) gets a negative height.
 
+:func:`ground_heights` (feature version 2) takes the same columns' heights above the terrain
+model instead, corrected by the mean residual of the column's points near it: references
+that do not follow the point density, as the lowest points seen do.
+
 Heights are differences of coordinates of the same cloud, computed in float64: a constant
 offset in z changes them only by the rounding of the shifted coordinates. Cell extremes and the
 ranks are exact comparisons. Every point of a column lies within R + sqrt(2) c of the query
@@ -163,16 +167,7 @@ def height_features(xyz, ids, query, radius=DEFAULT_RADIUS, cell=DEFAULT_CELL, *
     out = np.empty((len(query), N_HEIGHT), dtype=np.float32)
     if len(query) == 0:
         return out
-    keys = np.empty((len(xyz), 2), dtype=np.int64)
-    if not floor_keys(xyz, cell, keys):
-        raise InputError(f"cell {cell:g} is too small for coordinates up to "
-                         f"{np.abs(xyz[:, :2]).max():g}; use a larger cell")  # fmt: skip
-    lowest = keys.min(axis=0)
-    nx, ny = (keys.max(axis=0) - lowest + 1).tolist()
-    if float(nx) * float(ny) >= 2.0**62:
-        raise InputError(f"cell {cell:g} is too small for an extent of "
-                         f"{nx * cell:g} x {ny * cell:g} m; use a larger cell")  # fmt: skip
-    linear = (keys[:, 0] - lowest[0]) * ny + (keys[:, 1] - lowest[1])
+    linear, ny, nx = _cell_index(xyz, cell)
     order = np.argsort(linear, kind="stable")
     n = len(xyz)
     ukeys, low, high = np.empty(n, dtype=np.int64), np.empty(n), np.empty(n)
@@ -190,3 +185,116 @@ def height_features(xyz, ids, query, radius=DEFAULT_RADIUS, cell=DEFAULT_CELL, *
     out[:, 2] = extent
     out[:, 3] = np.where(extent > 0.0, (z - lo) / np.where(extent > 0.0, extent, 1.0), 0.0)
     return out
+
+
+#: Points within this many metres of the terrain model set a column's ground level
+#: (:func:`ground_heights`): the terrain filter's own default threshold.
+GROUND_BAND = 0.5
+#: Column order of :func:`ground_heights`.
+GROUND_HEIGHT_NAMES: tuple[str, ...] = (
+    "height_above_local_ground",
+    "relative_height_above_ground",
+    "column_top_above_local_ground",
+)
+
+
+#: Residuals are summed as integers of this many units per metre: exact in any order.
+_RESIDUAL_SCALE = 2.0**32
+
+
+@_jit
+def _band_columns(ukeys, band_count, band_sum, high, cells, ny, nx, bound, level, col_high):
+    """Per cell of ``cells`` (indices into the occupied cells ``ukeys``): the mean residual
+    of its column's points in the band (their count and integer sum per cell), 0.0 without
+    any; and the column's top."""
+    reach = int(math.sqrt(bound)) + 1
+    for out_row in range(cells.shape[0]):
+        key = ukeys[cells[out_row]]
+        gx = key // ny
+        gy = key - gx * ny
+        count = 0
+        total = 0
+        top = -np.inf
+        for dx in range(-reach, reach + 1):
+            if gx + dx < 0 or gx + dx >= nx or dx * dx > bound:
+                continue
+            dy = int(math.sqrt(bound - dx * dx))
+            while dx * dx + (dy + 1) * (dy + 1) <= bound:  # exact integer bound
+                dy += 1
+            while dy > 0 and dx * dx + dy * dy > bound:
+                dy -= 1
+            key0 = (gx + dx) * ny + max(gy - dy, 0)
+            key1 = (gx + dx) * ny + min(gy + dy, ny - 1)
+            i = np.searchsorted(ukeys, key0)
+            while i < ukeys.shape[0] and ukeys[i] <= key1:
+                top = max(top, high[i])
+                count += band_count[i]
+                total += band_sum[i]
+                i += 1
+        level[out_row] = total / count / _RESIDUAL_SCALE if count else 0.0
+        col_high[out_row] = top
+
+
+def ground_heights(xyz, ids, query, ground, radius=DEFAULT_RADIUS, cell=DEFAULT_CELL
+                   ) -> np.ndarray:  # fmt: skip
+    """Heights of each query point and of its column's top above the local ground level.
+
+    The terrain model under a point (``ground``, float64 (N,), one per row of ``xyz``) is
+    the reference, not the lowest points seen: under a canopy a sparse survey sees few of
+    them, a dense one many. The model itself is made of cell minima, which sink as a cell
+    holds more points; so the ground level of a column is the terrain model plus the mean
+    residual z - ground of the column's points within :data:`GROUND_BAND` of it (0 when it
+    has none), a location that does not follow the point count (summed as integers of
+    2^-32 m: exact in any order). Columns and cells are those
+    of :func:`height_features`. Returns float32 (Q, 3) in :data:`GROUND_HEIGHT_NAMES`
+    order: z - level, (z - level) / (top - level) (0 where top <= level), top - level;
+    chunk-invariant with a halo of :func:`height_halo` when ``ground`` is.
+    """
+    xyz = _check_cloud(xyz)
+    _check_ids(ids, len(xyz))
+    query = _check_query(query, len(xyz))
+    radius, cell = _check_sizes(radius, cell)
+    ground = np.asarray(ground, dtype=np.float64)
+    if ground.shape != (len(xyz),):
+        raise InputError(f"ground must have shape ({len(xyz)},), got {ground.shape}")
+    out = np.empty((len(query), len(GROUND_HEIGHT_NAMES)), dtype=np.float32)
+    if len(query) == 0:
+        return out
+    linear, ny, nx = _cell_index(xyz, cell)
+    order = np.argsort(linear, kind="stable")
+    n = len(xyz)
+    ukeys, low, high = np.empty(n, dtype=np.int64), np.empty(n), np.empty(n)
+    m = _cell_extremes(linear[order], xyz[order, 2], ukeys, low, high)
+    ukeys, high = ukeys[:m], high[:m]
+    residual = xyz[:, 2] - ground
+    band = np.abs(residual) <= GROUND_BAND
+    band_cell = np.searchsorted(ukeys, linear[band])
+    band_count = np.bincount(band_cell, minlength=m).astype(np.int64)
+    band_sum = np.zeros(m, dtype=np.int64)  # integers: the same sums in any order
+    np.add.at(band_sum, band_cell, np.rint(residual[band] * _RESIDUAL_SCALE).astype(np.int64))
+    cells, cell_of_query = np.unique(np.searchsorted(ukeys, linear[query]), return_inverse=True)
+    level, col_high = np.empty(len(cells)), np.empty(len(cells))
+    _band_columns(ukeys, band_count, band_sum, high, cells, ny, nx, (radius / cell) ** 2,
+                  level, col_high)  # fmt: skip
+    base = ground[query] + level[cell_of_query]
+    above = xyz[query, 2] - base
+    top = col_high[cell_of_query] - base
+    out[:, 0] = above
+    out[:, 1] = np.where(top > 0.0, above / np.where(top > 0.0, top, 1.0), 0.0)
+    out[:, 2] = top
+    return out
+
+
+def _cell_index(xyz, cell) -> tuple[np.ndarray, int, int]:
+    """int64 (N,) linear keys gx * ny + gy of the cells of side ``cell`` of ``xyz``'s points
+    (the global grid anchored at 0, offset to the cloud's lowest key), with ny and nx."""
+    keys = np.empty((len(xyz), 2), dtype=np.int64)
+    if not floor_keys(xyz, cell, keys):
+        raise InputError(f"cell {cell:g} is too small for coordinates up to "
+                         f"{np.abs(xyz[:, :2]).max():g}; use a larger cell")  # fmt: skip
+    lowest = keys.min(axis=0)
+    nx, ny = (keys.max(axis=0) - lowest + 1).tolist()
+    if float(nx) * float(ny) >= 2.0**62:
+        raise InputError(f"cell {cell:g} is too small for an extent of "
+                         f"{nx * cell:g} x {ny * cell:g} m; use a larger cell")  # fmt: skip
+    return (keys[:, 0] - lowest[0]) * ny + (keys[:, 1] - lowest[1]), ny, nx

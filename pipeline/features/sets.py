@@ -13,6 +13,9 @@ and a saved model records the set's name and columns.
   of radius ``column`` metres (:mod:`pipeline.features.height`), and the heights above the
   scene's terrain model of the point and of its column's top (:mod:`pipeline.terrain`): the
   usual features of the field, the peer baseline inside Silva.
+  With ``version`` 2 (:data:`FEATURE_VERSION`) the heights are those of
+  :func:`pipeline.features.height.ground_heights`, above the column's ground level, and the
+  points far under the terrain model (:func:`low_noise`) enter no other point's features.
 - ``default``: ``covariance`` plus the moment invariants, the size of S1 (log point count)
   and the log area of its triangulated surface — size cues the paper leaves out.
 
@@ -41,12 +44,13 @@ from pipeline.features.conditioning import condition_invariants
 from pipeline.features.covariance import multiscale_covariance, multiscale_halo, multiscale_names
 from pipeline.features.density import capped_halo
 from pipeline.features.echo import echo_halo, echo_names, echo_neighbourhood_features
-from pipeline.features.height import HEIGHT_NAMES, height_features, height_halo
+from pipeline.features.height import (GROUND_HEIGHT_NAMES, HEIGHT_NAMES, ground_heights,
+                                      height_features, height_halo)
 from pipeline.features.invariants import INVARIANT_NAMES
 from pipeline.features.local import PLANES, local_surface
 from pipeline.features.voxel import halo as voxel_halo
 from pipeline.features.voxel import representative_of
-from pipeline.terrain import TerrainParams, ground_elevation, scene_terrain
+from pipeline.terrain import LOW_DEPTH, TerrainParams, ground_elevation, scene_terrain
 from pipeline.tiling import box_distance, series_ceil
 
 SURFACE_SIZE_NAMES = ("log_neighbors", "log_area")
@@ -59,6 +63,15 @@ HEIGHT_COLUMNS = ("height_above_lowest", "relative_height")
 #: of the highest point of its height column. Unlike the column's lowest points, the terrain
 #: model sees under roofs wider than the column and does not follow the point density.
 TERRAIN_COLUMNS = ("height_above_ground", "column_top_above_ground")
+#: The version of the feature values that new models are trained with. 1: the heights of
+#: ``covariance`` and ``default`` are taken above the lowest points of the column and the
+#: terrain model's cell minima, and every point enters the neighbourhoods. 2: they are taken
+#: above the column's ground level (:func:`pipeline.features.height.ground_heights`), which
+#: do not follow the point density, and the points the terrain model leaves far under it
+#: (:func:`low_noise`) enter no neighbourhood nor column. A model records its version
+#: (``features.version``); one saved before the key existed is version 1 and keeps it.
+FEATURE_VERSION = 2
+FEATURE_VERSIONS = (1, 2)
 #: ``r1: auto``: the paper's radius, unless S1 of a surface would hold fewer points than this
 AUTO_NEIGHBORS = 40
 PAPER_RADIUS = 0.5
@@ -110,8 +123,13 @@ class FeatureParams:
     voxel: float | None = None
     terrain: TerrainParams = TerrainParams()
     echoes: bool = False
+    version: int = FEATURE_VERSION
 
     def __post_init__(self):
+        if isinstance(self.version, bool) or self.version not in FEATURE_VERSIONS:
+            raise ConfigError(f"features.version must be one of {list(FEATURE_VERSIONS)}, got "
+                             f"{self.version!r}; leave it unset for the current features")
+        object.__setattr__(self, "version", int(self.version))
         if self.set not in FEATURE_SETS:
             raise ConfigError(f"unknown feature set {self.set!r}; use one of "
                              + ", ".join(repr(s) for s in FEATURE_SETS))
@@ -241,18 +259,23 @@ def _surface(params: FeatureParams, with_size: bool):
 def _covariance(params: FeatureParams):
     radii = tuple(s * params.r1 for s in params.scales)
     column, cell = params.column, params.cell
+    reach = max(multiscale_halo(radii), height_halo(column, cell))
+    if params.version >= 2:
+        def describe(xyz, query, ids, ground):
+            return [multiscale_covariance(xyz, ids, query, radii),
+                    ground_heights(xyz, ids, query, ground, column, cell)]
+
+        return multiscale_names(radii) + GROUND_HEIGHT_NAMES, reach, describe
     heights = [HEIGHT_NAMES.index(name) for name in HEIGHT_COLUMNS]
     below_highest = HEIGHT_NAMES.index("height_below_highest")
-    columns = multiscale_names(radii) + HEIGHT_COLUMNS + TERRAIN_COLUMNS
-    reach = max(multiscale_halo(radii), height_halo(column, cell))
 
-    def describe(xyz, query, ids, ground):
+    def describe_v1(xyz, query, ids, ground):
         height = height_features(xyz, ids, query, column, cell)
         above_ground = xyz[query, 2] - ground[query]
         return [multiscale_covariance(xyz, ids, query, radii), height[:, heights],
                 above_ground[:, None], (above_ground + height[:, below_highest])[:, None]]
 
-    return columns, reach, describe
+    return multiscale_names(radii) + HEIGHT_COLUMNS + TERRAIN_COLUMNS, reach, describe_v1
 
 
 def _echoes(params: FeatureParams):
@@ -279,6 +302,23 @@ def _combine(name: str, params: FeatureParams, *parts, uses_ground: bool = False
     uses_returns = any(rest == [_WITH_RETURNS] for _, _, _, *rest in parts)
 
     def compute(xyz, query, ids, ground, returns=None):
+        low = low_noise(xyz, ground) if uses_ground and params.version >= 2 else None
+        if low is None or not low.any():
+            return compute_parts(xyz, query, ids, ground, returns)
+        # the others are described without the low noise; a low-noise point itself is
+        # described as before, among every point (it is classified all the same)
+        kept = np.flatnonzero(~low)
+        noisy = low[query]
+        out = np.empty((len(query), len(columns)), dtype=np.float32)
+        if not noisy.all():
+            out[~noisy] = compute_parts(
+                xyz[kept], np.searchsorted(kept, query[~noisy]), ids[kept], ground[kept],
+                None if returns is None else tuple(values[kept] for values in returns))
+        if noisy.any():
+            out[noisy] = compute_parts(xyz, query[noisy], ids, ground, returns)
+        return out
+
+    def compute_parts(xyz, query, ids, ground, returns=None):
         # each part sees only the points within its own reach of the queries' box: a
         # chunk's halo is as wide as the farthest-reaching part, and the structures of the
         # others (voxels, grids) need not cover it
@@ -307,6 +347,16 @@ def _combine(name: str, params: FeatureParams, *parts, uses_ground: bool = False
         return out
 
     return FeatureSet(name, columns, reach, compute, uses_ground, params.terrain, uses_returns)
+
+
+def low_noise(xyz: np.ndarray, ground: np.ndarray | None) -> np.ndarray | None:
+    """bool (N,): the points more than the terrain filter's ``LOW_DEPTH`` under the terrain
+    model (``ground``, the elevation under each point), which the filter left out of the
+    ground as low outliers (multipath, noise); None without a terrain model. Version 2 of
+    the features keeps them out of every other point's neighbourhoods and columns."""
+    if ground is None:
+        return None
+    return xyz[:, 2] < np.asarray(ground, dtype=np.float64) - LOW_DEPTH
 
 
 def query_box(xy: np.ndarray) -> tuple[float, float, float, float]:

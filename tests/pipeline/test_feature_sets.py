@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.features.sets import FEATURE_SETS, FeatureParams, feature_set
+from pipeline.features.sets import FEATURE_SETS, FeatureParams, feature_set, scene_ground
 from pipeline.synth import synthetic_plot
 
 PARAMS = [FeatureParams(set=name) for name in FEATURE_SETS] + [
@@ -31,10 +31,13 @@ def chunk_and_whole(fs, xyz, ids, returns=None):
     rows = np.flatnonzero(near)
     rows = rows[np.random.default_rng(1).permutation(len(rows))]
     query = np.flatnonzero(core[rows])
+    # every point's ground from the scene's terrain model, as the run's steps give it: the
+    # heights of a column read the ground under its halo points too
+    ground = scene_ground(xyz, fs.terrain) if fs.uses_ground else None
     options = {} if returns is None else {"returns": tuple(r[rows] for r in returns)}
-    chunk = fs(xyz[rows], query, ids[rows], **options)
+    chunk = fs(xyz[rows], query, ids[rows], None if ground is None else ground[rows], **options)
     options = {} if returns is None else {"returns": returns}
-    whole = fs(xyz, np.flatnonzero(core), ids, **options)
+    whole = fs(xyz, np.flatnonzero(core), ids, ground, **options)
     assert len(query) == core.sum()
     return chunk[np.argsort(ids[rows][query])], whole[np.argsort(ids[core])]
 
@@ -65,7 +68,9 @@ def test_columns_are_named_and_the_rich_sets_extend_the_paper():
     assert len(paper.columns) == 11 and paper.columns[0] == "I2_22"
     assert set(paper.columns) < set(default.columns) and set(cov.columns) < set(default.columns)
     assert len(set(default.columns)) == len(default.columns)
-    assert "height_above_lowest" in cov.columns and "log_area" in default.columns
+    assert "height_above_local_ground" in cov.columns and "log_area" in default.columns
+    old = feature_set(FeatureParams(set="covariance", version=1))
+    assert "height_above_lowest" in old.columns and "height_above_lowest" not in cov.columns
 
 
 def test_every_column_has_a_spread_a_forest_can_split(plot):

@@ -87,7 +87,7 @@ def test_defaults():
     assert d["features"] == {"set": "paper", "r1": 0.5, "r2": 0.25, "max_neighbors": 64,
                              "context_max_neighbors": None, "plane": "pca",
                              "scales": [0.5, 1.0, 2.0, 4.0], "column": 3.0, "cell": 0.5,
-                                 "voxel": None, "echoes": False}
+                                 "voxel": None, "echoes": False, "version": 2}
     assert d["cascade"] == {"stages": 3, "n_estimators": 20, "min_samples_leaf": 15,
                             "max_features": "sqrt", "context": "hard", "out_of_fold": False,
                             "folds": 5, "max_train_points": 200_000, "balanced": False,

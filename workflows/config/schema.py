@@ -327,6 +327,14 @@ class FeaturesConfig(Section):
         "returns (LAS tiles whose points record them; a tile without them is refused). On "
         "airborne surveys they tell crowns from roofs.",
     )
+    version: Integer = Field(
+        _FEATURES.version,
+        description="Which feature values: 2 (the default) takes the heights of sets "
+        "'covariance' and 'default' above the column's ground level, which does not follow "
+        "the point density, and keeps the points far under the terrain model out of every "
+        "neighbourhood; 1, the values before, for models trained with them. A run applying a "
+        "model takes the model's.",
+    )
 
     @field_validator("set")
     @classmethod
@@ -348,7 +356,8 @@ class FeaturesConfig(Section):
         try:
             params = (self.params if self.resolved else
                       FeatureParams(self.set, plane=self.plane, scales=tuple(self.scales),
-                                    column=self.column, cell=self.cell, echoes=self.echoes))
+                                    column=self.column, cell=self.cell, echoes=self.echoes,
+                                    version=self.version))
         except ValueError as err:
             raise fail(str(err)) from None
         if self.resolved and self.r2 is None:
@@ -360,7 +369,8 @@ class FeaturesConfig(Section):
         """The resolved parameters the feature and context steps receive."""
         return FeatureParams(self.set, self.r1, self.r2, self.max_neighbors,
                              self.context_max_neighbors, self.plane, tuple(self.scales),
-                             self.column, self.cell, self.voxel, echoes=self.echoes)
+                             self.column, self.cell, self.voxel, echoes=self.echoes,
+                             version=self.version)
 
     @property
     def radius2(self) -> float:

@@ -21,7 +21,8 @@ if TYPE_CHECKING:
 
 #: The keys of the features section that change the features (r2 and the context cap change
 #: only the cascade's context).
-FEATURE_KEYS = ("set", "r1", "max_neighbors", "plane", "scales", "column", "cell", "voxel")
+FEATURE_KEYS = ("set", "r1", "max_neighbors", "plane", "scales", "column", "cell", "voxel",
+                "version")
 STEPS = tuple(FINGERPRINTED)
 _FINGERPRINT_VERSION = "silva-config-2"  # bump when the meaning of a fingerprinted key changes
 

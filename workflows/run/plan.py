@@ -96,6 +96,7 @@ def feature_description(cfg: SilvaConfig) -> dict:
         "features.cell": params.cell,
         "features.voxel": params.voxel,
         "features.echoes": params.echoes,
+        "features.version": params.version,
         "cascade.context": cfg.cascade.context,
         **{f"terrain.{k}": v for k, v in asdict(terrain).items()},
     }

@@ -1,0 +1,236 @@
+"""Does the forest template hold when a model meets another point density?
+
+    python benchmarks/bench_density.py [--groups pine sites thinned] [--columns] [--json F]
+
+The forest template (configs/forest.yaml: the ``default`` set, r1 and voxel ``auto``, two
+stages of 20 trees with leaves of 20, soft out-of-fold context, seed 0) is trained on one
+cloud and applied to another of a different density, in both directions, on the airborne
+tiles of ../shared/data:
+
+- ``pine``: the ponderosa-pine patch of trees/ flown by a plane (ALS_Clip, ~43 pts/m²) and by
+  a drone (UAS_Clip, ~560 pts/m²): one forest, two surveys;
+- ``sites``: St-Barthélemy (IGN LiDAR HD, ~25 pts/m²) and Topography (lidR, ~0.9 pts/m²);
+- ``thinned``: St-Barthélemy cut at its median x, the west half trains and the east half is
+  scored, each at its full density or thinned 2x, 5x and 10x (a hash of the point's index,
+  :func:`pipeline.cascade.thinning.thinned_mask`: nested and deterministic); every pair
+  with one side at full density, both ways, and the full -> full reference.
+
+Classes: ground (2), vegetation (3, 4, 5), building (6); class 1 (unclassified: low
+vegetation, objects and, near the ground, 50-88 % of the pine patch's ground-level points,
+by its producer's choice) is unlabelled: its points stay in every cloud, as neighbours and
+terrain, but are neither trained on nor scored. Topography labels no vegetation, so there
+its classes 1 and 9 are one class 'other', trained on and scored against ground. Noise (7,
+18) is dropped. Macro F1 is over the classes labelled in both clouds; ground F1 is ground
+against every other labelled point. ``--version`` picks the feature values
+(``features.version``: 1 as before, 2 the heights above the column's ground level and the
+low noise kept out).
+r1 is ``auto_radius`` of the training cloud's density and travels with the model, as in
+``silva run`` with a saved model. Each cloud's features are computed on that cloud alone
+(its own terrain model included). The last column is the rule "height above the cloud's own
+terrain model < 0.3 m" scored as ground: what the run's terrain alone gives.
+
+``--columns`` prints instead, per feature column, the Kolmogorov-Smirnov distance between
+the column on St-Barthélemy's points and on the same points in the copies thinned 2x, 5x and
+10x: which columns follow the density.
+"""
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from sklearn.metrics import f1_score
+
+from pipeline.cascade.driver import CloudData, run_cascade
+from pipeline.cascade.params import CascadeParams, ForestParams
+from pipeline.cascade.thinning import point_density, thinned_mask
+from pipeline.features.sets import FeatureParams, auto_radius, auto_voxel, feature_set, scene_ground
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+FILES = {"ALS_Clip": "trees/ALS_Clip.laz", "UAS_Clip": "trees/UAS_Clip.laz",
+         "StBarth": "als/StBarth_IGN_LiDARHD_100m.laz", "Topography": "als/Topography.laz"}
+NOISE = (7, 18)
+GROUND, VEGETATION, BUILDING, OTHER = 0, 1, 2, 3
+NAMES = ("ground", "vegetation", "building", "other")
+UNLABELLED = -1
+CODES = {1: UNLABELLED, 2: GROUND, 3: VEGETATION, 4: VEGETATION, 5: VEGETATION, 6: BUILDING}
+#: Topography's vegetation is in its class 1: there 1 and 9 are one class, 'other'
+TILE_CODES = {"Topography": {1: OTHER, 2: GROUND, 9: OTHER}}
+SCORED = (GROUND, VEGETATION, BUILDING, OTHER)
+THINNING = (2, 5, 10)
+HAG_GROUND = 0.3  # metres: the terrain-only rule's band
+#: the forest template's cascade (configs/forest.yaml)
+CASCADE = CascadeParams(stages=2, context="soft", out_of_fold=True, folds=3,
+                        max_train_points=200_000, seed=0,
+                        forest=ForestParams(n_estimators=20, min_samples_leaf=20, n_jobs=2))
+
+
+@dataclass
+class Cloud:
+    name: str
+    xyz: np.ndarray
+    y: np.ndarray  # class indices (NAMES)
+
+    @property
+    def density(self) -> float:
+        return point_density(self.xyz)
+
+    def subset(self, keep: np.ndarray, name: str) -> "Cloud":
+        return Cloud(name, self.xyz[keep], self.y[keep])
+
+
+def load(name: str) -> Cloud:
+    import laspy
+
+    las = laspy.read(DATA / FILES[name])
+    code = np.asarray(las.classification, dtype=np.int64)
+    keep = ~np.isin(code, NOISE)
+    xyz = np.column_stack((las.x, las.y, las.z)).astype(np.float64)[keep]
+    codes = TILE_CODES.get(name, CODES)
+    y = np.vectorize(lambda c: codes.get(c, UNLABELLED), otypes=[np.int64])(code[keep])
+    return Cloud(name, xyz, y)
+
+
+VERSION = 2
+
+
+def params_for(r1: float) -> FeatureParams:
+    return FeatureParams("default", r1, voxel=auto_voxel(r1, 64), version=VERSION)
+
+
+def features(cloud: Cloud, params: FeatureParams) -> np.ndarray:
+    return feature_set(params)(cloud.xyz, ids=np.arange(len(cloud.xyz), dtype=np.int64))
+
+
+def _data(cloud, feats, labels, params, fitted=None) -> CloudData:
+    ids = np.arange(len(cloud.xyz), dtype=np.int64)
+    return CloudData(cloud.xyz, ids, feats, labels, len(NAMES), r1=params.r1, r2=params.r2,
+                     context_mode=CASCADE.context,
+                     context_max_neighbors=params.context_max_neighbors,
+                     fitted_stages=fitted)
+
+
+def train_apply(train: Cloud, test: Cloud) -> dict:
+    """Train the template on ``train`` (r1 from its density), apply it to ``test``."""
+    params = params_for(auto_radius(train.density))
+    started = time.perf_counter()
+    data = _data(train, features(train, params), train.y, params)
+    counts = np.bincount(train.y[train.y >= 0], minlength=len(NAMES))
+    stages = run_cascade(data, CASCADE, counts, predict_last=False)
+    scored = _data(test, features(test, params), np.full(len(test.y), -1), params, stages)
+    run_cascade(scored, CASCADE, n_stages=len(stages))
+    labelled = test.y >= 0
+    y, predicted = test.y[labelled], np.argmax(scored.proba[-1], axis=1)[labelled]
+    present = [c for c in SCORED if (train.y == c).any() and (test.y == c).any()]
+    macro = f1_score(y, predicted, labels=present, average="macro", zero_division=0)
+    hag = (test.xyz[:, 2] - scene_ground(test.xyz, params.terrain))[labelled]
+    return {"train": train.name, "test": test.name, "train_density": round(train.density, 1),
+            "test_density": round(test.density, 1), "r1": params.r1,
+            "classes": [NAMES[c] for c in present], "macro_f1": round(float(macro), 3),
+            "ground_f1": round(_ground_f1(y, predicted == GROUND), 3),
+            "terrain_rule_ground_f1": round(_ground_f1(y, hag < HAG_GROUND), 3),
+            "seconds": round(time.perf_counter() - started, 1)}
+
+
+def _ground_f1(y, called_ground) -> float:
+    return float(f1_score(y == GROUND, called_ground, zero_division=0))
+
+
+def thinned(cloud: Cloud, factor: int) -> Cloud:
+    keep = thinned_mask(np.arange(len(cloud.xyz), dtype=np.int64), 1.0 / factor)
+    return cloud.subset(keep, f"{cloud.name}/{factor}")
+
+
+def pairs(groups) -> list[tuple[Cloud, Cloud]]:
+    out = []
+    if "pine" in groups:
+        als, uas = load("ALS_Clip"), load("UAS_Clip")
+        out += [(als, uas), (uas, als)]
+    if "sites" in groups:
+        stbarth, topo = load("StBarth"), load("Topography")
+        out += [(stbarth, topo), (topo, stbarth)]
+    if "thinned" in groups:
+        tile = load("StBarth")
+        west = tile.xyz[:, 0] < np.median(tile.xyz[:, 0])
+        w, e = tile.subset(west, "StBarth west"), tile.subset(~west, "StBarth east")
+        out.append((w, e))
+        for k in THINNING:
+            out += [(w, thinned(e, k)), (thinned(w, k), e)]
+    return out
+
+
+def ks_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """The two-sample Kolmogorov-Smirnov distance of the finite values of ``a`` and ``b``
+    (1.0 when one has none and the other some)."""
+    a, b = np.sort(a[np.isfinite(a)]), np.sort(b[np.isfinite(b)])
+    if len(a) == 0 or len(b) == 0:
+        return 0.0 if len(a) == len(b) else 1.0
+    grid = np.concatenate((a, b))
+    return float(np.max(np.abs(np.searchsorted(a, grid, "right") / len(a)
+                               - np.searchsorted(b, grid, "right") / len(b))))
+
+
+def column_drift(cloud: Cloud, params: FeatureParams, factors=THINNING) -> dict:
+    """Per column, the KS distance between its values on the points a copy thinned by each
+    factor keeps, computed in the whole cloud and in the copy."""
+    ids = np.arange(len(cloud.xyz), dtype=np.int64)
+    full = feature_set(params)(cloud.xyz, ids=ids)
+    out = {name: [] for name in feature_set(params).columns}
+    for k in factors:
+        keep = thinned_mask(ids, 1.0 / k)
+        sparse = feature_set(params)(cloud.xyz[keep], ids=ids[keep])
+        for j, name in enumerate(out):
+            out[name].append(round(ks_distance(full[keep, j], sparse[:, j]), 3))
+    return out
+
+
+def print_columns(drift: dict) -> None:
+    print("| column | " + " | ".join(f"KS {k}x" for k in THINNING) + " |")
+    print("|---|" + "---:|" * len(THINNING))
+    for name, values in drift.items():
+        print(f"| {name} | " + " | ".join(f"{v:.3f}" for v in values) + " |")
+
+
+def main(argv=None) -> int:
+    global VERSION
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--groups", nargs="+", default=["pine", "sites", "thinned"],
+                        choices=["pine", "sites", "thinned"])
+    parser.add_argument("--columns", action="store_true",
+                        help="per-column KS distance to thinned copies instead")
+    parser.add_argument("--json", type=Path, help="also write the rows to this file")
+    parser.add_argument("--version", type=int, default=VERSION, choices=(1, 2),
+                        help="features.version of the feature values (default 2)")
+    args = parser.parse_args(argv)
+    VERSION = args.version
+    missing = [f for f in FILES.values() if not (DATA / f).is_file()]
+    if missing:
+        print(f"no {', '.join(missing)} in {DATA}", file=sys.stderr)
+        return 1
+    if args.columns:
+        tile = load("StBarth")
+        drift = column_drift(tile, params_for(auto_radius(tile.density)))
+        print_columns(drift)
+        rows = drift
+    else:
+        rows = []
+        print("| trained -> applied | pts/m² | r1 | macro F1 (classes) | ground F1 | "
+              "HAG < 0.3 m ground F1 |")
+        print("|---|---|---|---|---|---|")
+        for train, test in pairs(args.groups):
+            row = train_apply(train, test)
+            rows.append(row)
+            print(f"| {row['train']} -> {row['test']} | {row['train_density']:g} -> "
+                  f"{row['test_density']:g} | {row['r1']:g} m | {row['macro_f1']:.3f} "
+                  f"({', '.join(row['classes'])}) | {row['ground_f1']:.3f} | "
+                  f"{row['terrain_rule_ground_f1']:.3f} |", flush=True)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
