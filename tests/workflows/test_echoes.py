@@ -201,10 +201,10 @@ def test_plan_says_whether_echoes_are_on(echo_survey, tmp_path):
                                      features={"set": "covariance", "r1": 0.5}))
     assert on.exit_code == 0 and off.exit_code == 0, on.output + off.output
     first = on.output.splitlines()[0]
-    assert first.startswith("features: set covariance (60 columns)")
+    assert first.startswith("features: set covariance (59 columns)")  # feature version 2
     assert first.endswith("echoes on (the spheres' shares of multi-return pulses and last "
                           "returns)")
-    assert off.output.splitlines()[0].startswith("features: set covariance (48 columns)")
+    assert off.output.splitlines()[0].startswith("features: set covariance (47 columns)")
     assert off.output.splitlines()[0].endswith(", echoes off")
 
 
