@@ -12,7 +12,8 @@ call ``silva bench pipeline CONFIG --model DIR`` directly.
 ``--cpu-overhead --model MODEL``: what cutting the tile into chunks costs in CPU seconds,
 which a loaded machine inflates far less than wall time. ``silva predict --in-process`` of
 the tile, cut as ``--set`` says (default: the bench's 1-worker layout), against the same
-run in one chunk, in this process, taking turns ``--repeat`` times; the CPU seconds are
+run in one chunk, in this process, taking turns ``--repeat`` times (which goes first
+alternates); the CPU seconds are
 this process's and its children's (``getrusage``). A small predict runs first, so that
 neither kind pays for loading the kernels and the forests. ``--profile DIR`` keeps a
 cProfile (CPU time) of every run there: what grows with the number of chunks.
@@ -92,8 +93,9 @@ def cpu_overhead(tile: Path, model: str, overrides, repeat: int, profile: Path |
         rounds = []
         for turn in range(repeat):
             runs = {}
-            for kind, sets in (("chunks", (*CHUNKED, *overrides)),
-                               ("one chunk", (*ONE_CHUNK, *overrides))):
+            kinds = [("chunks", (*CHUNKED, *overrides)), ("one chunk", (*ONE_CHUNK, *overrides))]
+            # the order alternates: a shared machine's load drifts, and CPU seconds too
+            for kind, sets in kinds[::-1] if turn % 2 else kinds:
                 dump = profile / f"{kind.replace(' ', '-')}-{turn}.prof" if profile else None
                 runs[kind] = predict(tile, model, work / "out", sets, dump)
                 print(f"round {turn + 1}, {kind}: {runs[kind]}", flush=True)
