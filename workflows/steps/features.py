@@ -12,9 +12,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.cascade import id_hash
-from pipeline.features.density import left_out, neighbourhood_members, pile_up_warning
+from pipeline.features.density import (
+    capped_halo, left_out, neighbourhood_members, pile_up_warning,
+)
 from pipeline.features.neighbors import RadiusIndex
-from pipeline.features.sets import FeatureParams, feature_set
+from pipeline.features.sets import FeatureParams, feature_set, query_box
+from pipeline.tiling import box_distance
 from workflows.exec.engine import chunk_tasks, chunk_window_returns
 from workflows.run.directory import Run
 from workflows.run.progress import say
@@ -40,13 +43,37 @@ def chunk_features(view, task: FeatureTask):
     compute = feature_set(task.features)
     core, xyz, ids, returns = chunk_window_returns(view, task.tiles, compute.uses_returns)
     query = np.arange(len(core["gid"]), dtype=np.int64)
-    features = compute(xyz, query, ids, ground_under(view, xyz) if compute.uses_ground else None,
-                       returns)
+    features = compute(xyz, query, ids,
+                       query_ground(view, xyz, query) if compute.uses_ground else None, returns)
     view.write(features=features, undefined=np.isnan(features).any(axis=1))
     trained = (core["role"] == ROLE_TRAIN) & (core["label"] >= 0)
     return {"train_counts": np.bincount(core["label"][trained],
                                         minlength=task.n_classes).tolist(),
             **neighbourhood_checks(xyz, ids, query, task.features.r1)}
+
+
+def query_ground(view, xyz: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """float64 (N,): the terrain model's elevation under the ``query`` rows of a chunk's
+    window, NaN under the others. The feature sets read the ground of their query rows
+    alone (a height above ground is the point's own), and a window's halo holds as many
+    points again as its core: looking the halo up cost every chunk the reads and
+    interpolation of points it never describes. A NaN would show in the features if a
+    set ever read a neighbour's ground."""
+    ground = np.full(len(xyz), np.nan)
+    ground[query] = ground_under(view, xyz[query])
+    return ground
+
+
+def near_query(xyz: np.ndarray, ids: np.ndarray, query: np.ndarray, reach: float):
+    """``xyz``, ``ids`` and ``query`` cut to the rows within ``reach`` of the query points'
+    XY box: what capped neighbourhoods of the query points can see (the rest of a chunk's
+    halo only costs a sort and a grid)."""
+    if not len(query):
+        return xyz, ids, query
+    near = np.flatnonzero(box_distance(xyz[:, :2], query_box(xyz[query, :2])) <= reach)
+    if len(near) == len(xyz):
+        return xyz, ids, query
+    return xyz[near], ids[near], np.searchsorted(near, query)
 
 
 def neighbourhood_checks(xyz, ids, query, r1) -> dict:
@@ -56,7 +83,11 @@ def neighbourhood_checks(xyz, ids, query, r1) -> dict:
     than :data:`SPARSE_NEIGHBORS` points within r1, too few for a local surface;
     ``checked`` and ``piled``: the core points, and those of them that a pile-up leaves out
     of their neighbours' neighbourhoods (:mod:`pipeline.features.density`).
+
+    Only the points within the capped halo of r1 of the queries are looked at: a point's
+    membership depends on its voxel alone, and its neighbours lie within r1.
     """
+    xyz, ids, query = near_query(xyz, ids, query, capped_halo(r1))
     members = neighbourhood_members(xyz, ids, r1)
     checks = {"checked": len(query), "piled": left_out(members, query), "sparse": [0, 0]}
     sample = query[id_hash(ids[query], 11) < SPARSE_SAMPLE]

@@ -23,8 +23,7 @@ from pipeline.tiling import BalancedLayout, Grid
 from workflows.exec.engine import chunk_tasks, chunk_window_returns
 from workflows.run.directory import Run
 from workflows.steps.cascade import cached_forest
-from workflows.steps.features import neighbourhood_checks, warn_neighbourhoods
-from workflows.steps.terrain import ground_under
+from workflows.steps.features import neighbourhood_checks, query_ground, warn_neighbourhoods
 from workflows.store.layout import labels_array, proba_array
 from workflows.store.scenes import RunLayout, SceneLayout
 
@@ -54,10 +53,13 @@ def chunk_one_pass(view, task: OnePassTask):
     compute = feature_set(params)
     core, xyz, ids, returns = chunk_window_returns(view, task.tiles, compute.uses_returns)
     n_core = len(core["gid"])
-    ground = ground_under(view, xyz) if compute.uses_ground else None
+
+    def features_of(rows):  # the ground under the rows described only, not the whole halo
+        ground = query_ground(view, xyz, rows) if compute.uses_ground else None
+        return compute(xyz, rows, ids, ground, returns)
+
     probas, undefined = one_pass(
-        xyz, ids, n_core, chunk_box(task.grid, view.chunk),
-        lambda rows: compute(xyz, rows, ids, ground, returns),
+        xyz, ids, n_core, chunk_box(task.grid, view.chunk), features_of,
         [cached_forest(p) for p in task.forest_paths],
         n_classes=task.n_classes, mode=task.context, r1=params.r1, r2=params.r2,
         max_neighbors=params.context_max_neighbors)
