@@ -232,9 +232,10 @@ def _warm_search() -> None:
 
 
 def _warm_covariance() -> None:
-    """Covariance features (CSR and multiscale) and the height features."""
+    """Covariance features (CSR and multiscale) and the height features (of both feature
+    versions: above the lowest points and above the terrain model)."""
     from pipeline.features.covariance import covariance_features, multiscale_covariance
-    from pipeline.features.height import height_features
+    from pipeline.features.height import ground_heights, height_features
     from pipeline.features.neighbors import RadiusIndex
 
     xyz, ids, query = _tiny_cloud()
@@ -242,6 +243,7 @@ def _warm_covariance() -> None:
     covariance_features(xyz, nbr_idx, nbr_ptr, query)
     multiscale_covariance(xyz, ids, query, (0.5, 1.0))
     height_features(xyz, ids, query, 1.5, 0.5)
+    ground_heights(xyz, ids, query, xyz[:, 2] - 0.2, 1.5, 0.5)
 
 
 def _warm_voxel() -> None:

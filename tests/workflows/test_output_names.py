@@ -71,7 +71,7 @@ def test_feature_columns_are_chosen_by_name_pattern_or_all():
                                "output": {"feature_dims": value}})
         return cfg.feature_dim_columns
 
-    assert chosen("relative_height") == ["relative_height"]
+    assert chosen("relative_height_above_ground") == ["relative_height_above_ground"]
     assert chosen(["linearity_*", "I2_22"]) == [
         "linearity_r0.25", "linearity_r0.5", "linearity_r1", "linearity_r2", "I2_22"]
     from pipeline.features.sets import FeatureParams, feature_set

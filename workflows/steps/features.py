@@ -44,24 +44,12 @@ def chunk_features(view, task: FeatureTask):
     core, xyz, ids, returns = chunk_window_returns(view, task.tiles, compute.uses_returns)
     query = np.arange(len(core["gid"]), dtype=np.int64)
     features = compute(xyz, query, ids,
-                       query_ground(view, xyz, query) if compute.uses_ground else None, returns)
+                       ground_under(view, xyz) if compute.uses_ground else None, returns)
     view.write(features=features, undefined=np.isnan(features).any(axis=1))
     trained = (core["role"] == ROLE_TRAIN) & (core["label"] >= 0)
     return {"train_counts": np.bincount(core["label"][trained],
                                         minlength=task.n_classes).tolist(),
             **neighbourhood_checks(xyz, ids, query, task.features.r1)}
-
-
-def query_ground(view, xyz: np.ndarray, query: np.ndarray) -> np.ndarray:
-    """float64 (N,): the terrain model's elevation under the ``query`` rows of a chunk's
-    window, NaN under the others. The feature sets read the ground of their query rows
-    alone (a height above ground is the point's own), and a window's halo holds as many
-    points again as its core: looking the halo up cost every chunk the reads and
-    interpolation of points it never describes. A NaN would show in the features if a
-    set ever read a neighbour's ground."""
-    ground = np.full(len(xyz), np.nan)
-    ground[query] = ground_under(view, xyz[query])
-    return ground
 
 
 def near_query(xyz: np.ndarray, ids: np.ndarray, query: np.ndarray, reach: float):

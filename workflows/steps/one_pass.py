@@ -23,7 +23,8 @@ from pipeline.tiling import BalancedLayout, Grid
 from workflows.exec.engine import chunk_tasks, chunk_window_returns
 from workflows.run.directory import Run
 from workflows.steps.cascade import cached_forest
-from workflows.steps.features import neighbourhood_checks, query_ground, warn_neighbourhoods
+from workflows.steps.features import neighbourhood_checks, warn_neighbourhoods
+from workflows.steps.terrain import ground_under
 from workflows.store.layout import labels_array, proba_array
 from workflows.store.scenes import RunLayout, SceneLayout
 
@@ -54,8 +55,11 @@ def chunk_one_pass(view, task: OnePassTask):
     core, xyz, ids, returns = chunk_window_returns(view, task.tiles, compute.uses_returns)
     n_core = len(core["gid"])
 
-    def features_of(rows):  # the ground under the rows described only, not the whole halo
-        ground = query_ground(view, xyz, rows) if compute.uses_ground else None
+    # every point's ground, the halo's too: feature version 2 reads the ground under the
+    # neighbours of a column and leaves out those far under it
+    ground = ground_under(view, xyz) if compute.uses_ground else None
+
+    def features_of(rows):
         return compute(xyz, rows, ids, ground, returns)
 
     probas, undefined = one_pass(
