@@ -86,29 +86,50 @@ def _cell_extremes(sorted_keys, z_sorted, ukeys, low, high):
 
 
 @_jit
+def _disk_row(gx, gy, dx, bound, ny):
+    """The first and last linear keys of the cells of column gx + dx within the disk of
+    squared radius ``bound`` (cells) around cell (gx, gy)."""
+    dy = int(math.sqrt(bound - dx * dx))
+    while dx * dx + (dy + 1) * (dy + 1) <= bound:  # exact integer bound
+        dy += 1
+    while dy > 0 and dx * dx + dy * dy > bound:
+        dy -= 1
+    return (gx + dx) * ny + max(gy - dy, 0), (gx + dx) * ny + min(gy + dy, ny - 1)
+
+
+@_jit
+def _disk_spans(ukeys, key, ny, nx, bound, spans):
+    """The ranges [start, stop) of ``ukeys`` that hold the occupied cells within the disk
+    of squared radius ``bound`` (cells) around the cell ``key``, column by column
+    (``spans`` int64 (2 reach + 1, 2), filled); returns how many."""
+    gx = key // ny
+    gy = key - gx * ny
+    reach = int(math.sqrt(bound)) + 1
+    n = 0
+    for dx in range(-reach, reach + 1):
+        if gx + dx < 0 or gx + dx >= nx or dx * dx > bound:
+            continue
+        key0, key1 = _disk_row(gx, gy, dx, bound, ny)
+        start = np.searchsorted(ukeys, key0)
+        stop = start
+        while stop < ukeys.shape[0] and ukeys[stop] <= key1:
+            stop += 1
+        spans[n, 0], spans[n, 1] = start, stop
+        n += 1
+    return n
+
+
+@_jit
 def _columns(ukeys, low, high, cells, ny, nx, bound, rank, col_low, col_high):
     """Robust lowest and the highest z over the column of each cell in ``cells`` (indices
     into the occupied cells ``ukeys``, linear keys gx * ny + gy)."""
     lows = np.empty(rank)  # the rank lowest minima so far, ascending
-    reach = int(math.sqrt(bound)) + 1
+    spans = np.empty((2 * int(math.sqrt(bound)) + 3, 2), dtype=np.int64)
     for out_row in range(cells.shape[0]):
-        key = ukeys[cells[out_row]]
-        gx = key // ny
-        gy = key - gx * ny
         count = 0
         top = -np.inf
-        for dx in range(-reach, reach + 1):
-            if gx + dx < 0 or gx + dx >= nx or dx * dx > bound:
-                continue
-            dy = int(math.sqrt(bound - dx * dx))
-            while dx * dx + (dy + 1) * (dy + 1) <= bound:  # exact integer bound
-                dy += 1
-            while dy > 0 and dx * dx + dy * dy > bound:
-                dy -= 1
-            key0 = (gx + dx) * ny + max(gy - dy, 0)
-            key1 = (gx + dx) * ny + min(gy + dy, ny - 1)
-            i = np.searchsorted(ukeys, key0)
-            while i < ukeys.shape[0] and ukeys[i] <= key1:
+        for span in range(_disk_spans(ukeys, ukeys[cells[out_row]], ny, nx, bound, spans)):
+            for i in range(spans[span, 0], spans[span, 1]):
                 kept = min(count, rank)
                 j = kept  # insertion into the short sorted buffer
                 while j > 0 and lows[j - 1] > low[i]:
@@ -119,9 +140,19 @@ def _columns(ukeys, low, high, cells, ny, nx, bound, rank, col_low, col_high):
                     lows[j] = low[i]
                 top = max(top, high[i])
                 count += 1
-                i += 1
         col_low[out_row] = lows[min(rank, (count + 1) // 2) - 1]
         col_high[out_row] = top
+
+
+def _occupied_cells(xyz, cell):
+    """Each point's linear cell key, the grid's ny and nx, and the occupied cells' keys
+    (ascending) with their lowest and highest z."""
+    linear, ny, nx = _cell_index(xyz, cell)
+    order = np.argsort(linear, kind="stable")
+    n = len(xyz)
+    ukeys, low, high = np.empty(n, dtype=np.int64), np.empty(n), np.empty(n)
+    m = _cell_extremes(linear[order], xyz[order, 2], ukeys, low, high)
+    return linear, ny, nx, ukeys[:m], low[:m], high[:m]
 
 
 def height_features(xyz, ids, query, radius=DEFAULT_RADIUS, cell=DEFAULT_CELL, *,
@@ -167,12 +198,7 @@ def height_features(xyz, ids, query, radius=DEFAULT_RADIUS, cell=DEFAULT_CELL, *
     out = np.empty((len(query), N_HEIGHT), dtype=np.float32)
     if len(query) == 0:
         return out
-    linear, ny, nx = _cell_index(xyz, cell)
-    order = np.argsort(linear, kind="stable")
-    n = len(xyz)
-    ukeys, low, high = np.empty(n, dtype=np.int64), np.empty(n), np.empty(n)
-    m = _cell_extremes(linear[order], xyz[order, 2], ukeys, low, high)
-    ukeys, low, high = ukeys[:m], low[:m], high[:m]
+    linear, ny, nx, ukeys, low, high = _occupied_cells(xyz, cell)
     cells, cell_of_query = np.unique(np.searchsorted(ukeys, linear[query]), return_inverse=True)
     col_low, col_high = np.empty(len(cells)), np.empty(len(cells))
     _columns(ukeys, low, high, cells, ny, nx, (radius / cell) ** 2, int(skip) + 1, col_low,
@@ -207,30 +233,16 @@ def _band_columns(ukeys, band_count, band_sum, high, cells, ny, nx, bound, level
     """Per cell of ``cells`` (indices into the occupied cells ``ukeys``): the mean residual
     of its column's points in the band (their count and integer sum per cell), 0.0 without
     any; and the column's top."""
-    reach = int(math.sqrt(bound)) + 1
+    spans = np.empty((2 * int(math.sqrt(bound)) + 3, 2), dtype=np.int64)
     for out_row in range(cells.shape[0]):
-        key = ukeys[cells[out_row]]
-        gx = key // ny
-        gy = key - gx * ny
         count = 0
         total = 0
         top = -np.inf
-        for dx in range(-reach, reach + 1):
-            if gx + dx < 0 or gx + dx >= nx or dx * dx > bound:
-                continue
-            dy = int(math.sqrt(bound - dx * dx))
-            while dx * dx + (dy + 1) * (dy + 1) <= bound:  # exact integer bound
-                dy += 1
-            while dy > 0 and dx * dx + dy * dy > bound:
-                dy -= 1
-            key0 = (gx + dx) * ny + max(gy - dy, 0)
-            key1 = (gx + dx) * ny + min(gy + dy, ny - 1)
-            i = np.searchsorted(ukeys, key0)
-            while i < ukeys.shape[0] and ukeys[i] <= key1:
+        for span in range(_disk_spans(ukeys, ukeys[cells[out_row]], ny, nx, bound, spans)):
+            for i in range(spans[span, 0], spans[span, 1]):
                 top = max(top, high[i])
                 count += band_count[i]
                 total += band_sum[i]
-                i += 1
         level[out_row] = total / count / _RESIDUAL_SCALE if count else 0.0
         col_high[out_row] = top
 
@@ -260,12 +272,8 @@ def ground_heights(xyz, ids, query, ground, radius=DEFAULT_RADIUS, cell=DEFAULT_
     out = np.empty((len(query), len(GROUND_HEIGHT_NAMES)), dtype=np.float32)
     if len(query) == 0:
         return out
-    linear, ny, nx = _cell_index(xyz, cell)
-    order = np.argsort(linear, kind="stable")
-    n = len(xyz)
-    ukeys, low, high = np.empty(n, dtype=np.int64), np.empty(n), np.empty(n)
-    m = _cell_extremes(linear[order], xyz[order, 2], ukeys, low, high)
-    ukeys, high = ukeys[:m], high[:m]
+    linear, ny, nx, ukeys, _, high = _occupied_cells(xyz, cell)
+    m = len(ukeys)
     residual = xyz[:, 2] - ground
     band = np.abs(residual) <= GROUND_BAND
     band_cell = np.searchsorted(ukeys, linear[band])
