@@ -51,10 +51,12 @@ PROGRESS_TOPIC = "silva-progress"
 PROGRESS_EVERY = 2.0
 
 
-def throttled(tell: Callable[[float], None], every: float = PROGRESS_EVERY
+def throttled(tell: Callable[[float], None], every: float | None = None
               ) -> Callable[[float], None]:
-    """``tell`` called at most once every ``every`` seconds (the work's first report
-    waits that long too: a short task never reports)."""
+    """``tell`` called at most once every ``every`` seconds (None: :data:`PROGRESS_EVERY`
+    as it is when the work starts; the first report waits that long too: a short task
+    never reports)."""
+    every = PROGRESS_EVERY if every is None else every
     last = [time.monotonic()]
 
     def listener(fraction: float) -> None:
