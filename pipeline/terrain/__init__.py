@@ -7,7 +7,8 @@ global grid (:class:`BlockGrid`), each modelled from the merged minima (:func:`m
 of its region, the block and a buffer around it (:func:`block_model`: within it, groups of
 cells far apart are modelled apart, so the cost follows the points, not the bounding box):
 each group's raster (:func:`minima_raster`, and :func:`minima_offsets` for where they lie)
-is filtered into a DTM (:func:`ground_model`). Each chunk reads the models of the blocks
+is filtered into a DTM (:func:`ground_model`; at the data's own resolution where its
+points are sparse for the cells, :func:`sparse_factor`). Each chunk reads the models of the blocks
 under its points (:class:`SceneTerrain`) to compute heights above ground
 (:func:`ground_elevation`). :func:`terrain_model` does the chain on one cloud as one raster,
 :func:`scene_terrain` on one cloud as a scene.
@@ -20,6 +21,7 @@ from pipeline.terrain.grid import (
     Raster,
     cell_minima,
     fill,
+    fill_near,
     ground_elevation,
     merge_minima,
     minima_offsets,
@@ -30,12 +32,13 @@ from pipeline.terrain.smrf import (
     GroundModel,
     TerrainParams,
     ground_model,
+    sparse_factor,
     terrain_model,
 )
 
 __all__ = [
     "LOW_DEPTH", "BlockGrid", "BlockModel", "BlockTerrain", "GroundModel", "Raster",
     "SceneTerrain", "TerrainParams", "block_model", "block_reach", "cell_minima", "fill",
-    "ground_elevation", "ground_model", "merge_minima", "minima_offsets", "minima_raster",
-    "scene_terrain", "terrain_model",
+    "fill_near", "ground_elevation", "ground_model", "merge_minima", "minima_offsets",
+    "minima_raster", "scene_terrain", "sparse_factor", "terrain_model",
 ]

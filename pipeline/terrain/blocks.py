@@ -16,7 +16,9 @@ touch (8-neighbours) belong to one group. Each group touching the core gets
 :func:`~pipeline.terrain.smrf.ground_model` of the raster spanning its own cells, so two plots
 far apart are modelled apart, exactly as each alone, and the cost follows the occupied cells,
 not the bounding box: a block without points costs nothing, and no fill runs over the empty
-space between groups.
+space between groups. Within a group, points sparse for the cells (a survey of a few points
+per 100 m²) are filtered at their own resolution (:func:`~pipeline.terrain.smrf.sparse_factor`),
+so a block's cost follows its points there too.
 """
 
 import math

@@ -9,6 +9,7 @@ bit for bit.
 
 import logging
 import math
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +24,12 @@ MAX_KEY = 2**50
 #: Largest raster Silva builds (float64 values: 1.6 GB): a terrain block's region
 #: (:func:`minima_raster`), a canopy height model.
 MAX_CELLS = 200_000_000
+#: The work of this process's terrain models, by kind, in cells visited: ``fill``, the
+#: unknown cells of every harmonic solve times its iterations; ``opening``, ``outliers`` and
+#: ``pits``, the cells of the rasters the filter's other passes cover, times their passes;
+#: ``output``, the cells a sparse model reads back at full resolution (:func:`prolonged`).
+#: Read by tests and benchmarks to show what a model's cost follows; never reset here.
+WORK: Counter = Counter()
 
 
 @dataclass(frozen=True)
@@ -338,13 +345,22 @@ def _harmonic(values: np.ndarray, unknown: np.ndarray, start: np.ndarray) -> np.
     data = np.concatenate((degree, -np.ones(off)))
     matrix = sparse.csr_matrix((data, (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
     scale = max(float(np.ptp(values[~unknown])), 1.0)
+    return _conjugate_gradients(matrix, rhs, degree, start, scale)
+
+
+def _conjugate_gradients(matrix, rhs: np.ndarray, degree: np.ndarray, start: np.ndarray,
+                         scale: float, tolerance: float = 1e-10) -> np.ndarray:
+    """x solving ``matrix @ x = rhs`` (a graph Laplacian with fixed cells, ``degree`` its
+    diagonal) by conjugate gradients with Jacobi preconditioning from ``start``, to a
+    largest residual of ``tolerance`` times ``scale``; every sum NumPy's pairwise sum. Adds
+    the unknowns times the iterations to :data:`WORK` ``["fill"]``."""
     x = np.array(start, dtype=np.float64)
     r = rhs - matrix @ x
     z = r / degree
     p = z.copy()
     rz = np.sum(r * z)
-    for _ in range(MAX_ITERATIONS):
-        if np.abs(r).max() <= 1e-10 * scale:
+    for iteration in range(MAX_ITERATIONS):
+        if np.abs(r).max() <= tolerance * scale:
             break
         q = matrix @ p
         alpha = rz / np.sum(p * q)
@@ -355,9 +371,98 @@ def _harmonic(values: np.ndarray, unknown: np.ndarray, start: np.ndarray) -> np.
         p = z + (rz_next / rz) * p
         rz = rz_next
     else:
+        iteration = MAX_ITERATIONS
         logger.warning("terrain fill stopped after %d iterations at residual %.3g m",
                        MAX_ITERATIONS, float(np.abs(r).max()))
+    WORK["fill"] += x.size * (iteration + 1)
     return x
+
+
+#: Largest residual of :func:`fill_near`'s solve, times the largest difference it fixes (a
+#: micrometre in a metre).
+NEAR_TOLERANCE = 1e-6
+
+
+def fill_near(background: np.ndarray, rows: np.ndarray, cols: np.ndarray, values: np.ndarray,
+              band: int) -> np.ndarray:
+    """``background`` (float64 (ny, nx), no NaN) made to pass through ``values`` (float64
+    (n,)) at the cells (``rows``, ``cols``) (int64 (n,), distinct): the difference is fixed
+    there, 0 at every cell farther than ``band`` cells (Chebyshev) from them, and harmonic
+    over the cells between (each the mean of its 4 neighbours, no flow across the raster's
+    edges), solved as :func:`fill` solves it.
+
+    The coarse-to-fine step of a sparse ground model: the background is a model at the
+    data's own resolution, and the cells seen at full resolution shape it within ``band``
+    cells of them. The solve follows the given cells, not the raster: at most (2 band + 1)²
+    cells each are solved for (:data:`WORK` ``["fill"]`` counts them times the iterations),
+    over a few iterations (every unknown cell lies within ``band`` cells of a fixed one);
+    the raster's cells are only marked and scanned once. Returns ``background`` with the
+    result (modified in place when it is a C-contiguous float64 array).
+    """
+    background = np.ascontiguousarray(background, dtype=np.float64)
+    ny, nx = background.shape
+    rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+    values = np.asarray(values, dtype=np.float64)
+    if rows.size == 0:
+        return background
+    known = rows * nx + cols
+    rise = np.zeros(ny * nx)  # the difference to fix: 0 beyond the band
+    rise[known] = values - background[rows, cols]
+    state = np.zeros(ny * nx, dtype=np.int8)
+    for di in range(-band, band + 1):
+        vi = rows + di
+        for dj in range(-band, band + 1):
+            vj = cols + dj
+            on = (vi >= 0) & (vi < ny) & (vj >= 0) & (vj < nx)
+            state[vi[on] * nx + vj[on]] = 1
+    state[known] = 2
+    unknown = np.flatnonzero(state == 1)
+    n = unknown.size
+    if n:
+        index = np.full(ny * nx, -1, dtype=np.int64)
+        index[unknown] = np.arange(n)
+        ui, uj = np.divmod(unknown, nx)
+        degree, rhs = np.zeros(n), np.zeros(n)
+        heads, tails = [np.arange(n)], [np.arange(n)]
+        for oi, oj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            vi, vj = ui + oi, uj + oj
+            on = (vi >= 0) & (vi < ny) & (vj >= 0) & (vj < nx)
+            me, other = np.flatnonzero(on), vi[on] * nx + vj[on]
+            degree[me] += 1.0
+            rhs[me] += rise[other]
+            free = index[other] >= 0
+            heads.append(me[free])
+            tails.append(index[other[free]])
+        off = sum(h.size for h in heads[1:])
+        matrix = sparse.csr_matrix((np.concatenate((degree, -np.ones(off))),
+                                    (np.concatenate(heads), np.concatenate(tails))),
+                                   shape=(n, n))
+        scale = max(float(np.ptp(rise[known])), 1.0)
+        flat = background.reshape(-1)
+        flat[unknown] += _conjugate_gradients(matrix, rhs, degree, np.zeros(n), scale,
+                                              NEAR_TOLERANCE)
+    background[rows, cols] = values
+    return background
+
+
+def prolonged(coarse: np.ndarray, factor: int, offset: tuple[int, int],
+              shape: tuple[int, int]) -> np.ndarray:
+    """float64 ``shape``: a raster of cells ``factor`` times finer than ``coarse`` (float64
+    (cy, cx)), its cell (0, 0) the fine cell ``offset`` (row, column) of the coarse raster's
+    first cell, bilinear between the coarse cells' centres and linear beyond them to the
+    edges (the last slope goes on; level along an axis of one coarse cell)."""
+    out = coarse
+    for axis, (start, n) in enumerate(zip(offset, shape)):
+        size = coarse.shape[axis]
+        u = (np.arange(start, start + n) + 0.5) / factor - 0.5
+        low = np.clip(np.floor(u).astype(np.int64), 0, max(size - 2, 0))
+        high = np.minimum(low + 1, size - 1)
+        t = u - low if size > 1 else np.zeros(n)
+        if axis == 0:
+            out = out[low] * (1.0 - t)[:, None] + out[high] * t[:, None]
+        else:
+            out = out[:, low] * (1.0 - t) + out[:, high] * t
+    return out
 
 
 def ground_elevation(dtm, xy: np.ndarray) -> np.ndarray:

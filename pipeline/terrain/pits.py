@@ -26,6 +26,8 @@ import math
 import numpy as np
 from scipy import ndimage
 
+from pipeline.terrain.grid import WORK
+
 #: Least gap (m) above a deep pit, whatever its size.
 DEEP_GAP = 5.0
 #: A deep pit's gap exceeds this many times its extent: deeper than three times its width.
@@ -92,6 +94,7 @@ def deep_pits(z: np.ndarray, data: np.ndarray, cell: float, radius: int) -> np.n
     of cell minima ``z`` (float64 (ny, nx)), ``data`` its cells with a value, ``cell`` its
     side (m), cells within ``radius`` cells of each other linked."""
     z = np.where(data, z, np.nan)
+    WORK["pits"] += z.size * len(disk_offsets(radius)) // 2
     pits = np.zeros(z.shape, dtype=bool)
     footprint = np.zeros((2 * radius + 1,) * 2, dtype=bool)
     footprint[tuple((disk_offsets(radius) + radius).T)] = True
@@ -100,6 +103,7 @@ def deep_pits(z: np.ndarray, data: np.ndarray, cell: float, radius: int) -> np.n
         widest = min((level - z[i, j]) / DEEP_RATIO, DEEP_EXTENT)
         half = math.ceil(widest / cell) + radius + 1  # the group and the cells linked to it
         box = np.s_[max(i - half, 0):i + half + 1, max(j - half, 0):j + half + 1]
+        WORK["pits"] += z[box].size
         found = _pit(z[box], data[box], (min(i, half), min(j, half)), footprint, cell,
                      widest)
         if found is not None:
