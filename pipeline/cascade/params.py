@@ -10,6 +10,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from sklearn.utils import check_random_state
 
+from pipeline.errors import ConfigError
+
 
 @dataclass(frozen=True)
 class ForestParams:
@@ -46,14 +48,14 @@ class CascadeParams:
 
     def __post_init__(self):
         if int(self.stages) < 1:
-            raise ValueError(f"stages must be >= 1, got {self.stages}")
+            raise ConfigError(f"cascade.stages must be >= 1, got {self.stages}")
         if self.context not in ("hard", "soft"):
-            raise ValueError(f"context must be 'hard' or 'soft', got {self.context!r}")
+            raise ConfigError(f"cascade.context must be 'hard' or 'soft', got {self.context!r}")
         if self.out_of_fold and int(self.folds) < 2:
-            raise ValueError(f"folds must be >= 2 with out_of_fold, got {self.folds}")
+            raise ConfigError(f"cascade.folds must be >= 2 with out_of_fold, got {self.folds}")
         if self.max_train_points is not None and int(self.max_train_points) < 1:
-            raise ValueError(f"max_train_points must be >= 1 or None, got "
-                             f"{self.max_train_points}")
+            raise ConfigError(f"cascade.max_train_points must be >= 1 or None, got "
+                              f"{self.max_train_points}")
         if self.balanced and self.forest.class_weight is None:
             # quotas balance only what exceeds the cap; weights balance the rest
             object.__setattr__(self, "forest", replace(self.forest, class_weight="balanced"))

@@ -14,11 +14,10 @@ of a tile do not dilute it, and the cells are wide enough to be rarely empty ins
 survey (at 1 point/m², a 2 m cell is empty 2 % of the time).
 """
 
-import math
-
 import numpy as np
 
 from pipeline.cascade.sampling import id_hash
+from pipeline.checks import finite_number
 from pipeline.errors import InputError
 
 #: Mixed into the seed of the thinning hash, so that it is not the training sample's.
@@ -28,9 +27,7 @@ DEFAULT_DENSITY_CELL = 2.0
 
 
 def _check_positive(value, name: str) -> float:
-    if isinstance(value, bool) or not (float(value) > 0.0 and math.isfinite(float(value))):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return float(value)
+    return finite_number(value, name, error=InputError)
 
 
 def thinning_seed(seed: int) -> int:

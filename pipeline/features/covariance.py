@@ -32,6 +32,7 @@ import math
 import numba
 import numpy as np
 
+from pipeline.checks import finite_number, finite_numbers
 from pipeline.errors import InputError
 from pipeline.features.eigen import jacobi3
 from pipeline.features.neighbors import (_Grid, _cell_keys, _check_cloud, _check_ids,
@@ -198,14 +199,8 @@ def covariance_features(xyz, nbr_idx, nbr_ptr, query) -> np.ndarray:
 
 
 def _check_radii(radii, voxel_ratio) -> tuple[tuple[float, ...], float]:
-    values = tuple(float(r) for r in np.atleast_1d(np.asarray(radii, dtype=np.float64)))
-    if not values or not all(r > 0.0 and math.isfinite(r) for r in values):
-        raise ValueError(f"radii must be one or more finite numbers > 0, got {radii!r}")
-    if len(set(values)) != len(values):
-        raise ValueError(f"radii must be distinct, got {radii!r}")
-    if not (float(voxel_ratio) > 0.0 and math.isfinite(voxel_ratio)):
-        raise ValueError(f"voxel_ratio must be a finite number > 0, got {voxel_ratio!r}")
-    return values, float(voxel_ratio)
+    return (finite_numbers(radii, "radii", error=InputError),
+            finite_number(voxel_ratio, "voxel_ratio", error=InputError))
 
 
 def multiscale_names(radii) -> tuple[str, ...]:

@@ -25,10 +25,9 @@ depend only on the points within r of it: a chunk with a halo of :func:`echo_hal
 same values as the whole cloud, bit for bit.
 """
 
-import math
-
 import numpy as np
 
+from pipeline.checks import finite_numbers
 from pipeline.errors import InputError
 from pipeline.features.density import capped_halo, neighbourhood_members
 from pipeline.features.neighbors import RadiusIndex, _check_cloud, _check_ids, _check_query
@@ -110,12 +109,7 @@ def echo_point_features(return_number, number_of_returns, n_points=None) -> np.n
 
 
 def _check_radii(radii) -> tuple[float, ...]:
-    values = tuple(float(r) for r in np.atleast_1d(np.asarray(radii, dtype=np.float64)))
-    if not values or not all(r > 0.0 and math.isfinite(r) for r in values):
-        raise ValueError(f"radii must be one or more finite numbers > 0, got {radii!r}")
-    if len(set(values)) != len(values):
-        raise ValueError(f"radii must be distinct, got {radii!r}")
-    return values
+    return finite_numbers(radii, "radii", error=InputError)
 
 
 def echo_names(radii) -> tuple[str, ...]:

@@ -34,6 +34,7 @@ import math
 import numba
 import numpy as np
 
+from pipeline.checks import finite_number
 from pipeline.errors import InputError
 
 #: Relative margin between the cell side and the radius: the cell index of a coordinate may be
@@ -536,10 +537,7 @@ def _check_cloud(xyz) -> np.ndarray:
 
 
 def _check_radius(radius, name: str = "radius") -> float:
-    value = float(radius)
-    if not (value > 0.0 and math.isfinite(value)):
-        raise ValueError(f"{name} must be a finite number > 0, got {radius!r}")
-    return value
+    return finite_number(radius, name, error=InputError)
 
 
 def _check_max_neighbors(max_neighbors) -> int | None:

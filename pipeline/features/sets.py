@@ -39,6 +39,7 @@ from typing import Callable
 
 import numpy as np
 
+from pipeline.checks import finite_number
 from pipeline.errors import ConfigError
 from pipeline.features.conditioning import condition_invariants
 from pipeline.features.covariance import multiscale_covariance, multiscale_halo, multiscale_names
@@ -142,11 +143,10 @@ class FeatureParams:
                 f"{self.set!r} (the published invariants have no echo columns): set "
                 "features.set to 'covariance' or 'default', or features.echoes to false")
         # the messages name the configuration's keys: the schema hands these checks to us
-        if not self.r1 > 0:
-            raise ConfigError(f"features.r1 must be > 0, got {self.r1!r}")
+        object.__setattr__(self, "r1", finite_number(self.r1, "features.r1"))
         if self.r2 is None:
             object.__setattr__(self, "r2", self.r1 / 2)  # the paper's r2 = r1 / 2
-        if not 0 < self.r2 <= self.r1:
+        if not finite_number(self.r2, "features.r2") <= self.r1:
             raise ConfigError(f"features.r2 must be > 0 and <= features.r1 ({self.r1!r}), "
                              f"got {self.r2!r}")
         if self.plane not in PLANES:
@@ -154,13 +154,12 @@ class FeatureParams:
         if not self.scales or min(self.scales) <= 0 or len(set(self.scales)) < len(self.scales):
             raise ConfigError("features.scales must be distinct numbers > 0 (multiples of "
                              f"features.r1), got {list(self.scales)!r}")
-        if not self.column > 0:
-            raise ConfigError(f"features.column must be > 0, got {self.column!r}")
-        if not 0 < self.cell <= self.column:
+        object.__setattr__(self, "column", finite_number(self.column, "features.column"))
+        if not finite_number(self.cell, "features.cell") <= self.column:
             raise ConfigError(f"features.cell ({self.cell!r}) must not exceed features.column "
                              f"({self.column!r}): the column is made of cells")
-        if self.voxel is not None and not self.voxel > 0:
-            raise ConfigError(f"features.voxel must be > 0 or unset, got {self.voxel!r}")
+        if self.voxel is not None:
+            finite_number(self.voxel, "features.voxel", hint="or leave it unset")
         for name in ("r1", "r2", "column", "cell"):
             object.__setattr__(self, name, float(getattr(self, name)))
         object.__setattr__(self, "scales", tuple(float(s) for s in self.scales))

@@ -1,8 +1,8 @@
 """Rasters of a tile's points as GeoTIFF: digital terrain, surface and canopy height models.
 
-A raster here is a grid of square cells of side ``cell`` anchored at multiples of ``cell``
-(so the rasters of neighbouring tiles line up), held south row first as in
-:class:`pipeline.terrain.Raster`; the GeoTIFF is written north-up, as GIS software expects,
+A raster here is a window of the one grid (:mod:`pipeline.grid`), cells of side ``cell``
+anchored at multiples of ``cell`` (so the rasters of neighbouring tiles line up), held south
+row first as in :class:`pipeline.grid.Raster`; the GeoTIFF is written north-up, as GIS software expects,
 float32, with the tile's CRS and a nodata value, through rasterio (GDAL). Files are written
 atomically.
 """
@@ -13,51 +13,9 @@ import numpy as np
 
 from pipeline.atomic import atomic_path
 from pipeline.errors import InputError
-from pipeline.terrain import Raster
+from pipeline.grid import Raster
 
 NODATA = -9999.0
-#: A coordinate within SNAP cells of a cell boundary is on it (see :func:`cell_coordinate`).
-SNAP = 1e-6
-
-
-def cell_coordinate(values, cell: float) -> np.ndarray:
-    """float64: ``values`` / ``cell``, taken as the nearest integer within :data:`SNAP`: a
-    coordinate on a cell boundary in decimal (LAS stores steps of 0.01 m) divides to within
-    rounding of an integer (500000.3 / 0.1 = 5000002.9999999995) and must count as on it."""
-    u = np.asarray(values, dtype=np.float64) / cell
-    nearest = np.round(u)
-    return np.where(np.abs(u - nearest) <= SNAP, nearest, u)
-
-
-def tile_grid(mins, maxs, cell: float) -> tuple[float, float, int, int]:
-    """(x0, y0, nx, ny) of the cells of side ``cell`` covering the half-open XY box
-    [``mins``, ``maxs``), anchored at multiples of ``cell``; at least one cell each way.
-
-    Half-open, as the chunk grid: a tile that ends on a cell boundary does not take the next
-    cell, which is its neighbour's first (two tiles' rasters never share a cell, so a mosaic
-    does not depend on their order). Its points on that boundary belong to its last cell
-    (:func:`cell_index`).
-    """
-    k0 = np.floor(cell_coordinate(mins[:2], cell))
-    k1 = np.ceil(cell_coordinate(maxs[:2], cell))
-    nx, ny = (max(int(n), 1) for n in k1 - k0)
-    return float(k0[0]) * cell, float(k0[1]) * cell, nx, ny
-
-
-def cell_index(xy: np.ndarray, x0: float, y0: float, cell: float, shape) -> np.ndarray:
-    """int64 (N,) flat index (row * nx + column) of the cell of each point of a grid
-    anchored at multiples of ``cell`` (as :func:`tile_grid`'s), -1 outside.
-
-    Cells hold their lower edges; a point on the grid's upper edge belongs to the last
-    cell, so a grid of :func:`tile_grid` holds every point of its box, the highest too.
-    """
-    ny, nx = shape
-    u = cell_coordinate(xy[:, 0], cell) - round(x0 / cell)
-    w = cell_coordinate(xy[:, 1], cell) - round(y0 / cell)
-    col = np.where(u == nx, nx - 1, np.floor(u)).astype(np.int64)
-    row = np.where(w == ny, ny - 1, np.floor(w)).astype(np.int64)
-    inside = (col >= 0) & (col < nx) & (row >= 0) & (row < ny)
-    return np.where(inside, row * nx + col, -1)
 
 
 def write_geotiff(path, raster: Raster, crs_wkt: str | None, nodata: float = NODATA) -> None:

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.checks import finite_number
 from pipeline.errors import ConfigError
 from pipeline.synth.layout import random_layout
 from pipeline.synth.params import (
@@ -116,16 +117,6 @@ def synthetic_plot(
     return scene.xyz, scene.labels
 
 
-def check_positive(name: str, value) -> float:
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{name} must be a number of metres, got {value!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise ConfigError(f"{name} must be a positive number of metres, got {value!r}")
-    return value
-
-
 def check_stand(stand) -> Stand:
     """``stand`` checked: a :class:`Stand` whose shares are in 0-1 and lean in 0-MAX_LEAN."""
     if not isinstance(stand, Stand):
@@ -147,7 +138,7 @@ def check_stand(stand) -> Stand:
 def check_plot_args(seed, size, origin) -> tuple[int, float, tuple[float, float, float]]:
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ConfigError(f"seed must be a non-negative integer, got {seed!r}")
-    size = check_positive("size", size)
+    size = finite_number(size, "size", hint="the plot's side in metres")
     if not MIN_SIZE <= size <= MAX_SIZE:
         raise ConfigError(
             f"size must be between {MIN_SIZE:g} and {MAX_SIZE:g} metres, got {size:g}; "

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.checks import finite_number
 from pipeline.errors import ConfigError
 from pipeline.synth.layout import random_layout
 from pipeline.synth.params import (
@@ -34,7 +35,7 @@ from pipeline.synth.params import (
     Stand,
 )
 from pipeline.synth.scanner import Shadows, beam_noise, captured, in_plot
-from pipeline.synth.scene import check_plot_args, check_positive, check_stand
+from pipeline.synth.scene import check_plot_args, check_stand
 from pipeline.synth.surfaces import sample_surfaces
 from pipeline.synth.truth import tree_truth, write_truth_csv
 
@@ -64,7 +65,7 @@ def write_synthetic_plot(
     plot by 1 byte per recorded sample and 8 per point only (module docstring).
     """
     seed, size, _ = check_plot_args(seed, size, DEFAULT_ORIGIN)
-    tile_size = check_positive("tile_size", tile_size)
+    tile_size = finite_number(tile_size, "tile_size", hint="the tiles' side in metres")
     stand = check_stand(stand)
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():

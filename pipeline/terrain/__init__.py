@@ -18,7 +18,6 @@ from pipeline.terrain.blocks import (
     BlockGrid, BlockModel, BlockTerrain, SceneTerrain, block_model, block_reach, scene_terrain,
 )
 from pipeline.terrain.grid import (
-    Raster,
     cell_minima,
     fill,
     fill_near,
@@ -37,7 +36,7 @@ from pipeline.terrain.smrf import (
 )
 
 __all__ = [
-    "LOW_DEPTH", "BlockGrid", "BlockModel", "BlockTerrain", "GroundModel", "Raster",
+    "LOW_DEPTH", "BlockGrid", "BlockModel", "BlockTerrain", "GroundModel",
     "SceneTerrain", "TerrainParams", "block_model", "block_reach", "cell_minima", "fill",
     "fill_near", "ground_elevation", "ground_model", "merge_minima", "minima_offsets",
     "minima_raster", "scene_terrain", "sparse_factor", "terrain_model",

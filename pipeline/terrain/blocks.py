@@ -32,9 +32,8 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from pipeline.errors import ConfigError, InputError
-from pipeline.terrain.grid import (
-    MAX_CELLS, Raster, bilinear, cell_minima, minima_offsets, minima_raster,
-)
+from pipeline.grid import MAX_CELLS, Raster, cell_indices
+from pipeline.terrain.grid import bilinear, cell_minima, minima_offsets, minima_raster
 from pipeline.terrain.smrf import LOW_RADIUS, GroundModel, TerrainParams, ground_model
 
 #: Offsets to the tiles met once per pair of 8-neighbours.
@@ -338,7 +337,7 @@ class SceneTerrain:
     def block_of(self, xy: np.ndarray) -> np.ndarray:
         """int64 (N,): the row in :attr:`blocks` of the block that models each position: the
         block holding it, else the nearest occupied block (by centres)."""
-        keys = np.floor(np.asarray(xy, dtype=np.float64) / self.grid.cell).astype(np.int64)
+        keys = np.column_stack(cell_indices(xy[:, 0], xy[:, 1], self.grid.cell))
         row = self._index.find(self.grid.blocks_of(keys))
         lost = row < 0
         if lost.any():

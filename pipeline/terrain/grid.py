@@ -1,6 +1,6 @@
 """The raster of a scene's lowest points: cell minima, their exact merge, filling and sampling.
 
-Cells are squares of side ``cell`` anchored at 0: the point (x, y) falls in the cell
+Cells are those of the one grid (:mod:`pipeline.grid`): the point (x, y) falls in the cell
 (floor(x / cell), floor(y / cell)). The anchor does not move with the data, so every chunk of a
 cloud reduces its points to minima of the same cells, and a minimum is exact and associative:
 :func:`merge_minima` of any split of a cloud equals :func:`cell_minima` of the whole cloud,
@@ -8,22 +8,19 @@ bit for bit.
 """
 
 import logging
-import math
 from collections import Counter
-from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage, sparse
 
+from pipeline.checks import finite_number
 from pipeline.errors import InputError
+from pipeline.grid import (
+    Raster, cell_indices, first_per_cell, key_window, pack_keys,
+)
 
 logger = logging.getLogger(__name__)
 
-#: Largest cell key magnitude: keys and their differences stay exact in float64 and int64.
-MAX_KEY = 2**50
-#: Largest raster Silva builds (float64 values: 1.6 GB): a terrain block's region
-#: (:func:`minima_raster`), a canopy height model.
-MAX_CELLS = 200_000_000
 #: The work of this process's terrain models, by kind, in cells visited: ``fill``, the
 #: unknown cells of every harmonic solve times its iterations; ``opening``, ``outliers`` and
 #: ``pits``, the cells of the rasters the filter's other passes cover, times their passes;
@@ -32,76 +29,20 @@ MAX_CELLS = 200_000_000
 WORK: Counter = Counter()
 
 
-@dataclass(frozen=True)
-class Raster:
-    """A north-up grid of square cells.
-
-    ``values`` float64 (ny, nx); row i covers y in [y0 + i*cell, y0 + (i+1)*cell) (row 0 is
-    the SOUTH edge), column j covers x in [x0 + j*cell, x0 + (j+1)*cell); NaN where there is
-    no value. The centre of cell (i, j) is (x0 + (j + 0.5) cell, y0 + (i + 0.5) cell).
-    """
-
-    values: np.ndarray
-    x0: float
-    y0: float
-    cell: float
-
-    def __post_init__(self):
-        values = np.asarray(self.values, dtype=np.float64)
-        if values.ndim != 2 or values.shape[0] < 1 or values.shape[1] < 1:
-            raise InputError(f"Raster values must be a non-empty 2-D array, got shape {values.shape}")
-        cell = float(self.cell)
-        if not (math.isfinite(cell) and cell > 0.0):
-            raise InputError(f"Raster cell must be a finite number > 0, got {self.cell!r}")
-        x0, y0 = float(self.x0), float(self.y0)
-        if not (math.isfinite(x0) and math.isfinite(y0)):
-            raise InputError(f"Raster origin must be finite, got ({self.x0!r}, {self.y0!r})")
-        object.__setattr__(self, "values", values)
-        object.__setattr__(self, "x0", x0)
-        object.__setattr__(self, "y0", y0)
-        object.__setattr__(self, "cell", cell)
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        """(ny, nx)."""
-        return self.values.shape
-
-
-def _check_cell(cell) -> float:
-    value = float(cell)
-    if not (math.isfinite(value) and value > 0.0):
-        raise InputError(f"cell must be a finite number of metres > 0, got {cell!r}")
-    return value
-
-
 def _empty_minima() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return (np.empty((0, 2), dtype=np.int64), np.empty(0, dtype=np.float64),
             np.empty((0, 2), dtype=np.float64))
 
 
-def _reduce_minima(keys: np.ndarray, z: np.ndarray, xy: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The lowest point of each distinct key (its z and xy; of equally low points the one
-    of lowest x, then y), keys sorted by kx then ky. Exact: the choice does not depend on
-    the order of the points."""
+def lowest_per_cell(keys: np.ndarray, z: np.ndarray, xy: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The lowest point of each distinct key (int64 (N, 2)): its z and xy (of equally low
+    points the one of lowest x, then y), keys in the grid's key order (by ky, then kx).
+    Exact: the choice does not depend on the order of the points."""
     if keys.shape[0] == 0:
         return _empty_minima()
-    order = np.lexsort((keys[:, 1], keys[:, 0]))
-    keys = keys[order]
-    z = z[order]
-    new = np.empty(keys.shape[0], dtype=bool)
-    new[0] = True
-    np.any(keys[1:] != keys[:-1], axis=1, out=new[1:])
-    starts = np.flatnonzero(new)
-    zmin = np.minimum.reduceat(z, starts)
-    # where the lowest lies: of the points at their cell's minimum, the least x, then y
-    cell_of = np.cumsum(new) - 1
-    at_min = np.flatnonzero(z == zmin[cell_of])
-    tied_xy = xy[order[at_min]]
-    pick = np.lexsort((tied_xy[:, 1], tied_xy[:, 0], cell_of[at_min]))
-    first = np.ones(pick.size, dtype=bool)
-    first[1:] = np.diff(cell_of[at_min][pick]) != 0
-    return np.ascontiguousarray(keys[starts]), zmin, np.ascontiguousarray(tied_xy[pick[first]])
+    low = first_per_cell(pack_keys(keys[:, 0], keys[:, 1]), z, xy[:, 0], xy[:, 1])
+    return (np.ascontiguousarray(keys[low]), z[low], np.ascontiguousarray(xy[low]))
 
 
 def cell_minima(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -117,15 +58,15 @@ def cell_minima(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, n
     Returns
     -------
     keys : int64 (M, 2)
-        (floor(x / cell), floor(y / cell)) of every occupied cell, each once, sorted by kx
-        then ky (``np.lexsort((ky, kx))`` order).
+        (floor(x / cell), floor(y / cell)) of every occupied cell, each once, sorted by ky
+        then kx (the order of :func:`pipeline.grid.pack_keys`).
     zmin : float64 (M,)
         The lowest z of each cell.
     xy : float64 (M, 2)
         Where that lowest point lies (of equally low points, the one of lowest x, then y):
         on a slope the lowest point sits at the cell's downhill edge, not at its centre.
     """
-    cell = _check_cell(cell)
+    cell = finite_number(cell, "cell", error=InputError)
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise InputError(f"xyz must have shape (N, 3), got {xyz.shape}")
@@ -137,13 +78,8 @@ def cell_minima(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, n
             f"xyz holds NaN or infinite coordinates (first at row {bad}); "
             "drop or repair those points before computing the terrain"
         )
-    scaled = np.floor(xyz[:, :2] / cell)
-    if np.abs(scaled).max() > MAX_KEY:
-        raise InputError(
-            f"coordinates up to {np.abs(xyz[:, :2]).max():.6g} m make cell keys beyond "
-            f"{MAX_KEY} at cell {cell} m; recentre the coordinates or use a larger cell"
-        )
-    return _reduce_minima(scaled.astype(np.int64), xyz[:, 2].copy(), xyz[:, :2].copy())
+    keys = np.column_stack(cell_indices(xyz[:, 0], xyz[:, 1], cell))
+    return lowest_per_cell(keys, xyz[:, 2].copy(), xyz[:, :2].copy())
 
 
 def merge_minima(parts) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -175,8 +111,8 @@ def merge_minima(parts) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         all_xy.append(xy)
     if not all_keys:
         return _empty_minima()
-    return _reduce_minima(np.concatenate(all_keys), np.concatenate(all_z),
-                          np.concatenate(all_xy))
+    return lowest_per_cell(np.concatenate(all_keys), np.concatenate(all_z),
+                           np.concatenate(all_xy))
 
 
 def minima_raster(keys: np.ndarray, zmin: np.ndarray, cell: float) -> Raster:
@@ -185,9 +121,9 @@ def minima_raster(keys: np.ndarray, zmin: np.ndarray, cell: float) -> Raster:
     ``x0 = kx_min * cell``, ``y0 = ky_min * cell``; cell (kx, ky) is at row ky - ky_min (row 0
     south), column kx - kx_min; NaN in cells without a key. A key given twice keeps its lowest
     z. Raises :class:`~pipeline.errors.InputError` (a ``ValueError``) for zero keys or a
-    raster of more than :data:`MAX_CELLS` cells.
+    raster of more than :data:`pipeline.grid.MAX_CELLS` cells.
     """
-    cell = _check_cell(cell)
+    cell = finite_number(cell, "cell", error=InputError)
     keys = np.asarray(keys)
     zmin = np.asarray(zmin, dtype=np.float64)
     if keys.ndim != 2 or keys.shape[1] != 2 or zmin.shape != (keys.shape[0],):
@@ -199,17 +135,13 @@ def minima_raster(keys: np.ndarray, zmin: np.ndarray, cell: float) -> Raster:
     if not np.isfinite(zmin).all():
         raise InputError("cell minima hold NaN or infinite elevations; drop those points first")
     keys = keys.astype(np.int64, copy=False)
-    low = keys.min(axis=0)
-    span = keys.max(axis=0) - low + 1
-    if int(span[0]) * int(span[1]) > MAX_CELLS:
-        raise InputError(
-            f"the terrain raster would have {int(span[1])} x {int(span[0])} cells of {cell} m "
-            f"(more than {MAX_CELLS}); use a larger cell or split the scene"
-        )
-    values = np.full((int(span[1]), int(span[0])), np.inf)
-    np.minimum.at(values, (keys[:, 1] - low[1], keys[:, 0] - low[0]), zmin)
+    low_x, low_y, nx, ny = key_window(keys[:, 0], keys[:, 1],
+                                      f"the terrain raster of cells of {cell} m",
+                                      "use a larger cell or split the scene")
+    values = np.full((ny, nx), np.inf)
+    np.minimum.at(values, (keys[:, 1] - low_y, keys[:, 0] - low_x), zmin)
     values[np.isinf(values)] = np.nan
-    return Raster(values, float(low[0]) * cell, float(low[1]) * cell, cell)
+    return Raster(values, float(low_x) * cell, float(low_y) * cell, cell)
 
 
 def minima_offsets(keys: np.ndarray, xy: np.ndarray, minima: Raster) -> np.ndarray:

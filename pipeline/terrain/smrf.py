@@ -39,9 +39,11 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
+from pipeline.checks import finite_number
 from pipeline.errors import ConfigError, InputError
+from pipeline.grid import Raster
 from pipeline.terrain.grid import (
-    WORK, Raster, _reduce_minima, bilinear, cell_minima, fill, fill_near, minima_offsets,
+    WORK, bilinear, cell_minima, fill, fill_near, lowest_per_cell, minima_offsets,
     minima_raster, prolonged,
 )
 from pipeline.terrain.pits import deep_pits
@@ -75,24 +77,13 @@ class TerrainParams:
     scalar: float = 1.25
 
     def __post_init__(self):
-        for name in ("cell", "slope", "window", "threshold", "scalar"):
-            raw = getattr(self, name)
-            try:
-                value = float(raw)
-            except (TypeError, ValueError):
-                value = math.nan
-            if name == "scalar":
-                if not (math.isfinite(value) and value >= 0.0):
-                    raise ConfigError(
-                        f"terrain.scalar must be a finite number >= 0, got {raw!r}; "
-                        "use 0 for a threshold that does not grow with the slope"
-                    )
-            elif not (math.isfinite(value) and value > 0.0):
-                raise ConfigError(
-                    f"terrain.{name} must be a finite number > 0, got {raw!r}; "
-                    f"the default is {getattr(TerrainParams, name)}"
-                )
-            object.__setattr__(self, name, value)
+        for name in ("cell", "slope", "window", "threshold"):
+            object.__setattr__(self, name, finite_number(
+                getattr(self, name), f"terrain.{name}",
+                hint=f"the default is {getattr(TerrainParams, name)}"))
+        object.__setattr__(self, "scalar", finite_number(
+            self.scalar, "terrain.scalar", positive=False,
+            hint="use 0 for a threshold that does not grow with the slope"))
         if self.window < self.cell:
             raise ConfigError(
                 f"terrain.window ({self.window} m) must be at least terrain.cell ({self.cell} m); "
@@ -429,8 +420,8 @@ def _sparse_model(minima: Raster, params: TerrainParams, offsets: np.ndarray | N
     centres = (keys + 0.5) * cell
     where = centres if offsets is None else centres + offsets[rows, cols]
     lowest = z[rows, cols]
-    coarse_keys, coarse_z, coarse_xy = _reduce_minima(np.floor_divide(keys, factor),
-                                                      lowest.copy(), where)
+    coarse_keys, coarse_z, coarse_xy = lowest_per_cell(np.floor_divide(keys, factor),
+                                                       lowest.copy(), where)
     coarse = minima_raster(coarse_keys, coarse_z, factor * cell)
     found = _smrf(coarse.values, np.isfinite(coarse.values), coarse.cell, params,
                   minima_offsets(coarse_keys, coarse_xy, coarse))

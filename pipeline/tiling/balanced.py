@@ -6,6 +6,8 @@ from functools import cached_property
 
 import numpy as np
 
+from pipeline.checks import finite_number
+from pipeline.errors import InputError
 from pipeline.tiling.grid import is_integer, series_floor, series_ceil
 
 #: The counting lattice has at most this many cells over a scene's tiles (about 64 MB of
@@ -39,8 +41,7 @@ def count_cell_size(halo: float, area: float, chunk_area: float = math.inf) -> f
     17 % in time), or coarser when the tiles' area would need more than
     :data:`MAX_COUNT_CELLS` cells.
     """
-    if not (math.isfinite(halo) and halo > 0):
-        raise ValueError(f"halo must be a finite number > 0, got {halo!r}")
+    finite_number(halo, "halo", error=InputError)
     lines = math.sqrt(chunk_area) / LINES_PER_CHUNK
     fine = series_floor(min(halo / 4, lines) if lines > 0 else halo / 4)
     if area > 0 and area / fine**2 > MAX_COUNT_CELLS:
@@ -148,8 +149,7 @@ class BalancedLayout:
         ValueError
             ``halo`` not a finite number > 0, or ``target_points`` not an integer >= 1.
         """
-        if not (math.isfinite(halo) and halo > 0):
-            raise ValueError(f"halo must be a finite number > 0, got {halo!r}")
+        finite_number(halo, "halo", error=InputError)
         if not is_integer(target_points) or target_points < 1:
             raise ValueError(f"target_points must be an integer >= 1, got {target_points!r}")
         q = counts.cell

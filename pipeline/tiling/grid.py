@@ -6,6 +6,9 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
+from pipeline.checks import finite_number
+from pipeline.errors import InputError
+
 # Global point id = tile index << TILE_SHIFT | index of the point in its tile.
 TILE_SHIFT = 40
 
@@ -44,15 +47,12 @@ def _checked_extent(n_points, area, halo, target_points, extent) -> float:
         raise ValueError(f"n_points must be an integer >= 0, got {n_points!r}")
     if not is_integer(target_points) or target_points < 1:
         raise ValueError(f"target_points must be an integer >= 1, got {target_points!r}")
-    if not (math.isfinite(halo) and halo > 0):
-        raise ValueError(f"halo must be a finite number > 0, got {halo!r}")
-    if not (math.isfinite(area) and area >= 0):
-        raise ValueError(f"area must be a finite number >= 0, got {area!r}")
+    finite_number(halo, "halo", error=InputError)
+    finite_number(area, "area", positive=False, error=InputError)
     if extent is None:
-        extent = math.sqrt(area)
-    elif not (math.isfinite(extent) and extent >= 0):
-        raise ValueError(f"extent must be a finite number >= 0, got {extent!r}")
-    elif area > extent * extent * (1 + 1e-9):
+        return math.sqrt(area)
+    extent = finite_number(extent, "extent", positive=False, error=InputError)
+    if area > extent * extent * (1 + 1e-9):
         raise ValueError(f"extent {extent!r} is smaller than the side of a square of area "
                          f"{area!r}; give the larger side of the bounding box")
     return extent

@@ -29,7 +29,8 @@ import numpy as np
 from pipeline.errors import ConfigError
 from pipeline.surface import SUPPORT_RADIUS
 from pipeline.terrain import BlockGrid
-from pipeline.trees.cells import MAX_CELLS, CanopyCells, chm_raster, pack_keys, unpack_keys
+from pipeline.grid import MAX_CELLS, pack_keys, unpack_keys
+from pipeline.trees.cells import CanopyCells, chm_raster
 from pipeline.trees.crowns import segment_crowns
 from pipeline.trees.model import TREE_ARRAYS, TreeModel, assign_trees
 from pipeline.trees.params import TreeParams
@@ -75,20 +76,20 @@ def tree_grid(params: TreeParams, block: float | None = None) -> BlockGrid:
     return grid
 
 
-def cell_indices(keys: np.ndarray) -> np.ndarray:
+def index_pairs(keys: np.ndarray) -> np.ndarray:
     """int64 (M, 2): the (kx, ky) of packed canopy cell keys (M,)."""
     return np.column_stack(unpack_keys(keys))
 
 
 def occupied_blocks(grid: BlockGrid, cells: CanopyCells) -> np.ndarray:
     """int64 (B, 2): the blocks whose core holds a canopy cell, sorted by bx, by."""
-    return grid.occupied(cell_indices(cells.keys))
+    return grid.occupied(index_pairs(cells.keys))
 
 
 def region_cells(cells: CanopyCells, grid: BlockGrid, block) -> CanopyCells:
     """The canopy cells of ``cells`` that lie in ``block``'s region."""
     low, high = grid.region(block)
-    at = cell_indices(cells.keys)
+    at = index_pairs(cells.keys)
     inside = ((at >= low) & (at < high)).all(axis=1)
     return CanopyCells(*(getattr(cells, f.name)[inside] for f in fields(CanopyCells)))
 
@@ -155,7 +156,7 @@ def block_crowns(cells: CanopyCells, grid: BlockGrid, block, params: TreeParams)
     labels = np.ascontiguousarray(crowns.labels[i0:i1, j0:j1], dtype=np.int32)
     top = np.ascontiguousarray(chm.values[i0:i1, j0:j1], dtype=np.float32)
     keys = crowns.top_keys
-    at = cell_indices(keys)
+    at = index_pairs(keys)
     owned = ((at >= core_low) & (at < core_high)).all(axis=1)
     counts = np.bincount(labels.ravel(), minlength=len(crowns) + 1)[1:].astype(np.int64)
     return BlockCrowns(labels, top, origin + np.array([j0, i0]), keys, counts, owned)

@@ -1,9 +1,10 @@
 """The canopy of a scene reduced to the highest canopy point of each cell, exactly.
 
-Cells are squares of side ``cell`` anchored at 0, as the terrain's: the point (x, y) falls in
-the cell (floor(x / cell), floor(y / cell)), whose global key is one int64 (:func:`cell_keys`)
-ordering cells by row (ky) then column (kx). The highest point of a cell is chosen by a total
-order (:func:`highest_first`), and the height of its second highest point kept beside it, so
+Cells are those of the one grid (:mod:`pipeline.grid`), as the terrain's: the point (x, y)
+falls in the cell (floor(x / cell), floor(y / cell)), whose global key is one int64
+(:func:`pipeline.grid.cell_keys`) ordering cells by row (ky) then column (kx). The highest
+point of a cell is chosen by a total order (:func:`highest_first`), and the height of its
+second highest point kept beside it, so
 :func:`merge_cells` of the cells of any split of a cloud, in any order, equals
 :func:`canopy_cells` of the whole cloud bit for bit; the canopy height model of the scene
 (:func:`chm_raster`) is built from the merged cells, without the spikes of stray points high
@@ -15,14 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.errors import InputError
+from pipeline.grid import Raster, cell_keys, cell_order, key_window, unpack_keys
 from pipeline.surface import despike
-from pipeline.terrain import Raster
-from pipeline.terrain.grid import MAX_CELLS  # the largest raster, a canopy's as a terrain's
-
-#: Largest cell index magnitude on either axis: two indices pack into one int64 key.
-MAX_INDEX = 2**30
-#: Keys are (ky + MAX_INDEX) * KEY_ROW + (kx + MAX_INDEX).
-KEY_ROW = 2**31
 
 
 @dataclass(frozen=True)
@@ -46,28 +41,6 @@ class CanopyCells:
         return int(self.keys.shape[0])
 
 
-def cell_keys(x: np.ndarray, y: np.ndarray, cell: float) -> np.ndarray:
-    """int64 global keys of the cells of side ``cell`` holding the points (x, y) (float (N,))."""
-    kx = np.floor(np.asarray(x, dtype=np.float64) / cell)
-    ky = np.floor(np.asarray(y, dtype=np.float64) / cell)
-    if kx.size and max(np.abs(kx).max(), np.abs(ky).max()) >= MAX_INDEX:
-        raise InputError(f"coordinates make cell indices beyond {MAX_INDEX} at cell {cell} m; "
-                         "recentre the coordinates or use a larger trees.resolution")
-    return pack_keys(kx.astype(np.int64), ky.astype(np.int64))
-
-
-def pack_keys(kx: np.ndarray, ky: np.ndarray) -> np.ndarray:
-    """int64 keys of the cell indices (kx, ky) (integers, |k| < MAX_INDEX)."""
-    return (np.asarray(ky, np.int64) + MAX_INDEX) * KEY_ROW + (np.asarray(kx, np.int64)
-                                                                + MAX_INDEX)
-
-
-def unpack_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The cell indices (kx, ky) (int64) of keys made by :func:`pack_keys`."""
-    keys = np.asarray(keys, dtype=np.int64)
-    return keys % KEY_ROW - MAX_INDEX, keys // KEY_ROW - MAX_INDEX
-
-
 def highest_first(groups, height, z, x, y) -> np.ndarray:
     """The index of the highest point of each group, groups ascending.
 
@@ -82,11 +55,7 @@ def highest_first(groups, height, z, x, y) -> np.ndarray:
 def _highest_order(groups, height, z, x, y) -> tuple[np.ndarray, np.ndarray]:
     """The rows by group, highest first (the order of :func:`highest_first`), and a bool
     mask of the first row of each group in that order."""
-    order = np.lexsort((y, x, -z, -height, groups))
-    groups = groups[order]
-    first = np.ones(groups.shape[0], dtype=bool)
-    first[1:] = groups[1:] != groups[:-1]
-    return order, first
+    return cell_order(groups, -height, -z, x, y)
 
 
 def _select(keys, height, x, y, z, second=None) -> CanopyCells:
@@ -155,17 +124,13 @@ def chm_raster(cells: CanopyCells, cell: float) -> Raster:
     cell (kx, ky) at row ky - ky_min (row 0 south), column kx - kx_min; NaN where no canopy
     point fell. No cells (a scene without canopy) give one empty cell at the origin, in which
     no tree is found. Raises :class:`~pipeline.errors.InputError` for a raster of more than
-    :data:`MAX_CELLS` cells.
+    :data:`pipeline.grid.MAX_CELLS` cells.
     """
     if len(cells) == 0:
         return Raster(np.full((1, 1), np.nan), 0.0, 0.0, float(cell))
     kx, ky = unpack_keys(cells.keys)
-    low_x, low_y = int(kx.min()), int(ky.min())
-    nx, ny = int(kx.max()) - low_x + 1, int(ky.max()) - low_y + 1
-    if nx * ny > MAX_CELLS:
-        raise InputError(f"the canopy height model would have {ny} x {nx} cells of {cell} m "
-                         f"(more than {MAX_CELLS}); use a larger trees.resolution or split "
-                         "the scene")
+    low_x, low_y, nx, ny = key_window(kx, ky, f"the canopy height model of cells of {cell} m",
+                                      "use a larger trees.resolution or split the scene")
     values, second = np.full((ny, nx), np.nan), np.full((ny, nx), np.nan)
     values[ky - low_y, kx - low_x] = cells.height
     second[ky - low_y, kx - low_x] = cells.second

@@ -26,8 +26,7 @@ from skimage.measure import label as connected_regions
 from skimage.morphology import disk
 from skimage.segmentation import watershed
 
-from pipeline.terrain import Raster
-from pipeline.trees.cells import pack_keys
+from pipeline.grid import Raster, pack_keys
 from pipeline.trees.params import TreeParams
 
 #: Share of a Gaussian's weight an empty CHM cell needs from canopy cells to be filled.
@@ -51,7 +50,7 @@ class Crowns:
     """The crowns of a scene on its CHM grid.
 
     labels int32 (ny, nx): crown k (1..n) of each cell, 0 outside every crown; row 0 south,
-    as :class:`~pipeline.terrain.Raster`, with the same ``x0, y0, cell``. Crown k grows from
+    as :class:`~pipeline.grid.Raster`, with the same ``x0, y0, cell``. Crown k grows from
     the top at (top_row[k-1], top_col[k-1]) (int64 (n,)); tops are in row-major order, which
     is the order of their global cell keys. top_height float64 (n,): the CHM at the top.
     """
@@ -69,7 +68,7 @@ class Crowns:
 
     @property
     def top_keys(self) -> np.ndarray:
-        """int64 (n,) global cell keys of the tops (:func:`~pipeline.trees.cells.pack_keys`)."""
+        """int64 (n,) global cell keys of the tops (:func:`~pipeline.grid.pack_keys`)."""
         kx0 = int(np.rint(self.x0 / self.cell))
         ky0 = int(np.rint(self.y0 / self.cell))
         return pack_keys(self.top_col + kx0, self.top_row + ky0)

@@ -1,7 +1,7 @@
 """The trees of a scene: their IDs, the model that assigns points to them, and their table.
 
 Tree IDs (uint32, 0 = in no tree) come from where the trees are, never from a counter: the
-scene's trees are sorted by the global cell key (:func:`~pipeline.trees.cells.cell_keys` at
+scene's trees are sorted by the global cell key (:func:`~pipeline.grid.cell_keys` at
 ``trees.resolution``) of their top (crowns) or of their stem (stems), ties by x then y, and
 numbered 1..n in that order. The same scene gives the same IDs however it was chunked.
 
@@ -21,8 +21,8 @@ from scipy.spatial import cKDTree
 
 from pipeline.errors import ModelError
 from pipeline.surface import spike_gap
-from pipeline.terrain import Raster
-from pipeline.trees.cells import cell_keys, highest_first
+from pipeline.grid import Raster, cell_keys, value_at
+from pipeline.trees.cells import highest_first
 from pipeline.trees.crowns import Crowns
 from pipeline.trees.graph import VoxelTrees
 from pipeline.trees.params import TreeParams
@@ -104,27 +104,11 @@ class TreeModel:
         return cls(labels, **grid, **values, voxels=voxels, top=top)
 
 
-def _label_at(labels: np.ndarray, x0: float, y0: float, cell: float,
-              xy: np.ndarray, outside=0) -> np.ndarray:
-    """The value of ``labels`` (ny, nx) at the cell holding each point of xy (N, 2),
-    ``outside`` beyond the raster. The cell is found as canopy_cells keys it (floor(x / cell)
-    less the raster's first index), so a point lands in the very cell it built."""
-    values = np.full(xy.shape[0], outside, dtype=labels.dtype)
-    if labels.size == 0:
-        return values
-    col = np.floor(xy[:, 0] / cell).astype(np.int64) - int(np.rint(x0 / cell))
-    row = np.floor(xy[:, 1] / cell).astype(np.int64) - int(np.rint(y0 / cell))
-    ny, nx = labels.shape
-    inside = (row >= 0) & (row < ny) & (col >= 0) & (col < nx)
-    values[inside] = labels[row[inside], col[inside]]
-    return values
-
-
 def _stem_crowns(crowns: Crowns, stems) -> np.ndarray:
     """int64 (m,) the crown (1..n) holding each stem's centre, 0 when none; a crown keeps
     only the stem nearest its top, the others become trees of their own."""
-    crown = _label_at(crowns.labels, crowns.x0, crowns.y0, crowns.cell,
-                      np.column_stack((stems.x, stems.y))).astype(np.int64)
+    crown = value_at(crowns.labels, crowns.x0, crowns.y0, crowns.cell,
+                     np.column_stack((stems.x, stems.y))).astype(np.int64)
     top = crowns.top_xy
     held = np.flatnonzero(crown)
     distance = np.hypot(*(np.column_stack((stems.x, stems.y))[held] - top[crown[held] - 1]).T)
@@ -244,10 +228,10 @@ def assign_trees(model: TreeModel, xyz: np.ndarray, height: np.ndarray, canopy: 
     height = np.asarray(height, np.float64)
     tall = np.flatnonzero(np.asarray(canopy, bool) & (height >= params.min_height))
     if model.top is not None:
-        ceiling = _label_at(model.top, model.x0, model.y0, model.cell, xyz[tall, :2],
-                            np.nan) + spike_gap(model.cell)
+        ceiling = value_at(model.top, model.x0, model.y0, model.cell, xyz[tall, :2],
+                           np.nan) + spike_gap(model.cell)
         tall = tall[~(height[tall] > ceiling)]  # NaN: no canopy height there, no bound
-    ids[tall] = _label_at(model.labels, model.x0, model.y0, model.cell, xyz[tall, :2])
+    ids[tall] = value_at(model.labels, model.x0, model.y0, model.cell, xyz[tall, :2])
     if stem_mask is not None:
         loose = np.flatnonzero(np.asarray(stem_mask, bool) & (ids == 0))
         ids[loose] = _stem_ids(model, xyz[loose, :2], params.stem_cluster_eps)
@@ -337,8 +321,8 @@ def with_voxels(model: TreeModel, voxels: VoxelTrees) -> TreeModel:
         keys = voxels.keys[grown]
         rel = np.column_stack([keys // (ny_v * nz), (keys // nz) % ny_v, keys % nz])
         centre = (rel + voxels.origin + 0.5) * voxels.size
-        value = _label_at(np.arange(labels.size, dtype=np.int64).reshape(labels.shape) + 1,
-                          model.x0, model.y0, model.cell, centre[:, :2])
+        value = value_at(np.arange(labels.size, dtype=np.int64).reshape(labels.shape) + 1,
+                         model.x0, model.y0, model.cell, centre[:, :2])
         ok = value > 0  # the voxel's cell of the grid, 1-based
         order = np.lexsort((rel[ok, 2], value[ok]))  # per cell, the highest voxel last
         labels.reshape(-1)[value[ok][order] - 1] = voxels.ids[grown][ok][order]  # last wins

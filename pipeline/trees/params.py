@@ -8,8 +8,9 @@ import math
 import numbers
 from dataclasses import dataclass
 
+from pipeline.checks import finite_number
 from pipeline.errors import ConfigError
-from pipeline.trees.cells import MAX_CELLS, MAX_INDEX
+from pipeline.grid import MAX_CELLS, MAX_INDEX
 
 METHODS = ("auto", "crowns", "stems")
 #: The finest canopy height cell a scan resolves, as a share of its points' mean spacing
@@ -73,15 +74,8 @@ class TreeParams:
 
 def _number(name, raw, positive):
     """``raw`` as a finite float, > 0 when ``positive`` else >= 0, or a ConfigError."""
-    try:
-        value = float(raw)
-    except (TypeError, ValueError):
-        value = math.nan
-    if not math.isfinite(value) or value < 0.0 or (positive and value == 0.0):
-        bound = "> 0" if positive else ">= 0"
-        raise ConfigError(f"trees.{name} must be a finite number {bound}, got {raw!r}; "
-                          f"the default is {getattr(TreeParams, name)}")
-    return value
+    return finite_number(raw, f"trees.{name}", positive=positive,
+                         hint=f"the default is {getattr(TreeParams, name)}")
 
 
 def _linear(name, raw):

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.terrain import Raster
+from pipeline.grid import Raster
 from pipeline.trees.blocks import WholeTrees, crowns_in_blocks, tree_grid
 from pipeline.trees.cells import CanopyCells, canopy_cells, chm_raster, merge_cells
 from pipeline.trees.crowns import segment_crowns

@@ -3,10 +3,8 @@
 import numpy as np
 import pytest
 
-from pipeline.io.raster import (
-    NODATA, cell_index, hillshade, read_geotiff, tile_grid, write_geotiff,
-)
-from pipeline.terrain import Raster
+from pipeline.grid import Raster, cell_index, tile_grid
+from pipeline.io.raster import NODATA, hillshade, read_geotiff, write_geotiff
 
 UTM32 = 'PROJCS["ETRS89 / UTM zone 32N",GEOGCS["ETRS89",DATUM["European_Terrestrial_Reference_System_1989",SPHEROID["GRS 1980",6378137,298.257222101]],PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],PROJECTION["Transverse_Mercator"],PARAMETER["latitude_of_origin",0],PARAMETER["central_meridian",9],PARAMETER["scale_factor",0.9996],PARAMETER["false_easting",500000],PARAMETER["false_northing",0],UNIT["metre",1],AUTHORITY["EPSG","25832"]]'
 

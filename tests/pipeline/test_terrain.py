@@ -11,9 +11,9 @@ from hypothesis import strategies as st
 import pipeline.terrain.pits as pits
 import pipeline.terrain.smrf as smrf
 from pipeline.errors import ConfigError, InputError
+from pipeline.grid import Raster
 from pipeline.terrain import (
     GroundModel,
-    Raster,
     TerrainParams,
     cell_minima,
     fill,
@@ -44,7 +44,8 @@ def test_cell_minima_against_a_loop():
         k = (math.floor(x / 2.5), math.floor(y / 2.5))
         expected[k] = min(expected.get(k, (np.inf,)), (z, x, y))
     assert keys.dtype == np.int64 and zmin.dtype == np.float64 and xy.dtype == np.float64
-    assert [tuple(k) for k in keys] == sorted(expected)  # by kx, then ky
+    by_row = sorted(expected, key=lambda k: (k[1], k[0]))  # the grid's order: ky, then kx
+    assert [tuple(k) for k in keys] == by_row
     assert zmin.tolist() == [expected[tuple(k)][0] for k in keys]
     assert xy.tolist() == [list(expected[tuple(k)][1:]) for k in keys]
 

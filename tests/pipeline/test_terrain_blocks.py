@@ -178,7 +178,8 @@ def test_heights_of_a_cloud_in_memory_take_its_plots_apart_as_the_terrain_step()
 
 
 def test_a_lone_cell_is_its_own_ground_as_the_filter_makes_it():
-    from pipeline.terrain import Raster, ground_model
+    from pipeline.grid import Raster
+    from pipeline.terrain import ground_model
     from pipeline.terrain.blocks import _lone_cell_model
 
     minima = Raster(np.array([[123.456]]), 5.0, 7.0, 1.0)

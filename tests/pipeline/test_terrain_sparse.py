@@ -6,8 +6,9 @@ anything; dense rasters, holes and all, are filtered at their own cells as befor
 import numpy as np
 import pytest
 
+from pipeline.grid import Raster
 from pipeline.terrain import (
-    BlockGrid, Raster, TerrainParams, block_model, cell_minima, ground_elevation, ground_model,
+    BlockGrid, TerrainParams, block_model, cell_minima, ground_elevation, ground_model,
     merge_minima, minima_offsets, minima_raster, scene_terrain, sparse_factor, terrain_model,
 )
 from pipeline.terrain import grid

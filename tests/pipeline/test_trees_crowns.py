@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.errors import ConfigError
-from pipeline.terrain import Raster
+from pipeline.grid import Raster
 from pipeline.trees import (
     TreeParams,
     canopy_cells,

@@ -49,7 +49,7 @@ def fake_run(names=NAMES, exclude=("misc",), n=3000, n_stages=3, seed=0):
 
 def fake_terrain(seed=0):
     """One scene's terrain model (a tilted, wavy surface) and canopy samples above it."""
-    from pipeline.terrain import Raster
+    from pipeline.grid import Raster
 
     rng = np.random.default_rng(seed)
     rows, cols = np.mgrid[0:20, 0:40]

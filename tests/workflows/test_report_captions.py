@@ -5,7 +5,7 @@ histogram, and the terrain figure's titles do not run into each other."""
 import matplotlib
 import numpy as np
 
-from pipeline.terrain import Raster
+from pipeline.grid import Raster
 from workflows.report.figures import class_colour, terrain_figure, topdown_figure
 from workflows.report.trees import trees_html
 

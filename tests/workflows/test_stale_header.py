@@ -9,7 +9,8 @@ import laspy
 import numpy as np
 import pytest
 
-from pipeline.io.raster import cell_index, read_geotiff
+from pipeline.grid import cell_index
+from pipeline.io.raster import read_geotiff
 from tests.workflows.conftest import silva
 
 pytestmark = pytest.mark.slow

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.terrain import Raster
+from pipeline.grid import Raster
 from workflows.report.figures import raster_extent, scene_rasters, terrain_figure, topdown_figure
 from workflows.report.survey import survey_images
 

@@ -4,8 +4,9 @@ the chunks' borders, the same counts as the highest point of every cell of the w
 import numpy as np
 import pytest
 
+from pipeline.grid import cell_keys, first_per_cell
 from pipeline.tiling import Grid
-from workflows.steps.survey import class_tops, highest_per_cell, merge_tops
+from workflows.steps.survey import class_tops, merge_tops
 
 
 @pytest.mark.parametrize("size", [3.0, 7.5, 40.0])
@@ -15,12 +16,12 @@ def test_the_class_seen_from_above_does_not_depend_on_the_chunking(size):
     xyz[:50, :2] = np.round(xyz[:50, :2])  # points on cell and chunk borders
     label = rng.integers(0, 4, len(xyz))
     cell = 1.0
-    keys = np.floor(xyz[:, :2] / cell).astype(np.int64)
-    expected = np.bincount(label[highest_per_cell(keys, xyz[:, 2])], minlength=4)
+    keys = cell_keys(xyz[:, 0], xyz[:, 1], cell)
+    expected = np.bincount(label[first_per_cell(keys, -xyz[:, 2])], minlength=4)
     grid = Grid.covering(xyz.min(axis=0), xyz.max(axis=0), size)
     chunk, boxes = grid.chunk_of(xyz[:, :2]), grid.boxes()
     parts = [class_tops(xyz[chunk == c], label[chunk == c], boxes[c], cell, 4)
              for c in np.unique(chunk)]
     assert np.array_equal(merge_tops(parts, 4), expected)
     if size > cell * 2:  # most cells are counted within their chunk, not merged
-        assert sum(len(p[1]) for p in parts) < len(np.unique(keys, axis=0))
+        assert sum(len(p[1]) for p in parts) < len(np.unique(keys))

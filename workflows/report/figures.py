@@ -375,7 +375,7 @@ def _compact_count(count) -> str:
 
 def scene_rasters(dtm) -> tuple:
     """The rasters of a scene's terrain model: ``dtm`` itself (a
-    :class:`pipeline.terrain.Raster`), or every raster of a sequence of them."""
+    :class:`pipeline.grid.Raster`), or every raster of a sequence of them."""
     if hasattr(dtm, "values"):
         return (dtm,)
     return tuple(dtm)
@@ -409,7 +409,7 @@ def terrain_figure(terrain: dict) -> Figure:
     """Per scene, the terrain model's hillshade and the canopy height of the sampled points.
 
     ``terrain`` maps a scene name to ``{"dtm": ..., "x", "y", "height"}``: the scene's
-    terrain model (a :class:`pipeline.terrain.Raster`, or its blocks, see
+    terrain model (a :class:`pipeline.grid.Raster`, or its blocks, see
     :func:`scene_rasters`: every block is drawn at its place, so plots far apart are all
     seen) and the map coordinates and heights above it of the sampled points predicted as a
     canopy class.

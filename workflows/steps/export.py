@@ -28,10 +28,11 @@ from pipeline.errors import ConfigError, StoreError
 from pipeline.features.sets import feature_set
 from pipeline.io import ExtraDim, export_with_extra_dims, read_info
 from pipeline.io.las import extra_dimension_types
-from pipeline.io.raster import cell_index, tile_grid, write_geotiff
+from pipeline.grid import MAX_CELLS, Raster, cell_index, tile_grid
+from pipeline.io.raster import write_geotiff
 from pipeline.store import open_store, rows_of
 from pipeline.surface import despike, top_two
-from pipeline.terrain import Raster, SceneTerrain, ground_elevation
+from pipeline.terrain import SceneTerrain, ground_elevation
 from pipeline.tiling import BalancedLayout, Grid, global_ids
 from workflows.config.point_filter import PointFilter
 from workflows.config.schema import feature_dim_name
@@ -179,9 +180,10 @@ def check_output_names(run: Run, tiles: list[dict]) -> None:
                     "from the input")
 
 
-#: Cells a tile's raster may hold: a few float64 arrays of 50 M cells each stay within a
-#: worker's memory, where a resolution written in the wrong unit asks for billions.
-MAX_RASTER_CELLS = 50_000_000
+#: Cells a tile's raster may hold: the largest raster shared by the four float64 arrays a
+#: tile's rasters hold at once (the two highest values of the DSM's and the canopy's cells),
+#: where a resolution written in the wrong unit asks for billions.
+MAX_RASTER_CELLS = MAX_CELLS // 4
 
 
 def check_raster_size(run: Run, tiles: list[dict]) -> None:

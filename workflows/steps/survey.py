@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from pipeline.cascade import id_hash, labels_from_proba
+from pipeline.grid import cell_keys, first_per_cell, unpack_keys
 from pipeline.tiling import split_global_ids
 from workflows.exec.engine import chunk_tasks, results_by_scene
 from workflows.run.directory import Run
@@ -41,11 +42,13 @@ class SurveyTask:
 
 
 def inner_cells(keys: np.ndarray, box, cell: float) -> np.ndarray:
-    """bool (M,): the cells (keys (M, 2)) that lie a cell or more inside the chunk's core
-    ``box``: no other chunk holds a point of them (the margin absorbs rounding)."""
-    low = keys * cell
-    return ((low[:, 0] >= box[0] + cell) & (low[:, 0] + cell <= box[2] - cell)
-            & (low[:, 1] >= box[1] + cell) & (low[:, 1] + cell <= box[3] - cell))
+    """bool (M,): the cells (keys int64 (M,), :func:`pipeline.grid.cell_keys`) that lie a
+    cell or more inside the chunk's core ``box``: no other chunk holds a point of them (the
+    margin absorbs rounding)."""
+    kx, ky = unpack_keys(keys)
+    low_x, low_y = kx * cell, ky * cell
+    return ((low_x >= box[0] + cell) & (low_x + cell <= box[2] - cell)
+            & (low_y >= box[1] + cell) & (low_y + cell <= box[3] - cell))
 
 
 def chunk_survey(view, task: SurveyTask):
@@ -80,8 +83,8 @@ def class_tops(xyz: np.ndarray, label: np.ndarray, box, cell: float, n_classes: 
     highest point of each cell, counted (int64 (n_classes,)) over the cells within the
     chunk's core ``box``, and for those at its border (which a neighbour may share) the
     cells' keys, highest z and class, for :func:`merge_tops`."""
-    keys = np.floor(xyz[:, :2] / cell).astype(np.int64)
-    top = highest_per_cell(keys, xyz[:, 2])
+    keys = cell_keys(xyz[:, 0], xyz[:, 1], cell)
+    top = first_per_cell(keys, -xyz[:, 2])  # the highest; ties by row
     inner = inner_cells(keys[top], box, cell)
     border = top[~inner]
     return (np.bincount(label[top[inner]], minlength=n_classes), keys[border], xyz[border, 2],
@@ -93,19 +96,12 @@ def merge_tops(parts, n_classes: int) -> np.ndarray:
     its chunks' :func:`class_tops`; only the border cells are merged, so this holds no
     array as large as the scene's area."""
     parts = list(parts)
-    keys = np.concatenate([p[1] for p in parts]).reshape(-1, 2)
+    keys = np.concatenate([p[1] for p in parts]).astype(np.int64, copy=False)
     z = np.concatenate([p[2] for p in parts])
     label = np.concatenate([p[3] for p in parts])
-    return sum(p[0] for p in parts) + np.bincount(label[highest_per_cell(keys, z)],
+    return sum(p[0] for p in parts) + np.bincount(label[first_per_cell(keys, -z)],
                                                   minlength=n_classes)
 
-
-def highest_per_cell(keys: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Rows of the highest point of each cell of ``keys`` (int64 (N, 2)); ties by row."""
-    order = np.lexsort((-z, keys[:, 1], keys[:, 0]))  # per cell, highest first
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = (np.diff(keys[order], axis=0) != 0).any(axis=1)
-    return order[first]
 
 
 def _profiles(layout: RunLayout) -> dict:

@@ -8,8 +8,9 @@ import numpy as np
 import zarr
 
 from pipeline.errors import StoreError
+from pipeline.grid import Raster
 from pipeline.store import open_store, write_arrays
-from pipeline.terrain import BlockGrid, BlockModel, BlockTerrain, Raster, SceneTerrain
+from pipeline.terrain import BlockGrid, BlockModel, BlockTerrain, SceneTerrain
 from pipeline.terrain.blocks import BLOCK_ARRAYS
 from workflows.store.layout import terrain_path
 from workflows.store.marks import is_done, mark_done, read_array

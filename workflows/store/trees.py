@@ -9,8 +9,9 @@ import numpy as np
 import zarr
 
 from pipeline.errors import StoreError
+from pipeline.grid import Raster
 from pipeline.store import open_store, write_arrays
-from pipeline.terrain import BlockGrid, Raster
+from pipeline.terrain import BlockGrid
 from pipeline.trees import TreeModel
 from pipeline.trees.blocks import CROWN_ARRAYS, BlockCrowns, SceneCrowns, WholeTrees
 from workflows.store.marks import is_done, mark_done, read_array
