@@ -16,6 +16,7 @@ survey (at 1 point/m², a 2 m cell is empty 2 % of the time).
 
 import numpy as np
 
+from pipeline import grid
 from pipeline.cascade.sampling import id_hash
 from pipeline.checks import finite_number
 from pipeline.errors import InputError
@@ -54,38 +55,25 @@ def thinned_mask(ids, fraction: float, seed: int = 0) -> np.ndarray:
 def point_density(xy, cell: float = DEFAULT_DENSITY_CELL) -> float:
     """Points per m² of ``xy`` (float64 (N, 2+), only the first two columns are read) over
     the area of the cells of side ``cell`` metres that hold a point; 0.0 for no points."""
-    cell = _check_positive(cell, "cell")
-    xy = np.asarray(xy, dtype=np.float64)
-    if xy.ndim != 2 or xy.shape[1] < 2:
-        raise InputError(f"xy must be of shape (N, 2) or (N, 3), got {xy.shape}")
-    if len(xy) == 0:
+    keys = cell_keys(xy, cell)
+    if len(keys) == 0:
         return 0.0
-    if not np.isfinite(xy[:, :2]).all():
-        raise InputError("xy holds NaN or infinite coordinates")
-    keys = np.floor(xy[:, :2] / cell).astype(np.int64)
-    occupied = len(np.unique(keys, axis=0))
-    return len(xy) / (occupied * cell * cell)
-
-
-#: :func:`cell_keys` packs a cell's two int32 indices into one int64.
-_KEY_BITS = 32
+    cell = float(cell)
+    return len(keys) / (len(np.unique(keys)) * cell * cell)
 
 
 def cell_keys(xy, cell: float = DEFAULT_DENSITY_CELL) -> np.ndarray:
     """int64 (N,): one key per point of ``xy`` (float64 (N, 2+)) for the XY cell of side
     ``cell`` metres it falls in, as :func:`point_density` counts the cells: the cells a cloud
-    read in pieces occupies are the union of its pieces' keys (``np.union1d``)."""
+    read in pieces occupies are the union of its pieces' keys (``np.union1d``); the keys of
+    :func:`pipeline.grid.cell_keys`."""
     cell = _check_positive(cell, "cell")
     xy = np.asarray(xy, dtype=np.float64)
     if xy.ndim != 2 or xy.shape[1] < 2:
         raise InputError(f"xy must be of shape (N, 2) or (N, 3), got {xy.shape}")
     if not np.isfinite(xy[:, :2]).all():
         raise InputError("xy holds NaN or infinite coordinates")
-    keys = np.floor(xy[:, :2] / cell)
-    if len(keys) and np.abs(keys).max() >= 2.0 ** (_KEY_BITS - 1):
-        raise InputError(f"coordinates too far from 0 to count {cell:g} m cells; recentre them")
-    keys = keys.astype(np.int64)
-    return (keys[:, 0] << _KEY_BITS) | (keys[:, 1] & ((1 << _KEY_BITS) - 1))
+    return grid.cell_keys(xy[:, 0], xy[:, 1], cell)
 
 
 def cells_density(n_points: int, n_cells: int, cell: float = DEFAULT_DENSITY_CELL) -> float:
