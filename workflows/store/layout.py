@@ -20,9 +20,12 @@ Layout::
                           of each terrain cell (pipeline.terrain.cell_minima)
           stage<t>_context (n, 2C) f4, stage<t>_proba (n, C) f4     (t = 1, 2, ...)
         attrs: done = {step: fingerprint}, results, assembled, arrays = {array: pack}
-      scenes/<scene>/terrain/        the scene's terrain model: dtm (ny, nx) f8, south row
-        first; attrs x0, y0, cell, done = {"terrain": fingerprint}, interpolated (the share of
-        the cells with points where no ground was seen)
+      scenes/<scene>/terrain/        the scene's terrain model: blocks (B, 2) i8, the occupied
+        blocks of its grid; attrs cell, size, buffer, reach, done = {"terrain": fingerprint},
+        interpolated (the share of the cells with points where no ground was seen)
+      scenes/<scene>/terrain/blocks/<bx>_<by>/   one block's model (its to_arrays)
+      scenes/<scene>/trees/          the scene's trees, laid out the same way
+        (scene models: :mod:`workflows.store.models`)
 
 A thinned copy of a training scene (``data.densities``) is a scene of its own,
 ``<scene>@<density>ppm`` (:func:`copy_scene`), laid out as every scene: its parts hold the
@@ -73,10 +76,6 @@ def unit_path(scene: str, key) -> str:
 
 def part_path(scene: str, tile_index: int, chunk_name: str) -> str:
     return f"{unit_path(scene, tile_index)}/{chunk_name}"
-
-
-def terrain_path(scene: str) -> str:
-    return f"scenes/{scene}/terrain"
 
 
 def proba_array(stage: int) -> str:

@@ -8,39 +8,27 @@ from functools import lru_cache
 import numpy as np
 import zarr
 
-from pipeline.errors import StoreError
 from pipeline.grid import Raster
 from pipeline.store import open_store, write_arrays
 from pipeline.terrain import BlockGrid
 from pipeline.trees import TreeModel
 from pipeline.trees.blocks import CROWN_ARRAYS, BlockCrowns, SceneCrowns, WholeTrees
-from workflows.store.marks import is_done, mark_done, read_array
+from workflows.store.marks import mark_done, read_array
+from workflows.store.models import OVERVIEW_CELLS, SceneModels, lazy_blocks, thinned
 
-#: The store group of a scene's trees.
-TREES_GROUP = "scenes/{scene}/trees"
+#: Where the scenes' trees live.
+TREES = SceneModels("trees", "trees")
 #: The whole-scene canopy height model kept with a stems model (for the report).
 CHM = "chm"
 #: A block's tree IDs of its crowns, written once the scene's trees are numbered.
 BLOCK_IDS = "ids"
-#: Block models a worker keeps read (a chunk's points lie in a few blocks).
-CACHED_BLOCKS = 9
-
-
-def trees_path(scene: str) -> str:
-    return TREES_GROUP.format(scene=scene)
-
-
-def block_path(scene: str, block) -> str:
-    return f"{trees_path(scene)}/blocks/{int(block[0])}_{int(block[1])}"
 
 
 def write_block(root: zarr.Group, scene: str, block, crowns: BlockCrowns,
                 fingerprint: str) -> dict:
     """Store the crowns of one block and mark them done; return what numbering needs
     (:func:`block_done` returns the same)."""
-    group = root.require_group(block_path(scene, block))
-    write_arrays(group, crowns.to_arrays())
-    mark_done(group, "trees", fingerprint)
+    TREES.write_block(root, scene, block, crowns.to_arrays(), fingerprint)
     return numbering_of(crowns)
 
 
@@ -51,14 +39,13 @@ def numbering_of(crowns: BlockCrowns) -> dict:
 
 def block_done(root: zarr.Group, scene: str, block, fingerprint: str) -> dict | None:
     """:func:`numbering_of` the block's stored crowns when done with ``fingerprint``."""
-    path = block_path(scene, block)
-    if path not in root or not is_done(root[path], "trees", fingerprint):
+    if TREES.block_done(root, scene, block, fingerprint) is None:
         return None
-    return {name: read_array(root[path], name) for name in ("keys", "cells", "owned")}
+    return TREES.block_arrays(root, scene, block, ("keys", "cells", "owned"))
 
 
 def write_block_ids(root: zarr.Group, scene: str, block, ids: np.ndarray) -> None:
-    write_arrays(root[block_path(scene, block)], {BLOCK_IDS: np.asarray(ids, np.uint32)})
+    write_arrays(root[TREES.block_path(scene, block)], {BLOCK_IDS: np.asarray(ids, np.uint32)})
 
 
 def write_scene_trees(root: zarr.Group, scene: str, model: TreeModel, method: str,
@@ -79,7 +66,7 @@ def write_scene_trees(root: zarr.Group, scene: str, model: TreeModel, method: st
     shapes = {name: list(a.shape) for name, a in arrays.items() if np.ndim(a) > 1}
     arrays = {name: np.asarray(a).reshape(-1) if name in shapes else a
               for name, a in arrays.items()}
-    group = root.require_group(trees_path(scene))
+    group = root.require_group(TREES.path(scene))
     write_arrays(group, arrays, pack="model")  # not "blocks": the group of the blocks
     mark_done(group, "trees", fingerprint, model=attrs, tree_arrays=sorted(arrays),
               shapes=shapes, method=method)
@@ -93,47 +80,37 @@ def _read(group, name: str) -> np.ndarray:
 
 
 def trees_done(root: zarr.Group, scene: str, fingerprint: str) -> bool:
-    path = trees_path(scene)
-    return path in root and is_done(root[path], "trees", fingerprint)
-
-
-def _group(root: zarr.Group, scene: str) -> zarr.Group:
-    path = trees_path(scene)
-    if path not in root or "method" not in root[path].attrs:
-        raise StoreError(f"the trees of scene '{scene}' are missing from the store; run the "
-                         "same command again (or start afresh with --overwrite)")
-    return root[path]
+    return TREES.done(root, scene) == fingerprint
 
 
 def read_tree_model(root: zarr.Group, scene: str) -> tuple[TreeModel, str]:
     """The scene's per-tree model (a whole model with its labels, or the per-tree arrays
     of blocked crowns) and the method that found its trees."""
-    group = _group(root, scene)
+    group = TREES.scene_group(root, scene)
     arrays = {name: _read(group, name) for name in group.attrs["tree_arrays"]}
     return TreeModel.from_arrays(arrays, group.attrs["model"]), group.attrs["method"]
 
 
 def read_scene_trees(root: zarr.Group, scene: str):
     """What assigns the scene's points to its trees: :class:`SceneCrowns` whose blocks are
-    read when first needed (and kept, up to :data:`CACHED_BLOCKS`), or :class:`WholeTrees`."""
-    group = _group(root, scene)
+    read when first needed (and kept, up to :data:`~workflows.store.models.CACHED_BLOCKS`),
+    or :class:`WholeTrees`."""
+    group = TREES.scene_group(root, scene)
     attrs = group.attrs["model"]
     if "grid" not in attrs:
         return WholeTrees(read_tree_model(root, scene)[0])
     grid = BlockGrid(**attrs["grid"])
     blocks = _read(group, "blocks")
 
-    @lru_cache(maxsize=CACHED_BLOCKS)
     def load(row: int) -> TreeModel:
-        return read_block(root, scene, blocks[row]).model(
-            read_array(root[block_path(scene, blocks[row])], BLOCK_IDS), grid.cell)
+        ids = TREES.block_arrays(root, scene, blocks[row], (BLOCK_IDS,))[BLOCK_IDS]
+        return read_block(root, scene, blocks[row]).model(ids, grid.cell)
 
-    return SceneCrowns(grid, blocks, load)
+    return SceneCrowns(grid, blocks, lazy_blocks(load))
 
 
 def read_block(root: zarr.Group, scene: str, block) -> BlockCrowns:
-    group = root[block_path(scene, block)]
-    return BlockCrowns.from_arrays({name: read_array(group, name) for name in CROWN_ARRAYS})
+    return BlockCrowns.from_arrays(TREES.block_arrays(root, scene, block, CROWN_ARRAYS))
 
 
 @lru_cache(maxsize=4)
@@ -142,29 +119,20 @@ def stored_trees(store_path: str, scene: str, fingerprint: str):
     return read_scene_trees(open_store(store_path), scene)
 
 
-#: Canopy cells of a scene drawn in the report at most (a large survey is drawn coarser).
-OVERVIEW_CELLS = 4_000_000
-
-
 def canopy_overview(root: zarr.Group, scene: str, max_cells: int = OVERVIEW_CELLS
                     ) -> list[Raster]:
     """The canopy height of a scene to draw (Rasters: the whole model's, or one per block),
     every k-th cell along both axes, k such that about ``max_cells`` are drawn: block by
     block, in bounded memory."""
-    group = _group(root, scene)
+    group = TREES.scene_group(root, scene)
     attrs = group.attrs["model"]
     if "grid" not in attrs:
         chm = Raster(_read(group, CHM), **attrs["chm"])  # a plot's: small
-        pieces, cells = [lambda: chm], float(chm.values.size)
-    else:
-        grid = BlockGrid(**attrs["grid"])
-        blocks = _read(group, "blocks")
-        pieces = [lambda block=block: block_canopy(root, scene, block, grid.cell)
-                  for block in blocks]
-        cells = float(grid.size ** 2 * len(blocks))
-    step = max(1, int(np.ceil(np.sqrt(cells / max_cells))))
-    return [Raster(r.values[::step, ::step], r.x0, r.y0, r.cell * step)
-            for r in (piece() for piece in pieces)]
+        return thinned([chm], float(chm.values.size), max_cells)
+    grid = BlockGrid(**attrs["grid"])
+    blocks = _read(group, "blocks")
+    canopies = (block_canopy(root, scene, block, grid.cell) for block in blocks)
+    return thinned(canopies, float(grid.size ** 2 * len(blocks)), max_cells)
 
 
 def block_canopy(root: zarr.Group, scene: str, block, cell: float) -> Raster:
