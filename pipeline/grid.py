@@ -154,15 +154,9 @@ def key_window(kx: np.ndarray, ky: np.ndarray, what: str, fix: str) -> tuple[int
     (int (M,), M >= 1); an InputError naming ``what`` and ``fix`` beyond :data:`MAX_CELLS`."""
     low_x, low_y = int(kx.min()), int(ky.min())
     nx, ny = int(kx.max()) - low_x + 1, int(ky.max()) - low_y + 1
-    check_cells(nx, ny, what, fix)
-    return low_x, low_y, nx, ny
-
-
-def check_cells(nx: int, ny: int, what: str, fix: str) -> None:
-    """An InputError when a raster of ``ny`` x ``nx`` cells (``what``: 'the terrain raster
-    ... cells of 1 m') would hold more than :data:`MAX_CELLS`; ``fix`` says what to change."""
     if nx * ny > MAX_CELLS:
         raise InputError(f"{what} would have {ny} x {nx} cells (more than {MAX_CELLS}); {fix}")
+    return low_x, low_y, nx, ny
 
 
 def tile_grid(mins, maxs, cell: float) -> tuple[float, float, int, int]:

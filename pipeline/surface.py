@@ -23,6 +23,8 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
+from pipeline.grid import cell_order
+
 #: Least height (m) by which a stray point stands out above every point that could support it.
 SPIKE_GAP = 15.0
 #: Metres per metre of cell the gap grows by in coarse rasters: a crown's flank falls less
@@ -49,10 +51,8 @@ def top_two(flat: np.ndarray, values: np.ndarray, top: np.ndarray, second: np.nd
     Batches can come in any order and give the same result."""
     keep = flat >= 0
     flat, values = flat[keep], np.asarray(values, dtype=np.float64)[keep]
-    order = np.lexsort((-values, flat))
+    order, first = cell_order(flat, -values)  # per cell, highest first
     flat, values = flat[order], values[order]
-    first = np.ones(flat.shape[0], dtype=bool)
-    first[1:] = flat[1:] != flat[:-1]
     runner = np.zeros(flat.shape[0], dtype=bool)  # the second of its cell in this batch
     runner[1:] = first[:-1] & ~first[1:]
     cells, best = flat[first], values[first]
