@@ -209,7 +209,8 @@ class BlockTerrain:
         if len(self.dtms) == 1:
             return np.zeros(len(xy), dtype=np.int64)
         cell = self.dtms[0].cell
-        tiles = np.floor_divide(np.floor(xy / cell).astype(np.int64), self.reach)
+        tiles = np.floor_divide(np.column_stack(cell_indices(xy[:, 0], xy[:, 1], cell)),
+                                self.reach)
         row = self._index.find(tiles)
         lost = row < 0
         if lost.any():

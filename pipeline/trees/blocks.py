@@ -29,7 +29,7 @@ import numpy as np
 from pipeline.errors import ConfigError
 from pipeline.surface import SUPPORT_RADIUS
 from pipeline.terrain import BlockGrid
-from pipeline.grid import MAX_CELLS, pack_keys, unpack_keys
+from pipeline.grid import MAX_CELLS, cell_indices, pack_keys, unpack_keys
 from pipeline.trees.cells import CanopyCells, chm_raster
 from pipeline.trees.crowns import segment_crowns
 from pipeline.trees.model import TREE_ARRAYS, TreeModel, assign_trees
@@ -228,8 +228,8 @@ class SceneCrowns:
         """int64 (N,): the row in :attr:`blocks` of the block whose core holds each
         position, -1 where that block holds no canopy (no tree can be there)."""
         keys, rows = self._index
-        cells = np.floor(np.asarray(xy, np.float64) / self.grid.cell).astype(np.int64)
-        block = self.grid.blocks_of(cells)
+        block = self.grid.blocks_of(np.column_stack(cell_indices(xy[:, 0], xy[:, 1],
+                                                                 self.grid.cell)))
         wanted = pack_keys(block[:, 0], block[:, 1])
         at = np.minimum(np.searchsorted(keys, wanted), max(keys.size - 1, 0))
         if not keys.size:

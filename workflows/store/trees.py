@@ -8,7 +8,7 @@ from functools import lru_cache
 import numpy as np
 import zarr
 
-from pipeline.grid import Raster
+from pipeline.grid import Raster, cell_indices
 from pipeline.store import open_store, write_arrays
 from pipeline.terrain import BlockGrid
 from pipeline.trees import TreeModel
@@ -151,8 +151,8 @@ def crown_labels(root: zarr.Group, scene: str, box) -> tuple[np.ndarray, float, 
         m = trees.model
         return m.labels, m.x0, m.y0, m.cell
     grid = trees.grid
-    low = np.floor(np.asarray(box[:2]) / grid.cell).astype(np.int64)
-    high = np.floor(np.asarray(box[2:]) / grid.cell).astype(np.int64) + 1
+    low = np.array(cell_indices(box[0], box[1], grid.cell))
+    high = np.array(cell_indices(box[2], box[3], grid.cell)) + 1
     wanted = (grid.blocks_of(low), grid.blocks_of(high - 1))
     rows = np.flatnonzero(((trees.blocks >= wanted[0]) & (trees.blocks <= wanted[1])).all(axis=1))
     labels = np.zeros((int(high[1] - low[1]), int(high[0] - low[0])), dtype=np.uint32)
