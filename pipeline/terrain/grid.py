@@ -15,9 +15,7 @@ from scipy import ndimage, sparse
 
 from pipeline.checks import finite_number
 from pipeline.errors import InputError
-from pipeline.grid import (
-    Raster, cell_indices, first_per_cell, key_window, pack_keys,
-)
+from pipeline.grid import Raster, cell_indices, first_per_cell, key_window, pack_keys
 
 logger = logging.getLogger(__name__)
 

@@ -4,11 +4,10 @@ Cells are those of the one grid (:mod:`pipeline.grid`), as the terrain's: the po
 falls in the cell (floor(x / cell), floor(y / cell)), whose global key is one int64
 (:func:`pipeline.grid.cell_keys`) ordering cells by row (ky) then column (kx). The highest
 point of a cell is chosen by a total order (:func:`highest_first`), and the height of its
-second highest point kept beside it, so
-:func:`merge_cells` of the cells of any split of a cloud, in any order, equals
-:func:`canopy_cells` of the whole cloud bit for bit; the canopy height model of the scene
-(:func:`chm_raster`) is built from the merged cells, without the spikes of stray points high
-above the canopy (:func:`pipeline.surface.despike`).
+second highest point kept beside it, so :func:`merge_cells` of the cells of any split of a
+cloud, in any order, equals :func:`canopy_cells` of the whole cloud bit for bit; the canopy
+height model of the scene (:func:`chm_raster`) is built from the merged cells, without the
+spikes of stray points high above the canopy (:func:`pipeline.surface.despike`).
 """
 
 from dataclasses import dataclass
