@@ -19,6 +19,7 @@ over open ground is compared with the ground.
 """
 
 import math
+from itertools import chain
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -122,22 +123,44 @@ def _support_within(top: np.ndarray, empty: float, rows: np.ndarray, cols: np.nd
     beyond the raster, counts as ``empty`` (-inf: none)."""
     filled = np.argwhere(np.isfinite(top))
     values = top[filled[:, 0], filled[:, 1]]
-    n_near = _near_count(reach)
     ranking = np.full((rows.shape[0], SUPPORT_RANK), -np.inf)
-    queries = np.column_stack([rows, cols])
     if rows.shape[0] == 0 or filled.shape[0] == 0:
         return _support(ranking)
-    found_near = cKDTree(filled).query_ball_point(queries, r=reach + 1)  # the disc follows
-    for n, (row, col) in enumerate(queries):
-        near = np.asarray(found_near[n], dtype=np.int64)
-        step = filled[near] - (row, col)
-        inside = (((step * step).sum(axis=1) <= reach * reach)
-                  | (np.abs(step).max(axis=1, initial=0) == 1)) & step.any(axis=1)
-        found = np.sort(values[near[inside]])[::-1][:SUPPORT_RANK]
-        unfilled = np.full(min(n_near - int(inside.sum()), SUPPORT_RANK), empty)
-        best = np.sort(np.concatenate([found, unfilled]))[::-1][:SUPPORT_RANK]
-        ranking[n, :best.shape[0]] = best
+    tree = cKDTree(filled)
+    queries = np.column_stack([rows, cols])
+    for start in range(0, rows.shape[0], 65_536):  # bounded memory
+        batch = queries[start:start + 65_536]
+        ranking[start:start + batch.shape[0]] = _highest_near(
+            tree, filled, values, batch, reach, empty)
     return _support(ranking)
+
+
+def _highest_near(tree: cKDTree, filled: np.ndarray, values: np.ndarray, queries: np.ndarray,
+                  reach: int, empty: float) -> np.ndarray:
+    """(n, :data:`SUPPORT_RANK`): for each cell of ``queries`` (n, 2), the highest
+    ``values`` of the ``filled`` cells (indexed by ``tree``) within ``reach`` of it, the
+    cell left out, highest first; the disc's cells without a value count as ``empty``;
+    -inf where the disc holds fewer cells."""
+    found = tree.query_ball_point(queries, r=reach + 1)  # the disc follows
+    counts = np.fromiter(map(len, found), dtype=np.int64, count=len(found))
+    near = np.fromiter(chain.from_iterable(found), dtype=np.int64, count=int(counts.sum()))
+    owner = np.repeat(np.arange(len(found)), counts)
+    step = filled[near] - queries[owner]
+    inside = (((step * step).sum(axis=1) <= reach * reach)
+              | (np.abs(step).max(axis=1) == 1)) & step.any(axis=1)
+    owner, near_values = owner[inside], values[near[inside]]
+    # the disc's cells without a value: as many as may rank (at most SUPPORT_RANK) a cell
+    unfilled = np.minimum(_near_count(reach) - np.bincount(owner, minlength=len(found)),
+                          SUPPORT_RANK)
+    owner = np.concatenate([owner, np.repeat(np.arange(len(found)), unfilled)])
+    near_values = np.concatenate([near_values, np.full(int(unfilled.sum()), empty)])
+    order = np.lexsort((-near_values, owner))
+    owner, near_values = owner[order], near_values[order]
+    rank = np.arange(owner.shape[0]) - np.searchsorted(owner, owner)
+    ranked = rank < SUPPORT_RANK
+    ranking = np.full((len(found), SUPPORT_RANK), -np.inf)
+    ranking[owner[ranked], rank[ranked]] = near_values[ranked]
+    return ranking
 
 
 def despike(top: np.ndarray, second: np.ndarray, cell: float,

@@ -30,6 +30,7 @@ from pipeline.terrain.smrf import (
     LOW_DEPTH,
     GroundModel,
     TerrainParams,
+    factor_for_occupancy,
     ground_model,
     sparse_factor,
     terrain_model,
@@ -37,7 +38,8 @@ from pipeline.terrain.smrf import (
 
 __all__ = [
     "LOW_DEPTH", "BlockGrid", "BlockModel", "BlockTerrain", "GroundModel",
-    "SceneTerrain", "TerrainParams", "block_model", "block_reach", "cell_minima", "fill",
+    "SceneTerrain", "TerrainParams", "block_model", "block_reach", "cell_minima",
+    "factor_for_occupancy", "fill",
     "fill_near", "ground_elevation", "ground_model", "merge_minima", "minima_offsets",
     "minima_raster", "scene_terrain", "sparse_factor", "terrain_model",
 ]

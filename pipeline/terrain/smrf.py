@@ -386,10 +386,16 @@ def sparse_factor(data: np.ndarray) -> int:
     i, j = np.nonzero(data)
     density = (int(near[i, j].sum()) - n_data) / (int((rows[i] * cols[j]).sum()) - n_data)
     # points too far apart to see each other: at least the share of the raster they fill
-    density = max(density, n_data / data.size)
-    if density >= SPARSE_OCCUPANCY:
+    return factor_for_occupancy(max(density, n_data / data.size))
+
+
+def factor_for_occupancy(occupancy: float) -> int:
+    """The widening factor of :func:`sparse_factor` for data whose cells see this share of
+    their neighbouring cells with data: 1 from :data:`SPARSE_OCCUPANCY` on, else the least
+    integer f with f² times the share at least :data:`COARSE_DENSITY`."""
+    if occupancy >= SPARSE_OCCUPANCY:
         return 1
-    return math.ceil(math.sqrt(COARSE_DENSITY / density) - 1e-9)
+    return math.ceil(math.sqrt(COARSE_DENSITY / max(occupancy, 1e-12)) - 1e-9)
 
 
 def _sparse_model(minima: Raster, params: TerrainParams, offsets: np.ndarray | None,

@@ -137,20 +137,28 @@ def test_a_sparse_survey_shows_its_density():
         "338.2", "1.0", "0.062", "0.01"]
 
 
-def test_a_sparse_survey_plans_more_terrain_time_per_cell(tmp_path, survey):
+def test_a_sparse_surveys_terrain_time_follows_its_points_not_its_area(tmp_path, survey):
     from workflows.cli.plan import TERRAIN_SECONDS_PER_CELL, terrain_seconds_per_cell
     from workflows.config import load_config
     from workflows.run.autoparams import resolve_run
     from workflows.run.directory import Run
 
     run = Run(resolve_run(load_config(write_config(tmp_path / "c.yaml", survey))), tmp_path)
+    cell = run.terrain.cell
 
-    def tiles(points):
-        return [{"scene": "test", "n_points": points, "mins": [0, 0, 0], "maxs": [1000, 1000, 1]}]
+    def seconds(points, side):
+        tiles = [{"scene": "test", "n_points": points, "mins": [0, 0, 0],
+                  "maxs": [side, side, 1]}]
+        return (side / cell) ** 2 * terrain_seconds_per_cell(run, tiles)
 
-    assert terrain_seconds_per_cell(run, tiles(3_000_000)) == TERRAIN_SECONDS_PER_CELL
-    assert terrain_seconds_per_cell(run, tiles(10_000)) == pytest.approx(
-        3 * TERRAIN_SECONDS_PER_CELL)
+    # a point in most cells: every cell is filtered
+    assert seconds(3_000_000 * cell ** 2, 1000) == pytest.approx(
+        (1000 / cell) ** 2 * TERRAIN_SECONDS_PER_CELL)
+    # the same sparse points over 4 and 16 times the area cost about the same
+    few = 10_000 * cell ** 2
+    assert seconds(few, 4000) < 1.5 * seconds(few, 1000)
+    assert seconds(few, 4000) < 1.5 * seconds(few, 2000)
+    assert seconds(few, 1000) < 0.05 * seconds(3_000_000 * cell ** 2, 1000)
 
 
 def test_a_tree_block_too_big_for_a_worker_is_refused_naming_trees_block(tmp_path, survey):

@@ -21,6 +21,7 @@ from dask.utils import format_bytes
 from pipeline.atomic import atomic_path
 from pipeline.errors import ConfigError
 from pipeline.features.sets import feature_set
+from pipeline.terrain import factor_for_occupancy
 from pipeline.tiling import MIN_CHUNK_HALOS, Grid, tile_area
 from workflows.exec.cluster import plan_workers
 from workflows.run.directory import Run
@@ -62,17 +63,19 @@ TREE_SECONDS = 8.5e-8
 #: minima), measured on regions of 1,114 x 1,114 cells at 1 m: 440 MiB above the process
 #: with 3 M points, 480 with 300,000, 560 with 30,000 (sparser blocks fill more cells).
 TERRAIN_BYTES_PER_CELL = 480
-#: Seconds one core spends per cell of a terrain block's region with a point a cell or
-#: more, and that much again for each tenfold fewer (the fills of the empty cells): 1 km
-#: blocks at 1 m took 33 s with 2.4 points a cell, 65 s with 0.024, and about 90 s with
-#: 0.008 (a survey of 100 km²), on a loaded machine.
+#: Seconds one core spends per cell a terrain block filters: 1 km blocks at 1 m took 33 s
+#: with 2.4 points a cell on a loaded machine. A sparse block is filtered on cells f times
+#: wider (:func:`~pipeline.terrain.smrf.sparse_factor`), f² times fewer: 0.2 s for 10,000
+#: points a km², 1.0 s for 62,500.
 TERRAIN_SECONDS_PER_CELL = 2e-5
 
 
 def terrain_seconds_per_cell(run: Run, tiles: list[dict]) -> float:
-    """:data:`TERRAIN_SECONDS_PER_CELL` at the tiles' mean points per terrain cell."""
+    """:data:`TERRAIN_SECONDS_PER_CELL` over the square of the factor by which the terrain
+    widens its cells at the tiles' mean density (points at random: the share of cells with a
+    point is 1 - exp(-points a cell))."""
     per_cell = mean_density(tiles) * run.terrain.cell ** 2 if tiles else 1.0
-    return TERRAIN_SECONDS_PER_CELL * (1.0 + max(0.0, -math.log10(max(per_cell, 1e-3))))
+    return TERRAIN_SECONDS_PER_CELL / factor_for_occupancy(-math.expm1(-per_cell)) ** 2
 
 
 def worker_bytes(points: float, columns: int) -> float:
