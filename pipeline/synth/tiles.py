@@ -280,12 +280,16 @@ def _write_shuffled(out_dir: Path, work: Path, keys, names, origin) -> list:
     paths = []
     for k, name in zip(keys, names):
         points = np.fromfile(work / f"tile{k}.bin", dtype=POINT)
-        points = points[np.argsort(np.fromfile(work / f"tile{k}.pos", dtype=np.int64))]
+        order = np.argsort(np.fromfile(work / f"tile{k}.pos", dtype=np.int64))
+        # the columns in the shuffle's order, without the tile's records while it is written
+        xyz, labels, trees = (points[name][order] for name in ("xyz", "label", "tree"))
+        xyz += origin
+        del points, order
         paths.append(
             write_las(
                 out_dir / name,
-                points["xyz"] + origin,
-                fields={"classification": points["label"], TREE_ID: points["tree"]},
+                xyz,
+                fields={"classification": labels, TREE_ID: trees},
                 extra_dims=[ExtraDim(TREE_ID, "uint32", "Tree of the point, 0: none")],
                 crs_wkt=CRS_WKT,
                 scale=(0.001, 0.001, 0.001),
