@@ -3,14 +3,17 @@
 The plot is generated as one random stream over the whole plot (so a seed gives the same
 points whatever the tiling, and the same as :func:`~pipeline.synth.scene.synthetic_scene`),
 but never held in memory: the recorded samples go to a file batch by batch (and to a file
-per scanner), each scanner's samples are read back for its scan shadows, then all of them
-batch by batch for the range noise, and each point inside the plot is appended to its
-tile's file; once the plot's shuffle is drawn, each tile is read back, put in the shuffled
-order and written as LAZ. Memory holds one batch, one scanner's samples, one tile, and 1
-byte per recorded sample and 8 per point of the plot (the shadows' verdicts, the shuffle);
-the temporary files (about 110 bytes per point) live in a hidden folder of the output
-directory, removed at the end. Beside the tiles, ``trees.csv`` holds the truth
-of the trees whose IDs the points carry (:mod:`~pipeline.synth.truth`).
+per scanner), each scanner's samples are read back for its scan shadows (the rows of the
+hidden ones go to a file per batch), then all of them batch by batch for the range noise,
+and each point inside the plot is appended to its tile's file; once the plot's shuffle is
+drawn, each point's position in it goes to its tile through files too, and each tile is
+read back, put in the shuffled order and written as LAZ. Memory holds one batch, one
+scanner's samples, one tile, and the shuffle: 4 bytes per point of the plot, which drawing
+the same permutation as ``rng.permutation`` needs (the only memory that grows with the
+plot: 91 MB at the largest size, MAX_SIZE). The temporary files (about 90 bytes per point)
+live in a hidden folder of the output directory, removed at the end. Beside the tiles,
+``trees.csv`` holds the truth of the trees whose IDs the points carry
+(:mod:`~pipeline.synth.truth`).
 """
 
 from __future__ import annotations
@@ -61,7 +64,7 @@ def write_synthetic_plot(
     one tile; empty tiles are not written. The trees' truth goes to ``out_dir/trees.csv``.
     ``stand`` adds realism as in :func:`~pipeline.synth.scene.synthetic_scene`.
     Returns the paths ``plot_s{seed}_{ix}_{iy}.laz`` sorted by (ix, iy). Memory grows with the
-    plot by 1 byte per recorded sample and 8 per point only (module docstring).
+    plot by 4 bytes per point only, the shuffle (module docstring); a tile is held whole.
     """
     seed, size, _ = check_plot_args(seed, size, DEFAULT_ORIGIN)
     tile_size = check_positive("tile_size", tile_size)

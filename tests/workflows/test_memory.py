@@ -43,9 +43,9 @@ def test_ingest_memory_does_not_grow_with_the_tile(tmp_path):
 
 def test_synth_streams_the_plot(tmp_path, monkeypatch):
     """The plot goes through files: beyond what generating costs at any size (one object's
-    samples, one batch of them scanned), writing holds one tile, and 1 byte per sample and 8
-    per point of the plot for the shadows' verdicts and the shuffle (traced allocations,
-    about 8 bytes per point here; holding the plot in memory took about 30 more)."""
+    samples, one batch of them scanned), writing holds one tile and 4 bytes per point of the
+    plot for the shuffle (traced allocations; holding the plot in memory took about 30
+    more)."""
     from pipeline.synth import scanner, terrain, tiles, write_synthetic_plot
     from pipeline.synth.layout import random_layout
     from pipeline.synth.surfaces import sample_surfaces
