@@ -10,7 +10,7 @@ drawn, each point's position in it goes to its tile through files too, and each 
 read back, put in the shuffled order and written as LAZ. Memory holds one batch, one
 scanner's samples, one tile, and the shuffle: 4 bytes per point of the plot, which drawing
 the same permutation as ``rng.permutation`` needs (the only memory that grows with the
-plot: 91 MB at the largest size, MAX_SIZE). The temporary files (about 90 bytes per point)
+plot: about 100 MB at the largest size, MAX_SIZE). The temporary files (about 90 bytes per point)
 live in a hidden folder of the output directory, removed at the end. Beside the tiles,
 ``trees.csv`` holds the truth of the trees whose IDs the points carry
 (:mod:`~pipeline.synth.truth`).
