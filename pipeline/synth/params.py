@@ -9,7 +9,7 @@ DEFAULT_SIZE = 30.0  # metres: about 200,000 points
 DEFAULT_TILE_SIZE = 15.0  # metres: the default plot spans 2 x 2 tiles
 DEFAULT_ORIGIN = (500000.0, 5500000.0, 400.0)  # lower-left corner of the plot, ground level
 MIN_SIZE = 5.0  # metres: smaller plots cannot hold one object of every class
-MAX_SIZE = 300.0  # metres: about 23 million points; writing them peaks at about 0.55 GiB
+MAX_SIZE = 300.0  # metres: about 23 million points; writing them peaks at about 0.6 GiB
 
 #: ETRS89 / UTM zone 32N (EPSG:25832) as OGC WKT, written into every tile.
 CRS_WKT = (

@@ -43,9 +43,9 @@ def test_ingest_memory_does_not_grow_with_the_tile(tmp_path):
 
 def test_synth_streams_the_plot(tmp_path, monkeypatch):
     """The plot goes through files: beyond what generating costs at any size (one object's
-    samples, one batch of them scanned), writing holds one tile, and 1 byte per sample and 8
-    per point of the plot for the shadows' verdicts and the shuffle (traced allocations,
-    about 8 bytes per point here; holding the plot in memory took about 30 more)."""
+    samples, one batch of them scanned), writing holds one tile and 4 bytes per point of the
+    plot for the shuffle (traced allocations; holding the plot in memory took about 30
+    more)."""
     from pipeline.synth import scanner, terrain, tiles, write_synthetic_plot
     from pipeline.synth.layout import random_layout
     from pipeline.synth.surfaces import sample_surfaces
@@ -68,3 +68,42 @@ def test_synth_streams_the_plot(tmp_path, monkeypatch):
     n_points = sum(read_info(p).n_points for p in paths)
     assert n_points > 200_000
     assert writing < generating + 16 * n_points, (writing, generating, n_points)
+
+
+def _synth_peak(tmp_path, size: float) -> tuple[int, int]:
+    """Traced peak bytes of writing a plot of ``size`` metres, and its points."""
+    from pipeline.synth import write_synthetic_plot
+
+    tracemalloc.start()
+    try:
+        paths = write_synthetic_plot(tmp_path / f"plot{size:g}", seed=3, size=size,
+                                     tile_size=5.0)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    return peak, sum(read_info(p).n_points for p in paths)
+
+
+def test_synth_memory_grows_by_the_plots_shuffle_only(tmp_path, monkeypatch):
+    """Four times the area, the same batches, tiles and ground per scanner: the peak grows by
+    the plot's shuffle alone, 4 bytes a point, which drawing it bit for bit needs (holding
+    the shadows' verdicts and every point's position took 9 bytes a point and more).
+
+    Only the ground is generated (its strips follow the batch, as every object's samples
+    do), so that the plot's points, not its largest tree, set what grows."""
+    from pipeline.synth import SYNTH_CLASSES, layout, scanner, terrain, tiles
+    from pipeline.synth.surfaces import sample_surfaces
+
+    def ground_only(rng, plot, shares=None):
+        for part in sample_surfaces(rng, plot, shares):
+            if part[1] != SYNTH_CLASSES["terrain"]:
+                return
+            yield part
+
+    for module in (scanner, terrain, tiles):  # batches and ground strips of 4,096 samples
+        monkeypatch.setattr(module, "BATCH", 1 << 12)
+    monkeypatch.setattr(layout, "SCANNER_SPACING", 7.5)  # 4 and 16 scanners: 56 m² each
+    monkeypatch.setattr(tiles, "sample_surfaces", ground_only)
+    (small, n_small), (large, n_large) = (_synth_peak(tmp_path, size) for size in (15.0, 30.0))
+    assert n_large > 3.5 * n_small > 3.5 * 20_000, (n_small, n_large)
+    assert large - small < 5 * (n_large - n_small), (small, large, n_small, n_large)
