@@ -16,9 +16,11 @@ from pipeline.store import open_store
 from workflows.config import validate_config
 from workflows.models import installed_models
 from workflows.run.autoparams import run_config
-from workflows.run.fingerprint import STEPS, fingerprint
+from workflows.steps.table import STEPS as TABLE
 from workflows.store.layout import proba_array
 from tests.workflows.conftest import (
+
+STEPS, fingerprint = TABLE.fingerprinted, TABLE.fingerprint
     assert_same_predictions,
     error_line,
     read_predictions,

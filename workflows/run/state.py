@@ -9,7 +9,6 @@ from dataclasses import dataclass, field
 from pipeline.errors import StoreError
 from workflows.run.directory import Run, has_test_points
 from workflows.run.durations import accumulate
-from workflows.run.step_table import BY_NAME, steps_until
 from workflows.store.scenes import RunLayout
 
 
@@ -20,7 +19,8 @@ class RunState:
     ``kernels`` (:class:`workflows.exec.kernels.Kernels`, optional): the feature kernels
     compiling in the background while ingest runs; waited for before the features step.
     ``summary`` is what :func:`workflows.run.loop.execute` returns; its ``timings`` fill in
-    as the steps finish.
+    as the steps finish. The fields after ``adds_durations`` are what the steps of the table
+    set and need (each row's ``sets`` and ``needs``).
     """
 
     run: Run
@@ -50,8 +50,9 @@ class RunState:
         self.summary = {"out": str(self.run.out), "timings": {}}
 
     def reaches(self, step: str) -> bool:
-        """Whether this execution runs up to ``step`` (a step of the table)."""
-        return BY_NAME[step] in steps_until(self.target)
+        """Whether this execution runs up to ``step`` (a step of the run's table)."""
+        steps = self.run.table
+        return steps[step] in steps.until(self.target)
 
     @property
     def fits(self) -> bool:

@@ -1,6 +1,7 @@
-"""The built-in steps as the step table (:data:`workflows.run.step_table.STEPS`) runs them: each
-takes the run's :class:`~workflows.run.state.RunState`, calls its step module and leaves
-what it found on the state for the steps after it.
+"""The built-in steps as the table of steps (:data:`workflows.steps.table.STEPS`) runs them:
+each takes the run's :class:`~workflows.run.state.RunState`, calls its step module and leaves
+what it found on the state for the steps after it. Each imports its step module when it
+runs, so that the table, which the command line reads, stays light.
 
 The features and the stage-by-stage cascade cover the scenes the forests train on (and
 every scene with ``output.keep_features``); the other scenes are classified afterwards, in
@@ -11,24 +12,19 @@ without labelled test points surveys its predictions before the export, so that 
 figures are drawn while the workers write the tiles.
 """
 
+from __future__ import annotations
+
 import platform
 from datetime import datetime, timezone
+from typing import TYPE_CHECKING
 
 from pipeline import __version__
-from workflows.exec.engine import check_chunk
 from workflows.run.durations import totals
 from workflows.run.progress import fold_step, say
-from workflows.run.state import RunState
-from workflows.steps.cascade import cascade, model_stages
-from workflows.steps.evaluate import evaluate, write_metrics
-from workflows.steps.export import check_point_formats, check_raster_size, export
-from workflows.steps.features import features
-from workflows.steps.ingest import ingest
-from workflows.steps.one_pass import classify_in_one_pass, one_pass_scenes
-from workflows.steps.survey import canopy_samples, survey
-from workflows.steps.terrain import terrain
-from workflows.steps.trees import check_tree_settings, score_trees, trees
-from workflows.store.scenes import RunLayout
+
+if TYPE_CHECKING:
+    from workflows.run.state import RunState
+    from workflows.store.scenes import RunLayout
 
 
 def scenes_of(layout: RunLayout, keep, only: str | None = None) -> RunLayout:
@@ -38,8 +34,29 @@ def scenes_of(layout: RunLayout, keep, only: str | None = None) -> RunLayout:
         lambda s: keep(s) and (only is None or s == only.split("/", 1)[0]))
 
 
+def check_trees(run, tiles: list[dict]) -> None:
+    """Before the cluster starts: the trees' settings against the scan."""
+    from workflows.steps.trees import check_tree_settings
+
+    check_tree_settings(run, tiles)
+
+
+def check_export(run, tiles: list[dict]) -> None:
+    """Before the cluster starts: the output point format, the output names and the
+    rasters' size."""
+    from workflows.steps.export import check_output_names, check_point_formats, check_raster_size
+
+    check_point_formats(run, tiles)
+    check_output_names(run, tiles)
+    check_raster_size(run, tiles)
+
+
 def ingest_step(state: RunState) -> None:
     """Ingest the tiles; the summary counts points, chunks and excluded points."""
+    from workflows.steps.export import check_point_formats, check_raster_size
+    from workflows.steps.ingest import ingest
+    from workflows.steps.trees import check_tree_settings
+
     layout = state.layout = state.timed("ingest", ingest, state.run, state.engine)
     state.summary["points"] = layout.n_points
     state.summary["chunks"] = sum(len(info.chunks) for info in layout.scenes.values())
@@ -54,6 +71,8 @@ def ingest_step(state: RunState) -> None:
 
 
 def terrain_step(state: RunState) -> None:
+    from workflows.steps.terrain import terrain
+
     state.timed("terrain", terrain, state.run, state.engine,
                 scenes_of(state.layout, lambda s: True, state.only))
 
@@ -61,6 +80,10 @@ def terrain_step(state: RunState) -> None:
 def features_step(state: RunState) -> None:
     """The features of the scenes classified stage by stage (every scene when the run stops
     at the features)."""
+    from workflows.exec.engine import check_chunk
+    from workflows.steps.features import features
+    from workflows.steps.one_pass import one_pass_scenes
+
     if state.kernels is not None:
         state.kernels.wait()  # started with the run; the workers need the kernels from here on
     layout, only = state.layout, state.only
@@ -78,6 +101,9 @@ def features_step(state: RunState) -> None:
 def cascade_step(state: RunState) -> None:
     """Train (or apply) the cascade stage by stage, then classify the other scenes in one
     pass per chunk."""
+    from workflows.steps.cascade import cascade, model_stages
+    from workflows.steps.one_pass import classify_in_one_pass
+
     run, engine, only = state.run, state.engine, state.only
     if state.staged.scenes:
         state.stages = state.timed("train" if state.fits else "apply", cascade, run, engine,
@@ -91,6 +117,8 @@ def cascade_step(state: RunState) -> None:
 
 def trees_step(state: RunState) -> None:
     """The trees of every scene (output.trees), before the export writes their IDs."""
+    from workflows.steps.trees import trees
+
     state.trees = state.timed("trees", trees, state.run, state.engine, state.outputs,
                               state.n_stages - 1, state.stages[-1]["fingerprint"])
 
@@ -117,6 +145,8 @@ def survey_step(state: RunState) -> None:
 def draw_survey(state: RunState, counted_in: str) -> None:
     """The survey of the predictions (its tasks counted in the progress of step
     ``counted_in``) and a future of its figures, which the state's painter draws."""
+    from workflows.steps.survey import canopy_samples, survey
+
     found = state.timed("report", survey, state.run, state.engine, state.outputs,
                         state.n_stages - 1, counted_in=counted_in)
     maps = {scene: data["map"] for scene, data in found["scenes"].items()}
@@ -131,6 +161,8 @@ def _survey_images(found: dict, terrain: dict) -> dict:
 
 
 def export_step(state: RunState) -> None:
+    from workflows.steps.export import export
+
     state.summary["predictions"] = state.timed(
         "export", export, state.run, state.engine, state.outputs, state.n_stages - 1,
         state.stages[-1]["fingerprint"])
@@ -139,6 +171,9 @@ def export_step(state: RunState) -> None:
 def evaluate_step(state: RunState) -> None:
     """The metrics of the labelled test points (none without them: said); written here
     when the run stops at evaluate, else after the report."""
+    from workflows.steps.evaluate import evaluate, write_metrics
+    from workflows.steps.trees import score_trees
+
     run = state.run
     if state.labelled:
         state.metrics, state.plots = state.timed("evaluate", evaluate, run, state.engine,
@@ -163,6 +198,8 @@ def evaluate_step(state: RunState) -> None:
 def report_step(state: RunState) -> None:
     """The report with the metrics (written last: their presence means the whole run
     completed), or, without metrics, the report of what was predicted."""
+    from workflows.steps.evaluate import write_metrics
+
     if state.metrics is None:
         _survey_report(state)
         return
