@@ -1,8 +1,6 @@
 """The table of steps: one declaration, on the steps' floor, read by the run's loop, its
 progress, the fingerprints, the checks before a run starts and the commands."""
 
-import dataclasses
-
 import pytest
 
 from workflows.cli import commands
@@ -11,23 +9,24 @@ from workflows.config import load_config
 from workflows.run import loop
 from workflows.run.autoparams import resolve_run
 from workflows.run.directory import Run
-from workflows.run.state import RunState
 from workflows.run.step_table import Fingerprint, Step, StepTable, Weight
+from workflows.steps.state import StepState
 from workflows.steps.table import STEPS
 
 DEMO = "configs/demo.yaml"
 
 
 def test_every_step_runs_a_function_and_needs_what_a_step_before_it_sets():
-    fields = {f.name for f in dataclasses.fields(RunState)}
+    assert STEPS.state is StepState
     set_before = set()
     for step in STEPS:
         assert callable(step.function) and (step.check is None or callable(step.check))
         assert set(step.needs) <= set_before, step.name
-        assert set(step.sets) <= fields, step.name
         set_before |= set(step.sets)
     with pytest.raises(ValueError, match="one name"):
-        StepTable(STEPS["ingest"], STEPS["ingest"])
+        StepTable(STEPS["ingest"], STEPS["ingest"], state=StepState)
+    with pytest.raises(ValueError, match="RunState holds no ingest: layout"):
+        StepTable(STEPS["ingest"])  # the generic state holds nothing a step sets
 
 
 def test_the_table_gives_the_commands_the_progress_and_the_fingerprints():
@@ -79,7 +78,8 @@ def test_a_step_asked_for_by_the_configuration_runs_only_when_it_is():
 def test_a_step_hashes_the_configuration_paths_it_names():
     paths = {"terrain.cell": "terrain.cell", "output.format": "output.format"}
     trees = Step("trees", _record, fingerprint=Fingerprint(paths, after="stage"))
-    table = StepTable(*(trees if step.name == "trees" else step for step in STEPS))
+    table = StepTable(*(trees if step.name == "trees" else step for step in STEPS),
+                      state=StepState)
     base = load_config(DEMO)
     changed = {
         key: load_config(DEMO, [f"{key}={value}"])
@@ -111,7 +111,8 @@ def _needs_stages(state):
 #: (the whole run's command) that needs stages nobody set.
 FAKE = StepTable(Step("ingest", _record, sets=("layout",)),
                  Step("count", _record, needs=("layout",), per_chunk=False),
-                 Step("train", _needs_stages, needs=("stages",), command="Train."))
+                 Step("train", _needs_stages, needs=("stages",), command="Train."),
+                 state=StepState)
 
 
 def test_execute_runs_the_steps_of_the_table_up_to_the_target(tmp_path):

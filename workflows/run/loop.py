@@ -18,7 +18,6 @@ import os
 from pipeline.errors import StoreError
 from workflows.run.directory import Run
 from workflows.run.progress import say
-from workflows.run.state import RunState
 from workflows.store.retention import forget_removed, remove_chunks, removed_record
 
 log = logging.getLogger(__name__)
@@ -31,7 +30,7 @@ def execute(run: Run, engine, target: str, *, only: str | None = None, command: 
     ``kernels`` (:class:`workflows.exec.kernels.Kernels`, optional): the feature kernels
     compiling in the background while ingest runs; waited for before the features step.
     """
-    state = RunState(run, engine, target, only, command, kernels)
+    state = run.table.state(run, engine, target, only, command, kernels)
     # before the stamp of metrics and report is renewed: a refusal keeps them
     if _already_complete(run, target, only, state.summary, run.results_stamp()):
         return state.summary

@@ -9,11 +9,12 @@ to the run (:class:`workflows.run.directory.Run`), which runs its rows in order.
 """
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 from pipeline.errors import ConfigError
 from workflows.run.fingerprint import fingerprint
+from workflows.run.state import RunState
 
 #: How a fingerprint part is found: a configuration path as written ("trees": the whole
 #: section, "output.trees": one key) or a rule of its own, a function of the configuration
@@ -53,9 +54,9 @@ class Fingerprint:
 class Step:
     """One row of a table of steps.
 
-    ``function``: runs the step; it takes the run's state
-    (:class:`workflows.run.state.RunState`). ``needs``: the state's attributes the steps
-    before it set and it reads; ``sets``: those it sets. ``check``: what can be checked of it
+    ``function``: runs the step; it takes the run's state (an instance of the table's
+    ``state``). ``needs``: the state's attributes the steps before it set and it reads;
+    ``sets``: those it sets. ``check``: what can be checked of it
     before the cluster starts, a function of the run and its planned tiles raising the error
     the step would raise later. ``fingerprint``: what its fingerprint hashes (None: it has
     none). ``weight``: its share in the progress. ``per_chunk``: a ``--chunk`` run (one chunk,
@@ -97,13 +98,22 @@ class Step:
 
 class StepTable:
     """The steps of a run, in order: what runs (:meth:`until`), what the progress shows
-    and weighs, what each fingerprint hashes."""
+    and weighs, what each fingerprint hashes; and ``state``, the class of what its steps
+    hand on to each other (a :class:`~workflows.run.state.RunState` with the fields their
+    ``needs`` and ``sets`` name)."""
 
-    def __init__(self, *steps: Step):
+    def __init__(self, *steps: Step, state: type[RunState] = RunState):
         self.steps = steps
+        self.state = state
         self.by_name = {step.name: step for step in steps}
         if len(self.by_name) < len(steps):
             raise ValueError("two steps of the table have one name")
+        held = {f.name for f in fields(state)}
+        unknown = [f"{step.name}: {name}" for step in steps
+                   for name in (*step.needs, *step.sets) if name not in held]
+        if unknown:
+            raise ValueError(f"{state.__name__} holds no {', '.join(unknown)}: the steps "
+                             "need and set fields of the table's state")
         #: The steps that are commands (a command runs every step up to its own), in order.
         self.targets = tuple(step.name for step in steps if step.command is not None)
         self._fingerprinted = {step.fingerprint.name or step.name: step.fingerprint

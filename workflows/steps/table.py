@@ -16,8 +16,8 @@ import their work when they run.
 Adding a step (for example ``trees``, per scene after the cascade, before the export):
 
 1. write its work in its own module and its function in :mod:`workflows.steps.flow`; it
-   takes the run's state (:class:`workflows.run.state.RunState`), reads what its ``needs``
-   name there, sets what its ``sets`` name and times its work under its name::
+   takes the run's state (:class:`workflows.steps.state.StepState`), reads what its
+   ``needs`` name there, sets what its ``sets`` name and times its work under its name::
 
        def trees_step(state):
            from workflows.steps.trees import trees
@@ -35,7 +35,7 @@ Adding a step (for example ``trees``, per scene after the cascade, before the ex
             command="Find the trees of every scene (after train)."
             + examples("silva trees survey.yaml --out results/")),
 
-   and its state (``trees``) to :class:`~workflows.run.state.RunState`;
+   and what it sets (``trees``) to :class:`~workflows.steps.state.StepState`;
 
 3. and its configuration section to the schema (:mod:`workflows.config.schema`).
 
@@ -95,6 +95,7 @@ from workflows.steps.flow import (
     terrain_step,
     trees_step,
 )
+from workflows.steps.state import StepState
 
 #: The keys of the features section that change the features (r2 and the context cap change
 #: only the cascade's context).
@@ -198,4 +199,5 @@ STEPS = StepTable(
          weight=Weight(0.04, other=0.05), per_chunk=False,
          command="Write report.html with its plots (after evaluate)."
          + examples("silva report survey.yaml --out results/")),
+    state=StepState,
 )
