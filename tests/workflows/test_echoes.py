@@ -19,8 +19,6 @@ from workflows.run.autoparams import run_config
 from workflows.steps.table import STEPS as TABLE
 from workflows.store.layout import proba_array
 from tests.workflows.conftest import (
-
-STEPS, fingerprint = TABLE.fingerprinted, TABLE.fingerprint
     assert_same_predictions,
     error_line,
     read_predictions,
@@ -28,6 +26,8 @@ STEPS, fingerprint = TABLE.fingerprinted, TABLE.fingerprint
     silva,
     write_config,
 )
+
+STEPS, fingerprint = TABLE.fingerprinted, TABLE.fingerprint
 
 pytestmark = pytest.mark.slow
 
