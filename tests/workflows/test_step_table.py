@@ -9,6 +9,7 @@ from workflows.config import load_config
 from workflows.run import loop
 from workflows.run.autoparams import resolve_run
 from workflows.run.directory import Run
+from workflows.run.state import RunState
 from workflows.run.step_table import Fingerprint, Step, StepTable, Weight
 from workflows.steps.state import StepState
 from workflows.steps.table import STEPS
@@ -26,7 +27,7 @@ def test_every_step_runs_a_function_and_needs_what_a_step_before_it_sets():
     with pytest.raises(ValueError, match="one name"):
         StepTable(STEPS["ingest"], STEPS["ingest"], state=StepState)
     with pytest.raises(ValueError, match="RunState holds no ingest: layout"):
-        StepTable(STEPS["ingest"])  # the generic state holds nothing a step sets
+        StepTable(STEPS["ingest"], state=RunState)  # the generic state holds nothing of it
 
 
 def test_the_table_gives_the_commands_the_progress_and_the_fingerprints():
@@ -139,7 +140,8 @@ def test_the_checks_before_a_start_are_those_of_the_steps_up_to_the_target(monke
     checked = []
     table = StepTable(Step("ingest", _record, check=lambda run, tiles: checked.append("in")),
                       Step("features", _record),
-                      Step("export", _record, check=lambda run, tiles: checked.append("ex")))
+                      Step("export", _record, check=lambda run, tiles: checked.append("ex")),
+                      state=RunState)
     monkeypatch.setattr("workflows.steps.ingest.plan_tiles", lambda run: ["a tile"])
     run = Run(resolve_run(load_config(DEMO)), ".", steps=table)
     assert commands.check_before_start(run, "features", in_process=True) == ["a tile"]

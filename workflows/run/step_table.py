@@ -14,7 +14,6 @@ from typing import Any
 
 from pipeline.errors import ConfigError
 from workflows.run.fingerprint import fingerprint
-from workflows.run.state import RunState
 
 #: How a fingerprint part is found: a configuration path as written ("trees": the whole
 #: section, "output.trees": one key) or a rule of its own, a function of the configuration
@@ -102,7 +101,7 @@ class StepTable:
     hand on to each other (a :class:`~workflows.run.state.RunState` with the fields their
     ``needs`` and ``sets`` name)."""
 
-    def __init__(self, *steps: Step, state: type[RunState] = RunState):
+    def __init__(self, *steps: Step, state: type):
         self.steps = steps
         self.state = state
         self.by_name = {step.name: step for step in steps}
