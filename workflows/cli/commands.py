@@ -157,7 +157,7 @@ def check_before_start(run, target: str, in_process: bool = False) -> list[dict]
     for step in steps:
         if step.check is not None:
             step.check(run, tiles)
-    if STEPS["features"] in steps and not in_process:
+    if "features" in (step.name for step in steps) and not in_process:
         check_memory(run, tiles)
     return tiles
 
