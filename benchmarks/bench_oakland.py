@@ -23,6 +23,7 @@ from workflows.config import load_config
 from workflows.exec.engine import Engine
 from workflows.run.directory import Run
 from workflows.run.loop import execute
+from workflows.steps.table import STEPS
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "oakland.yaml"
 PAPER = {  # Table 2, averaged over the five classes
@@ -36,7 +37,7 @@ MEASURES = ("precision", "recall", "f1")
 def run_seed(seed: int, out: Path, overrides: list[str]) -> dict:
     """metrics.json of one run of the Oakland config with ``cascade.seed = seed``."""
     cfg = load_config(CONFIG, [*overrides, f"cascade.seed={seed}"])
-    run = Run(cfg, out, quiet=True)
+    run = Run(cfg, out, quiet=True, steps=STEPS)
     run.save_config()
     execute(run, Engine(None, quiet=True), "evaluate")
     return json.loads((out / "metrics.json").read_text())

@@ -11,6 +11,7 @@ from tests.workflows.conftest import silva, write_config
 from workflows.run.autoparams import run_config
 from workflows.run.directory import Run
 from workflows.steps.ingest import plan_tiles
+from workflows.steps.table import STEPS
 
 
 def _survey(tiny_survey, root):
@@ -40,7 +41,7 @@ def test_a_tile_without_crs_is_taken_in_its_scenes_crs_saying_so(tiny_survey, tm
     assert read_info(bare).crs_wkt is None
     crs = read_info(other).crs_wkt
     config = write_config(tmp_path / "c.yaml", survey)
-    run = Run(run_config(config), tmp_path / "out")
+    run = Run(run_config(config), tmp_path / "out", steps=STEPS)
     with caplog.at_level(logging.WARNING):
         tiles = plan_tiles(run)
         assert all(t["crs_wkt"] == crs for t in tiles)

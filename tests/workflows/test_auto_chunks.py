@@ -16,6 +16,7 @@ from workflows.config import load_config
 from workflows.run.autoparams import resolve_run
 from workflows.run.directory import Run
 from workflows.steps.ingest import plan_scenes, plan_tiles
+from workflows.steps.table import STEPS
 from tests.workflows.conftest import SMALL_PLOT, write_config
 
 
@@ -62,7 +63,7 @@ def planned_grids(tmp_path, survey, **tiling) -> dict[str, dict]:
 def planned(tmp_path, survey, **tiling) -> dict[str, dict]:
     tiling = {"layout": "grid", "halo": HALO, **tiling}
     cfg = load_config(write_config(tmp_path / "c.yaml", survey, tiling=tiling))
-    run = Run(resolve_run(cfg), tmp_path / "out", quiet=True)
+    run = Run(resolve_run(cfg), tmp_path / "out", quiet=True, steps=STEPS)
     return plan_scenes(run, plan_tiles(run))
 
 

@@ -20,11 +20,12 @@ from workflows.config import (
     load_config,
     validate_config,
 )
-from workflows.run.fingerprint import fingerprint
+from workflows.steps.table import STEPS as TABLE
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 CLASSES = {"terrain": [2], "tree": [5], "dead_wood": [64], "misc": [1]}
 STEPS = ("ingest", "features", "stage", "export", "evaluate")
+fingerprint = TABLE.fingerprint
 
 
 def write(path: Path, mapping) -> Path:
@@ -521,7 +522,7 @@ def test_fingerprint_is_short_and_stable_across_processes(tmp_path):
     assert all(len(v) == 16 and int(v, 16) >= 0 for v in values)
     path = write(tmp_path / "c.yaml", BASE)
     code = ("import sys; from workflows.config import load_config; "
-            "from workflows.run.fingerprint import fingerprint; "
+            "from workflows.steps.table import STEPS; fingerprint = STEPS.fingerprint; "
             f"c = load_config(sys.argv[1]); print(*(fingerprint(c, s) for s in {STEPS!r}))")
     env = {**os.environ, "PYTHONHASHSEED": "12345"}
     out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True,

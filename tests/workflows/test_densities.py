@@ -15,11 +15,13 @@ from pipeline.store import open_store
 from workflows.config import validate_config
 from workflows.exec.engine import Engine
 from workflows.models import installed_models, model_summary
-from workflows.run.fingerprint import STEPS, fingerprint
+from workflows.steps.table import STEPS as TABLE
 from pipeline.model import trained_densities
 from workflows.store.layout import ROLE_TEST
 from workflows.store.marks import forget_done
 from tests.workflows.conftest import assert_same_predictions, scene_arrays, silva, write_config
+
+STEPS, fingerprint = TABLE.fingerprinted, TABLE.fingerprint
 
 pytestmark = pytest.mark.slow
 

@@ -11,6 +11,7 @@ from pipeline.features import numba_cache
 from workflows.cli.commands import LOG_NAME, resume_command
 from workflows.exec import cluster
 from workflows.run import loop
+from workflows.steps.table import STEPS
 from tests.workflows.conftest import error_line, silva, write_config
 
 
@@ -176,7 +177,8 @@ def test_the_memory_a_worker_needs_follows_its_chunk_and_columns(tmp_path, surve
 
     def run_of(*overrides):
         config = write_config(tmp_path / "m.yaml", survey)
-        return Run(resolve_run(load_config(config, list(overrides))), tmp_path / "out", quiet=True)
+        return Run(resolve_run(load_config(config, list(overrides))), tmp_path / "out",
+                   quiet=True, steps=STEPS)
 
     run = run_of("tiling.chunk_size=auto", "tiling.target_points=8000")
     tiles = plan_tiles(run)

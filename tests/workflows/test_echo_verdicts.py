@@ -13,6 +13,7 @@ import pytest
 from pipeline.store import open_store
 from tests.workflows.conftest import error_line, silva, write_config
 from workflows.models import installed_models
+from workflows.steps.table import STEPS
 
 FEATURES = {"set": "covariance", "r1": 0.5, "echoes": True}
 
@@ -130,7 +131,7 @@ def test_a_header_without_counts_by_return_is_not_taken_for_a_tile_without_retur
     assert any(info.points_by_return)
     run = Run(run_config(None, model_dir=installed_models()["als-ground-vegetation-building"],
                          inputs=[path]),
-              tmp_path)
+              tmp_path, steps=STEPS)
     check_return_fields(run, path, replace(info, points_by_return=(0,) * 15))
 
 
@@ -143,7 +144,7 @@ def test_the_commands_a_failed_task_names_fit_a_predict_without_configuration(pl
 
     out = tmp_path / "out"
     model = installed_models()["als-ground-vegetation-building"]
-    run = Run(run_config(None, model_dir=model, inputs=[plots["test"]]), out)
+    run = Run(run_config(None, model_dir=model, inputs=[plots["test"]]), out, steps=STEPS)
     tiles = plan_tiles(run)
     scenes = plan_scenes(run, tiles)
     (task,) = ingest_tasks(run, scenes, tiles, "f" * 16)

@@ -16,7 +16,7 @@ from pipeline.store import open_store
 from workflows.config import validate_config
 from workflows.models import installed_models
 from workflows.run.autoparams import run_config
-from workflows.run.fingerprint import STEPS, fingerprint
+from workflows.steps.table import STEPS as TABLE
 from workflows.store.layout import proba_array
 from tests.workflows.conftest import (
     assert_same_predictions,
@@ -26,6 +26,8 @@ from tests.workflows.conftest import (
     silva,
     write_config,
 )
+
+STEPS, fingerprint = TABLE.fingerprinted, TABLE.fingerprint
 
 pytestmark = pytest.mark.slow
 

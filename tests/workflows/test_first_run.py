@@ -91,12 +91,12 @@ def test_a_cold_cache_starts_compiling_with_one_line_and_a_warm_one_does_not(
 
 def _record_steps(events, monkeypatch):
     """Ingest runs and says so in ``events``; features only says so."""
-    from workflows.steps import flow
+    from workflows.steps import features, ingest  # the step functions import them to run
 
-    ingest = flow.ingest
-    monkeypatch.setattr(flow, "ingest", lambda *a, **k: events.append("ingest") or
-                        ingest(*a, **k))
-    monkeypatch.setattr(flow, "features", lambda *a, **k: events.append("features"))
+    run_ingest = ingest.ingest
+    monkeypatch.setattr(ingest, "ingest", lambda *a, **k: events.append("ingest") or
+                        run_ingest(*a, **k))
+    monkeypatch.setattr(features, "features", lambda *a, **k: events.append("features"))
 
 
 def test_the_run_waits_for_the_kernels_only_before_the_features_step(

@@ -24,6 +24,7 @@ from workflows.run.directory import OutputError, Run, prepare_output, read_paths
 from workflows.run.lock import LOCK_NAME, LockedError, acquire, read_lock
 from workflows.steps.export import remove_stale
 from workflows.steps.ingest import plan_tiles, tile_name
+from workflows.steps.table import STEPS
 from tests.workflows.conftest import error_line, silva, write_config
 
 
@@ -60,13 +61,13 @@ def test_overlap_through_another_name_is_refused(tmp_path, survey):
     cfg = load_config(write_config(tmp_path / "c.yaml", survey),
                       [f"data.test=[{link}/*.laz]"])
     with pytest.raises(ConfigError, match="both in data.test and in data.train"):
-        plan_tiles(Run(resolve_run(cfg), tmp_path / "out"))
+        plan_tiles(Run(resolve_run(cfg), tmp_path / "out", steps=STEPS))
 
 
 def test_allowed_overlap_keeps_one_output_per_scene(tmp_path, survey):
     cfg = load_config(write_config(tmp_path / "c.yaml", survey),
                       [f"data.test=[{survey['train']}/*.laz]", "data.allow_overlap=true"])
-    tiles = plan_tiles(Run(resolve_run(cfg), tmp_path / "out"))
+    tiles = plan_tiles(Run(resolve_run(cfg), tmp_path / "out", steps=STEPS))
     names = [t["name"] for t in tiles]
     assert len(set(names)) == len(names) == 2 * len(list(survey["train"].glob("*.laz")))
     assert all(n.endswith("-test") for t, n in zip(tiles, names) if t["scene"] == "test")
@@ -140,7 +141,7 @@ def test_ingest_checks_the_points_read_against_the_header(tmp_path, survey):
     from workflows.steps.ingest import IngestTask, ingest_tile
 
     cfg = load_config(write_config(tmp_path / "c.yaml", survey), [])
-    run = Run(resolve_run(cfg), tmp_path / "out")
+    run = Run(resolve_run(cfg), tmp_path / "out", steps=STEPS)
     tile = dict(plan_tiles(run)[0])
     tile["n_points"] += 5
     from workflows.steps.ingest import plan_scenes
@@ -278,7 +279,7 @@ def test_workers_over_their_memory_limit_stop_the_run_with_the_fix(tmp_path, sur
     with LocalCluster(n_workers=1, threads_per_worker=1, memory_limit="120MiB",
                       host="127.0.0.1", dashboard_address=None, processes=True) as cluster, \
             Client(cluster) as client:
-        run = Run(resolve_run(load_config(config)), tmp_path / "out", quiet=True)
+        run = Run(resolve_run(load_config(config)), tmp_path / "out", quiet=True, steps=STEPS)
         run.save_config()
         with pytest.raises(NoWorkerCanRun, match=r"cluster\.memory_limit \(120\.00 MiB per "
                                                  r"worker\) is too small"):

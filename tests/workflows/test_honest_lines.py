@@ -12,8 +12,11 @@ from pipeline.features import numba_cache
 from pipeline.features.numba_cache import kernels_cached, kernels_cold, source_digest
 from workflows.exec.kernels import Kernels, announce_compilation
 from workflows.run.progress import RunProgress, run_progress, uncounted
+from workflows.steps.table import STEPS as TABLE
 
 STEPS = ["ingest", "features", "train", "export", "evaluate", "report"]
+#: how the table weighs the steps and which run once per stage, as the commands pass it
+AS_RUN = {"weights": TABLE.weights(), "per_stage": TABLE.per_stage_names()}
 
 
 @pytest.fixture(scope="module")
@@ -90,7 +93,7 @@ def test_a_missing_kernel_means_compiling(voxel_cache, tmp_path):
 
 # -- the ETA ---------------------------------------------------------------------------------
 def test_the_eta_leaves_out_the_time_no_step_works():
-    progress = RunProgress(STEPS)
+    progress = RunProgress(STEPS, **AS_RUN)
     progress.started -= 20  # twenty seconds ago
     progress.uncounted = 10  # of which ten starting the cluster and waiting for the kernels
     progress.begin("ingest", 10)
@@ -100,7 +103,7 @@ def test_the_eta_leaves_out_the_time_no_step_works():
 
 
 def test_uncounted_time_adds_to_the_run_in_progress():
-    with run_progress(STEPS, quiet=True) as progress:
+    with run_progress(STEPS, quiet=True, **AS_RUN) as progress:
         with uncounted():
             time.sleep(0.2)
     assert progress.uncounted >= 0.2
@@ -129,6 +132,6 @@ class _SlowWarming:
 
 
 def test_waiting_for_the_kernels_is_left_out_of_the_eta():
-    with run_progress(STEPS, quiet=True) as progress:
+    with run_progress(STEPS, quiet=True, **AS_RUN) as progress:
         Kernels(("voxel",), _SlowWarming(), quiet=True).wait()
     assert progress.uncounted >= 0.3

@@ -54,3 +54,14 @@ def test_pipeline_never_imports_workflows():
              for path in sorted((REPO / "pipeline").rglob("*.py"))
              for name in _imports(path) if name.split(".")[0] == "workflows"]
     assert found == []
+
+
+def test_the_run_floor_names_no_step():
+    """workflows/run/ is given its table of steps: it neither imports the steps' floor nor
+    names its modules in a string to import them by name, which the imports above miss."""
+    named = [f"{path.relative_to(REPO)}:{number}"
+             for path in sorted((REPO / "workflows" / "run").rglob("*.py"))
+             for number, line in enumerate(path.read_text().splitlines(), 1)
+             if "workflows.steps" in line or "resolve_name" in line
+             or "import_module" in line]
+    assert named == []

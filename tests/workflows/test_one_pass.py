@@ -17,6 +17,7 @@ from workflows.run.directory import Run
 from workflows.steps.ingest import plan_scenes, plan_tiles
 from workflows.steps.one_pass import MAX_BORDER_SHARE, border_share
 from workflows.store.scenes import SceneLayout
+from workflows.steps.table import STEPS
 from tests.workflows.conftest import (
     assert_same_predictions,
     read_predictions,
@@ -177,7 +178,7 @@ def test_auto_leaves_scenes_of_small_chunks_to_the_stored_features(survey, tmp_p
     def planned(keep, size):
         cfg = load_config(write_config(tmp_path / "c.yaml", survey, tiling={"chunk_size": size},
                                        output={"keep_features": keep}))
-        run = Run(resolve_run(cfg), tmp_path / "out", quiet=True)
+        run = Run(resolve_run(cfg), tmp_path / "out", quiet=True, steps=STEPS)
         scenes = plan_scenes(run, plan_tiles(run))
         return ({scene: info.halo for scene, info in scenes.items()},
                 {scene for scene, info in scenes.items() if info.one_pass})

@@ -15,6 +15,7 @@ from workflows.run.autoparams import resolve_run
 from workflows.run.directory import Run
 from workflows.steps import cascade
 from workflows.steps.cascade import model_stages
+from workflows.steps.table import STEPS
 
 DEMO = "configs/demo.yaml"
 
@@ -31,9 +32,10 @@ def test_the_plan_is_frozen_and_digests_the_input_files(tmp_path):
     state = [(str(tmp_path / name), "test", size, os.stat(tmp_path / name).st_mtime_ns)
              for name, size in (("a.laz", 2), ("b.laz", 1))]
     assert plan.inputs_digest == hashlib.sha256(json.dumps(state).encode()).hexdigest()[:16]
-    without_inputs = Run(resolve_run(load_config(DEMO)), tmp_path)
+    without_inputs = Run(resolve_run(load_config(DEMO)), tmp_path, steps=STEPS)
     # the inputs are part of every fingerprint
-    assert Run(plan, tmp_path / "out").fingerprint("ingest") != without_inputs.fingerprint("ingest")
+    with_inputs = Run(plan, tmp_path / "out", steps=STEPS)
+    assert with_inputs.fingerprint("ingest") != without_inputs.fingerprint("ingest")
 
 
 def test_the_applied_model_is_read_and_checked_once(tmp_path, monkeypatch):
@@ -46,7 +48,7 @@ def test_the_applied_model_is_read_and_checked_once(tmp_path, monkeypatch):
             monkeypatch.setattr(module, name, lambda path: pytest.fail("model.json read again"))
     model = model_path("forest-tls-synthetic")
     plan = resolve_run({}, model)
-    run = Run(plan, tmp_path / "out")
+    run = Run(plan, tmp_path / "out", steps=STEPS)
     assert reads == [model] and plan.model.path == model
     assert model_stages(run) == plan.model.stages and len(plan.model.stages) == plan.n_stages
     digest = hashlib.sha256((model / "model.json").read_bytes()).hexdigest()

@@ -19,9 +19,12 @@ from pipeline.features.numba_cache import mark_warm
 from workflows.cli.main import main
 from workflows.exec.kernels import announce_compilation
 from workflows.run.progress import RunProgress, StepProgress, run_progress
+from workflows.steps.table import STEPS as TABLE
 from tests.workflows.conftest import write_config
 
 STEPS = ["ingest", "features", "train", "export", "evaluate", "report"]
+#: how the table weighs the steps and which run once per stage, as the commands pass it
+AS_RUN = {"weights": TABLE.weights(), "per_stage": TABLE.per_stage_names()}
 
 
 def silva(*args):
@@ -64,7 +67,8 @@ def test_quiet_run_prints_one_line_per_step_and_logs_the_run(tmp_path, tiny_surv
 # -- the whole run's progress ----------------------------------------------------------------------
 def test_run_progress_counts_every_step_towards_the_whole_run():
     fractions = []
-    with run_progress(STEPS, quiet=False, stages=2) as progress:  # as the engine's steps do
+    # as the engine's steps do
+    with run_progress(STEPS, quiet=False, stages=2, **AS_RUN) as progress:
         for name, total in [("ingest", 4), ("features", 9), ("sample-1", 9), ("predict-1", 9),
                             ("context-2", 9), ("sample-2", 9), ("predict-2", 9), ("export", 4),
                             ("evaluate", 9)]:
@@ -86,7 +90,8 @@ def test_run_progress_counts_every_step_towards_the_whole_run():
 def test_the_survey_of_an_unlabelled_run_counts_in_the_step_it_runs_in():
     steps = ("ingest", "features", "apply", "export", "evaluate", "report")
     fractions = []
-    with run_progress(steps, quiet=True) as progress:  # the task names of the workflow's run
+    # the task names of the workflow's run
+    with run_progress(steps, quiet=True, **AS_RUN) as progress:
         for name, total in [("ingest", 2), ("apply", 2), ("export (survey)", 2), ("export", 1)]:
             with StepProgress(name, total, quiet=True) as step:
                 for _ in range(total):
@@ -97,7 +102,7 @@ def test_the_survey_of_an_unlabelled_run_counts_in_the_step_it_runs_in():
 
 
 def test_run_progress_says_which_steps_were_done_before_or_skipped():
-    with run_progress(STEPS, quiet=False) as progress:
+    with run_progress(STEPS, quiet=False, **AS_RUN) as progress:
         with StepProgress("export", 2, quiet=True) as step:
             step.advance()
             step.advance()
@@ -108,7 +113,7 @@ def test_run_progress_says_which_steps_were_done_before_or_skipped():
 
 
 def test_a_step_reported_early_is_reported_once():
-    progress = RunProgress(STEPS, quiet=True)
+    progress = RunProgress(STEPS, quiet=True, **AS_RUN)
     progress.begin("ingest", 2)
     progress.end()
     progress.report_current()  # e.g. before waiting for the kernels
@@ -121,7 +126,7 @@ def test_a_step_reported_early_is_reported_once():
 
 
 def test_eta_of_the_whole_run_shows_once_some_work_is_done():
-    progress = RunProgress(STEPS)
+    progress = RunProgress(STEPS, **AS_RUN)
     progress.started -= 10  # ten seconds ago
     progress.begin("ingest", 10)
     assert "ETA" not in progress.status()
@@ -132,7 +137,7 @@ def test_eta_of_the_whole_run_shows_once_some_work_is_done():
 
 
 def test_step_progress_outside_a_run_is_unchanged(capsys):
-    with run_progress(STEPS, quiet=True):
+    with run_progress(STEPS, quiet=True, **AS_RUN):
         pass
     with StepProgress("features", 2) as step:
         step.advance()

@@ -4,7 +4,9 @@ import pytest
 
 from pipeline.errors import ConfigError
 from workflows.config import load_config
-from workflows.run.fingerprint import STEPS, fingerprint
+from workflows.steps.table import STEPS as TABLE
+
+STEPS, fingerprint = TABLE.fingerprinted, TABLE.fingerprint
 
 FOREST = "configs/forest.yaml"
 

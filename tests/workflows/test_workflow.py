@@ -23,6 +23,7 @@ from pipeline.io import write_las
 from pipeline.store import open_store
 from workflows.cli.main import main
 from workflows.store.layout import proba_array
+from workflows.steps.table import STEPS
 from tests.workflows.conftest import (
     assert_chunked,
     assert_same_predictions,
@@ -233,7 +234,7 @@ def test_lost_worker_does_not_change_the_result(reference, survey, tmp_path):
         stop_at = time.monotonic() + 240
         thread = threading.Thread(target=kill_when_busy)
         thread.start()
-        run = Run(resolve_run(load_config(config)), out, quiet=True)
+        run = Run(resolve_run(load_config(config)), out, quiet=True, steps=STEPS)
         run.save_config()
         execute(run, Engine(client, quiet=True, retries=2), "report")
         thread.join()

@@ -417,8 +417,9 @@ def one_run(config: Path, overrides, out: Path, model: Path | None, client) -> d
     from workflows.run.autoparams import run_config
     from workflows.run.directory import Run
     from workflows.run.loop import execute
+    from workflows.steps.table import STEPS
 
-    run = Run(run_config(config, overrides, model), out, quiet=True)
+    run = Run(run_config(config, overrides, model), out, quiet=True, steps=STEPS)
     run.save_config()
     started = time.perf_counter()
     summary = execute(run, Engine(client, quiet=True), "report")

@@ -28,7 +28,8 @@ from workflows.run.progress import (
     run_progress,
     say,
 )
-from workflows.run.step_table import STEPS, TARGETS, examples, progress_steps
+from workflows.run.step_table import examples
+from workflows.steps.table import STEPS
 
 log = logging.getLogger(__name__)
 
@@ -139,27 +140,24 @@ def _kernels_of(run, steps, quiet: bool, kernels=None):
     return contextlib.nullcontext(None)
 
 
-def check_before_start(run, steps, in_process: bool = False) -> list[dict]:
-    """Check everything a run of ``steps`` can check without workers, before its cluster
+def check_before_start(run, target: str, in_process: bool = False) -> list[dict]:
+    """Check everything a run up to ``target`` can check without workers, before its cluster
     starts and its kernels compile, so that a mistake is refused in seconds: the input globs
     and files and the tiles' headers (as ingest plans them: no file, an empty tile, the same
-    tile in train and test, two tiles of one name, mixed CRS), the trees' settings against
-    the scan, the output point format, the rasters' size, and that a local cluster's workers
-    have the memory for the largest chunk (the saved model a run applies was checked with its
-    plan). Raises the error the step would raise later."""
+    tile in train and test, two tiles of one name, mixed CRS), each step's own check (the
+    trees' settings against the scan, the output point format, the rasters' size: the
+    ``check`` of its row) and that a local cluster's workers have the memory for the largest
+    chunk (the saved model a run applies was checked with its plan). Raises the error the
+    step would raise later."""
     from workflows.cli.plan import check_memory
-    from workflows.steps.export import check_output_names, check_point_formats, check_raster_size
     from workflows.steps.ingest import plan_tiles
-    from workflows.steps.trees import check_tree_settings
 
     tiles = plan_tiles(run)
-    if "trees" in steps:
-        check_tree_settings(run, tiles)
-    if "export" in steps:
-        check_point_formats(run, tiles)
-        check_output_names(run, tiles)
-        check_raster_size(run, tiles)
-    if "features" in steps and not in_process:
+    steps = run.table.until(target, run.cfg)
+    for step in steps:
+        if step.check is not None:
+            step.check(run, tiles)
+    if "features" in (step.name for step in steps) and not in_process:
         check_memory(run, tiles)
     return tiles
 
@@ -213,24 +211,24 @@ def start_run(config, options: RunOptions, target: str, *, model_dir=None, comma
     lock = prepare_output(out, overwrite=overwrite, keep=keep, command=command)
     if overwrite:
         reset(out)  # the durations of the runs emptied start again
-    steps = progress_steps(target, applies_model=model_dir is not None)
+    steps = STEPS.progress_steps(target, applies_model=model_dir is not None)
     resume = resume_command(command)
     with run_logging(options.verbose, out / LOG_NAME), lock, _logged_error():
         log.info("start: %s (steps %s)", command, ", ".join(steps))
         try:
             plan = resolve_run(raw, model_dir)  # the model's values: a bad model is logged
-            steps = progress_steps(target, model_dir is not None, plan.cfg)  # asked-for steps
+            steps = STEPS.progress_steps(target, model_dir is not None, plan.cfg)  # asked
             if model_dir is not None:
                 record_applied_model(out, model_dir)
-            run = Run(plan, out, quiet=quiet)
+            run = Run(plan, out, quiet=quiet, steps=STEPS)
             text = run.save_config()
             if options.verbose:
                 click.echo(f"# resolved configuration (saved to {out / 'config.yaml'})\n"
                            f"{text}", err=True)
-            tiles = check_before_start(run, steps, options.in_process)  # before cluster, kernels
+            tiles = check_before_start(run, target, options.in_process)  # before cluster, kernels
             weights = step_weights(run, tiles, plan_workers(run))  # the ETA counts training
-            with run_progress(steps, quiet=quiet, stages=run.n_stages,
-                              weights=weights) as progress, \
+            with run_progress(steps, quiet=quiet, stages=run.n_stages, weights=weights,
+                              per_stage=STEPS.per_stage_names()) as progress, \
                     _kernels_of(run, steps, quiet, kernels) as ready:
                 with open_engine(plan.cfg, quiet=quiet, in_process=options.in_process,
                                  debug=options.chunk is not None) as engine:
@@ -264,7 +262,7 @@ def _step_command(name: str, target: str, doc: str) -> click.Command:
 
 # command -> (the step it runs up to, its help): 'run' and the commands of the step table
 STEP_COMMANDS = {
-    "run": ("report", f"Run every step on CONFIG: {', '.join(TARGETS)}. A rerun resumes: "
+    "run": ("report", f"Run every step on CONFIG: {', '.join(STEPS.targets)}. A rerun resumes: "
                       "finished work with the same configuration is kept." + examples(
                           "silva run survey.yaml --out results/",
                           "silva run survey.yaml --out results/ --set features.r1=0.4 -q",
@@ -347,7 +345,8 @@ def plan(inputs, model_dir, overrides, picture):
         raise click.UsageError("give one CONFIG (or --model MODEL with the tiles to classify)")
     config, tiles = config_and_tiles(inputs)
     model = model_path(model_dir) if model_dir is not None else None
-    run = Run(resolve_run(read_run(config, overrides, tiles), model), Path("."), quiet=True)
+    run = Run(resolve_run(read_run(config, overrides, tiles), model), Path("."), quiet=True,
+              steps=STEPS)
     for line in plan_run(run, plan_workers(run), picture):
         click.echo(line)
 

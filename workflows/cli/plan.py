@@ -26,9 +26,9 @@ from pipeline.tiling import MIN_CHUNK_HALOS, Grid, tile_area
 from workflows.exec.cluster import plan_workers
 from workflows.run.directory import Run
 from workflows.run.progress import clock, counted
-from workflows.run.step_table import step_weights as table_weights
 from workflows.steps.copies import copy_lines
 from workflows.steps.ingest import plan_scenes, plan_tiles, scene_chunk_size, scene_target
+from workflows.steps.table import STEPS
 from workflows.store.scenes import SceneLayout
 
 log = logging.getLogger(__name__)
@@ -408,7 +408,7 @@ def step_weights(run: Run, tiles: list[dict], workers: int) -> dict[str, float]:
     """Each step's estimated seconds (:func:`estimated_seconds`, with the thinned copies
     :func:`foreseen_copies`): how the run's progress weighs the steps for its ETA, the
     forests' training included (each step's :class:`~workflows.run.step_table.Weight`)."""
-    return table_weights(estimated_seconds(run, tiles, workers, foreseen_copies(run, tiles)))
+    return STEPS.weights(estimated_seconds(run, tiles, workers, foreseen_copies(run, tiles)))
 
 
 def _draw(scenes: dict[str, SceneLayout], tiles: list[dict], path: Path) -> None:

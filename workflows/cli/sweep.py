@@ -78,7 +78,7 @@ def plan_sweep(config: Path, key: str, values: str, seeds: int, out: Path,
     """Every run of the sweep, each configuration validated, before any work is done."""
     from workflows.config import load_config
     from workflows.run.directory import read_paths
-    from workflows.run.fingerprint import fingerprint
+    from workflows.steps.table import STEPS
 
     key = key.strip()
     if key.split(".")[0] == "cluster":
@@ -104,7 +104,7 @@ def plan_sweep(config: Path, key: str, values: str, seeds: int, out: Path,
                                       "(data.test or data.split); a sweep compares test "
                                       "metrics")
                 read_paths(cfg, config, None)  # every input exists
-            features = fingerprint(cfg, "features")
+            features = STEPS.fingerprint(cfg, "features")
             groups.setdefault(features, out / name / "run")
             plan.append(SweepRun(text, value, cfg.cascade.seed, cfg, groups[features],
                                  out / name / f"seed{cfg.cascade.seed}"))
@@ -160,12 +160,13 @@ def _run_one(item: SweepRun, engine, quiet: bool, command: str, kernels=None) ->
     from workflows.run.autoparams import resolve_run
     from workflows.run.directory import Run
     from workflows.run.loop import execute
-    from workflows.run.step_table import progress_steps
+    from workflows.steps.table import STEPS
 
-    run = Run(resolve_run(item.cfg), item.work, quiet=quiet)
+    run = Run(resolve_run(item.cfg), item.work, quiet=quiet, steps=STEPS)
     run.save_config()
-    steps = progress_steps("evaluate")
-    with run_progress(steps, quiet=quiet, stages=int(item.cfg.cascade.stages)) as progress:
+    steps = STEPS.progress_steps("evaluate")
+    with run_progress(steps, quiet=quiet, stages=int(item.cfg.cascade.stages),
+                      weights=STEPS.weights(), per_stage=STEPS.per_stage_names()) as progress:
         summary = execute(run, engine, "evaluate", command=command, kernels=kernels)
         progress.finish(summary["timings"], list(summary["timings"]))
     if "metrics" not in summary:

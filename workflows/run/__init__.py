@@ -1,1 +1,2 @@
-"""One run: its plan, output directory, step table and loop, fingerprints, progress and log."""
+"""One run: its plan, output directory, loop over the table of steps it is given (what such a
+table is; the steps' floor declares the steps), fingerprints, progress and log."""

@@ -31,10 +31,9 @@ from pipeline.store import open_store
 from pipeline.terrain import TerrainParams
 from workflows.config import SilvaConfig, dump_config
 from workflows.config.inputs import SCENES, expand_inputs
-from workflows.run.fingerprint import STEPS as FINGERPRINTED
-from workflows.run.fingerprint import fingerprint
 from workflows.run.lock import LOCK_NAME, acquire, check_free
 from workflows.run.plan import AppliedModel, RunPlan, feature_description
+from workflows.run.step_table import StepTable
 
 log = logging.getLogger(__name__)
 
@@ -47,12 +46,15 @@ def has_test_points(scenes, split) -> bool:
 
 @dataclass
 class Run:
-    """The paths and the store of one run, and its plan (:class:`RunPlan`: built once by
-    :func:`workflows.run.autoparams.resolve_run`), which everything it computes follows."""
+    """The paths and the store of one run, its plan (:class:`RunPlan`: built once by
+    :func:`workflows.run.autoparams.resolve_run`), which everything it computes follows, and
+    its table of steps (``steps``, which the commands give: the loop runs its rows, and the
+    fingerprints hash what they name; None: a run that computes no fingerprint)."""
 
     plan: RunPlan
     out: Path
     quiet: bool = False
+    steps: StepTable | None = None
     _store: object = field(default=None, repr=False)
 
     @property
@@ -158,10 +160,18 @@ class Run:
     def n_classes(self) -> int:
         return len(self.classes)
 
+    @property
+    def table(self) -> StepTable:
+        """The run's table of steps (:attr:`steps`), which it was given."""
+        if self.steps is None:
+            raise RuntimeError("this run was given no table of steps (Run(..., steps=)): "
+                               "it computes no fingerprint and runs no step")
+        return self.steps
+
     def fingerprint(self, step: str) -> str:
         """Fingerprint of a step: its configuration and the input files it reads."""
-        digest = hashlib.sha256(f"{fingerprint(self.cfg, step)}|{self.plan.inputs_digest}"
-                                .encode())
+        config = self.table.fingerprint(self.cfg, step)
+        digest = hashlib.sha256(f"{config}|{self.plan.inputs_digest}".encode())
         return digest.hexdigest()[:16]
 
     def stage_fingerprint(self, stage: int) -> str:
@@ -189,7 +199,8 @@ class Run:
         and the description of the applied model."""
         inputs = [[f.scene, str(f.path), f.size, f.mtime_ns] for f in self.plan.inputs]
         model = None if self.model is None else self.model.digest
-        state = {"steps": [fingerprint(self.cfg, step) for step in FINGERPRINTED],
+        steps = self.table
+        state = {"steps": [steps.fingerprint(self.cfg, name) for name in steps.fingerprinted],
                  "stages": self.cfg.cascade.stages, "inputs": inputs, "model": model}
         return hashlib.sha256(json.dumps(state).encode()).hexdigest()[:16]
 

@@ -1,5 +1,6 @@
-"""The run's loop: the steps of the table (:data:`workflows.run.step_table.STEPS`) in order,
-each resumable, up to the command's target.
+"""The run's loop: the steps of the run's table (:attr:`workflows.run.directory.Run.steps`,
+a :class:`~workflows.run.step_table.StepTable` the commands give) in order, each
+resumable, up to the command's target.
 
 Every command is a target: it runs the steps up to and including its own. Steps skip the work
 a previous run finished with the same configuration, so rerunning a killed command resumes it.
@@ -17,34 +18,33 @@ import os
 from pipeline.errors import StoreError
 from workflows.run.directory import Run
 from workflows.run.progress import say
-from workflows.run.state import RunState
-from workflows.run.step_table import TARGETS, steps_until
 from workflows.store.retention import forget_removed, remove_chunks, removed_record
 
 log = logging.getLogger(__name__)
 
 def execute(run: Run, engine, target: str, *, only: str | None = None, command: str = "",
             kernels=None) -> dict:
-    """Run the steps up to ``target``; return a summary (durations, counts, output paths).
+    """Run the steps of ``run``'s table up to ``target``; return a summary (durations,
+    counts, output paths).
 
     ``kernels`` (:class:`workflows.exec.kernels.Kernels`, optional): the feature kernels
     compiling in the background while ingest runs; waited for before the features step.
     """
-    state = RunState(run, engine, target, only, command, kernels)
+    state = run.table.state(run, engine, target, only, command, kernels)
     # before the stamp of metrics and report is renewed: a refusal keeps them
     if _already_complete(run, target, only, state.summary, run.results_stamp()):
         return state.summary
     state.stamp = run.forget_stale_results()  # a rerun that changes nothing keeps metrics
     state.adds_durations = not run.report_path.is_file()  # complete: it costs nothing more
     try:
-        for step in steps_until(target, run.cfg):
+        for step in run.table.until(target, run.cfg):
             if only is not None and not step.per_chunk:
                 break
             missing = [need for need in step.needs if getattr(state, need) is None]
             if missing:
                 raise RuntimeError(f"step {step.name} needs {', '.join(missing)}, which no "
                                    "step before it set; check the order of the step table")
-            step.run(state)
+            step.function(state)
     finally:
         state.close()
     _finish(run, target, only, state.summary, state.stamp)
@@ -67,7 +67,7 @@ def _outputs(run: Run, summary: dict) -> list[str]:
 def _finish(run: Run, target: str, only, summary: dict, stamp: str) -> None:
     """After a complete run (its results stamp ``stamp``): remove the store's chunks unless
     output.keep_store."""
-    if target != TARGETS[-1] or only is not None or run.cfg.output.keep_store:
+    if target != run.table.targets[-1] or only is not None or run.cfg.output.keep_store:
         return
     record = {"completed": stamp,
               "outputs": _outputs(run, summary),
@@ -92,7 +92,7 @@ def _already_complete(run: Run, target: str, only, summary: dict, stamp: str) ->
     same = record.get("completed") == stamp
     missing = [p for p in record.get("outputs", ()) if not (run.out / p).is_file()]
     complete = only is None and same and not missing
-    if not complete and (target != TARGETS[-1] or only is not None):
+    if not complete and (target != run.table.targets[-1] or only is not None):
         why = ("--chunk needs the chunks" if only is not None and same and not missing
                else "it completed with another configuration, other inputs or another model"
                if not same else f"{missing[0]} is no longer there")

@@ -12,7 +12,7 @@ import logging
 import re
 import sys
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Collection, Iterator, Mapping, Sequence
 from pathlib import Path
 
 import click
@@ -26,15 +26,8 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from workflows.run.step_table import per_stage_names, step_weights
-
 log = logging.getLogger(__name__)
 
-#: Typical share of each step in a run's time (the demo and the benchmarks): the ETA of the
-#: whole run weighs each step's progress by it.
-STEP_WEIGHTS = step_weights()
-#: The steps whose tasks run once per cascade stage (``predict-3``: stage 3).
-PER_STAGE = per_stage_names()
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 _NOISY = ("distributed", "bokeh", "tornado")  # their own handlers write to stderr
 
@@ -67,18 +60,24 @@ def clock(seconds: float) -> str:
 class RunProgress:
     """Step n of m, elapsed and ETA of a whole run, from the progress of its steps' tasks.
 
-    ``steps`` are the run's steps in order (:func:`workflows.run.step_table.progress_steps`).
-    Each :class:`StepProgress` reports here under its task name: a step's name (``ingest``,
+    ``steps`` are the run's steps in order
+    (:meth:`workflows.run.step_table.StepTable.progress_steps`), ``weights`` each one's share
+    of the run (:meth:`~workflows.run.step_table.StepTable.weights`: 0.1 for a step without)
+    and ``per_stage`` those whose tasks run once per cascade stage
+    (:meth:`~workflows.run.step_table.StepTable.per_stage_names`). Each
+    :class:`StepProgress` reports here under its task name: a step's name (``ingest``,
     ``features``, ``export``, ...) is its step; every other name (``sample-2``,
-    ``predict-3``, ...) belongs to the cascade step, and its trailing number is the stage out
-    of ``stages``.
+    ``predict-3``, ...) belongs to the cascade step (the first of ``per_stage``), and its
+    trailing number is the stage out of ``stages``.
     """
 
     def __init__(self, steps: Sequence[str], *, quiet: bool = False, stages: int = 1,
-                 weights: Mapping[str, float] = STEP_WEIGHTS):
+                 weights: Mapping[str, float] | None = None, per_stage: Collection[str] = ()):
         self.steps = list(steps)
         self.quiet = quiet
         self.stages = max(int(stages), 1)
+        self.per_stage = set(per_stage)
+        weights = weights or {}
         self.weights = [float(weights.get(step, 0.1)) for step in self.steps]
         self.started = time.monotonic()
         self.uncounted = 0.0  # seconds of no step's work (cluster start, compiling): no ETA
@@ -94,7 +93,7 @@ class RunProgress:
     def step_of(self, name: str) -> int:
         if name.split(" ", 1)[0] in self.steps:  # "ingest (count)" is part of ingest
             return self.steps.index(name.split(" ", 1)[0])
-        cascade = [i for i, step in enumerate(self.steps) if step in PER_STAGE]
+        cascade = [i for i, step in enumerate(self.steps) if step in self.per_stage]
         return cascade[0] if cascade else len(self.steps) - 1
 
     def begin(self, name: str, total: int) -> None:
@@ -111,7 +110,7 @@ class RunProgress:
         """``done`` of the current task group's items are finished."""
         part = done / self._total
         stage = re.search(r"-(\d+)$", self._name)
-        if stage and self.steps[self._index] in PER_STAGE:
+        if stage and self.steps[self._index] in self.per_stage:
             part = (min(int(stage.group(1)), self.stages) - 1 + part) / self.stages
         self._fraction = max(self._fraction, min(part, 1.0))
 
@@ -228,12 +227,13 @@ def fold_step(step: str, how: str) -> None:
 
 @contextlib.contextmanager
 def run_progress(steps: Sequence[str], *, quiet: bool, stages: int = 1,
-                 weights: Mapping[str, float] | None = None) -> Iterator[RunProgress]:
-    """Count every step's progress towards the run of ``steps`` while the block runs;
-    ``weights``: each step's share of the run (default :data:`STEP_WEIGHTS`)."""
+                 weights: Mapping[str, float] | None = None,
+                 per_stage: Collection[str] = ()) -> Iterator[RunProgress]:
+    """Count every step's progress towards the run of ``steps`` while the block runs
+    (``weights`` and ``per_stage`` as :class:`RunProgress` takes them)."""
     global _RUN
-    previous, _RUN = _RUN, RunProgress(steps, quiet=quiet, stages=stages,
-                                       weights=weights or STEP_WEIGHTS)
+    previous, _RUN = _RUN, RunProgress(steps, quiet=quiet, stages=stages, weights=weights,
+                                       per_stage=per_stage)
     try:
         yield _RUN
     finally:

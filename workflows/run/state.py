@@ -1,21 +1,26 @@
-"""What the steps of one execution hand on to each other (:class:`RunState`): the chunk
-layout, the training counts, the model's stages, the metrics; and the clock of each step."""
+"""One execution of a run's steps (:class:`RunState`): its inputs, its summary and the clock
+of each step. What the steps hand on to each other (the chunk layout, the model's stages,
+...) is declared with them: the table of steps gives the state class its rows need
+(:attr:`workflows.run.step_table.StepTable.state`), a subclass of this one."""
+
+from __future__ import annotations
 
 import contextlib
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from pipeline.errors import StoreError
-from workflows.run.directory import Run, has_test_points
 from workflows.run.durations import accumulate
-from workflows.run.step_table import BY_NAME, steps_until
-from workflows.store.scenes import RunLayout
+
+if TYPE_CHECKING:
+    from workflows.run.directory import Run
 
 
 @dataclass
 class RunState:
-    """One execution of the steps up to ``target``: its inputs and what the steps found.
+    """One execution of the steps up to ``target``: its inputs and its summary.
 
     ``kernels`` (:class:`workflows.exec.kernels.Kernels`, optional): the feature kernels
     compiling in the background while ingest runs; waited for before the features step.
@@ -34,15 +39,6 @@ class RunState:
     # False when the run's results were complete when it started (the report of this very
     # stamp): what it redoes (reading, checking, the report) adds nothing to what they cost
     adds_durations: bool = True
-    layout: RunLayout | None = None  # ingest's chunk layout
-    counts: object = None  # the training points per class (features)
-    staged: RunLayout | None = None  # the layout's scenes classified stage by stage
-    one_pass: RunLayout | None = None  # and those classified in one pass per chunk
-    stages: list | None = None  # the model's stage records
-    trees: dict | None = None  # the trees found per scene (output.trees)
-    drawn: tuple | None = None  # an unlabelled run's survey and its figures (a future)
-    metrics: dict | None = None
-    plots: dict | None = None
     _closing: contextlib.ExitStack = field(default_factory=contextlib.ExitStack, repr=False)
     _painter: ThreadPoolExecutor | None = field(default=None, repr=False)
 
@@ -50,27 +46,14 @@ class RunState:
         self.summary = {"out": str(self.run.out), "timings": {}}
 
     def reaches(self, step: str) -> bool:
-        """Whether this execution runs up to ``step`` (a step of the table)."""
-        return BY_NAME[step] in steps_until(self.target)
+        """Whether this execution runs up to ``step`` (a step of the run's table)."""
+        steps = self.run.table
+        return steps[step] in steps.until(self.target)
 
     @property
     def fits(self) -> bool:
         """Whether the run trains its own model (else it applies a saved one)."""
         return self.run.model_dir is None
-
-    @property
-    def outputs(self) -> RunLayout:
-        """The layout without the thinned copies of the training scene (data.densities):
-        the scenes the steps after the cascade export, score and survey."""
-        return self.layout.without_copies()
-
-    @property
-    def labelled(self) -> bool:
-        return has_test_points(self.layout.scenes, self.run.cfg.data.split)
-
-    @property
-    def n_stages(self) -> int:
-        return len(self.stages)
 
     def timed(self, step: str, fn, *args, **kwargs):
         """``fn(*args, **kwargs)``, its seconds added to ``step``'s in the summary's timings

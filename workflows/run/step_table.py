@@ -1,47 +1,24 @@
-"""The steps of a run, declared once: :data:`STEPS`, read by the run's loop
-(:func:`workflows.run.loop.execute`), its progress and ETA (:mod:`workflows.run.progress`,
-:func:`workflows.cli.plan.step_weights`), the fingerprints
-(:mod:`workflows.run.fingerprint`) and the per-step commands
-(:data:`workflows.cli.commands.STEP_COMMANDS`).
+"""What a table of steps is: its rows (:class:`Step`, with its :class:`Weight` in the
+progress and its :class:`Fingerprint`) and the :class:`StepTable` that the run's loop
+(:func:`workflows.run.loop.execute`), its progress, the fingerprints and the per-step
+commands read.
 
-Each :class:`Step` gives its name, the function that runs it (``"module:function"``,
-imported only when the step runs, so that this table stays as light as the modules that
-read it), what it needs from the steps before it, the configuration parts its fingerprint
-hashes, its weight in the run's progress and, for a step with its own ``silva`` command,
-the command's help.
-
-Adding a step (for example ``trees``, per scene after the cascade, before the export):
-
-1. write its function in its own module; it takes the run's state
-   (:class:`workflows.run.state.RunState`), reads what its ``needs`` name there and times
-   its work under its name::
-
-       def trees_step(state):
-           fingerprint = state.run.fingerprint("trees")  # its parts and the inputs' digest
-           state.timed("trees", find_trees, state.run, state.engine, state.layout,
-                       state.stages, fingerprint)
-
-2. add one row to :data:`STEPS`, at its place in the run (here after ``train``)::
-
-       Step("trees", "workflows.steps.trees:trees_step", needs=("layout", "stages"),
-            fingerprint=(*CASCADE_PARTS, "trees", "output.trees"),
-            weight=Weight(0.05, other=0.1), per_chunk=False,
-            command="Find the trees of every scene (after train)."
-            + examples("silva trees survey.yaml --out results/")),
-
-The loop then runs it (``silva run`` and every command after it), ``silva trees`` exists,
-the progress shows its line and weighs it (``share`` before a plan, else its estimated
-seconds), and ``run.fingerprint("trees")`` hashes what it names: :data:`PARTS
-<workflows.run.fingerprint.PARTS>` (rules of their own) and configuration paths as written
-(``"trees"``: the whole section, ``"output.trees"``: one key; the configuration schema
-declares them). A step without ``command`` has no command and no line in the progress (its
-tasks count in the progress of the step they run in); a step with ``per_chunk=False`` is
-left out of a ``--chunk`` run; ``needs`` are checked before it runs.
+This floor knows no step: the table of the built-in steps stands on the steps' floor
+(``steps/table.py``, where its docstring says how a step is added), and the commands hand it
+to the run (:class:`workflows.run.directory.Run`), which runs its rows in order.
 """
 
-from collections.abc import Mapping
-from dataclasses import dataclass
-from pkgutil import resolve_name
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+from pipeline.errors import ConfigError
+from workflows.run.fingerprint import fingerprint
+
+#: How a fingerprint part is found: a configuration path as written ("trees": the whole
+#: section, "output.trees": one key) or a rule of its own, a function of the configuration
+#: and its JSON dump.
+Rule = str | Callable[[Any, dict], Any]
 
 
 @dataclass(frozen=True)
@@ -62,15 +39,28 @@ class Weight:
 
 
 @dataclass(frozen=True)
-class Step:
-    """One step of a run (see the module's docstring for how a step is added).
+class Fingerprint:
+    """What a step's fingerprint hashes: every part of the fingerprint named ``after``
+    (the step it builds on) and its own ``parts``, each under its name (:data:`Rule`).
+    ``name``: the fingerprint's name when it is not the step's."""
 
-    ``function``: ``"module:function"`` taking the run's state. ``needs``: the state's
-    attributes the steps before it set and it reads. ``fingerprint``: the configuration parts
-    its fingerprint hashes (empty: it has none; ``fingerprint_name`` names it when the step's
-    name does not). ``weight``: its share in the progress. ``per_chunk``: a ``--chunk`` run
-    (one chunk, in this process) runs it. ``per_stage``: its tasks run once per cascade
-    stage (``predict-3``: stage 3 in its progress). ``command``: the help of its ``silva`` command,
+    parts: Mapping[str, Rule] = field(default_factory=dict)
+    after: str | None = None
+    name: str | None = None
+
+
+@dataclass(frozen=True)
+class Step:
+    """One row of a table of steps.
+
+    ``function``: runs the step; it takes the run's state (an instance of the table's
+    ``state``). ``needs``: the state's attributes the steps before it set and it reads;
+    ``sets``: those it sets. ``check``: what can be checked of it
+    before the cluster starts, a function of the run and its planned tiles raising the error
+    the step would raise later. ``fingerprint``: what its fingerprint hashes (None: it has
+    none). ``weight``: its share in the progress. ``per_chunk``: a ``--chunk`` run (one chunk,
+    in this process) runs it. ``per_stage``: its tasks run once per cascade stage
+    (``predict-3``: stage 3 in its progress). ``command``: the help of its ``silva`` command,
     which runs every step up to it (None: no command, no line of its own in the progress).
     ``applying``: its name and weight in a run that applies a saved model. ``when``: a
     configuration path (``"output.trees"``) without whose true value the step is not part
@@ -78,10 +68,11 @@ class Step:
     """
 
     name: str
-    function: str
+    function: Callable[[Any], None]
     needs: tuple[str, ...] = ()
-    fingerprint: tuple[str, ...] = ()
-    fingerprint_name: str | None = None
+    sets: tuple[str, ...] = ()
+    check: Callable[[Any, list], None] | None = None
+    fingerprint: Fingerprint | None = None
     weight: Weight = Weight()
     per_chunk: bool = True
     per_stage: bool = False
@@ -99,102 +90,88 @@ class Step:
             value = getattr(value, key)
         return bool(value)
 
-    def run(self, state) -> None:
-        resolve_name(self.function)(state)
-
     def shown_name(self, applies_model: bool) -> str:
         """The step's name in the progress (and in the timings)."""
         return self.applying[0] if applies_model and self.applying else self.name
 
 
+class StepTable:
+    """The steps of a run, in order: what runs (:meth:`until`), what the progress shows
+    and weighs, what each fingerprint hashes; and ``state``, the class of what its steps
+    hand on to each other (a :class:`~workflows.run.state.RunState` with the fields their
+    ``needs`` and ``sets`` name)."""
+
+    def __init__(self, *steps: Step, state: type):
+        self.steps = steps
+        self.state = state
+        self.by_name = {step.name: step for step in steps}
+        if len(self.by_name) < len(steps):
+            raise ValueError("two steps of the table have one name")
+        held = {f.name for f in fields(state)}
+        unknown = [f"{step.name}: {name}" for step in steps
+                   for name in (*step.needs, *step.sets) if name not in held]
+        if unknown:
+            raise ValueError(f"{state.__name__} holds no {', '.join(unknown)}: the steps "
+                             "need and set fields of the table's state")
+        #: The steps that are commands (a command runs every step up to its own), in order.
+        self.targets = tuple(step.name for step in steps if step.command is not None)
+        self._fingerprinted = {step.fingerprint.name or step.name: step.fingerprint
+                               for step in steps if step.fingerprint is not None}
+        #: The names of the fingerprints, in the order of their steps.
+        self.fingerprinted = tuple(self._fingerprinted)
+
+    def __iter__(self):
+        return iter(self.steps)
+
+    def __getitem__(self, name: str) -> Step:
+        return self.by_name[name]
+
+    def until(self, target: str, cfg=None) -> tuple[Step, ...]:
+        """The steps a run up to ``target`` (a step's name) runs, in order: with ``cfg`` only
+        those its configuration asks for (:meth:`Step.active`)."""
+        until = self.steps[: self.steps.index(self.by_name[target]) + 1]
+        return tuple(step for step in until if step.active(cfg))
+
+    def progress_steps(self, target: str, applies_model: bool = False,
+                       cfg=None) -> list[str]:
+        """The steps with a line in the progress of a run up to ``target`` (with ``cfg``: of
+        the steps its configuration asks for)."""
+        return [step.shown_name(applies_model) for step in self.until(target, cfg)
+                if step.command is not None]
+
+    def weights(self, spent: Mapping[str, float] | None = None) -> dict[str, float]:
+        """Each shown step's weight in a run's progress, under its name and, for a step named
+        otherwise when a model is applied, that name too: the typical shares, or with
+        ``spent`` (:func:`workflows.cli.plan.estimated_seconds`) its estimated seconds."""
+        weights = {}
+        for step in self.steps:
+            if step.command is None:
+                continue
+            for name, weight in ((step.name, step.weight), *filter(None, [step.applying])):
+                weights[name] = weight.share if spent is None else weight.seconds(spent)
+        return weights
+
+    def per_stage_names(self) -> set[str]:
+        """The progress names of the steps whose tasks run once per cascade stage."""
+        return {name for step in self.steps if step.per_stage
+                for name in (step.name, *(step.applying[:1] if step.applying else ()))}
+
+    def fingerprint_parts(self, name: str) -> dict[str, Rule]:
+        """Every part the fingerprint ``name`` hashes: those of the fingerprints it builds
+        on, then its own."""
+        own = self._fingerprinted[name]
+        before = {} if own.after is None else self.fingerprint_parts(own.after)
+        return {**before, **own.parts}
+
+    def fingerprint(self, cfg, name: str) -> str:
+        """The fingerprint ``name`` of the configuration ``cfg``
+        (:func:`workflows.run.fingerprint.fingerprint` of its parts)."""
+        if name not in self._fingerprinted:
+            raise ConfigError(f"config error: unknown step '{name}' for a fingerprint; "
+                              f"use one of {', '.join(self.fingerprinted)}")
+        return fingerprint(cfg, self.fingerprint_parts(name))
+
+
 def examples(*lines: str) -> str:
     """A help text's example invocations: a paragraph click keeps line by line."""
     return "\n\n\b\nExamples:\n" + "\n".join(f"  {line}" for line in lines)
-
-
-INGEST_PARTS = ("ingest",)
-TERRAIN_PARTS = (*INGEST_PARTS, "terrain")
-FEATURE_PARTS = (*TERRAIN_PARTS, "features")
-#: what a cascade stage follows from; the steps after the cascade build on it
-CASCADE_PARTS = (*FEATURE_PARTS, "context", "cascade")
-
-STEPS: tuple[Step, ...] = (
-    Step("ingest", "workflows.steps.flow:ingest_step", fingerprint=INGEST_PARTS,
-         weight=Weight(0.1, other=0.3),
-         command="Stream the input tiles of CONFIG into chunks with halos (store.zarr)."
-         + examples("silva ingest survey.yaml --out results/")),
-    Step("terrain", "workflows.steps.flow:terrain_step", needs=("layout",),
-         fingerprint=TERRAIN_PARTS),
-    Step("features", "workflows.steps.flow:features_step", needs=("layout",),
-         fingerprint=FEATURE_PARTS, weight=Weight(0.6, features=1.0),
-         command="Compute the moment invariants of every chunk (after ingest)." + examples(
-             "silva features survey.yaml --out results/",
-             "silva features survey.yaml --out results/ --chunk test/0_0")),
-    Step("train", "workflows.steps.flow:cascade_step", needs=("layout", "counts"),
-         fingerprint=CASCADE_PARTS, fingerprint_name="stage",
-         weight=Weight(0.2, training=1.0, other=0.4), per_stage=True,
-         applying=("apply", Weight(0.2, other=0.4)),
-         command="Train the cascade and predict every stage (after features); saves "
-                 "OUT/model." + examples("silva train survey.yaml --out results/")),
-    Step("trees", "workflows.steps.flow:trees_step", needs=("layout", "stages"),
-         fingerprint=(*CASCADE_PARTS, "trees"), weight=Weight(0.03, other=0.1),
-         per_chunk=False, when="output.trees",
-         command="Find the trees of every scene (after train; with output.trees): "
-                 "PredictedTreeID per point, trees/<tile>.csv and .gpkg." + examples(
-                     "silva trees survey.yaml --out results/ --set output.trees=true")),
-    Step("survey", "workflows.steps.flow:survey_step", needs=("layout", "stages"),
-         per_chunk=False),
-    Step("export", "workflows.steps.flow:export_step", needs=("layout", "stages"),
-         fingerprint=(*CASCADE_PARTS, "output", "trees"), weight=Weight(0.04, other=0.2),
-         per_chunk=False,
-         command="Write predictions/<tile>.laz for every input tile (after train)."
-         + examples("silva export survey.yaml --out results/ --set output.format=las")),
-    Step("evaluate", "workflows.steps.flow:evaluate_step", needs=("layout", "stages"),
-         fingerprint=(*CASCADE_PARTS, "background"), weight=Weight(0.02, other=0.05),
-         per_chunk=False,
-         command="Write metrics.json for the test points (after export)."
-         + examples("silva evaluate survey.yaml --out results/")),
-    Step("report", "workflows.steps.flow:report_step", needs=("layout", "stages"),
-         weight=Weight(0.04, other=0.05), per_chunk=False,
-         command="Write report.html with its plots (after evaluate)."
-         + examples("silva report survey.yaml --out results/")),
-)
-
-BY_NAME = {step.name: step for step in STEPS}
-#: The steps that are commands (targets: a command runs every step up to its own), in order.
-TARGETS = tuple(step.name for step in STEPS if step.command is not None)
-#: The fingerprinted steps, by the name of their fingerprint.
-FINGERPRINTED = {step.fingerprint_name or step.name: step for step in STEPS if step.fingerprint}
-
-
-def steps_until(target: str, cfg=None) -> tuple[Step, ...]:
-    """The steps a run up to ``target`` (one of :data:`TARGETS`) runs, in order: with ``cfg``
-    only those its configuration asks for (:meth:`Step.active`)."""
-    until = STEPS[: STEPS.index(BY_NAME[target]) + 1]
-    return tuple(step for step in until if step.active(cfg))
-
-
-def progress_steps(target: str, applies_model: bool = False, cfg=None) -> list[str]:
-    """The steps with a line in the progress of a run up to ``target`` (with ``cfg``: of
-    the steps its configuration asks for)."""
-    return [step.shown_name(applies_model) for step in steps_until(target, cfg)
-            if step.command is not None]
-
-
-def step_weights(spent: Mapping[str, float] | None = None) -> dict[str, float]:
-    """Each shown step's weight in a run's progress, under its name and, for a step named
-    otherwise when a model is applied, that name too: the typical shares, or with ``spent``
-    (:func:`workflows.cli.plan.estimated_seconds`) its estimated seconds."""
-    weights = {}
-    for step in STEPS:
-        if step.command is None:
-            continue
-        for name, weight in ((step.name, step.weight), *filter(None, [step.applying])):
-            weights[name] = weight.share if spent is None else weight.seconds(spent)
-    return weights
-
-
-def per_stage_names() -> set[str]:
-    """The progress names of the steps whose tasks run once per cascade stage."""
-    return {name for step in STEPS if step.per_stage
-            for name in (step.name, *(step.applying[:1] if step.applying else ()))}

@@ -1,34 +1,30 @@
-"""The built-in steps as the step table (:data:`workflows.run.step_table.STEPS`) runs them: each
-takes the run's :class:`~workflows.run.state.RunState`, calls its step module and leaves
-what it found on the state for the steps after it.
+"""The built-in steps as the table of steps (:data:`workflows.steps.table.STEPS`) runs them:
+each takes the run's :class:`~workflows.steps.state.StepState`, calls its step module and
+leaves what it found on the state for the steps after it. Each imports its step module when it
+runs, so that the table, which the command line reads, stays light.
 
 The features and the stage-by-stage cascade cover the scenes the forests train on (and
 every scene with ``output.keep_features``); the other scenes are classified afterwards, in
 one pass per chunk (:mod:`workflows.steps.one_pass`), which stores no features. The thinned
 copies of the training scene (``data.densities``) are scenes the forests train on, which
-the steps after the cascade leave out (:attr:`RunState.outputs`). A run
+the steps after the cascade leave out (:attr:`StepState.outputs`). A run
 without labelled test points surveys its predictions before the export, so that its report's
 figures are drawn while the workers write the tiles.
 """
 
+from __future__ import annotations
+
 import platform
 from datetime import datetime, timezone
+from typing import TYPE_CHECKING
 
 from pipeline import __version__
-from workflows.exec.engine import check_chunk
 from workflows.run.durations import totals
 from workflows.run.progress import fold_step, say
-from workflows.run.state import RunState
-from workflows.steps.cascade import cascade, model_stages
-from workflows.steps.evaluate import evaluate, write_metrics
-from workflows.steps.export import check_point_formats, check_raster_size, export
-from workflows.steps.features import features
-from workflows.steps.ingest import ingest
-from workflows.steps.one_pass import classify_in_one_pass, one_pass_scenes
-from workflows.steps.survey import canopy_samples, survey
-from workflows.steps.terrain import terrain
-from workflows.steps.trees import check_tree_settings, score_trees, trees
-from workflows.store.scenes import RunLayout
+
+if TYPE_CHECKING:
+    from workflows.steps.state import StepState
+    from workflows.store.scenes import RunLayout
 
 
 def scenes_of(layout: RunLayout, keep, only: str | None = None) -> RunLayout:
@@ -38,8 +34,29 @@ def scenes_of(layout: RunLayout, keep, only: str | None = None) -> RunLayout:
         lambda s: keep(s) and (only is None or s == only.split("/", 1)[0]))
 
 
-def ingest_step(state: RunState) -> None:
+def check_trees(run, tiles: list[dict]) -> None:
+    """Before the cluster starts: the trees' settings against the scan."""
+    from workflows.steps.trees import check_tree_settings
+
+    check_tree_settings(run, tiles)
+
+
+def check_export(run, tiles: list[dict]) -> None:
+    """Before the cluster starts: the output point format, the output names and the
+    rasters' size."""
+    from workflows.steps.export import check_output_names, check_point_formats, check_raster_size
+
+    check_point_formats(run, tiles)
+    check_output_names(run, tiles)
+    check_raster_size(run, tiles)
+
+
+def ingest_step(state: StepState) -> None:
     """Ingest the tiles; the summary counts points, chunks and excluded points."""
+    from workflows.steps.export import check_point_formats, check_raster_size
+    from workflows.steps.ingest import ingest
+    from workflows.steps.trees import check_tree_settings
+
     layout = state.layout = state.timed("ingest", ingest, state.run, state.engine)
     state.summary["points"] = layout.n_points
     state.summary["chunks"] = sum(len(info.chunks) for info in layout.scenes.values())
@@ -53,14 +70,20 @@ def ingest_step(state: RunState) -> None:
         check_tree_settings(state.run, layout.tiles)  # likewise, before the classification
 
 
-def terrain_step(state: RunState) -> None:
+def terrain_step(state: StepState) -> None:
+    from workflows.steps.terrain import terrain
+
     state.timed("terrain", terrain, state.run, state.engine,
                 scenes_of(state.layout, lambda s: True, state.only))
 
 
-def features_step(state: RunState) -> None:
+def features_step(state: StepState) -> None:
     """The features of the scenes classified stage by stage (every scene when the run stops
     at the features)."""
+    from workflows.exec.engine import check_chunk
+    from workflows.steps.features import features
+    from workflows.steps.one_pass import one_pass_scenes
+
     if state.kernels is not None:
         state.kernels.wait()  # started with the run; the workers need the kernels from here on
     layout, only = state.layout, state.only
@@ -75,9 +98,12 @@ def features_step(state: RunState) -> None:
                                only)
 
 
-def cascade_step(state: RunState) -> None:
+def cascade_step(state: StepState) -> None:
     """Train (or apply) the cascade stage by stage, then classify the other scenes in one
     pass per chunk."""
+    from workflows.steps.cascade import cascade, model_stages
+    from workflows.steps.one_pass import classify_in_one_pass
+
     run, engine, only = state.run, state.engine, state.only
     if state.staged.scenes:
         state.stages = state.timed("train" if state.fits else "apply", cascade, run, engine,
@@ -89,13 +115,15 @@ def cascade_step(state: RunState) -> None:
                     only)
 
 
-def trees_step(state: RunState) -> None:
+def trees_step(state: StepState) -> None:
     """The trees of every scene (output.trees), before the export writes their IDs."""
+    from workflows.steps.trees import trees
+
     state.trees = state.timed("trees", trees, state.run, state.engine, state.outputs,
                               state.n_stages - 1, state.stages[-1]["fingerprint"])
 
 
-def tree_sections(state: RunState) -> tuple:
+def tree_sections(state: StepState) -> tuple:
     """The report's trees section (HTML and figures), when the run found trees."""
     if state.trees is None:
         return ()
@@ -107,16 +135,18 @@ def tree_sections(state: RunState) -> tuple:
     return ((trees_html(scenes, images, scores), images),)
 
 
-def survey_step(state: RunState) -> None:
+def survey_step(state: StepState) -> None:
     """An unlabelled run's report surveys the predictions before the export, whose progress
     counts its tasks, and draws its figures while the workers export."""
     if state.reaches("report") and not state.labelled:
         draw_survey(state, "export")
 
 
-def draw_survey(state: RunState, counted_in: str) -> None:
+def draw_survey(state: StepState, counted_in: str) -> None:
     """The survey of the predictions (its tasks counted in the progress of step
     ``counted_in``) and a future of its figures, which the state's painter draws."""
+    from workflows.steps.survey import canopy_samples, survey
+
     found = state.timed("report", survey, state.run, state.engine, state.outputs,
                         state.n_stages - 1, counted_in=counted_in)
     maps = {scene: data["map"] for scene, data in found["scenes"].items()}
@@ -130,15 +160,20 @@ def _survey_images(found: dict, terrain: dict) -> dict:
     return survey_images(found, terrain)
 
 
-def export_step(state: RunState) -> None:
+def export_step(state: StepState) -> None:
+    from workflows.steps.export import export
+
     state.summary["predictions"] = state.timed(
         "export", export, state.run, state.engine, state.outputs, state.n_stages - 1,
         state.stages[-1]["fingerprint"])
 
 
-def evaluate_step(state: RunState) -> None:
+def evaluate_step(state: StepState) -> None:
     """The metrics of the labelled test points (none without them: said); written here
     when the run stops at evaluate, else after the report."""
+    from workflows.steps.evaluate import evaluate, write_metrics
+    from workflows.steps.trees import score_trees
+
     run = state.run
     if state.labelled:
         state.metrics, state.plots = state.timed("evaluate", evaluate, run, state.engine,
@@ -160,9 +195,11 @@ def evaluate_step(state: RunState) -> None:
         state.summary["metrics"] = str(run.metrics_path)
 
 
-def report_step(state: RunState) -> None:
+def report_step(state: StepState) -> None:
     """The report with the metrics (written last: their presence means the whole run
     completed), or, without metrics, the report of what was predicted."""
+    from workflows.steps.evaluate import write_metrics
+
     if state.metrics is None:
         _survey_report(state)
         return
@@ -182,7 +219,7 @@ def report_step(state: RunState) -> None:
                          macro_f1=metrics["macro"]["f1"])
 
 
-def _survey_report(state: RunState) -> None:
+def _survey_report(state: StepState) -> None:
     from workflows.report.survey import write_survey_report
 
     if state.drawn is None:  # labelled test tiles that hold none of the classes
@@ -195,7 +232,7 @@ def _survey_report(state: RunState) -> None:
     state.summary["report"] = str(run.report_path)
 
 
-def _run_info(state: RunState) -> dict:
+def _run_info(state: StepState) -> dict:
     """The report's table of the run: command, date, software, counts, and the seconds
     of each step summed over every run of this output directory (resumes too)."""
     summary, spent = state.summary, totals(state.run.out)
@@ -222,7 +259,7 @@ def echo_features_text(run) -> str:
     return "no: the model does not use the return numbers (features.echoes: false)"
 
 
-def _no_features(state: RunState) -> dict:
+def _no_features(state: StepState) -> dict:
     """The points written without features (NoFeatures = 1), as export counted them."""
     root, tiles = state.run.store, state.layout.tiles
     markers = [f"exports/{t['index']}" for t in tiles]
