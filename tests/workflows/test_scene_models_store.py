@@ -42,3 +42,23 @@ def test_an_overview_takes_every_kth_cell_to_stay_within_its_cells():
     assert [r.shape for r in drawn] == [(5, 5)] * 4 and drawn[0].cell == 2.0
     assert np.array_equal(drawn[0].values, rasters[0].values[::2, ::2])
     assert thinned(rasters, 400)[0].shape == (10, 10)
+
+
+def test_an_overview_keeps_none_of_the_rasters_it_thins_alive():
+    """A survey's overview reads its blocks one by one: were the thinned cells views, every
+    block's whole raster would stay in memory (1.2 GiB for the report of 100 km²)."""
+    import gc
+    import weakref
+
+    alive = []
+
+    def blocks():
+        for _ in range(3):
+            values = np.zeros((40, 40))
+            alive.append(weakref.ref(values))
+            yield Raster(values, 0.0, 0.0, 1.0)
+
+    drawn = thinned(blocks(), 4_800, max_cells=300)
+    gc.collect()
+    assert [r.shape for r in drawn] == [(10, 10)] * 3
+    assert all(ref() is None for ref in alive)

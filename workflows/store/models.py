@@ -88,4 +88,6 @@ def thinned(rasters: Iterable[Raster], cells: float,
     bounded) of about ``cells`` cells in all, every k-th cell of each along both axes, k
     such that about ``max_cells`` are drawn."""
     step = max(1, int(np.ceil(np.sqrt(cells / max_cells))))
-    return [Raster(r.values[::step, ::step], r.x0, r.y0, r.cell * step) for r in rasters]
+    # a copy: a view would keep every block's whole raster alive
+    return [Raster(r.values[::step, ::step].copy(), r.x0, r.y0, r.cell * step)
+            for r in rasters]
