@@ -139,7 +139,7 @@ def _kernels_of(run, steps, quiet: bool, kernels=None):
     return contextlib.nullcontext(None)
 
 
-def check_before_start(run, steps, in_process: bool = False) -> list[dict]:
+def check_before_start(run, steps, in_process: bool = False) -> tuple:
     """Check everything a run of ``steps`` can check without workers, before its cluster
     starts and its kernels compile, so that a mistake is refused in seconds: the input globs
     and files and the tiles' headers (as ingest plans them: no file, an empty tile, the same
