@@ -11,7 +11,7 @@ from it there (:meth:`Tile.from_dict`).
 import logging
 import os
 from collections.abc import Iterable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 from pipeline.errors import InputError
@@ -57,21 +57,23 @@ class Tile:
         """The XY centre of its box."""
         return ((self.mins[0] + self.maxs[0]) / 2, (self.mins[1] + self.maxs[1]) / 2)
 
+    def __post_init__(self):
+        for name in ("mins", "maxs"):  # a header's numbers, a store's lists: one form
+            object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
+
     def to_dict(self) -> dict:
         """The tile as a store keeps it (JSON)."""
-        entry = {"index": self.index, "path": self.path, "name": self.name,
-                 "scene": self.scene, "n_points": self.n_points, "mins": list(self.mins),
-                 "maxs": list(self.maxs), "crs_wkt": self.crs_wkt, "format": self.format,
-                 "point_format": self.point_format, "excluded": self.excluded}
-        return entry
+        entry = {name: getattr(self, name) for name in STORED}
+        return entry | {"mins": list(self.mins), "maxs": list(self.maxs)}
 
     @classmethod
     def from_dict(cls, entry: dict) -> "Tile":
         """A tile a store kept (one written before a key existed: its default)."""
-        return cls(int(entry["index"]), entry["path"], entry["name"], entry["scene"],
-                   int(entry["n_points"]), tuple(entry["mins"]), tuple(entry["maxs"]),
-                   entry.get("crs_wkt"), entry.get("format", ""), entry.get("point_format"),
-                   int(entry.get("excluded", 0)))
+        return cls(**{name: entry[name] for name in STORED if name in entry})
+
+
+#: The fields of a :class:`Tile` a store keeps, in their order (all but the header).
+STORED = tuple(f.name for f in fields(Tile) if f.name != "header")
 
 
 def tile_name(path) -> str:

@@ -9,7 +9,7 @@ from pipeline.features.sets import AUTO_NEIGHBORS, auto_radius, auto_voxel
 from pipeline.io import write_las
 from workflows.config import validate_config
 from workflows.run.autoparams import adopt_model, header_density, resolve_auto
-from workflows.run.plan import catalogue, find_inputs
+from workflows.run.plan import catalogue, config_inputs
 
 
 def _tile(path, density, side=40.0):
@@ -28,7 +28,7 @@ def _config(tile, **features):
 @pytest.mark.parametrize("density, r1", [(0.9, 4.0), (5.0, 2.0), (400.0, 0.5)])
 def test_r1_auto_follows_the_header_density(tmp_path, density, r1):
     cfg = _config(_tile(tmp_path / "t.laz", density))
-    tiles = catalogue(cfg, find_inputs(cfg))
+    tiles = catalogue(cfg, config_inputs(cfg))
     assert header_density(cfg, tiles) == pytest.approx(density, rel=0.01)
     resolved = resolve_auto(cfg, tiles)
     assert resolved.features.r1 == r1 == auto_radius(density)
@@ -41,7 +41,7 @@ def test_r1_auto_follows_the_header_density(tmp_path, density, r1):
 def test_voxel_auto_and_a_model_decide_for_an_applied_run(tmp_path):
     tile = _tile(tmp_path / "t.laz", 2.0)
     cfg = _config(tile, voxel="auto")
-    resolved = resolve_auto(cfg, catalogue(cfg, find_inputs(cfg)))
+    resolved = resolve_auto(cfg, catalogue(cfg, config_inputs(cfg)))
     assert resolved.features.voxel == pytest.approx(auto_voxel(resolved.features.r1, 64))
     raw = {"data": {"train": [str(tile)], "classes": {"a": [1], "b": [2]}},
            "features": {"r1": "auto", "voxel": "auto"}}

@@ -190,7 +190,7 @@ def start_run(config, options: RunOptions, target: str, *, model_dir=None, comma
     from workflows.cli.plan import step_weights
     from workflows.exec.cluster import plan_workers
     from workflows.config import validate_config
-    from workflows.config.inputs import check_written_inputs
+    from workflows.config.inputs import written_inputs
     from workflows.exec.engine import open_engine
     from workflows.run.autoparams import read_run, resolve_run
     from workflows.run.directory import (
@@ -204,12 +204,12 @@ def start_run(config, options: RunOptions, target: str, *, model_dir=None, comma
     if model_dir is None and not overwrite:
         model_dir = applied_model(out)  # a later step of a 'silva predict' output
     raw = read_run(config_path or config, options.overrides, inputs)
-    if not out.exists():  # a wrong path leaves no output directory behind
-        check_written_inputs(raw)
+    # found once: before the output directory when there is none (a wrong path leaves none)
+    found = written_inputs(raw) if overwrite or not out.exists() else None
     command = command or _command_line()
     # --overwrite never deletes what this command reads (its config, model or inputs)
-    keep = (read_paths(validate_config(raw), config_path or config, model_dir) if overwrite
-            else ())
+    keep = (read_paths(validate_config(raw), config_path or config, model_dir, found)
+            if overwrite else ())
     lock = prepare_output(out, overwrite=overwrite, keep=keep, command=command)
     if overwrite:
         reset(out)  # the durations of the runs emptied start again
@@ -218,7 +218,7 @@ def start_run(config, options: RunOptions, target: str, *, model_dir=None, comma
     with run_logging(options.verbose, out / LOG_NAME), lock, _logged_error():
         log.info("start: %s (steps %s)", command, ", ".join(steps))
         try:
-            plan = resolve_run(raw, model_dir)  # the model's values: a bad model is logged
+            plan = resolve_run(raw, model_dir, found)  # the model's values: a bad one logged
             steps = progress_steps(target, model_dir is not None, plan.cfg)  # asked-for steps
             if model_dir is not None:
                 record_applied_model(out, model_dir)

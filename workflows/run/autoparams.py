@@ -26,7 +26,8 @@ from pipeline.model import LATER_KEYS, read_model_file
 from pipeline.trees.params import auto_resolution
 from workflows.config import SilvaConfig, validate_config
 from workflows.config.loading import load_raw
-from workflows.run.plan import AppliedModel, RunPlan, catalogue, check_model, find_inputs
+from workflows.config.inputs import InputFile
+from workflows.run.plan import AppliedModel, RunPlan, catalogue, check_model, config_inputs
 
 log = logging.getLogger(__name__)
 
@@ -107,32 +108,35 @@ def read_run(config, overrides=(), inputs=()) -> dict:
     return raw
 
 
-def resolve_run(raw: dict | SilvaConfig, model_dir=None) -> RunPlan:
+def resolve_run(raw: dict | SilvaConfig, model_dir=None,
+                inputs: tuple[InputFile, ...] | None = None) -> RunPlan:
     """The plan of a run of ``raw`` (a configuration as written, or validated when it applies
     no model): the values of the model it applies (:func:`adopt_model`, the model read and
-    checked once), its input files found (each glob expanded once) and their headers read
-    (once, into the catalogue of its tiles), its 'auto' values resolved from them: the one
-    place a run's configuration is resolved. Raises the errors of :func:`expand_inputs` and
+    checked once), its input files (``inputs`` when the command found them already, else
+    found now: each glob expanded once) and their headers read (once, into the catalogue of
+    its tiles), its 'auto' values resolved from them: the one place a run's configuration
+    is resolved. Raises the errors of :func:`~workflows.config.inputs.expand_inputs` and
     :func:`~workflows.run.plan.catalogue`."""
     if isinstance(raw, SilvaConfig):
         if model_dir is not None:  # a validated config holds every default: none is 'auto'
             raise TypeError("resolve_run applies a model to a configuration as written only")
-        return _planned(raw, None)
+        return _planned(raw, None, inputs)
     model = None
     if model_dir is not None:
         description, digest = read_model_file(model_dir)
         model = AppliedModel(Path(model_dir), description, digest)
         raw = adopt_model(raw, description, model_dir)
-    return _planned(validate_config(raw), model)
+    return _planned(validate_config(raw), model, inputs)
 
 
-def _planned(cfg: SilvaConfig, model: AppliedModel | None) -> RunPlan:
+def _planned(cfg: SilvaConfig, model: AppliedModel | None, inputs) -> RunPlan:
     """The plan of the validated ``cfg`` applying ``model``: the model checked against it
     (before any input is read; the values it checks are the model's, set already), its
-    inputs found, their tiles catalogued and its 'auto' values resolved from them."""
+    ``inputs`` (None: found now), their tiles catalogued and its 'auto' values resolved
+    from them."""
     if model is not None:
         check_model(cfg, model)
-    inputs = find_inputs(cfg)  # resolving 'auto' values changes no data key
+    inputs = config_inputs(cfg) if inputs is None else inputs  # 'auto' values are no data key
     tiles = catalogue(cfg, inputs)
     return RunPlan(resolve_auto(cfg, tiles), model, inputs, tiles)
 

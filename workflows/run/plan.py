@@ -16,7 +16,7 @@ from pipeline.features.sets import ECHO_SETS, feature_set
 from pipeline.io.catalogue import Tile, file_identity, read_catalogue
 from pipeline.model import check_compatible, check_versions, forest_inputs, verify_stage_files
 from workflows.config import SilvaConfig
-from workflows.config.inputs import SCENES, expand_inputs
+from workflows.config.inputs import SCENES, InputFile, find_inputs
 
 
 @dataclass(frozen=True)
@@ -34,26 +34,10 @@ class AppliedModel:
         return self.description["stages"]
 
 
-@dataclass(frozen=True)
-class InputFile:
-    """An input tile as the run found it: its scene, path, size and modification time."""
-
-    scene: str
-    path: Path
-    size: int
-    mtime_ns: int
-
-
-def find_inputs(cfg: SilvaConfig) -> tuple[InputFile, ...]:
-    """Every input file of ``cfg``, scene by scene in their order (data.train, data.test,
-    data.predict), each scene's files in :func:`expand_inputs` order. Raises its errors."""
-    found = []
-    for scene in SCENES:
-        patterns = list(getattr(cfg.data, scene))
-        for path in expand_inputs(patterns, key=f"data.{scene}") if patterns else ():
-            stat = path.stat()
-            found.append(InputFile(scene, path, stat.st_size, stat.st_mtime_ns))
-    return tuple(found)
+def config_inputs(cfg: SilvaConfig) -> tuple[InputFile, ...]:
+    """The input files of ``cfg`` (:func:`~workflows.config.inputs.find_inputs` of its data
+    paths)."""
+    return find_inputs({scene: getattr(cfg.data, scene) for scene in SCENES})
 
 
 def check_overlap(inputs: tuple[InputFile, ...], allowed: bool) -> None:
@@ -81,7 +65,7 @@ def catalogue(cfg: SilvaConfig, inputs: tuple[InputFile, ...]) -> tuple[Tile, ..
 class RunPlan:
     """What a run computes, resolved: the configuration ('auto' values and an applied
     model's values set), the applied model (None: the run trains its own), the input
-    files (:func:`find_inputs`) and their tiles (:func:`catalogue`)."""
+    files (:func:`~workflows.config.inputs.find_inputs`) and their tiles (:func:`catalogue`)."""
 
     cfg: SilvaConfig
     model: AppliedModel | None = None
