@@ -113,7 +113,7 @@ class _TileRasters:
     """DSM and canopy height of one tile, accumulated batch by batch (the two highest values
     per cell), without the spikes of stray points (:func:`pipeline.surface.despike`)."""
 
-    def __init__(self, tile: dict, request: RasterRequest, dtm: SceneTerrain):
+    def __init__(self, tile: Tile, request: RasterRequest, dtm: SceneTerrain):
         self.tile, self.request, self.dtm = tile, request, dtm
         cell = request.resolution
         self.x0, self.y0, nx, ny = tile_grid(tile.mins, tile.maxs, cell)
@@ -303,7 +303,7 @@ class ExportTask:
     """What the export of one input tile needs (see :func:`export_tile`)."""
 
     store_path: str
-    tile: dict
+    tile: Tile
     grid: Grid | BalancedLayout
     dst: str
     fingerprint: str
@@ -315,7 +315,7 @@ class _TileExport:
     """The values of the dimensions export adds to one tile, batch by batch (``values``),
     and its counts of points without features and excluded at ingest."""
 
-    def __init__(self, root, store_path: str, tile: dict, grid, spec: ExportSpec,
+    def __init__(self, root, store_path: str, tile: Tile, grid, spec: ExportSpec,
                  score_trees: bool):
         self.tile, self.spec = tile, spec
         # a labelled scene's unlisted codes were left out at ingest: their points are missing

@@ -451,7 +451,7 @@ def ingest_tile(task: IngestTask) -> dict:
             "returns": returns, **copy_counts(root, task.key, task.copies)}
 
 
-def _stored_columns(task: IngestTask, tile: dict, batch, labelled: bool):
+def _stored_columns(task: IngestTask, tile: Tile, batch, labelled: bool):
     """What ingest stores of a read ``batch`` of ``tile``: the columns of its kept points
     (xyz, gid, label, role, and with echoes the return numbers), the number of its points
     excluded by code or flag, and the return counts of its points (with echoes, else zeros:

@@ -269,7 +269,7 @@ def whole_trees(run, chunks, scene: str, task: TreeTask, merged_slice, area: flo
     write_scene_trees(root, scene, model, method, task.fingerprint, chm=chm)
 
 
-def write_tile_trees(store_path: str, scene: str, out_dir: Path, tile: dict, rows: np.ndarray,
+def write_tile_trees(store_path: str, scene: str, out_dir: Path, tile: Tile, rows: np.ndarray,
                      params: TreeParams) -> list[str]:
     """Worker task: trees/<tile>.csv and trees/<tile>.gpkg of the trees whose top or base is
     in ``tile`` (``rows`` of the scene's table), their crowns traced from the cells of the
