@@ -104,8 +104,6 @@ def read_catalogue(files: Iterable[tuple[str, Path]]) -> tuple[Tile, ...]:
         info = read_info(path)
         if info.n_points == 0:
             raise InputError(f"tile {path} holds no points; remove it from data.{scene}")
-        check_metres(info.crs_wkt, path, ((info.mins[0] + info.maxs[0]) / 2,
-                                          (info.mins[1] + info.maxs[1]) / 2))
         name = tile_name(path)
         if name in seen and file_identity(seen[name]) == file_identity(path):
             name = f"{name}-{scene}"  # the same file in two scenes (data.allow_overlap)
@@ -113,9 +111,10 @@ def read_catalogue(files: Iterable[tuple[str, Path]]) -> tuple[Tile, ...]:
             raise InputError(f"tiles {seen[name]} and {path} have the same name '{name}', so "
                              "their predictions would overwrite each other; rename one")
         seen[name] = path
-        tiles.append(Tile(len(tiles), str(path), name, scene, int(info.n_points),
-                          tuple(info.mins), tuple(info.maxs), info.crs_wkt, info.format,
-                          info.point_format, header=info))
+        tiles.append(Tile(len(tiles), str(path), name, scene, int(info.n_points), info.mins,
+                          info.maxs, info.crs_wkt, info.format, info.point_format,
+                          header=info))
+        check_metres(info.crs_wkt, path, tiles[-1].centre)
     for scene in dict.fromkeys(t.scene for t in tiles):
         members = [t for t in tiles if t.scene == scene]
         crs = check_same_crs([(t.path, t.crs_wkt) for t in members], f"data.{scene}")

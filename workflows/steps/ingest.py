@@ -148,8 +148,7 @@ def ingest_groups(run: Run, members: list[Tile], grid) -> list[list[int]]:
     """The tile indices each ingest task of a scene reads: tiles below
     :func:`group_budget` points whose XY centres lie in one chunk of ``grid`` are read
     together, the others one by one."""
-    centres = np.array([[(t.mins[i] + t.maxs[i]) / 2 for i in (0, 1)] for t in members],
-                       dtype=np.float64).reshape(-1, 2)
+    centres = np.array([t.centre for t in members], dtype=np.float64).reshape(-1, 2)
     keys = grid.chunk_of(centres)
     groups = group_tiles([t.n_points for t in members], keys, group_budget(run))
     return [[members[i].index for i in group] for group in groups]
