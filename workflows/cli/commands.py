@@ -141,12 +141,13 @@ def _kernels_of(run, steps, quiet: bool, kernels=None):
 
 def check_before_start(run, steps, in_process: bool = False) -> tuple:
     """Check everything a run of ``steps`` can check without workers, before its cluster
-    starts and its kernels compile, so that a mistake is refused in seconds: the input globs
-    and files and the tiles' headers (as ingest plans them: no file, an empty tile, the same
-    tile in train and test, two tiles of one name, mixed CRS), the trees' settings against
-    the scan, the output point format, the rasters' size, and that a local cluster's workers
-    have the memory for the largest chunk (the saved model a run applies was checked with its
-    plan). Raises the error the step would raise later."""
+    starts and its kernels compile, so that a mistake is refused in seconds (the input globs,
+    files and headers were checked as the run's plan catalogued its tiles: no file, an empty
+    tile, the same tile in train and test, two tiles of one name, mixed CRS): the tiles'
+    return fields (with echo features), the trees' settings against the scan, the output
+    point format, the rasters' size, and that a local cluster's workers have the memory for
+    the largest chunk (the saved model a run applies was checked with its plan). Raises the
+    error the step would raise later; returns the run's tiles."""
     from workflows.cli.plan import check_memory
     from workflows.steps.export import check_output_names, check_point_formats, check_raster_size
     from workflows.steps.ingest import plan_tiles
