@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
+from pipeline.io.catalogue import Tile
 from pipeline.store import open_store, read_array
 
 SMALL_PLOT = 14.0  # metres: a few tens of thousands of points
@@ -147,6 +148,13 @@ def assert_chunked(out: Path, minimum: int) -> None:
     for scene, info in run_layout(out)["scenes"].items():
         assert len(info["chunks"]) >= minimum, (scene, len(info["chunks"]))
         assert info["halo"] > 0, (scene, info["halo"])
+
+
+def a_tile(n_points=1000, mins=(0.0, 0.0, 0.0), maxs=(10.0, 10.0, 1.0), *, index=0,
+           scene="test", name="t", path="t.laz", **more) -> Tile:
+    """A tile of the catalogue, as its header would describe it."""
+    return Tile(index, path, name, scene, n_points, tuple(mins), tuple(maxs), None, "laz",
+                **more)
 
 
 def write_config(path: Path, survey: dict, **sections) -> Path:

@@ -41,10 +41,10 @@ def test_a_tile_without_crs_is_taken_in_its_scenes_crs_saying_so(tiny_survey, tm
     assert read_info(bare).crs_wkt is None
     crs = read_info(other).crs_wkt
     config = write_config(tmp_path / "c.yaml", survey)
-    run = Run(run_config(config), tmp_path / "out", steps=STEPS)
     with caplog.at_level(logging.WARNING):
+        run = Run(run_config(config), tmp_path / "out", steps=STEPS)  # headers read: said then
         tiles = plan_tiles(run)
-        assert all(t["crs_wkt"] == crs for t in tiles)
+        assert all(t.crs_wkt == crs for t in tiles)
         plan_tiles(run)  # ingest plans the tiles again: said once
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 2, warnings  # one tile a scene

@@ -9,6 +9,7 @@ from pipeline.features.sets import AUTO_NEIGHBORS, auto_radius, auto_voxel
 from pipeline.io import write_las
 from workflows.config import validate_config
 from workflows.run.autoparams import adopt_model, header_density, resolve_auto
+from workflows.run.plan import catalogue, config_inputs
 
 
 def _tile(path, density, side=40.0):
@@ -27,8 +28,9 @@ def _config(tile, **features):
 @pytest.mark.parametrize("density, r1", [(0.9, 4.0), (5.0, 2.0), (400.0, 0.5)])
 def test_r1_auto_follows_the_header_density(tmp_path, density, r1):
     cfg = _config(_tile(tmp_path / "t.laz", density))
-    assert header_density(cfg) == pytest.approx(density, rel=0.01)
-    resolved = resolve_auto(cfg)
+    tiles = catalogue(cfg, config_inputs(cfg))
+    assert header_density(cfg, tiles) == pytest.approx(density, rel=0.01)
+    resolved = resolve_auto(cfg, tiles)
     assert resolved.features.r1 == r1 == auto_radius(density)
     assert resolved.halo == one_pass_halo(resolved.features.params.halo, r1, 3)  # derived
     # once the radius is
@@ -38,7 +40,8 @@ def test_r1_auto_follows_the_header_density(tmp_path, density, r1):
 
 def test_voxel_auto_and_a_model_decide_for_an_applied_run(tmp_path):
     tile = _tile(tmp_path / "t.laz", 2.0)
-    resolved = resolve_auto(_config(tile, voxel="auto"))
+    cfg = _config(tile, voxel="auto")
+    resolved = resolve_auto(cfg, catalogue(cfg, config_inputs(cfg)))
     assert resolved.features.voxel == pytest.approx(auto_voxel(resolved.features.r1, 64))
     raw = {"data": {"train": [str(tile)], "classes": {"a": [1], "b": [2]}},
            "features": {"r1": "auto", "voxel": "auto"}}
@@ -77,7 +80,7 @@ def test_the_same_values_written_otherwise_are_accepted():
 
 def test_a_resolved_config_is_left_alone(tmp_path):
     cfg = validate_config({"features": {"r1": 0.7}})
-    assert resolve_auto(cfg) is cfg
+    assert resolve_auto(cfg, ()) is cfg
 
 
 def test_an_applied_model_gives_its_classes_to_a_config_without_them(tmp_path):

@@ -12,7 +12,7 @@ from workflows.cli.commands import LOG_NAME, resume_command
 from workflows.exec import cluster
 from workflows.run import loop
 from workflows.steps.table import STEPS
-from tests.workflows.conftest import error_line, silva, write_config
+from tests.workflows.conftest import a_tile, error_line, silva, write_config
 
 
 @pytest.fixture
@@ -182,15 +182,14 @@ def test_the_memory_a_worker_needs_follows_its_chunk_and_columns(tmp_path, surve
 
     run = run_of("tiling.chunk_size=auto", "tiling.target_points=8000")
     tiles = plan_tiles(run)
-    scene_points = max(sum(t["n_points"] for t in tiles if t["scene"] == s)
+    scene_points = max(sum(t.n_points for t in tiles if t.scene == s)
                        for s in ("train", "test"))
     # never below the windows the balanced layout cuts once it has counted the points,
     # though small dense plots keep windows above the target
     counted = max(info.estimate["window"][2] for info in plan_scenes(run, tiles).values())
     assert counted <= foreseen_window(run, tiles) <= scene_points
     # an airborne tile: 10 M points on 1 km², chunks of the target's points
-    airborne = [{"scene": "predict", "n_points": 10_000_000, "mins": [0.0, 0.0, 0.0],
-                 "maxs": [1000.0, 1000.0, 50.0]}]
+    airborne = [a_tile(10_000_000, maxs=(1000.0, 1000.0, 50.0), scene="predict")]
     assert foreseen_window(run, airborne) == 8000
     grid = run_of("tiling.chunk_size=3.0")
     assert 0 < foreseen_window(grid, tiles) < scene_points
@@ -268,7 +267,7 @@ def test_the_auto_resolution_is_one_the_sparsest_scene_resolves(tmp_path, survey
     with pytest.raises(ConfigError, match="too sparse for trees.*output.trees=false"):
         auto_resolution(0.01)  # 7.5 m cells: coarser than the smallest crown (2 m)
     config = write_config(tmp_path / "c.yaml", survey, output={"trees": True})
-    cfg = resolve_run(load_config(config)).cfg
-    assert cfg.trees.resolution == auto_resolution(sparsest_density(cfg)) == 0.5
+    plan = resolve_run(load_config(config))
+    assert plan.cfg.trees.resolution == auto_resolution(sparsest_density(plan.tiles)) == 0.5
     off = resolve_run(load_config(write_config(tmp_path / "d.yaml", survey))).cfg
     assert off.trees.resolution == "auto" and off.trees.params.resolution == 0.5

@@ -6,6 +6,7 @@ import pytest
 
 from pipeline.io.raster import read_geotiff
 from pipeline.terrain import scene_terrain
+from tests.workflows.conftest import a_tile
 from workflows.steps.export import RasterRequest, _TileRasters
 
 
@@ -19,8 +20,7 @@ def _forest(seed=6, size=20.0):
 
 
 def _rasters(tmp_path, name, xyz, canopy, dtm, batches):
-    tile = {"name": name, "mins": [0.0, 0.0, 0.0], "maxs": [20.0, 20.0, 200.0],
-            "crs_wkt": None}
+    tile = a_tile(maxs=(20.0, 20.0, 200.0), name=name)
     rasters = _TileRasters(tile, RasterRequest(("dsm", "chm"), 1.0, (0,), str(tmp_path)), dtm)
     height = xyz[:, 2] - 100.0
     for rows in np.array_split(np.arange(len(xyz)), batches):

@@ -10,6 +10,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +24,8 @@ from workflows.run.autoparams import resolve_run
 from workflows.run.directory import OutputError, Run, prepare_output, read_paths
 from workflows.run.lock import LOCK_NAME, LockedError, acquire, read_lock
 from workflows.steps.export import remove_stale
-from workflows.steps.ingest import plan_tiles, tile_name
+from pipeline.io.catalogue import tile_name
+from workflows.steps.ingest import plan_tiles
 from workflows.steps.table import STEPS
 from tests.workflows.conftest import error_line, silva, write_config
 
@@ -68,9 +70,9 @@ def test_allowed_overlap_keeps_one_output_per_scene(tmp_path, survey):
     cfg = load_config(write_config(tmp_path / "c.yaml", survey),
                       [f"data.test=[{survey['train']}/*.laz]", "data.allow_overlap=true"])
     tiles = plan_tiles(Run(resolve_run(cfg), tmp_path / "out", steps=STEPS))
-    names = [t["name"] for t in tiles]
+    names = [t.name for t in tiles]
     assert len(set(names)) == len(names) == 2 * len(list(survey["train"].glob("*.laz")))
-    assert all(n.endswith("-test") for t, n in zip(tiles, names) if t["scene"] == "test")
+    assert all(n.endswith("-test") for t, n in zip(tiles, names) if t.scene == "test")
 
 
 # -- 11: tile names ----------------------------------------------------------------------
@@ -142,15 +144,15 @@ def test_ingest_checks_the_points_read_against_the_header(tmp_path, survey):
 
     cfg = load_config(write_config(tmp_path / "c.yaml", survey), [])
     run = Run(resolve_run(cfg), tmp_path / "out", steps=STEPS)
-    tile = dict(plan_tiles(run)[0])
-    tile["n_points"] += 5
+    tile = plan_tiles(run)[0]
+    tile = replace(tile, n_points=tile.n_points + 5)
     from workflows.steps.ingest import plan_scenes
 
-    grid = plan_scenes(run, [tile])[tile["scene"]].grid
+    grid = plan_scenes(run, [tile])[tile.scene].grid
     run.store  # creates it
-    with pytest.raises(InputError, match=rf"announces {tile['n_points']} points but "
-                                         rf"{tile['n_points'] - 5} were read"):
-        ingest_tile(IngestTask(str(run.store_path), tile["scene"], tile, grid, run.halo,
+    with pytest.raises(InputError, match=rf"announces {tile.n_points} points but "
+                                         rf"{tile.n_points - 5} were read"):
+        ingest_tile(IngestTask(str(run.store_path), tile.scene, tile, grid, run.halo,
                                "classification", run.code_to_class, None, 100_000, "fp"))
 
 

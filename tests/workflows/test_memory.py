@@ -8,14 +8,14 @@ import numpy as np
 from pipeline.io import read_info, write_las
 from pipeline.store import open_store
 from pipeline.tiling import Grid
+from tests.workflows.conftest import a_tile
 from workflows.steps.ingest import IngestTask, ingest_tile
 
 
 def _peak_ingest(tmp_path, tile_path, n_points, read_batch):
     store = tmp_path / f"store-{read_batch}.zarr"
     open_store(store)
-    tile = {"index": 0, "path": str(tile_path), "name": "big", "scene": "train",
-            "n_points": n_points}
+    tile = a_tile(n_points, path=str(tile_path), name="big", scene="train")
     grid = Grid(0.0, 0.0, 100.0, 1, 1)
     tracemalloc.start()
     ingest_tile(IngestTask(str(store), "train", tile, grid, 0.5, "classification",

@@ -4,7 +4,7 @@ import pytest
 from click.testing import CliRunner
 
 from workflows.cli.main import main
-from tests.workflows.conftest import write_config
+from tests.workflows.conftest import a_tile, write_config
 
 
 def test_plan_prints_scenes_grid_and_estimates_and_writes_nothing(tmp_path, survey):
@@ -120,13 +120,12 @@ def test_a_terrain_block_too_big_for_a_worker_is_refused_naming_terrain_block(tm
         "kind": "local", "n_workers": 1, "memory_limit": "1.5GB", "dashboard": False},
         terrain={"block": 5000.0})
     run = Run(resolve_run(load_config(config)), tmp_path)
-    tiles = [{"scene": "test", "index": 0, "n_points": 100_000, "mins": [0.0, 0.0, 0.0],
-              "maxs": [3000.0, 3000.0, 10.0]}]
+    tiles = [a_tile(100_000, maxs=(3000.0, 3000.0, 10.0))]
     # a 3 km block with its buffer at 1 m
     assert terrain_bytes(terrain_footprint(run, tiles)) > 1.5e9
     with pytest.raises(Exception, match="terrain.block"):
         check_memory(run, tiles)
-    small = [dict(tiles[0], maxs=[300.0, 300.0, 10.0])]
+    small = [a_tile(100_000, maxs=(300.0, 300.0, 10.0))]
     assert terrain_bytes(terrain_footprint(run, small)) < 1e9
 
 
@@ -147,8 +146,7 @@ def test_a_sparse_surveys_terrain_time_follows_its_points_not_its_area(tmp_path,
     cell = run.terrain.cell
 
     def seconds(points, side):
-        tiles = [{"scene": "test", "n_points": points, "mins": [0, 0, 0],
-                  "maxs": [side, side, 1]}]
+        tiles = [a_tile(points, (0, 0, 0), (side, side, 1))]
         return (side / cell) ** 2 * terrain_seconds_per_cell(run, tiles)
 
     # a point in most cells: every cell is filtered
@@ -167,8 +165,7 @@ def test_a_tree_block_too_big_for_a_worker_is_refused_naming_trees_block(tmp_pat
     from workflows.run.autoparams import resolve_run
     from workflows.run.directory import Run
 
-    tiles = [{"scene": "test", "index": 0, "n_points": 10_000, "mins": [0.0, 0.0, 0.0],
-              "maxs": [300.0, 300.0, 10.0]}]
+    tiles = [a_tile(10_000, maxs=(300.0, 300.0, 10.0))]
 
     def run_with(block):
         config = write_config(tmp_path / "c.yaml", survey, cluster={

@@ -5,9 +5,11 @@ import hashlib
 import json
 import os
 
+import numpy as np
 import pytest
 
 import pipeline.model
+from pipeline.io import write_las
 from workflows.config import load_config
 from workflows.models import model_path
 from workflows.run import autoparams
@@ -23,14 +25,17 @@ DEMO = "configs/demo.yaml"
 def test_the_plan_is_frozen_and_digests_the_input_files(tmp_path):
     tiles = [tmp_path / "b.laz", tmp_path / "a.laz"]
     for i, tile in enumerate(tiles):
-        tile.write_bytes(b"x" * (i + 1))
+        write_las(tile, np.arange(3 * (i + 1), dtype=float).reshape(-1, 3))
+    sizes = {tile.name: tile.stat().st_size for tile in tiles}
     plan = resolve_run(load_config(DEMO, [f"data.test=[{tmp_path}/*.laz]"]))
     assert [(f.scene, f.path.name, f.size) for f in plan.inputs] == [
-        ("test", "a.laz", 2), ("test", "b.laz", 1)]
+        ("test", "a.laz", sizes["a.laz"]), ("test", "b.laz", sizes["b.laz"])]
+    # each header read once, into the catalogue, in the inputs' order
+    assert [(t.index, t.name, t.n_points) for t in plan.tiles] == [(0, "a", 2), (1, "b", 1)]
     with pytest.raises(dataclasses.FrozenInstanceError):
         plan.cfg = None
-    state = [(str(tmp_path / name), "test", size, os.stat(tmp_path / name).st_mtime_ns)
-             for name, size in (("a.laz", 2), ("b.laz", 1))]
+    state = [(str(tmp_path / name), "test", sizes[name], os.stat(tmp_path / name).st_mtime_ns)
+             for name in ("a.laz", "b.laz")]
     assert plan.inputs_digest == hashlib.sha256(json.dumps(state).encode()).hexdigest()[:16]
     without_inputs = Run(resolve_run(load_config(DEMO)), tmp_path, steps=STEPS)
     # the inputs are part of every fingerprint

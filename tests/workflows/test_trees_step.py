@@ -11,6 +11,7 @@ import pytest
 
 from tests.workflows.conftest import (
     TREE_BLOCK,
+    a_tile,
     assert_chunked,
     covariance_config,
     read_predictions,
@@ -123,8 +124,8 @@ def test_a_run_killed_in_the_trees_step_resumes_to_the_same_trees(runs, survey, 
 def test_every_tree_has_the_row_of_one_tile():
     from workflows.steps.trees import tile_of
 
-    tiles = [{"index": 0, "mins": [0.0, 0.0], "maxs": [10.0, 10.0]},
-             {"index": 1, "mins": [10.0, 0.0], "maxs": [20.0, 10.0]}]
+    tiles = [a_tile(mins=(0.0, 0.0), maxs=(10.0, 10.0)),
+             a_tile(mins=(10.0, 0.0), maxs=(20.0, 10.0), index=1)]
     table = np.array([(5.0, 5.0), (10.0, 2.0), (15.0, 9.0), (20.3, 4.0), (-0.2, 11.0)],
                      dtype=[("x", "f8"), ("y", "f8")])
     assert tile_of(table, tiles).tolist() == [0, 0, 1, 1, 0]

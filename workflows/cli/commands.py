@@ -140,15 +140,16 @@ def _kernels_of(run, steps, quiet: bool, kernels=None):
     return contextlib.nullcontext(None)
 
 
-def check_before_start(run, target: str, in_process: bool = False) -> list[dict]:
+def check_before_start(run, target: str, in_process: bool = False) -> tuple:
     """Check everything a run up to ``target`` can check without workers, before its cluster
-    starts and its kernels compile, so that a mistake is refused in seconds: the input globs
-    and files and the tiles' headers (as ingest plans them: no file, an empty tile, the same
-    tile in train and test, two tiles of one name, mixed CRS), each step's own check (the
-    trees' settings against the scan, the output point format, the rasters' size: the
-    ``check`` of its row) and that a local cluster's workers have the memory for the largest
-    chunk (the saved model a run applies was checked with its plan). Raises the error the
-    step would raise later."""
+    starts and its kernels compile, so that a mistake is refused in seconds (the input globs,
+    files and headers were checked as the run's plan catalogued its tiles: no file, an empty
+    tile, the same tile in train and test, two tiles of one name, mixed CRS): the tiles'
+    return fields (with echo features), each step's own check (the trees' settings against
+    the scan, the output point format, the rasters' size: the ``check`` of its row) and that a
+    local cluster's workers have the memory for the largest chunk (the saved model a run
+    applies was checked with its plan). Raises the error the step would raise later; returns
+    the run's tiles."""
     from workflows.cli.plan import check_memory
     from workflows.steps.ingest import plan_tiles
 
@@ -188,7 +189,7 @@ def start_run(config, options: RunOptions, target: str, *, model_dir=None, comma
     from workflows.cli.plan import step_weights
     from workflows.exec.cluster import plan_workers
     from workflows.config import validate_config
-    from workflows.config.inputs import check_written_inputs
+    from workflows.config.inputs import written_inputs
     from workflows.exec.engine import open_engine
     from workflows.run.autoparams import read_run, resolve_run
     from workflows.run.directory import (
@@ -202,12 +203,12 @@ def start_run(config, options: RunOptions, target: str, *, model_dir=None, comma
     if model_dir is None and not overwrite:
         model_dir = applied_model(out)  # a later step of a 'silva predict' output
     raw = read_run(config_path or config, options.overrides, inputs)
-    if not out.exists():  # a wrong path leaves no output directory behind
-        check_written_inputs(raw)
+    # found once: before the output directory when there is none (a wrong path leaves none)
+    found = written_inputs(raw) if overwrite or not out.exists() else None
     command = command or _command_line()
     # --overwrite never deletes what this command reads (its config, model or inputs)
-    keep = (read_paths(validate_config(raw), config_path or config, model_dir) if overwrite
-            else ())
+    keep = (read_paths(validate_config(raw), config_path or config, model_dir, found)
+            if overwrite else ())
     lock = prepare_output(out, overwrite=overwrite, keep=keep, command=command)
     if overwrite:
         reset(out)  # the durations of the runs emptied start again
@@ -216,7 +217,7 @@ def start_run(config, options: RunOptions, target: str, *, model_dir=None, comma
     with run_logging(options.verbose, out / LOG_NAME), lock, _logged_error():
         log.info("start: %s (steps %s)", command, ", ".join(steps))
         try:
-            plan = resolve_run(raw, model_dir)  # the model's values: a bad model is logged
+            plan = resolve_run(raw, model_dir, found)  # the model's values: a bad one logged
             steps = STEPS.progress_steps(target, model_dir is not None, plan.cfg)  # asked
             if model_dir is not None:
                 record_applied_model(out, model_dir)

@@ -21,8 +21,9 @@ from dask.utils import format_bytes
 from pipeline.atomic import atomic_path
 from pipeline.errors import ConfigError
 from pipeline.features.sets import feature_set
+from pipeline.io.catalogue import Tile
 from pipeline.terrain import factor_for_occupancy
-from pipeline.tiling import MIN_CHUNK_HALOS, Grid, tile_area
+from pipeline.tiling import MIN_CHUNK_HALOS, Grid
 from workflows.exec.cluster import plan_workers
 from workflows.run.directory import Run
 from workflows.run.progress import clock, counted
@@ -70,7 +71,7 @@ TERRAIN_BYTES_PER_CELL = 480
 TERRAIN_SECONDS_PER_CELL = 2e-5
 
 
-def terrain_seconds_per_cell(run: Run, tiles: list[dict]) -> float:
+def terrain_seconds_per_cell(run: Run, tiles: list[Tile]) -> float:
     """:data:`TERRAIN_SECONDS_PER_CELL` over the square of the factor by which the terrain
     widens its cells at the tiles' mean density (points at random: the share of cells with a
     point is 1 - exp(-points a cell))."""
@@ -85,7 +86,7 @@ def worker_bytes(points: float, columns: int) -> float:
                                          + WORKER_BYTES_PER_COLUMN * columns)
 
 
-def foreseen_window(run: Run, tiles: list[dict]) -> int:
+def foreseen_window(run: Run, tiles: list[Tile]) -> int:
     """The points of the largest chunk with its halo, as the tiles' headers foresee it: a
     layout balanced by point count holds a chunk to its target (:func:`scene_target`, or
     the whole scene, if smaller), unless the smallest chunk it cuts, a core of
@@ -93,33 +94,33 @@ def foreseen_window(run: Run, tiles: list[dict]) -> int:
     mean density; a grid's chunk holds its area's share at the mean density."""
     largest = 0.0
     tiling = run.cfg.tiling
-    for scene in {t["scene"] for t in tiles}:
-        members = [t for t in tiles if t["scene"] == scene]
-        points = sum(t["n_points"] for t in members)
+    for scene in {t.scene for t in tiles}:
+        members = [t for t in tiles if t.scene == scene]
+        points = sum(t.n_points for t in members)
         if tiling.chunk_size == "auto" and tiling.layout == "balanced":
             # a small dense plot: the TLS plot's 1.5 M points, cut in two at a target of
             # 1 M, keep windows of 1.1 and 1.3 M
             smallest = grid_window(members, MIN_CHUNK_HALOS * run.halo, run.halo)
             largest = max(largest, min(points, scene_target(run, points)), smallest)
             continue
-        mins = [min(t["mins"][i] for t in members) for i in (0, 1)]
-        maxs = [max(t["maxs"][i] for t in members) for i in (0, 1)]
+        mins = [min(t.mins[i] for t in members) for i in (0, 1)]
+        maxs = [max(t.maxs[i] for t in members) for i in (0, 1)]
         size = scene_chunk_size(run, points, mins, maxs, run.halo)
         largest = max(largest, grid_window(members, size, run.halo))
     return int(largest)
 
 
-def mean_density(members: list[dict]) -> float:
-    """Points per m² of the tiles ``members`` (dicts), from their headers: their points over
+def mean_density(members: list[Tile]) -> float:
+    """Points per m² of the tiles ``members``, from their headers: their points over
     their XY boxes."""
-    area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
-    return sum(t["n_points"] for t in members) / max(area, 1e-9)
+    area = sum(t.area for t in members)
+    return sum(t.n_points for t in members) / max(area, 1e-9)
 
 
-def grid_window(members: list[dict], size: float, halo: float) -> float:
+def grid_window(members: list[Tile], size: float, halo: float) -> float:
     """Points of a grid chunk of side ``size`` with its ``halo`` over the tiles ``members``
     of a scene, at their mean density (at most the scene's points)."""
-    points = sum(t["n_points"] for t in members)
+    points = sum(t.n_points for t in members)
     return min(points, mean_density(members) * (size + 2 * halo) ** 2)
 
 
@@ -137,7 +138,7 @@ def worker_memory_limit(run: Run) -> int | None:
                               logger=log)
 
 
-def check_memory(run: Run, tiles: list[dict]) -> None:
+def check_memory(run: Run, tiles: list[Tile]) -> None:
     """Refuse a local cluster whose workers' memory limit the largest chunk would exceed,
     before the cluster starts: distributed would restart its workers, and the run stop
     only after they failed."""
@@ -180,23 +181,23 @@ class TerrainFootprint(NamedTuple):
     largest: float
 
 
-def terrain_footprint(run: Run, tiles: list[dict]) -> TerrainFootprint:
+def terrain_footprint(run: Run, tiles: list[Tile]) -> TerrainFootprint:
     """The :class:`TerrainFootprint` of ``tiles``."""
     grid = run.cfg.terrain.grid
     side, buffer = grid.size * grid.cell, grid.buffer * grid.cell
     boxes, cells = {}, 0.0  # per block, the box of the tiles in its region
     for t in tiles:
         (x0, y0), (x1, y1) = (np.floor(np.asarray(v[:2]) / side).astype(int)
-                              for v in (t["mins"], t["maxs"]))
+                              for v in (t.mins, t.maxs))
         for bx in range(x0, x1 + 1):
             for by in range(y0, y1 + 1):
-                low = np.maximum(t["mins"][:2], np.array([bx, by]) * side - buffer)
-                high = np.minimum(t["maxs"][:2], np.array([bx + 1, by + 1]) * side + buffer)
-                key = (t["scene"], bx, by)
+                low = np.maximum(t.mins[:2], np.array([bx, by]) * side - buffer)
+                high = np.minimum(t.maxs[:2], np.array([bx + 1, by + 1]) * side + buffer)
+                key = (t.scene, bx, by)
                 if key in boxes:
                     low, high = np.minimum(low, boxes[key][0]), np.maximum(high, boxes[key][1])
                 boxes[key] = (low, high)
-        cells += tile_area(t["mins"], t["maxs"]) / grid.cell ** 2 * (
+        cells += t.area / grid.cell ** 2 * (
             grid.region_side / grid.size) ** 2
     largest = max((float(np.prod(np.maximum(high - low, 0) / grid.cell + 1))
                    for low, high in boxes.values()), default=0.0)
@@ -262,11 +263,11 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
     copied = sum(info.thinning.expected for info in scenes.values() if info.thinning)
     outputs = {scene: info for scene, info in scenes.items() if info.thinning is None}
     for scene, info in outputs.items():
-        members = [t for t in tiles if t["scene"] == scene]
+        members = [t for t in tiles if t.scene == scene]
         line, per_chunk = _scene_line(scene, info, members)
         lines.append(line)
         largest = max(largest, per_chunk)
-        disk += sum(t["n_points"] for t in members) * (
+        disk += sum(t.n_points for t in members) * (
             ONE_PASS_BYTES_PER_POINT if info.one_pass else STORE_BYTES_PER_POINT + 4 * columns)
     disk += copied * (STORE_BYTES_PER_POINT + 4 * columns)  # the thinned copies
     lines += copy_lines(scenes, run.cfg.data.densities, run.cfg.cascade.seed,
@@ -296,12 +297,12 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
     return lines
 
 
-def _scene_line(scene: str, info: SceneLayout, members: list[dict]) -> tuple[str, float]:
+def _scene_line(scene: str, info: SceneLayout, members: list[Tile]) -> tuple[str, float]:
     """``silva plan``'s line of a scene of tiles ``members``, and the points of its
     largest chunk with its halo."""
     grid = info.grid
-    points = sum(t["n_points"] for t in members)
-    area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
+    points = sum(t.n_points for t in members)
+    area = sum(t.area for t in members)
     way = "one pass" if info.one_pass else "stage by stage"
     head = (f"scene {scene}: {counted(len(members), 'tile')}, "
             f"{counted(points, 'point')}, {density_text(points / area)} points/m²; "
@@ -338,7 +339,7 @@ CROWN_BYTES_PER_CELL = 120
 WHOLE_BYTES_PER_CELL = 16
 
 
-def tree_blocks(run: Run, tiles: list[dict]) -> int:
+def tree_blocks(run: Run, tiles: list[Tile]) -> int:
     """The blocks of the trees' grid the tiles' boxes touch (an upper bound of those whose
     crowns will be found)."""
     grid = run.cfg.trees.grid
@@ -346,13 +347,13 @@ def tree_blocks(run: Run, tiles: list[dict]) -> int:
     touched = set()
     for tile in tiles:
         (bx0, by0), (bx1, by1) = (np.floor(np.asarray(t[:2], np.float64) / side).astype(int)
-                                  for t in (tile["mins"], tile["maxs"]))
-        touched.update((bx, by, tile["scene"]) for bx in range(bx0, bx1 + 1)
+                                  for t in (tile.mins, tile.maxs))
+        touched.update((bx, by, tile.scene) for bx in range(bx0, bx1 + 1)
                        for by in range(by0, by1 + 1))
     return len(touched)
 
 
-def trees_line(run: Run, tiles: list[dict]) -> str:
+def trees_line(run: Run, tiles: list[Tile]) -> str:
     """What the trees step (output.trees) will do: its method, the blocks crowns are found
     in on the workers and, for stems, the canopy cells of the whole scene the coordinator
     holds."""
@@ -367,24 +368,24 @@ def trees_line(run: Run, tiles: list[dict]) -> str:
                  f"{grid.region_side ** 2 * CROWN_BYTES_PER_CELL / 2**20:,.0f} MiB a block")
     if params.method != "crowns":
         cells = 0.0
-        for scene in {t["scene"] for t in tiles}:
-            members = [t for t in tiles if t["scene"] == scene]
-            lo = np.min([t["mins"][:2] for t in members], axis=0)
-            hi = np.max([t["maxs"][:2] for t in members], axis=0)
+        for scene in {t.scene for t in tiles}:
+            members = [t for t in tiles if t.scene == scene]
+            lo = np.min([t.mins[:2] for t in members], axis=0)
+            hi = np.max([t.maxs[:2] for t in members], axis=0)
             cells = max(cells, float(np.prod(np.floor((hi - lo) / params.resolution) + 1)))
         line += (f"; stems on the whole scene: {cells:,.0f} cells in the largest (about "
                  f"{cells * WHOLE_BYTES_PER_CELL / 2**20:,.0f} MiB on the coordinator)")
     return line
 
 
-def estimated_seconds(run: Run, tiles: list[dict], workers: int,
+def estimated_seconds(run: Run, tiles: list[Tile], workers: int,
                       copies: int = 0) -> dict[str, float]:
     """The seconds a run of ``tiles`` (:func:`plan_tiles`) spends on ``workers``: on the
     features, on the rest of the chunk work (ingest, context and predictions, export) and on
     the forests' training; ``copies``: the points of the thinned copies of the training
     scene (data.densities), which are computed and trained on too."""
-    points = sum(t["n_points"] for t in tiles) + copies
-    train_points = sum(t["n_points"] for t in tiles if t["scene"] == "train") + copies
+    points = sum(t.n_points for t in tiles) + copies
+    train_points = sum(t.n_points for t in tiles if t.scene == "train") + copies
     cells = terrain_footprint(run, tiles).cells
     return {"features": points / workers / FEATURE_RATES[run.features.set],
             "other": points / workers / OTHER_RATE
@@ -392,26 +393,26 @@ def estimated_seconds(run: Run, tiles: list[dict], workers: int,
             "training": training_seconds(run, train_points, os.cpu_count() or 1)}
 
 
-def foreseen_copies(run: Run, tiles: list[dict]) -> int:
+def foreseen_copies(run: Run, tiles: list[Tile]) -> int:
     """The points the thinned copies of the training scene (``data.densities``) will hold,
     foreseen from the headers before the density pass counts them: the scene's points at
     each density below its own, its points over its tiles' boxes."""
-    train = [t for t in tiles if t["scene"] == "train"]
+    train = [t for t in tiles if t.scene == "train"]
     if not run.cfg.data.densities or not train or run.model is not None:
         return 0
-    points, density = sum(t["n_points"] for t in train), mean_density(train)
+    points, density = sum(t.n_points for t in train), mean_density(train)
     return round(sum(points * target / density
                      for target in set(map(float, run.cfg.data.densities)) if target < density))
 
 
-def step_weights(run: Run, tiles: list[dict], workers: int) -> dict[str, float]:
+def step_weights(run: Run, tiles: list[Tile], workers: int) -> dict[str, float]:
     """Each step's estimated seconds (:func:`estimated_seconds`, with the thinned copies
     :func:`foreseen_copies`): how the run's progress weighs the steps for its ETA, the
     forests' training included (each step's :class:`~workflows.run.step_table.Weight`)."""
     return STEPS.weights(estimated_seconds(run, tiles, workers, foreseen_copies(run, tiles)))
 
 
-def _draw(scenes: dict[str, SceneLayout], tiles: list[dict], path: Path) -> None:
+def _draw(scenes: dict[str, SceneLayout], tiles: list[Tile], path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -433,8 +434,8 @@ def _draw(scenes: dict[str, SceneLayout], tiles: list[dict], path: Path) -> None
             x1, y1 = min(x1, hi[0]), min(y1, hi[1])
             ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, color="0.6",
                                    lw=0.5))
-        for t in (t for t in tiles if t["scene"] == scene):
-            (x0, y0), (x1, y1) = t["mins"][:2], t["maxs"][:2]
+        for t in (t for t in tiles if t.scene == scene):
+            (x0, y0), (x1, y1) = t.mins[:2], t.maxs[:2]
             ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, color="C0"))
         ax.set_xlim(lo[0], hi[0])
         ax.set_ylim(lo[1], hi[1])

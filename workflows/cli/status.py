@@ -71,9 +71,9 @@ def _exported(root, out: Path, layout: RunLayout) -> int:
     suffix = "." + str(_saved(out, "output").get("format", "laz"))
     count = 0
     for tile in layout.tiles:
-        marker = f"exports/{tile['index']}"
+        marker = f"exports/{tile.index}"
         done = marker in root and "export" in root[marker].attrs.get("done", {})
-        count += done and (out / "predictions" / f"{tile['name']}{suffix}").is_file()
+        count += done and (out / "predictions" / f"{tile.name}{suffix}").is_file()
     return count
 
 

@@ -3,7 +3,8 @@
 import glob
 import os
 import stat
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.errors import InputError, MissingFileError
@@ -11,21 +12,45 @@ from pipeline.errors import InputError, MissingFileError
 SCENES = ("train", "test", "predict")
 
 
-def check_written_inputs(raw: dict) -> None:
-    """Raise the errors of :func:`expand_inputs` for the data paths of ``raw`` (a
-    configuration as written, its paths resolved), before anything is written: a wrong path
-    must not leave an output directory behind. Values of another type are left to the
-    validation."""
+@dataclass(frozen=True)
+class InputFile:
+    """An input tile as the run found it: its scene, path, size and modification time."""
+
+    scene: str
+    path: Path
+    size: int
+    mtime_ns: int
+
+
+def find_inputs(patterns: Mapping[str, Sequence]) -> tuple[InputFile, ...]:
+    """Every input file of the data paths and globs ``patterns`` (scene -> list), scene by
+    scene in their order (data.train, data.test, data.predict), each scene's files in
+    :func:`expand_inputs` order: each glob expanded once. Raises its errors."""
+    found = []
+    for scene in SCENES:
+        scene_patterns = list(patterns.get(scene) or ())
+        for path in expand_inputs(scene_patterns, key=f"data.{scene}") if scene_patterns else ():
+            stat_ = path.stat()
+            found.append(InputFile(scene, path, stat_.st_size, stat_.st_mtime_ns))
+    return tuple(found)
+
+
+def written_inputs(raw: dict) -> tuple[InputFile, ...] | None:
+    """The input files (:func:`find_inputs`) of ``raw`` (a configuration as written, its
+    paths resolved), found before anything is written: a wrong path must not leave an
+    output directory behind. None when a data path is of another type, which the validation
+    refuses."""
     data = raw.get("data") if isinstance(raw, dict) else None
     if not isinstance(data, dict):
-        return
+        return None
+    patterns = {}
     for scene in SCENES:
-        patterns = data.get(scene)
-        if isinstance(patterns, (str, Path)):
-            patterns = [patterns]
-        if isinstance(patterns, list) and patterns and all(
-                isinstance(p, (str, Path)) for p in patterns):
-            expand_inputs(patterns, key=f"data.{scene}")
+        value = data.get(scene) or []
+        value = [value] if isinstance(value, (str, Path)) else value
+        if not isinstance(value, list) or not all(isinstance(p, (str, Path)) for p in value):
+            return None
+        patterns[scene] = value
+    return find_inputs(patterns)
 
 
 def expand_inputs(patterns: Sequence[str | Path], *, key: str | None = None) -> list[Path]:

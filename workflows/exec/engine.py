@@ -310,7 +310,7 @@ def chunk_tasks(run, layout: RunLayout, step: str, fn, params, fingerprint: str,
     """
     tasks = []
     for scene, info in layout.scenes.items():
-        names = [t["name"] for t in layout.tiles_of(scene)]  # a thinned copy: its scene's
+        names = [t.name for t in layout.tiles_of(scene)]  # a thinned copy: its scene's
         for chunk in info.chunks:
             if only is not None and only != f"{scene}/{chunk}":
                 continue

@@ -22,50 +22,46 @@ from pathlib import Path
 
 from pipeline.errors import ConfigError
 from pipeline.features.sets import auto_radius, auto_voxel
-from pipeline.io import read_info
 from pipeline.model import LATER_KEYS, read_model_file
-from pipeline.tiling import tile_area
 from pipeline.trees.params import auto_resolution
 from workflows.config import SilvaConfig, validate_config
-from workflows.config.inputs import expand_inputs
 from workflows.config.loading import load_raw
-from workflows.run.plan import AppliedModel, RunPlan, check_model, find_inputs
+from workflows.config.inputs import InputFile
+from workflows.run.plan import AppliedModel, RunPlan, catalogue, check_model, config_inputs
 
 log = logging.getLogger(__name__)
 
 
-def _points_and_area(cfg: SilvaConfig, scene: str) -> tuple[int, float]:
-    """The points and the sum of the tiles' XY boxes (m²) of ``data.<scene>``'s headers."""
-    points, area = 0, 0.0
-    for path in expand_inputs(list(getattr(cfg.data, scene)), key=f"data.{scene}"):
-        info = read_info(path)
-        points += int(info.n_points)
-        area += tile_area(info.mins, info.maxs)
-    return points, area
+def _points_and_area(tiles, scene: str) -> tuple[int, float]:
+    """The points and the sum of the XY boxes (m²) of the ``tiles`` (the run's catalogue,
+    :class:`~pipeline.io.catalogue.Tile`) of ``scene``, as their headers say."""
+    members = [t for t in tiles if t.scene == scene]
+    return sum(t.n_points for t in members), sum(t.area for t in members)
 
 
-def header_density(cfg: SilvaConfig) -> float:
-    """Points per m² (XY) of the training tiles (of all tiles without training tiles), from
-    their headers: the sum of points over the sum of the tiles' XY boxes."""
+def header_density(cfg: SilvaConfig, tiles) -> float:
+    """Points per m² (XY) of the training tiles (of all tiles without training tiles) of
+    the catalogue ``tiles``, from their headers: the sum of points over the sum of the
+    tiles' XY boxes."""
     scenes = ["train"] if cfg.data.train else ["test", "predict"]
-    counts = [_points_and_area(cfg, scene) for scene in scenes]
+    counts = [_points_and_area(tiles, scene) for scene in scenes]
     area = sum(a for _, a in counts)
     return sum(p for p, _ in counts) / area if area else 0.0
 
 
-def sparsest_density(cfg: SilvaConfig) -> float:
-    """Points per m² of the sparsest of the run's scenes (``data.train``, ``test``,
-    ``predict``), from their headers; 0 without tiles."""
-    counts = [_points_and_area(cfg, scene) for scene in ("train", "test", "predict")]
+def sparsest_density(tiles) -> float:
+    """Points per m² of the sparsest scene of the catalogue ``tiles``, from their headers;
+    0 without tiles."""
+    counts = [_points_and_area(tiles, scene) for scene in ("train", "test", "predict")]
     return min((p / a for p, a in counts if a > 0), default=0.0)
 
 
-def resolve_tree_resolution(cfg: SilvaConfig) -> SilvaConfig:
+def resolve_tree_resolution(cfg: SilvaConfig, tiles) -> SilvaConfig:
     """``cfg`` with ``trees.resolution: auto`` as a number (:func:`auto_resolution` of the
-    sparsest scene's density), when the run finds trees."""
+    sparsest scene's density in the catalogue ``tiles``), when the run finds trees."""
     if not cfg.output.trees or cfg.trees.resolution != "auto":
         return cfg
-    density = sparsest_density(cfg)
+    density = sparsest_density(tiles)
     resolution = auto_resolution(density, cfg.trees.params)
     log.info("trees.resolution auto: %.3g points/m² in the sparsest scene -> %g m", density,
              resolution)
@@ -74,18 +70,18 @@ def resolve_tree_resolution(cfg: SilvaConfig) -> SilvaConfig:
     return validate_config(raw)
 
 
-def resolve_auto(cfg: SilvaConfig) -> SilvaConfig:
+def resolve_auto(cfg: SilvaConfig, tiles) -> SilvaConfig:
     """``cfg`` with ``features.r1`` and ``features.voxel`` as numbers (a model applied has
     set them already: :func:`adopt_model`), and ``trees.resolution``
-    (:func:`resolve_tree_resolution`)."""
-    cfg = resolve_tree_resolution(cfg)
+    (:func:`resolve_tree_resolution`), from the headers of the catalogue ``tiles``."""
+    cfg = resolve_tree_resolution(cfg, tiles)
     features = cfg.features
     if features.resolved:
         return cfg
     raw = cfg.model_dump(mode="json")
     r1 = features.r1
     if r1 == "auto":
-        density = header_density(cfg)
+        density = header_density(cfg, tiles)
         r1 = auto_radius(density) if density > 0 else 0.5
         log.info("features.r1 auto: %.3g points/m² in the headers -> r1 = %g m", density, r1)
     voxel = features.voxel
@@ -112,25 +108,37 @@ def read_run(config, overrides=(), inputs=()) -> dict:
     return raw
 
 
-def resolve_run(raw: dict | SilvaConfig, model_dir=None) -> RunPlan:
+def resolve_run(raw: dict | SilvaConfig, model_dir=None,
+                inputs: tuple[InputFile, ...] | None = None) -> RunPlan:
     """The plan of a run of ``raw`` (a configuration as written, or validated when it applies
     no model): the values of the model it applies (:func:`adopt_model`, the model read and
-    checked once), its 'auto' values resolved and its input files found: the one place a
-    run's configuration is resolved. Raises the errors of :func:`expand_inputs`."""
+    checked once), its input files (``inputs`` when the command found them already, else
+    found now: each glob expanded once) and their headers read (once, into the catalogue of
+    its tiles), its 'auto' values resolved from them: the one place a run's configuration
+    is resolved. Raises the errors of :func:`~workflows.config.inputs.expand_inputs` and
+    :func:`~workflows.run.plan.catalogue`."""
     if isinstance(raw, SilvaConfig):
         if model_dir is not None:  # a validated config holds every default: none is 'auto'
             raise TypeError("resolve_run applies a model to a configuration as written only")
-        cfg = resolve_auto(raw)
-        return RunPlan(cfg, None, find_inputs(cfg))
+        return _planned(raw, None, inputs)
     model = None
     if model_dir is not None:
         description, digest = read_model_file(model_dir)
         model = AppliedModel(Path(model_dir), description, digest)
         raw = adopt_model(raw, description, model_dir)
-    cfg = resolve_auto(validate_config(raw))
+    return _planned(validate_config(raw), model, inputs)
+
+
+def _planned(cfg: SilvaConfig, model: AppliedModel | None, inputs) -> RunPlan:
+    """The plan of the validated ``cfg`` applying ``model``: the model checked against it
+    (before any input is read; the values it checks are the model's, set already), its
+    ``inputs`` (None: found now), their tiles catalogued and its 'auto' values resolved
+    from them."""
     if model is not None:
         check_model(cfg, model)
-    return RunPlan(cfg, model, find_inputs(cfg))
+    inputs = config_inputs(cfg) if inputs is None else inputs  # 'auto' values are no data key
+    tiles = catalogue(cfg, inputs)
+    return RunPlan(resolve_auto(cfg, tiles), model, inputs, tiles)
 
 
 #: The points a model was trained without (noise, withheld), which a run applying it leaves

@@ -30,9 +30,8 @@ from pipeline.features.sets import FeatureParams
 from pipeline.store import open_store
 from pipeline.terrain import TerrainParams
 from workflows.config import SilvaConfig, dump_config
-from workflows.config.inputs import SCENES, expand_inputs
 from workflows.run.lock import LOCK_NAME, acquire, check_free
-from workflows.run.plan import AppliedModel, RunPlan, feature_description
+from workflows.run.plan import AppliedModel, RunPlan, config_inputs, feature_description
 from workflows.run.step_table import StepTable
 
 log = logging.getLogger(__name__)
@@ -332,13 +331,10 @@ def applied_model(out: Path) -> Path | None:
         return None
 
 
-def read_paths(cfg: SilvaConfig, config_path, model_dir) -> list[Path]:
+def read_paths(cfg: SilvaConfig, config_path, model_dir, inputs=None) -> list[Path]:
     """Every file or directory a command with ``cfg`` reads: its config file, the model it
-    applies and the input tiles. Raises the errors of :func:`expand_inputs`."""
+    applies and the input tiles (``inputs`` when found already, else found now). Raises the
+    errors of :func:`~workflows.config.inputs.expand_inputs`."""
     paths = ([Path(config_path)] if config_path is not None else []) + (
         [Path(model_dir)] if model_dir is not None else [])
-    for scene in SCENES:
-        patterns = list(getattr(cfg.data, scene))
-        if patterns:
-            paths += expand_inputs(patterns, key=f"data.{scene}")
-    return paths
+    return paths + [f.path for f in (config_inputs(cfg) if inputs is None else inputs)]

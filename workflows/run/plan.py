@@ -1,5 +1,6 @@
 """A run's plan (:class:`RunPlan`): its resolved configuration, the saved model it
-applies (read and checked once) and its input files, frozen before the first step starts.
+applies (read and checked once), its input files and the catalogue of their tiles (each
+header read once), frozen before the first step starts.
 
 :func:`workflows.run.autoparams.resolve_run` builds it, the one place a run's configuration is
 resolved; :class:`workflows.run.directory.Run` holds it beside the run's paths and store.
@@ -12,9 +13,10 @@ from pathlib import Path
 
 from pipeline.errors import ConfigError, ModelError
 from pipeline.features.sets import ECHO_SETS, feature_set
+from pipeline.io.catalogue import Tile, file_identity, read_catalogue
 from pipeline.model import check_compatible, check_versions, forest_inputs, verify_stage_files
 from workflows.config import SilvaConfig
-from workflows.config.inputs import SCENES, expand_inputs
+from workflows.config.inputs import SCENES, InputFile, find_inputs
 
 
 @dataclass(frozen=True)
@@ -32,37 +34,43 @@ class AppliedModel:
         return self.description["stages"]
 
 
-@dataclass(frozen=True)
-class InputFile:
-    """An input tile as the run found it: its scene, path, size and modification time."""
-
-    scene: str
-    path: Path
-    size: int
-    mtime_ns: int
+def config_inputs(cfg: SilvaConfig) -> tuple[InputFile, ...]:
+    """The input files of ``cfg`` (:func:`~workflows.config.inputs.find_inputs` of its data
+    paths)."""
+    return find_inputs({scene: getattr(cfg.data, scene) for scene in SCENES})
 
 
-def find_inputs(cfg: SilvaConfig) -> tuple[InputFile, ...]:
-    """Every input file of ``cfg``, scene by scene in their order (data.train, data.test,
-    data.predict), each scene's files in :func:`expand_inputs` order. Raises its errors."""
-    found = []
-    for scene in SCENES:
-        patterns = list(getattr(cfg.data, scene))
-        for path in expand_inputs(patterns, key=f"data.{scene}") if patterns else ():
-            stat = path.stat()
-            found.append(InputFile(scene, path, stat.st_size, stat.st_mtime_ns))
-    return tuple(found)
+def check_overlap(inputs: tuple[InputFile, ...], allowed: bool) -> None:
+    """Refuse a file that is both a training and a test tile, unless ``allowed``."""
+    if allowed:
+        return
+    train = {file_identity(f.path): f.path for f in inputs if f.scene == "train"}
+    for path in (f.path for f in inputs if f.scene == "test"):
+        if file_identity(path) in train:
+            raise ConfigError(
+                f"tile {path} is both in data.test and in data.train (as "
+                f"{train[file_identity(path)]}): its test "
+                "scores would be scores on training points; remove it from one of them, or "
+                "set data.allow_overlap: true")
+
+
+def catalogue(cfg: SilvaConfig, inputs: tuple[InputFile, ...]) -> tuple[Tile, ...]:
+    """The tiles of the ``inputs`` of ``cfg`` (:func:`~pipeline.io.catalogue.read_catalogue`:
+    each header read once), after the overlap of its training and test files is checked."""
+    check_overlap(inputs, cfg.data.allow_overlap)
+    return read_catalogue((f.scene, f.path) for f in inputs)
 
 
 @dataclass(frozen=True)
 class RunPlan:
     """What a run computes, resolved: the configuration ('auto' values and an applied
-    model's values set), the applied model (None: the run trains its own) and the input
-    files (:func:`find_inputs`)."""
+    model's values set), the applied model (None: the run trains its own), the input
+    files (:func:`~workflows.config.inputs.find_inputs`) and their tiles (:func:`catalogue`)."""
 
     cfg: SilvaConfig
     model: AppliedModel | None = None
     inputs: tuple[InputFile, ...] = ()
+    tiles: tuple[Tile, ...] = ()
 
     @property
     def inputs_digest(self) -> str:

@@ -75,7 +75,7 @@ def evaluate(run: Run, engine, layout: RunLayout, n_stages: int) -> dict:
         confusion = sum(r["confusions"][stage] for r in results)
         stages.append(scores_from_confusion(confusion, run.classes, exclude=background))
     scored = {"test"} | ({"train"} if run.cfg.data.split is not None else set())
-    excluded = sum(t.get("excluded", 0) for t in layout.tiles if t["scene"] in scored)
+    excluded = sum(t.excluded for t in layout.tiles if t.scene in scored)
     metrics = {**stages[-1], "excluded_points": excluded,
                "points_without_features": sum(r["no_features"] for r in results),
                "stages": stages}

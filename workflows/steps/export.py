@@ -26,7 +26,8 @@ import numpy as np
 from pipeline.atomic import remove_parts, remove_stale
 from pipeline.errors import ConfigError, StoreError
 from pipeline.features.sets import feature_set
-from pipeline.io import ExtraDim, export_with_extra_dims, read_info
+from pipeline.io import ExtraDim, export_with_extra_dims
+from pipeline.io.catalogue import Tile
 from pipeline.io.las import extra_dimension_types
 from pipeline.grid import MAX_CELLS, Raster, cell_index, tile_grid
 from pipeline.io.raster import write_geotiff
@@ -113,10 +114,10 @@ class _TileRasters:
     """DSM and canopy height of one tile, accumulated batch by batch (the two highest values
     per cell), without the spikes of stray points (:func:`pipeline.surface.despike`)."""
 
-    def __init__(self, tile: dict, request: RasterRequest, dtm: SceneTerrain):
+    def __init__(self, tile: Tile, request: RasterRequest, dtm: SceneTerrain):
         self.tile, self.request, self.dtm = tile, request, dtm
         cell = request.resolution
-        self.x0, self.y0, nx, ny = tile_grid(tile["mins"], tile["maxs"], cell)
+        self.x0, self.y0, nx, ny = tile_grid(tile.mins, tile.maxs, cell)
         self.dsm = (np.full((ny, nx), np.nan), np.full((ny, nx), np.nan))  # top, second
         self.chm = (np.full((ny, nx), np.nan), np.full((ny, nx), np.nan))
 
@@ -142,9 +143,9 @@ class _TileRasters:
         }
         written = []
         for name in self.request.names:
-            path = self.request.path(self.tile["name"], name)
+            path = self.request.path(self.tile.name, name)
             write_geotiff(path, Raster(rasters[name], self.x0, self.y0, cell),
-                          self.tile.get("crs_wkt"))
+                          self.tile.crs_wkt)
             written.append(str(path))
         return written
 
@@ -162,18 +163,18 @@ def run_dims(run: Run) -> list[ExtraDim]:
     return prefixed(dims, run.cfg.output.dim_prefix)
 
 
-def check_output_names(run: Run, tiles: list[dict]) -> None:
+def check_output_names(run: Run, tiles: list[Tile]) -> None:
     """Refuse, before any work, an input tile that already has a dimension of a name Silva
     adds with another type (it could not be written); the same type is replaced, as a rerun
     on Silva's own output does."""
     wanted = {d.name: d.numpy_dtype.name for d in run_dims(run)}
     for tile in tiles:
-        if tile.get("format") not in ("las", "laz"):
+        if tile.format not in ("las", "laz"):
             continue
-        for name, dtype in extra_dimension_types(tile["path"]).items():
+        for name, dtype in extra_dimension_types(tile.path).items():
             if name in wanted and dtype != wanted[name]:
                 raise ConfigError(
-                    f"config error: {tile['path']} already has a dimension '{name}' of type "
+                    f"config error: {tile.path} already has a dimension '{name}' of type "
                     f"{dtype}, and Silva writes one of that name as {wanted[name]}; set "
                     f"output.dim_prefix (e.g. --set output.dim_prefix=silva_, which writes "
                     f"silva_{name[len(run.cfg.output.dim_prefix):]}) or remove the dimension "
@@ -186,7 +187,7 @@ def check_output_names(run: Run, tiles: list[dict]) -> None:
 MAX_RASTER_CELLS = MAX_CELLS // 4
 
 
-def check_raster_size(run: Run, tiles: list[dict]) -> None:
+def check_raster_size(run: Run, tiles: list[Tile]) -> None:
     """Refuse an ``output.raster_resolution`` that gives a tile's raster (of its XY box:
     its header's before any work, that of its points as read once ingested, before the
     features) more than :data:`MAX_RASTER_CELLS` cells."""
@@ -194,12 +195,12 @@ def check_raster_size(run: Run, tiles: list[dict]) -> None:
     if not out.rasters:
         return
     for tile in tiles:
-        _, _, nx, ny = tile_grid(np.asarray(tile["mins"]), np.asarray(tile["maxs"]),
+        _, _, nx, ny = tile_grid(np.asarray(tile.mins), np.asarray(tile.maxs),
                                  out.raster_resolution)
         if nx * ny > MAX_RASTER_CELLS:
             raise ConfigError(
                 f"config error: output.raster_resolution={out.raster_resolution} gives the "
-                f"rasters of {tile['path']} {nx} x {ny} cells, more than {MAX_RASTER_CELLS:,}; "
+                f"rasters of {tile.path} {nx} x {ny} cells, more than {MAX_RASTER_CELLS:,}; "
                 "set a coarser resolution in map units (e.g. --set output.raster_resolution=1)")
 
 
@@ -304,7 +305,7 @@ class ExportTask:
     """What the export of one input tile needs (see :func:`export_tile`)."""
 
     store_path: str
-    tile: dict
+    tile: Tile
     grid: Grid | BalancedLayout
     dst: str
     fingerprint: str
@@ -316,20 +317,20 @@ class _TileExport:
     """The values of the dimensions export adds to one tile, batch by batch (``values``),
     and its counts of points without features and excluded at ingest."""
 
-    def __init__(self, root, store_path: str, tile: dict, grid, spec: ExportSpec,
+    def __init__(self, root, store_path: str, tile: Tile, grid, spec: ExportSpec,
                  score_trees: bool):
         self.tile, self.spec = tile, spec
         # a labelled scene's unlisted codes were left out at ingest: their points are missing
-        allow_missing = spec.points_filter.keep_codes is not None and tile["scene"] != "predict"
-        self.predictions = _ChunkPredictions(root, tile["scene"], grid,
+        allow_missing = spec.points_filter.keep_codes is not None and tile.scene != "predict"
+        self.predictions = _ChunkPredictions(root, tile.scene, grid,
                                              spec.stage, allow_missing, spec.feature_index)
-        self.dtm = stored_terrain(root, store_path, tile["scene"])  # once per worker process
+        self.dtm = stored_terrain(root, store_path, tile.scene)  # once per worker process
         rasters = spec.rasters
         self.rasters = _TileRasters(tile, rasters, self.dtm) if rasters is not None else None
         self.canopy = np.zeros(len(spec.classes), dtype=bool)
         if rasters is not None:
             self.canopy[list(rasters.canopy)] = True
-        self.trees = TileTrees(spec.trees, store_path, tile["scene"], len(spec.classes),
+        self.trees = TileTrees(spec.trees, store_path, tile.scene, len(spec.classes),
                                score_trees)
         self.n_undefined = self.n_excluded = 0
 
@@ -354,7 +355,7 @@ class _TileExport:
     def values(self, batch) -> dict:
         """The added dimensions of a read batch, by their unprefixed names."""
         spec = self.spec
-        gid = global_ids(self.tile["index"], batch.start, len(batch.xyz))
+        gid = global_ids(self.tile.index, batch.start, len(batch.xyz))
         proba, found, undefined, columns = self._lookup(batch, gid)
         best = np.argmax(proba, axis=1)
         predicted = np.where(found, np.asarray(spec.codes)[best], 0)  # 0: never classified
@@ -395,8 +396,8 @@ def export_tile(task: ExportTask):
     gets its height above the terrain model of its scene."""
     tile, spec, dst = task.tile, task.spec, task.dst
     root = open_store(task.store_path)
-    marker = root.require_group(f"exports/{tile['index']}")
-    raster_paths = ([spec.rasters.path(tile["name"], name) for name in spec.rasters.names]
+    marker = root.require_group(f"exports/{tile.index}")
+    raster_paths = ([spec.rasters.path(tile.name, name) for name in spec.rasters.names]
                     if spec.rasters is not None else [])
     if (is_done(marker, "export", task.fingerprint) and Path(dst).is_file()
             and all(p.is_file() for p in raster_paths)):
@@ -405,7 +406,7 @@ def export_tile(task: ExportTask):
                 "rasters": [str(p) for p in raster_paths]}
     tile_export = _TileExport(root, task.store_path, tile, task.grid, spec, task.score_trees)
     export_with_extra_dims(
-        tile["path"], dst, spec.dims(), tile_export.named, batch_size=spec.read_batch,
+        tile.path, dst, spec.dims(), tile_export.named, batch_size=spec.read_batch,
         set_classification=spec.write_classification,
         keep_point_format=spec.keep_point_format,
         source_fields=(REFERENCE_TREE_ID,) if task.score_trees else (),
@@ -418,7 +419,7 @@ def export_tile(task: ExportTask):
             "excluded": tile_export.n_excluded, "rasters": written}
 
 
-def check_point_formats(run: Run, tiles: list[dict]) -> None:
+def check_point_formats(run: Run, tiles: list[Tile]) -> None:
     """Refuse, before any work, ``output.point_format: keep`` with write_classification when
     a LAS tile's point format (0-5: codes 0..31) cannot hold the class codes."""
     out = run.cfg.output
@@ -428,13 +429,13 @@ def check_point_formats(run: Run, tiles: list[dict]) -> None:
     if largest <= LEGACY_MAX_CLASS:
         return
     for tile in tiles:
-        if tile.get("format") not in ("las", "laz"):
+        if tile.format not in ("las", "laz"):
             continue
-        point_format = read_info(tile["path"]).point_format
+        point_format = tile.point_format
         if point_format is not None and point_format < 6:
             raise ConfigError(
                 f"config error: output.point_format keep cannot write class code {largest} "
-                f"into the classification of {tile['path']}: its point format {point_format} "
+                f"into the classification of {tile.path}: its point format {point_format} "
                 f"holds codes 0..{LEGACY_MAX_CLASS}; set output.point_format: auto (LAS 1.4, "
                 "codes 0..255) or output.write_classification: false (the prediction stays "
                 f"in {PREDICTED})")
@@ -463,15 +464,15 @@ def export(run: Run, engine, layout: RunLayout, final_stage: int, stage_fp: str
         remove_parts(raster_dir)
     tasks = []
     for tile in layout.tiles:
-        dst = out_dir / f"{tile['name']}{suffix}"
+        dst = out_dir / f"{tile.name}{suffix}"
         tasks.append(Task(
-            key=f"export-{tile['index']}-{fingerprint[:8]}",
+            key=f"export-{tile.index}-{fingerprint[:8]}",
             fn=export_tile,
             kwargs={"task": ExportTask(
-                str(run.store_path), tile, layout.scenes[tile["scene"]].grid, str(dst),
+                str(run.store_path), tile, layout.scenes[tile.scene].grid, str(dst),
                 fingerprint, spec,
-                score_trees=spec.trees is not None and tile["scene"] == "test")},
-            where=f"export of tile {tile['path']}",
+                score_trees=spec.trees is not None and tile.scene == "test")},
+            where=f"export of tile {tile.path}",
             reproduce=export_command(run.out),
         ))
     results = list(engine.map("export", tasks).values())

@@ -63,7 +63,7 @@ def ingest_step(state: StepState) -> None:
     state.summary["chunk size (m)"] = ", ".join(
         f"{scene} {info.chunk_size:g}" if info.chunk_size else f"{scene} balanced"
         for scene, info in layout.scenes.items())
-    state.summary["excluded points"] = sum(t.get("excluded", 0) for t in layout.tiles)
+    state.summary["excluded points"] = sum(t.excluded for t in layout.tiles)
     check_point_formats(state.run, layout.tiles)  # output.point_format: keep, before work
     check_raster_size(state.run, layout.tiles)  # the points' boxes: a stale header hid them
     if state.reaches("trees"):
@@ -262,6 +262,6 @@ def echo_features_text(run) -> str:
 def _no_features(state: StepState) -> dict:
     """The points written without features (NoFeatures = 1), as export counted them."""
     root, tiles = state.run.store, state.layout.tiles
-    markers = [f"exports/{t['index']}" for t in tiles]
+    markers = [f"exports/{t.index}" for t in tiles]
     points = sum(int(root[m].attrs.get("no_features", 0)) for m in markers if m in root)
-    return {"points": points, "total": sum(t["n_points"] for t in tiles)}
+    return {"points": points, "total": sum(t.n_points for t in tiles)}

@@ -14,7 +14,6 @@ same read, each of the points it keeps.
 """
 
 import logging
-import os
 import shlex
 from dataclasses import dataclass, replace
 from functools import cache, partial
@@ -26,8 +25,8 @@ from pipeline.cascade.one_pass import ring_width
 from pipeline.cascade.thinning import DEFAULT_DENSITY_CELL, cell_keys
 from pipeline.errors import ConfigError, InputError, StoreError
 from pipeline.features.echo import return_counts
-from pipeline.io import iter_points, labels_from_codes, read_info, reads_ranges
-from pipeline.io.crs import check_metres, check_same_crs, crs_name
+from pipeline.io import iter_points, labels_from_codes, reads_ranges
+from pipeline.io.catalogue import Tile
 from pipeline.store import Appender, open_store
 from pipeline.tiling import (
     GROUP_SHARE,
@@ -38,9 +37,8 @@ from pipeline.tiling import (
     count_cell_size,
     global_ids,
     group_tiles,
-    tile_area,
 )
-from workflows.config.inputs import SCENES, expand_inputs
+from workflows.config.inputs import SCENES
 from workflows.config.point_filter import PointFilter
 from workflows.exec.cluster import plan_workers
 from workflows.exec.engine import Task
@@ -64,105 +62,19 @@ log = logging.getLogger(__name__)
 AXES = {"x": 0, "y": 1, "z": 2}
 
 
-def tile_name(path) -> str:
-    """The name of a tile's outputs: its file name without the last suffix and without
-    leading dots (``plot.v1.laz`` -> ``plot.v1``, ``.hidden.laz`` -> ``hidden``)."""
-    name = Path(path).name
-    stem = name[: -len(Path(name).suffix)] if Path(name).suffix else name
-    stem = stem.lstrip(".")
-    if not stem:
-        raise InputError(f"tile {path} has no name before its suffix; rename it")
-    return stem
-
-
-def check_overlap(scenes: dict[str, list[Path]], allowed: bool) -> None:
-    """Refuse a file that is both a training and a test tile, unless ``allowed``."""
-    if allowed or not scenes.get("train") or not scenes.get("test"):
-        return
-    train = {_identity(p): p for p in scenes["train"]}
-    for path in scenes["test"]:
-        if _identity(path) in train:
-            raise ConfigError(
-                f"tile {path} is both in data.test and in data.train (as "
-                f"{train[_identity(path)]}): its test scores would be scores on training "
-                "points; remove it from one of them, or set data.allow_overlap: true"
-            )
-
-
-def _identity(path: Path):
-    """The same file under any name (symbolic links, hard links, relative paths)."""
-    stat = os.stat(path)
-    return stat.st_dev, stat.st_ino
-
-
-def plan_tiles(run: Run) -> list[dict]:
-    """Every input tile with its scene and global index, from the headers."""
-    tiles, seen = [], {}
-    files = {scene: expand_inputs(list(getattr(run.cfg.data, scene)), key=f"data.{scene}")
-             for scene in SCENES if getattr(run.cfg.data, scene)}
-    check_overlap(files, run.cfg.data.allow_overlap)
-    for scene, paths in files.items():
-        for path in paths:
-            info = read_info(path)
-            if info.n_points == 0:
-                raise InputError(f"tile {path} holds no points; remove it from data.{scene}")
-            check_return_fields(run, path, info)
-            check_metres(info.crs_wkt, path, (np.asarray(info.mins) + info.maxs)[:2] / 2)
-            name = tile_name(path)
-            if name in seen and _identity(seen[name]) == _identity(path):
-                name = f"{name}-{scene}"  # the same file in two scenes (data.allow_overlap)
-            if name in seen:
-                raise InputError(
-                    f"tiles {seen[name]} and {path} have the same name '{name}', so their "
-                    "predictions would overwrite each other; rename one"
-                )
-            seen[name] = path
-            tiles.append(
-                {
-                    "index": len(tiles),
-                    "path": str(path),
-                    "name": name,
-                    "scene": scene,
-                    "n_points": int(info.n_points),
-                    "mins": list(info.mins),
-                    "maxs": list(info.maxs),
-                    "crs_wkt": info.crs_wkt,
-                    "format": info.format,
-                }
-            )
+def plan_tiles(run: Run) -> tuple[Tile, ...]:
+    """The run's tiles (its plan's catalogue: each header read once), checked for what the
+    run needs of them: at least one, and their return fields when it computes echo
+    features."""
+    tiles = run.plan.tiles
     if not tiles:
         raise InputError("no input tiles: set data.train, data.test or data.predict")
-    for scene in SCENES:  # one scene, one CRS: neighbourhoods cross the tiles' borders
-        members = [t for t in tiles if t["scene"] == scene]
-        crs = check_same_crs([(t["path"], t["crs_wkt"]) for t in members], f"data.{scene}")
-        assume_crs(members, crs, f"data.{scene}")
+    for tile in tiles:
+        check_return_fields(run, tile.path, tile.header)
     return tiles
 
 
-#: The tiles whose assumed CRS was said already in this process (plan_tiles runs twice).
-_said_assumed: set[str] = set()
-
-
-def assume_crs(tiles: list[dict], crs: str | None, where: str) -> None:
-    """Give the ``tiles`` (dicts) of one scene that record no CRS the scene's ``crs`` (the
-    WKT of its other tiles; None: no tile has one), in which their points are taken and
-    their rasters and trees written, with a warning naming it (once per tile)."""
-    if crs is None:
-        return
-    named = next(t["path"] for t in tiles if t["crs_wkt"])
-    for tile in tiles:
-        if tile["crs_wkt"]:
-            continue
-        tile["crs_wkt"] = crs
-        if tile["path"] not in _said_assumed:
-            _said_assumed.add(tile["path"])
-            log.warning("tile %s of %s records no CRS, beside tiles in %s (%s): it is taken "
-                        "as %s, and its rasters and trees are written in it; if it is in "
-                        "another CRS, reproject it or run it apart", tile["path"], where,
-                        crs_name(crs), named, crs_name(crs))
-
-
-def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict[str, SceneLayout]:
+def plan_scenes(run: Run, tiles: list[Tile], engine=None) -> dict[str, SceneLayout]:
     """The layout of each scene (:class:`~workflows.store.scenes.SceneLayout`): its chunks,
     covering all its tiles, its halo, its mode, and the tiles each ingest task reads
     (``groups``, see :func:`ingest_groups`; ``ranges``, the point ranges a big tile is read
@@ -185,9 +97,9 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict[str, SceneLayo
     density (:func:`scene_density`) and its thinned copies follow it, scenes of their own
     (:func:`~workflows.steps.copies.plan_copies`).
     """
-    scenes, by_index = {}, {t["index"]: t for t in tiles}
+    scenes, by_index = {}, {t.index: t for t in tiles}
     for scene in SCENES:
-        members = [t for t in tiles if t["scene"] == scene]
+        members = [t for t in tiles if t.scene == scene]
         if not members:
             continue
         # the counting pass, made at most once per scene (and only if a layout needs it)
@@ -204,26 +116,26 @@ def plan_scenes(run: Run, tiles: list[dict], engine=None) -> dict[str, SceneLayo
         scenes[scene] = replace(info, one_pass=one_pass, **read_plan(run, groups))
     if run.model is None:  # thinned copies of the training scene (data.densities)
         scenes = plan_copies(scenes, run.cfg.data.densities, lambda scene: scene_density(
-            run, scene, [t for t in tiles if t["scene"] == scene], engine))
+            run, scene, [t for t in tiles if t.scene == scene], engine))
     return scenes
 
 
-def point_ranges(run: Run, group: list[dict]) -> int:
-    """In how many point ranges a group of tiles (dicts) is read (one task each, so that
+def point_ranges(run: Run, group: list[Tile]) -> int:
+    """In how many point ranges a group of tiles is read (one task each, so that
     the workers share a big file): a tile alone, of a format that reads ranges, one per
     ``tiling.target_points`` points, a chunk's worth; anything else whole."""
-    if len(group) != 1 or not reads_ranges(group[0]["path"]):
+    if len(group) != 1 or not reads_ranges(group[0].path):
         return 1
-    return max(1, -(-group[0]["n_points"] // int(run.cfg.tiling.target_points)))
+    return max(1, -(-group[0].n_points // int(run.cfg.tiling.target_points)))
 
 
-def read_plan(run: Run, groups: list[list[dict]]) -> dict:
-    """How a scene's tiles are read, for these groups of tiles (dicts): the ``groups`` as
+def read_plan(run: Run, groups: list[list[Tile]]) -> dict:
+    """How a scene's tiles are read, for these groups of tiles: the ``groups`` as
     tile indices and the ``ranges`` of the big tiles (tile index -> how many,
     :func:`point_ranges`), from which :func:`~workflows.store.scenes.read_units` makes the
     tasks."""
-    return {"groups": tuple(tuple(t["index"] for t in group) for group in groups),
-            "ranges": {str(group[0]["index"]): n for group in groups
+    return {"groups": tuple(tuple(t.index for t in group) for group in groups),
+            "ranges": {str(group[0].index): n for group in groups
                        if (n := point_ranges(run, group)) > 1}}
 
 
@@ -232,15 +144,14 @@ def group_budget(run: Run) -> int:
     return max(1, int(run.cfg.tiling.target_points * GROUP_SHARE))
 
 
-def ingest_groups(run: Run, members: list[dict], grid) -> list[list[int]]:
+def ingest_groups(run: Run, members: list[Tile], grid) -> list[list[int]]:
     """The tile indices each ingest task of a scene reads: tiles below
     :func:`group_budget` points whose XY centres lie in one chunk of ``grid`` are read
     together, the others one by one."""
-    centres = np.array([[(t["mins"][i] + t["maxs"][i]) / 2 for i in (0, 1)] for t in members],
-                       dtype=np.float64).reshape(-1, 2)
+    centres = np.array([t.centre for t in members], dtype=np.float64).reshape(-1, 2)
     keys = grid.chunk_of(centres)
-    groups = group_tiles([t["n_points"] for t in members], keys, group_budget(run))
-    return [[members[i]["index"] for i in group] for group in groups]
+    groups = group_tiles([t.n_points for t in members], keys, group_budget(run))
+    return [[members[i].index for i in group] for group in groups]
 
 
 #: Fewest points a scene gives each worker a chunk of when it is shared out among them.
@@ -257,13 +168,13 @@ def scene_target(run: Run, n_points: int) -> int:
     return int(min(run.cfg.tiling.target_points, shared))
 
 
-def _cut_scene(run: Run, members: list[dict], halo: float, counts) -> SceneLayout:
+def _cut_scene(run: Run, members: list[Tile], halo: float, counts) -> SceneLayout:
     """The chunk layout (and ``estimate``) of a scene with ``halo``, its tiles not yet
     grouped; ``counts()`` its counted points."""
     tiling = run.cfg.tiling
-    n_points = sum(t["n_points"] for t in members)
-    mins = np.min([t["mins"] for t in members], axis=0)
-    maxs = np.max([t["maxs"] for t in members], axis=0)
+    n_points = sum(t.n_points for t in members)
+    mins = np.min([t.mins for t in members], axis=0)
+    maxs = np.max([t.maxs for t in members], axis=0)
     if tiling.chunk_size != "auto" or tiling.layout != "balanced":
         size = scene_chunk_size(run, n_points, mins, maxs, halo)
         return SceneLayout(Grid.covering(mins, maxs, size), halo, groups=())
@@ -299,7 +210,7 @@ def count_tiles(paths, cell: float, read_batch: int, span=None) -> CellCounts:
     return counts
 
 
-def _pass_over_tiles(run: Run, scene: str, members: list[dict], engine, name: str, key: str,
+def _pass_over_tiles(run: Run, scene: str, members: list[Tile], engine, name: str, key: str,
                      fn, **kwargs) -> list:
     """The results of the worker task ``fn`` over a scene's tiles, in order: small tiles
     read together (the layout that groups them by chunk is not known yet), big ones by point
@@ -307,13 +218,13 @@ def _pass_over_tiles(run: Run, scene: str, members: list[dict], engine, name: st
     call gets ``paths``, ``read_batch``, ``span`` and ``kwargs``; ``name`` is the pass's,
     ``key`` ends its tasks' keys."""
     groups = [[members[i] for i in group] for group in
-              group_tiles([t["n_points"] for t in members], np.zeros(len(members), np.int64),
+              group_tiles([t.n_points for t in members], np.zeros(len(members), np.int64),
                           group_budget(run))]
-    by_index = {t["index"]: t for t in members}
+    by_index = {t.index: t for t in members}
     units = [(unit, [by_index[i] for i in unit.tiles])
              for unit in read_units(**read_plan(run, groups))]
-    calls = [dict(paths=[t["path"] for t in tiles], read_batch=run.cfg.tiling.read_batch,
-                  span=unit.span(tiles[0]["n_points"]), **kwargs) for unit, tiles in units]
+    calls = [dict(paths=[t.path for t in tiles], read_batch=run.cfg.tiling.read_batch,
+                  span=unit.span(tiles[0].n_points), **kwargs) for unit, tiles in units]
     if engine is None:
         return [fn(**call) for call in calls]
     tasks = [Task(key=f"{name}-{scene}-{unit.key}{key}", fn=fn, kwargs=call,
@@ -325,11 +236,11 @@ def _pass_over_tiles(run: Run, scene: str, members: list[dict], engine, name: st
     return [results[task.key] for task in tasks]
 
 
-def scene_counts(run: Run, scene: str, members: list[dict], engine=None) -> CellCounts:
+def scene_counts(run: Run, scene: str, members: list[Tile], engine=None) -> CellCounts:
     """The points of a scene's tiles counted on one lattice (the balanced layout's first
     pass: XY only, streamed in read batches)."""
-    area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
-    n_points = sum(t["n_points"] for t in members)
+    area = sum(t.area for t in members)
+    n_points = sum(t.n_points for t in members)
     cell = count_cell_size(run.halo, area, area * run.cfg.tiling.target_points / n_points)
     parts = _pass_over_tiles(run, scene, members, engine, "count", f"-{cell:g}", count_tiles,
                              cell=cell)
@@ -357,7 +268,7 @@ def occupied_cells(paths, read_batch: int, span=None, *, label_field: str = "cla
     return {"points": points, "cells": cells}
 
 
-def scene_density(run: Run, scene: str, members: list[dict], engine=None) -> tuple[int, int]:
+def scene_density(run: Run, scene: str, members: list[Tile], engine=None) -> tuple[int, int]:
     """The points ingest keeps of a scene's tiles and the 2 m cells they occupy, over all
     its tiles (a scene's density, never a chunk's: the union of the tasks' cells)."""
     data = run.cfg.data
@@ -367,11 +278,11 @@ def scene_density(run: Run, scene: str, members: list[dict], engine=None) -> tup
     return sum(p["points"] for p in parts), len(cells)
 
 
-def tiles_text(tiles: list[dict]) -> str:
+def tiles_text(tiles: list[Tile]) -> str:
     """The tiles of a task, for messages: "tile a.laz", "3 tiles a.laz ... c.laz"."""
     if len(tiles) == 1:
-        return f"tile {tiles[0]['path']}"
-    return f"{len(tiles)} tiles {tiles[0]['path']} ... {tiles[-1]['path']}"
+        return f"tile {tiles[0].path}"
+    return f"{len(tiles)} tiles {tiles[0].path} ... {tiles[-1].path}"
 
 
 def layout_text(layout) -> str:
@@ -402,14 +313,14 @@ def point_roles(scene: str, xyz: np.ndarray, split) -> np.ndarray:
     return np.full(len(xyz), role, dtype=np.int8)
 
 
-def check_something_left(run, tiles: list[dict]) -> None:
+def check_something_left(run, tiles: list[Tile]) -> None:
     """InputError (one line naming the tiles and the filters) when the ingest filters left a
     scene without a single point to classify."""
     data = run.cfg.data
-    for scene in sorted({t["scene"] for t in tiles}):
-        members = [t for t in tiles if t["scene"] == scene]
-        if all(t["excluded"] >= t["n_points"] for t in members):
-            names = ", ".join(t["path"] for t in members[:3]) + (" ..." if len(members) > 3
+    for scene in sorted({t.scene for t in tiles}):
+        members = [t for t in tiles if t.scene == scene]
+        if all(t.excluded >= t.n_points for t in members):
+            names = ", ".join(t.path for t in members[:3]) + (" ..." if len(members) > 3
                                                                  else "")
             raise InputError(
                 f"every point of data.{scene} ({names}) is left out by data.exclude_codes "
@@ -442,7 +353,7 @@ class IngestTask:
 
     store_path: str
     scene: str
-    tiles: tuple  # the tile dicts read, in order (one dict: that tile alone)
+    tiles: tuple  # the Tiles read, in order (one Tile: that tile alone)
     grid: Grid | BalancedLayout
     halo: float
     label_field: str
@@ -458,10 +369,10 @@ class IngestTask:
     seed: int = 0  # of the copies' thinning hash (cascade.seed)
 
     def __post_init__(self):
-        if isinstance(self.tiles, dict):
+        if isinstance(self.tiles, Tile):
             object.__setattr__(self, "tiles", (self.tiles,))
         if self.key is None:
-            object.__setattr__(self, "key", self.tiles[0]["index"])
+            object.__setattr__(self, "key", self.tiles[0].index)
 
 
 def ingest_tile(task: IngestTask) -> dict:
@@ -509,10 +420,10 @@ def ingest_tile(task: IngestTask) -> dict:
     for tile in tiles:
         n_read = n_excluded = 0
         counts = (0, 0, 0)  # (valid, empty, above) return fields of the points read
-        for batch in iter_points(tile["path"], batch_size=read_batch, fields=fields,
+        for batch in iter_points(tile.path, batch_size=read_batch, fields=fields,
                                  start=start, stop=stop):
             n_read += len(batch.xyz)
-            bounds[str(tile["index"])] = widened(bounds.get(str(tile["index"])), batch.xyz)
+            bounds[str(tile.index)] = widened(bounds.get(str(tile.index)), batch.xyz)
             columns, n_dropped, batch_counts = _stored_columns(task, tile, batch, labelled)
             n_excluded += n_dropped
             counts = tuple(a + b for a, b in zip(counts, batch_counts))
@@ -523,13 +434,13 @@ def ingest_tile(task: IngestTask) -> dict:
             if held >= read_batch:
                 writer.write(*(np.concatenate(column) for column in zip(*pending)))
                 pending, held = [], 0
-        if n_read != (tile["n_points"] if stop is None else stop - start):
-            raise InputError(f"tile {tile['path']}: its header announces {tile['n_points']} "
+        if n_read != (tile.n_points if stop is None else stop - start):
+            raise InputError(f"tile {tile.path}: its header announces {tile.n_points} "
                              f"points but {n_read} were read; the file is truncated or its "
                              "header is wrong: repair or re-export it")
         if task.echoes is not None:
-            returns[str(tile["index"])] = list(counts)
-        excluded[str(tile["index"])] = n_excluded
+            returns[str(tile.index)] = list(counts)
+        excluded[str(tile.index)] = n_excluded
     if pending:
         writer.write(*(np.concatenate(column) for column in zip(*pending)))
     parts = writer.seal()
@@ -539,13 +450,13 @@ def ingest_tile(task: IngestTask) -> dict:
             "returns": returns, **copy_counts(root, task.key, task.copies)}
 
 
-def _stored_columns(task: IngestTask, tile: dict, batch, labelled: bool):
+def _stored_columns(task: IngestTask, tile: Tile, batch, labelled: bool):
     """What ingest stores of a read ``batch`` of ``tile``: the columns of its kept points
     (xyz, gid, label, role, and with echoes the return numbers), the number of its points
     excluded by code or flag, and the return counts of its points (with echoes, else zeros:
     :func:`pipeline.features.echo.return_counts`)."""
     xyz = batch.xyz
-    gid = global_ids(tile["index"], batch.start, len(xyz))
+    gid = global_ids(tile.index, batch.start, len(xyz))
     label = np.full(len(xyz), -1, dtype=np.int16)
     if labelled:
         raw = np.asarray(batch.fields[task.label_field]).astype(np.int64)
@@ -561,7 +472,7 @@ def _stored_columns(task: IngestTask, tile: dict, batch, labelled: bool):
             counts)
 
 
-def check_returns_seen(run: Run, tiles: list[dict], results: list[dict]) -> None:
+def check_returns_seen(run: Run, tiles: list[Tile], results: list[dict]) -> None:
     """With echo features, InputError for a tile none of whose points has returns, from the
     return counts its ingest tasks read (``results``' ``returns``, summed over the point
     ranges of a big tile): the verdict is about the tile, the same for any read ranges."""
@@ -573,8 +484,8 @@ def check_returns_seen(run: Run, tiles: list[dict], results: list[dict]) -> None
         for index, counts in result.get("returns", {}).items():
             seen[index] = tuple(a + b for a, b in zip(seen.get(index, (0, 0, 0)), counts))
     for tile in tiles:
-        if str(tile["index"]) in seen:  # a store ingested before the counts: checked then
-            need.check_tile(tile["path"], seen[str(tile["index"])])
+        if str(tile.index) in seen:  # a store ingested before the counts: checked then
+            need.check_tile(tile.path, seen[str(tile.index)])
 
 
 def widened(box: list | None, xyz: np.ndarray) -> list:
@@ -586,18 +497,21 @@ def widened(box: list | None, xyz: np.ndarray) -> list:
     return [[float(v) for v in lo], [float(v) for v in hi]]
 
 
-def take_seen_bounds(tiles: list[dict], results: list[dict]) -> None:
-    """Set each tile's ``mins`` and ``maxs`` (from its header) to the box of the points its
-    ingest tasks read (``results``' ``bounds``): a stale header would clip the rasters and
-    misplace the tile's trees."""
+def as_read(tiles: tuple[Tile, ...], results: list[dict]) -> tuple[Tile, ...]:
+    """The ``tiles`` as their ingest tasks read them (``results``, summed over the point
+    ranges of a big tile): with the points the data filters left out (``excluded``,
+    data.exclude_*) and, for their header's, the box of the points read (``bounds``): a
+    stale header would clip the rasters and misplace the tile's trees."""
+    excluded: dict[str, int] = {}
     seen: dict[str, list] = {}
     for result in results:
+        for index, n in result["excluded"].items():
+            excluded[index] = excluded.get(index, 0) + n
         for index, (lo, hi) in result.get("bounds", {}).items():
-            box = seen.get(index)
-            seen[index] = widened(box, np.array([lo, hi], dtype=np.float64))
-    for tile in tiles:
-        if str(tile["index"]) in seen:
-            tile["mins"], tile["maxs"] = seen[str(tile["index"])]
+            seen[index] = widened(seen.get(index), np.array([lo, hi], dtype=np.float64))
+    box = {index: {"mins": tuple(lo), "maxs": tuple(hi)} for index, (lo, hi) in seen.items()}
+    return tuple(replace(t, excluded=int(excluded.get(str(t.index), 0)),
+                         **box.get(str(t.index), {})) for t in tiles)
 
 
 class _PartWriter:
@@ -663,8 +577,8 @@ def _excluded(attrs, tiles) -> dict[str, int]:
     """The points left out per tile index, from a group's marker (a number: one tile)."""
     excluded = attrs.get("excluded", 0)
     if not isinstance(excluded, dict):
-        excluded = {str(tiles[0]["index"]): int(excluded)}
-    return {str(t["index"]): int(excluded.get(str(t["index"]), 0)) for t in tiles}
+        excluded = {str(tiles[0].index): int(excluded)}
+    return {str(t.index): int(excluded.get(str(t.index), 0)) for t in tiles}
 
 
 def _ingested(root, scene: str, key: int | str, fingerprint: str) -> bool:
@@ -725,16 +639,10 @@ def ingest(run: Run, engine) -> RunLayout:
     scenes = {scene: replace(info, chunks=tuple(scene_chunks(scene, tasks, results)))
               for scene, info in scenes.items()}
     scenes = without_empty_copies(scenes, run.quiet)
-    excluded_by_tile: dict[str, int] = {}  # a tile read in ranges: the sum of its ranges'
-    for task in tasks:
-        for index, n in results[task.key]["excluded"].items():
-            excluded_by_tile[index] = excluded_by_tile.get(index, 0) + n
-    for tile in tiles:  # points the ingest filters left out (data.exclude_*)
-        tile["excluded"] = int(excluded_by_tile.get(str(tile["index"]), 0))
-    take_seen_bounds(tiles, [results[task.key] for task in tasks])
+    tiles = as_read(tiles, [results[task.key] for task in tasks])
     check_returns_seen(run, tiles, [results[task.key] for task in tasks])
     check_something_left(run, tiles)
-    excluded = sum(t["excluded"] for t in tiles)
+    excluded = sum(t.excluded for t in tiles)
     if excluded:
         say(f"ingest: {counted(excluded, 'point')} excluded (data.exclude_codes / "
             "data.exclude_withheld): in no neighbourhood and no score, exported unchanged "
@@ -744,10 +652,10 @@ def ingest(run: Run, engine) -> RunLayout:
     return layout
 
 
-def ingest_tasks(run: Run, scenes: dict[str, SceneLayout], tiles: list[dict],
+def ingest_tasks(run: Run, scenes: dict[str, SceneLayout], tiles: list[Tile],
                  fingerprint: str) -> list[Task]:
     """One task per read unit of every scene (a thinned copy is written by its scene's)."""
-    by_index = {tile["index"]: tile for tile in tiles}
+    by_index = {tile.index: tile for tile in tiles}
     echoes, tasks = echo_need(run), []
     for scene, info in scenes.items():
         if is_copy(scene):  # written by its scene's tasks
@@ -755,7 +663,7 @@ def ingest_tasks(run: Run, scenes: dict[str, SceneLayout], tiles: list[dict],
         copies = copies_of(scenes, scene)
         for unit in info.read_units:
             members = tuple(by_index[index] for index in unit.tiles)
-            span = unit.span(members[0]["n_points"])
+            span = unit.span(members[0].n_points)
             tasks.append(Task(
                 key=f"ingest-{scene}-{unit.key}-{fingerprint[:8]}",
                 fn=ingest_tile,

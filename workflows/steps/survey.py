@@ -111,8 +111,8 @@ def _profiles(layout: RunLayout) -> dict:
     views = {}
     for scene in layout.scenes:
         tiles = layout.tiles_of(scene)
-        lo = np.min([t["mins"][:2] for t in tiles], axis=0)
-        hi = np.max([t["maxs"][:2] for t in tiles], axis=0)
+        lo = np.min([t.mins[:2] for t in tiles], axis=0)
+        hi = np.max([t.maxs[:2] for t in tiles], axis=0)
         axis = int(np.argmax(hi - lo))
         width = max(float(hi[1 - axis] - lo[1 - axis]), 1e-9)
         half = max(0.5, 0.01 * width)
@@ -126,7 +126,7 @@ def survey(run: Run, engine, layout: RunLayout, final_stage: int, *,
     """What the run predicted, per scene and tile (see the module docstring); its tasks
     count in the progress of the run's step ``counted_in``."""
     profiles = _profiles(layout)
-    band_points = sum(t["n_points"] * profiles[t["scene"]][3] for t in layout.tiles)
+    band_points = sum(t.n_points * profiles[t.scene][3] for t in layout.tiles)
     task = SurveyTask(final_stage, run.n_classes, len(layout.tiles), run.terrain.cell,
                       min(1.0, MAP_POINTS / max(layout.n_points, 1)),
                       tuple((s, v[:3]) for s, v in profiles.items()),
@@ -148,7 +148,7 @@ def survey(run: Run, engine, layout: RunLayout, final_stage: int, *,
         "classes": run.classes,
         "codes": run.class_codes,
         "cell": run.terrain.cell,
-        "tiles": [{"name": t["name"], "scene": t["scene"], "counts": counts[t["index"]]}
+        "tiles": [{"name": t.name, "scene": t.scene, "counts": counts[t.index]}
                   for t in layout.tiles],
         "confidence": sum(r["confidence"] for rs in by_scene.values() for r in rs),
         "entropy": sum(r["entropy"] for rs in by_scene.values() for r in rs),

@@ -31,10 +31,10 @@ import numpy as np
 
 from pipeline.atomic import remove_parts, remove_stale
 from pipeline.cascade import labels_from_proba
+from pipeline.io.catalogue import Tile
 from pipeline.io.vector import write_tree_csv, write_tree_gpkg
 from pipeline.store import open_store, write_arrays
 from pipeline.terrain import BlockGrid
-from pipeline.tiling.grid import tile_area
 from pipeline.trees import TreeParams, merge_stats, tree_stats, tree_table
 from pipeline.trees.blocks import (
     TALLEST_TREE, block_crowns, crown_table_model, number_trees, occupied_blocks,
@@ -144,7 +144,7 @@ def find_block(store_path: str, scene: str, block: tuple[int, int], chunks: tupl
                        task.fingerprint)
 
 
-def check_tree_settings(run, tiles: list[dict]) -> None:
+def check_tree_settings(run, tiles: list[Tile]) -> None:
     """Refuse ``trees.*`` values that cannot give trees on a scene of ``tiles`` (the
     headers' boxes and point counts before any work, the points' boxes once ingested): a
     resolution finer than the points resolve or coarser than a crown, a canopy raster beyond
@@ -153,36 +153,35 @@ def check_tree_settings(run, tiles: list[dict]) -> None:
     ConfigError."""
     if not run.cfg.output.trees:
         return
-    for scene in sorted({t["scene"] for t in tiles}):
-        members = [t for t in tiles if t["scene"] == scene]
-        mins = np.min([t["mins"][:2] for t in members], axis=0)
-        maxs = np.max([t["maxs"][:2] for t in members], axis=0)
-        area = sum(tile_area(t["mins"], t["maxs"]) for t in members)
-        density = sum(t["n_points"] for t in members) / area
+    for scene in sorted({t.scene for t in tiles}):
+        members = [t for t in tiles if t.scene == scene]
+        mins = np.min([t.mins[:2] for t in members], axis=0)
+        maxs = np.max([t.maxs[:2] for t in members], axis=0)
+        area = sum(t.area for t in members)
+        density = sum(t.n_points for t in members) / area
         width, depth = (float(v) for v in maxs - mins)
         check_scan(run.cfg.trees.params, density, width, depth,
                    float(np.abs(np.concatenate([mins, maxs])).max()))
     run.cfg.trees.grid  # noqa: B018 -- a block too big for a raster (after the scan's reasons)
 
 
-def scene_area(tiles: list[dict]) -> float:
-    """Square metres the scene's tiles cover (their XY boxes)."""
-    return float(sum(max(t["maxs"][0] - t["mins"][0], 0) * max(t["maxs"][1] - t["mins"][1], 0)
-                     for t in tiles))
+def scene_area(tiles: list[Tile]) -> float:
+    """Square metres the scene's tiles cover (the sum of their XY boxes' areas)."""
+    return float(sum(t.area for t in tiles))
 
 
-def tile_of(table: np.ndarray, tiles: list[dict]) -> np.ndarray:
+def tile_of(table: np.ndarray, tiles: list[Tile]) -> np.ndarray:
     """The index of the tile holding each tree's top or stem base: the first of ``tiles``
     whose XY box holds it, else the nearest box (a stem fitted at a tile's edge may stand
     just outside the points), so that every tree has its row."""
     best = np.full(len(table), np.inf)
     owner = np.full(len(table), -1, dtype=np.int64)
     for tile in tiles:
-        dx = np.maximum(np.maximum(tile["mins"][0] - table["x"], table["x"] - tile["maxs"][0]), 0)
-        dy = np.maximum(np.maximum(tile["mins"][1] - table["y"], table["y"] - tile["maxs"][1]), 0)
+        dx = np.maximum(np.maximum(tile.mins[0] - table["x"], table["x"] - tile.maxs[0]), 0)
+        dy = np.maximum(np.maximum(tile.mins[1] - table["y"], table["y"] - tile.maxs[1]), 0)
         distance = np.hypot(dx, dy)
         nearer = distance < best
-        owner[nearer], best[nearer] = tile["index"], distance[nearer]
+        owner[nearer], best[nearer] = tile.index, distance[nearer]
     return owner
 
 
@@ -240,13 +239,13 @@ def trees(run, engine, layout: RunLayout, final_stage: int, stage_fp: str) -> di
         table = tree_table(model, merge_stats(results))
         tiles = layout.tiles_of(scene)
         owner = tile_of(table, tiles)
-        tile_tasks += [Task(key=f"trees-write-{tile['name']}-{task.fingerprint[:8]}",
+        tile_tasks += [Task(key=f"trees-write-{tile.name}-{task.fingerprint[:8]}",
                             fn=write_tile_trees,
                             kwargs=dict(store_path=str(run.store_path), scene=scene,
                                         out_dir=out_dir, tile=tile,
-                                        rows=table[owner == tile["index"]],
+                                        rows=table[owner == tile.index],
                                         params=task.params),
-                            where=f"the trees of tile {tile['name']}",
+                            where=f"the trees of tile {tile.name}",
                             reproduce=run.rerun("trees", "--in-process"))
                        for tile in tiles]
         found[scene] = {"method": method, "table": table,
@@ -270,12 +269,12 @@ def whole_trees(run, chunks, scene: str, task: TreeTask, merged_slice, area: flo
     write_scene_trees(root, scene, model, method, task.fingerprint, chm=chm)
 
 
-def write_tile_trees(store_path: str, scene: str, out_dir: Path, tile: dict, rows: np.ndarray,
+def write_tile_trees(store_path: str, scene: str, out_dir: Path, tile: Tile, rows: np.ndarray,
                      params: TreeParams) -> list[str]:
     """Worker task: trees/<tile>.csv and trees/<tile>.gpkg of the trees whose top or base is
     in ``tile`` (``rows`` of the scene's table), their crowns traced from the cells of the
     blocks they reach."""
-    csv, gpkg = out_dir / f"{tile['name']}.csv", out_dir / f"{tile['name']}.gpkg"
+    csv, gpkg = out_dir / f"{tile.name}.csv", out_dir / f"{tile.name}.gpkg"
     write_tree_csv(csv, rows)
     labels, grid = np.zeros((0, 0), np.uint32), (0.0, 0.0, params.resolution)
     located = rows[np.isfinite(rows["x"]) & np.isfinite(rows["y"])]
@@ -286,7 +285,7 @@ def write_tile_trees(store_path: str, scene: str, out_dir: Path, tile: dict, row
         box = (located["x"].min() - reach, located["y"].min() - reach,
                located["x"].max() + reach, located["y"].max() + reach)
         labels, *grid = crown_labels(open_store(store_path), scene, box)
-    write_tree_gpkg(gpkg, rows, labels, *grid, tile.get("crs_wkt"))
+    write_tree_gpkg(gpkg, rows, labels, *grid, tile.crs_wkt)
     return [str(csv), str(gpkg)]
 
 
@@ -335,11 +334,11 @@ def score_trees(run, layout: RunLayout, found: dict) -> dict | None:
     with the predicted trees matched to them (the buffer rule)."""
     root = run.store
     tiles = layout.tiles_of("test")
-    parts = [read_array(root[f"exports/{t['index']}"], PAIRS) for t in tiles
-             if f"exports/{t['index']}/{PAIRS}" in root]
+    parts = [read_array(root[f"exports/{t.index}"], PAIRS) for t in tiles
+             if f"exports/{t.index}/{PAIRS}" in root]
     if not parts or "test" not in found:
         return None
-    reference = reference_table({Path(t["path"]).parent for t in tiles})
+    reference = reference_table({Path(t.path).parent for t in tiles})
     outside = (None if reference is None or "inside" not in reference
                else reference["tree_id"][reference["inside"] == 0])
     matching = match_pairs(merge_pairs(parts), outside)

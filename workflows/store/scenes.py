@@ -10,6 +10,7 @@ reading.
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
+from pipeline.io.catalogue import Tile
 from pipeline.tiling import BalancedLayout, Grid, layout_from_dict
 from workflows.store.layout import is_copy
 
@@ -136,11 +137,11 @@ class SceneLayout:
 
 @dataclass(frozen=True)
 class RunLayout:
-    """The input tiles (dicts: index, path, name, scene, n_points, mins, maxs, ...) and the
-    layout of each scene, as ingest (its ``fingerprint``) made them."""
+    """The input tiles (:class:`~pipeline.io.catalogue.Tile`, their boxes those of their
+    points) and the layout of each scene, as ingest (its ``fingerprint``) made them."""
 
     fingerprint: str
-    tiles: list[dict]
+    tiles: tuple[Tile, ...]
     scenes: dict[str, SceneLayout]
 
     def with_scenes(self, keep) -> "RunLayout":
@@ -151,16 +152,16 @@ class RunLayout:
         """The scenes that are exported, scored and surveyed: all but the thinned copies."""
         return self.with_scenes(lambda scene: not is_copy(scene))
 
-    def tiles_of(self, scene: str) -> list[dict]:
+    def tiles_of(self, scene: str) -> list[Tile]:
         """The tiles of ``scene`` (of a thinned copy: of the scene it copies)."""
         info = self.scenes.get(scene)
         source = info.thinning.copy_of if info is not None and info.thinning else scene
-        return [t for t in self.tiles if t["scene"] == source]
+        return [t for t in self.tiles if t.scene == source]
 
     @property
     def n_points(self) -> int:
         """The points of the input tiles (as their headers say)."""
-        return sum(t["n_points"] for t in self.tiles)
+        return sum(t.n_points for t in self.tiles)
 
     def chunk_keys(self) -> list[str]:
         """Every chunk as "scene/chunk", in layout order."""
@@ -168,10 +169,10 @@ class RunLayout:
 
     def to_dict(self) -> dict:
         """The store's ``layout`` attribute."""
-        return {"fingerprint": self.fingerprint, "tiles": self.tiles,
+        return {"fingerprint": self.fingerprint, "tiles": [t.to_dict() for t in self.tiles],
                 "scenes": {s: info.to_dict() for s, info in self.scenes.items()}}
 
     @classmethod
     def from_dict(cls, layout: dict) -> "RunLayout":
-        return cls(layout["fingerprint"], layout["tiles"],
+        return cls(layout["fingerprint"], tuple(map(Tile.from_dict, layout["tiles"])),
                    {s: SceneLayout.from_dict(info) for s, info in layout["scenes"].items()})
