@@ -121,6 +121,30 @@ def test_a_run_killed_in_the_trees_step_resumes_to_the_same_trees(runs, survey, 
         assert (out / "trees" / path.name).read_bytes() == path.read_bytes()
 
 
+def test_a_rerun_counts_no_tree_points_again_and_writes_only_missing_tables(
+        runs, survey, tmp_path, monkeypatch):
+    import workflows.steps.trees as step
+
+    config = config_for(tmp_path, survey, "again", 8.0)
+    out = tmp_path / "again"
+    shutil.copytree(runs[1], out)
+    before = {p.name: p.stat().st_mtime_ns for p in (out / "trees").iterdir()}
+    removed = sorted((out / "trees").glob("*.csv"))[0]
+    removed.unlink()
+
+    def counted_again(*args, **kwargs):
+        raise AssertionError("the points of the trees were counted again")
+
+    monkeypatch.setattr(step, "chunk_tree_stats", counted_again)
+    result = silva("trees", config, "--out", out, "-q", "--in-process")
+    assert result.exit_code == 0, result.output
+    after = {p.name: p.stat().st_mtime_ns for p in (out / "trees").iterdir()}
+    assert after.keys() == before.keys()
+    assert {name for name in after if after[name] != before[name]} == {
+        removed.name, removed.with_suffix(".gpkg").name}
+    assert removed.read_bytes() == (runs[1] / "trees" / removed.name).read_bytes()
+
+
 def test_every_tree_has_the_row_of_one_tile():
     from workflows.steps.trees import tile_of
 

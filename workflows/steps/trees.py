@@ -50,11 +50,12 @@ from workflows.exec.engine import Task, chunk_tasks, results_by_scene
 from workflows.run.progress import counted, say
 from workflows.steps.terrain import ground_under, overlapping_chunks
 from workflows.store.layout import chunk_path, proba_array
-from workflows.store.marks import read_array
+from workflows.store.marks import is_done, mark_done, read_array
 from workflows.store.scenes import RunLayout
 from workflows.store.trees import (
-    block_done, canopy_overview, crown_labels, read_tree_model, stored_trees, trees_done,
-    write_block, write_block_ids, write_scene_trees,
+    TABLE, block_done, canopy_overview, crown_labels, read_tree_model, read_tree_table,
+    stored_trees, tile_table_group, trees_done, write_block, write_block_ids,
+    write_scene_trees, write_tree_table,
 )
 
 log = logging.getLogger(__name__)
@@ -228,15 +229,12 @@ def trees(run, engine, layout: RunLayout, final_stage: int, stage_fp: str) -> di
                 whole_trees(run, todo.scenes[scene].chunks, scene, task, merged, area)
         if crowns:
             find_crowns(run, engine, todo, task, crowns)
-    tasks = chunk_tasks(run, layout, "tree-stats", chunk_tree_stats, task, task.fingerprint,
-                        "trees", marks=False)
     out_dir = run.out / "trees"
     out_dir.mkdir(parents=True, exist_ok=True)
     remove_parts(out_dir)
     found, tile_tasks = {}, []
-    for scene, results in results_by_scene(tasks, engine.map("trees (stats)", tasks)).items():
-        model, method = read_tree_model(root, scene)
-        table = tree_table(model, merge_stats(results))
+    for scene, table in scene_tables(run, engine, layout, task).items():
+        method = read_tree_model(root, scene)[1]
         tiles = layout.tiles_of(scene)
         owner = tile_of(table, tiles)
         tile_tasks += [Task(key=f"trees-write-{tile.name}-{task.fingerprint[:8]}",
@@ -244,7 +242,7 @@ def trees(run, engine, layout: RunLayout, final_stage: int, stage_fp: str) -> di
                             kwargs=dict(store_path=str(run.store_path), scene=scene,
                                         out_dir=out_dir, tile=tile,
                                         rows=table[owner == tile.index],
-                                        params=task.params),
+                                        params=task.params, fingerprint=task.fingerprint),
                             where=f"the trees of tile {tile.name}",
                             reproduce=run.rerun("trees", "--in-process"))
                        for tile in tiles]
@@ -269,12 +267,31 @@ def whole_trees(run, chunks, scene: str, task: TreeTask, merged_slice, area: flo
     write_scene_trees(root, scene, model, method, task.fingerprint, chm=chm)
 
 
+def scene_tables(run, engine, layout: RunLayout, task: TreeTask) -> dict[str, np.ndarray]:
+    """Each scene's tree table: its trees with their points counted chunk by chunk, or as a
+    command before kept it (a rerun counts nothing again)."""
+    root = run.store
+    tables = {scene: read_tree_table(root, scene, task.fingerprint) for scene in layout.scenes}
+    todo = layout.with_scenes(lambda s: tables[s] is None)
+    if todo.scenes:
+        tasks = chunk_tasks(run, todo, "tree-stats", chunk_tree_stats, task, task.fingerprint,
+                            "trees", marks=False)
+        for scene, results in results_by_scene(tasks, engine.map("trees (stats)", tasks)).items():
+            tables[scene] = tree_table(read_tree_model(root, scene)[0], merge_stats(results))
+            write_tree_table(root, scene, tables[scene], task.fingerprint)
+    return {scene: table for scene, table in tables.items() if table is not None}
+
+
 def write_tile_trees(store_path: str, scene: str, out_dir: Path, tile: Tile, rows: np.ndarray,
-                     params: TreeParams) -> list[str]:
+                     params: TreeParams, fingerprint: str) -> list[str]:
     """Worker task: trees/<tile>.csv and trees/<tile>.gpkg of the trees whose top or base is
     in ``tile`` (``rows`` of the scene's table), their crowns traced from the cells of the
-    blocks they reach."""
+    blocks they reach; nothing when a command before wrote them with ``fingerprint``."""
     csv, gpkg = out_dir / f"{tile.name}.csv", out_dir / f"{tile.name}.gpkg"
+    root = open_store(store_path)
+    marker = tile_table_group(root, scene, tile.index)
+    if is_done(marker, TABLE, fingerprint) and csv.is_file() and gpkg.is_file():
+        return [str(csv), str(gpkg)]
     write_tree_csv(csv, rows)
     labels, grid = np.zeros((0, 0), np.uint32), (0.0, 0.0, params.resolution)
     located = rows[np.isfinite(rows["x"]) & np.isfinite(rows["y"])]
@@ -284,8 +301,9 @@ def write_tile_trees(store_path: str, scene: str, out_dir: Path, tile: Tile, row
         reach = params.crown_radius[0] + params.crown_radius[1] * tallest + params.resolution
         box = (located["x"].min() - reach, located["y"].min() - reach,
                located["x"].max() + reach, located["y"].max() + reach)
-        labels, *grid = crown_labels(open_store(store_path), scene, box)
+        labels, *grid = crown_labels(root, scene, box)
     write_tree_gpkg(gpkg, rows, labels, *grid, tile.crs_wkt)
+    mark_done(marker, TABLE, fingerprint)
     return [str(csv), str(gpkg)]
 
 

@@ -12,8 +12,9 @@ from pipeline.grid import Raster, cell_indices
 from pipeline.store import open_store, write_arrays
 from pipeline.terrain import BlockGrid
 from pipeline.trees import TreeModel
+from pipeline.trees.model import TABLE_DTYPE
 from pipeline.trees.blocks import CROWN_ARRAYS, BlockCrowns, SceneCrowns, WholeTrees
-from workflows.store.marks import mark_done, read_array
+from workflows.store.marks import is_done, mark_done, read_array
 from workflows.store.models import OVERVIEW_CELLS, SceneModels, lazy_blocks, thinned
 
 #: Where the scenes' trees live.
@@ -22,6 +23,8 @@ TREES = SceneModels("trees", "trees")
 CHM = "chm"
 #: A block's tree IDs of its crowns, written once the scene's trees are numbered.
 BLOCK_IDS = "ids"
+#: The mark of a scene's tree table (its points counted) and of each tile's files of it.
+TABLE = "tree-table"
 
 
 def write_block(root: zarr.Group, scene: str, block, crowns: BlockCrowns,
@@ -81,6 +84,33 @@ def _read(group, name: str) -> np.ndarray:
 
 def trees_done(root: zarr.Group, scene: str, fingerprint: str) -> bool:
     return TREES.done(root, scene) == fingerprint
+
+
+def write_tree_table(root: zarr.Group, scene: str, table: np.ndarray, fingerprint: str
+                     ) -> None:
+    """Keep the scene's tree table (:data:`~pipeline.trees.model.TABLE_DTYPE`), its points
+    counted, so that a later command reads it instead of counting them again."""
+    group = TREES.scene_group(root, scene)
+    write_arrays(group, {f"table_{name}": table[name] for name in TABLE_DTYPE.names},
+                 pack="table")
+    mark_done(group, TABLE, fingerprint)
+
+
+def read_tree_table(root: zarr.Group, scene: str, fingerprint: str) -> np.ndarray | None:
+    """The scene's tree table kept with ``fingerprint`` (None: not kept)."""
+    path = TREES.path(scene)
+    if path not in root or not is_done(root[path], TABLE, fingerprint):
+        return None
+    columns = {name: read_array(root[path], f"table_{name}") for name in TABLE_DTYPE.names}
+    table = np.zeros(len(columns["tree_id"]), TABLE_DTYPE)
+    for name, values in columns.items():
+        table[name] = values
+    return table
+
+
+def tile_table_group(root: zarr.Group, scene: str, tile_index: int) -> zarr.Group:
+    """Where a tile's tree files are marked written (:data:`TABLE`)."""
+    return root.require_group(f"{TREES.path(scene)}/tables/{int(tile_index)}")
 
 
 def read_tree_model(root: zarr.Group, scene: str) -> tuple[TreeModel, str]:
