@@ -1,6 +1,7 @@
 """Does the forest template hold when a model meets another point density?
 
     python benchmarks/bench_density.py [--groups pine sites thinned] [--columns] [--json F]
+    python benchmarks/bench_density.py --within-site [--tiles NAME ...] [--json F]
 
 The forest template (configs/forest.yaml: the ``default`` set, r1 and voxel ``auto``, two
 stages of 20 trees with leaves of 20, soft out-of-fold context, seed 0) is trained on one
@@ -29,6 +30,14 @@ r1 is ``auto_radius`` of the training cloud's density and travels with the model
 (its own terrain model included). The last column is the rule "height above the cloud's own
 terrain model < 0.3 m" scored as ground: what the run's terrain alone gives.
 
+``--within-site`` runs the forest template within a site instead: every shared airborne
+tile (St-Barthélemy, AHN4 Amsterdam, Topography, the pine patch from the plane and from the
+drone) is cut at its median y, the template is trained on one half and scored on the other,
+north -> south and south -> north, with feature versions 1 and 2 side by side and the plain
+peer of ``bench_airborne.py`` (eigenvalue features at 1, 2 and 4 m and the heights above the
+lowest point within 5 and 10 m, a random forest of 100 trees) on the same halves. Amsterdam
+labels ground and building only (its class 1 holds the trees and is unlabelled here).
+
 ``--columns`` prints instead, per feature column, the Kolmogorov-Smirnov distance between
 the column on St-Barthélemy's points and on the same points in the copies thinned 2x, 5x and
 10x: which columns follow the density.
@@ -42,6 +51,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from sklearn.ensemble import RandomForestClassifier
 from sklearn.metrics import f1_score
 
 from pipeline.cascade.driver import CloudData, run_cascade
@@ -49,9 +59,14 @@ from pipeline.cascade.params import CascadeParams, ForestParams
 from pipeline.cascade.thinning import point_density, thinned_mask
 from pipeline.features.sets import FeatureParams, auto_radius, auto_voxel, feature_set, scene_ground
 
+import bench_airborne
+
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 FILES = {"ALS_Clip": "trees/ALS_Clip.laz", "UAS_Clip": "trees/UAS_Clip.laz",
-         "StBarth": "als/StBarth_IGN_LiDARHD_100m.laz", "Topography": "als/Topography.laz"}
+         "StBarth": "als/StBarth_IGN_LiDARHD_100m.laz", "Topography": "als/Topography.laz",
+         "Amsterdam": "als/AHN4_Amsterdam_2496_9727.laz"}
+WITHIN_SITE = ("StBarth", "Amsterdam", "Topography", "ALS_Clip", "UAS_Clip")
+PEER_TREES = 100  # bench_airborne's plain forest
 NOISE = (7, 18)
 GROUND, VEGETATION, BUILDING, OTHER = 0, 1, 2, 3
 NAMES = ("ground", "vegetation", "building", "other")
@@ -97,8 +112,10 @@ def load(name: str) -> Cloud:
 VERSION = 2
 
 
-def params_for(r1: float) -> FeatureParams:
-    return FeatureParams("default", r1, voxel=auto_voxel(r1, 64), version=VERSION)
+def params_for(r1: float, version: int | None = None) -> FeatureParams:
+    """The template's features at ``r1``; ``version`` None: the one chosen by ``--version``."""
+    return FeatureParams("default", r1, voxel=auto_voxel(r1, 64),
+                         version=VERSION if version is None else version)
 
 
 def features(cloud: Cloud, params: FeatureParams) -> np.ndarray:
@@ -113,26 +130,47 @@ def _data(cloud, feats, labels, params, fitted=None) -> CloudData:
                      fitted_stages=fitted)
 
 
-def train_apply(train: Cloud, test: Cloud) -> dict:
+def train_apply(train: Cloud, test: Cloud, version: int | None = None) -> dict:
     """Train the template on ``train`` (r1 from its density), apply it to ``test``."""
-    params = params_for(auto_radius(train.density))
+    params = params_for(auto_radius(train.density), version)
     started = time.perf_counter()
     data = _data(train, features(train, params), train.y, params)
     counts = np.bincount(train.y[train.y >= 0], minlength=len(NAMES))
     stages = run_cascade(data, CASCADE, counts, predict_last=False)
     scored = _data(test, features(test, params), np.full(len(test.y), -1), params, stages)
     run_cascade(scored, CASCADE, n_stages=len(stages))
+    row = score(train, test, np.argmax(scored.proba[-1], axis=1))
+    hag = test.xyz[:, 2] - scene_ground(test.xyz, params.terrain)
+    return {**row, "r1": params.r1,
+            "terrain_rule_ground_f1": round(_ground_f1(test.y[test.y >= 0],
+                                                       hag[test.y >= 0] < HAG_GROUND), 3),
+            "seconds": round(time.perf_counter() - started, 1)}
+
+
+def score(train: Cloud, test: Cloud, predicted: np.ndarray) -> dict:
+    """Macro F1 over the classes labelled in both clouds and ground F1 of ``predicted``
+    (N,) on the labelled points of ``test``."""
     labelled = test.y >= 0
-    y, predicted = test.y[labelled], np.argmax(scored.proba[-1], axis=1)[labelled]
+    y, predicted = test.y[labelled], predicted[labelled]
     present = [c for c in SCORED if (train.y == c).any() and (test.y == c).any()]
     macro = f1_score(y, predicted, labels=present, average="macro", zero_division=0)
-    hag = (test.xyz[:, 2] - scene_ground(test.xyz, params.terrain))[labelled]
     return {"train": train.name, "test": test.name, "train_density": round(train.density, 1),
-            "test_density": round(test.density, 1), "r1": params.r1,
-            "classes": [NAMES[c] for c in present], "macro_f1": round(float(macro), 3),
-            "ground_f1": round(_ground_f1(y, predicted == GROUND), 3),
-            "terrain_rule_ground_f1": round(_ground_f1(y, hag < HAG_GROUND), 3),
-            "seconds": round(time.perf_counter() - started, 1)}
+            "test_density": round(test.density, 1), "classes": [NAMES[c] for c in present],
+            "macro_f1": round(float(macro), 3),
+            "ground_f1": round(_ground_f1(y, predicted == GROUND), 3)}
+
+
+def peer_apply(train: Cloud, test: Cloud) -> dict:
+    """The plain peer of bench_airborne: its features on each cloud alone, a forest of
+    ``PEER_TREES`` trees on at most the template's number of training points."""
+    labelled = np.flatnonzero(train.y >= 0)
+    rng = np.random.default_rng(CASCADE.seed)
+    if len(labelled) > CASCADE.max_train_points:
+        labelled = np.sort(rng.choice(labelled, CASCADE.max_train_points, replace=False))
+    forest = RandomForestClassifier(n_estimators=PEER_TREES, n_jobs=CASCADE.forest.n_jobs,
+                                    random_state=CASCADE.seed)
+    forest.fit(bench_airborne.peer_features(train.xyz)[labelled], train.y[labelled])
+    return score(train, test, forest.predict(bench_airborne.peer_features(test.xyz)))
 
 
 def _ground_f1(y, called_ground) -> float:
@@ -160,6 +198,36 @@ def pairs(groups) -> list[tuple[Cloud, Cloud]]:
         for k in THINNING:
             out += [(w, thinned(e, k)), (thinned(w, k), e)]
     return out
+
+
+def halves(name: str) -> tuple[Cloud, Cloud]:
+    """The tile cut at its median y: (north, south)."""
+    tile = load(name)
+    north = tile.xyz[:, 1] >= np.median(tile.xyz[:, 1])
+    return tile.subset(north, f"{name} north"), tile.subset(~north, f"{name} south")
+
+
+def within_site(names) -> list[dict]:
+    """Each tile's halves, both ways: the template at feature versions 1 and 2 and the peer."""
+    print("| trained -> scored | pts/m² | r1 | classes | v1 macro / ground | "
+          "v2 macro / ground | peer macro / ground | HAG < 0.3 m ground |")
+    print("|---|---|---|---|---|---|---|---|")
+    rows = []
+    for name in names:
+        north, south = halves(name)
+        for train, test in ((north, south), (south, north)):
+            v1, v2 = train_apply(train, test, 1), train_apply(train, test, 2)
+            peer = peer_apply(train, test)
+            row = {**v2, "v1_macro_f1": v1["macro_f1"], "v1_ground_f1": v1["ground_f1"],
+                   "peer_macro_f1": peer["macro_f1"], "peer_ground_f1": peer["ground_f1"]}
+            rows.append(row)
+            print(f"| {train.name} -> {test.name.split()[-1]} | {row['train_density']:g} -> "
+                  f"{row['test_density']:g} | {row['r1']:g} m | {', '.join(row['classes'])} | "
+                  f"{v1['macro_f1']:.3f} / {v1['ground_f1']:.3f} | "
+                  f"{v2['macro_f1']:.3f} / {v2['ground_f1']:.3f} | "
+                  f"{peer['macro_f1']:.3f} / {peer['ground_f1']:.3f} | "
+                  f"{row['terrain_rule_ground_f1']:.3f} |", flush=True)
+    return rows
 
 
 def ks_distance(a: np.ndarray, b: np.ndarray) -> float:
@@ -204,13 +272,19 @@ def main(argv=None) -> int:
     parser.add_argument("--json", type=Path, help="also write the rows to this file")
     parser.add_argument("--version", type=int, default=VERSION, choices=(1, 2),
                         help="features.version of the feature values (default 2)")
+    parser.add_argument("--within-site", action="store_true",
+                        help="the template within each tile, by halves at the median y")
+    parser.add_argument("--tiles", nargs="+", default=list(WITHIN_SITE), choices=WITHIN_SITE,
+                        help="--within-site: the tiles")
     args = parser.parse_args(argv)
     VERSION = args.version
     missing = [f for f in FILES.values() if not (DATA / f).is_file()]
     if missing:
         print(f"no {', '.join(missing)} in {DATA}", file=sys.stderr)
         return 1
-    if args.columns:
+    if args.within_site:
+        rows = within_site(args.tiles)
+    elif args.columns:
         tile = load("StBarth")
         drift = column_drift(tile, params_for(auto_radius(tile.density)))
         print_columns(drift)
