@@ -2,6 +2,7 @@
 
     python benchmarks/bench_density.py [--groups pine sites thinned] [--columns] [--json F]
     python benchmarks/bench_density.py --within-site [--tiles NAME ...] [--json F]
+    python benchmarks/bench_density.py --leave-one-site-out [--json F]
 
 The forest template (configs/forest.yaml: the ``default`` set, r1 and voxel ``auto``, two
 stages of 20 trees with leaves of 20, soft out-of-fold context, seed 0) is trained on one
@@ -38,6 +39,14 @@ peer of ``bench_airborne.py`` (eigenvalue features at 1, 2 and 4 m and the heigh
 lowest point within 5 and 10 m, a random forest of 100 trees) on the same halves. Amsterdam
 labels ground and building only (its class 1 holds the trees and is unlabelled here).
 
+``--leave-one-site-out`` measures the installed airborne model's recipe
+(docs/models/als-ground-vegetation-building.yaml: the ``default`` set with echo columns at r1
+1.5 m on voxels, two stages of 20 trees with leaves of 20 and hard context; classes 1 and 9
+unlabelled) on a site it never saw: for each of the four sites (St-Barthélemy, Amsterdam,
+Topography, the pine patch from the plane and the drone), trained on the whole tiles of the
+other three, placed side by side 1 km apart, and scored on the left-out site's tiles, with
+feature versions 1 and 2. In memory, the same cascade as ``silva run``.
+
 ``--columns`` prints instead, per feature column, the Kolmogorov-Smirnov distance between
 the column on St-Barthélemy's points and on the same points in the copies thinned 2x, 5x and
 10x: which columns follow the density.
@@ -67,6 +76,14 @@ FILES = {"ALS_Clip": "trees/ALS_Clip.laz", "UAS_Clip": "trees/UAS_Clip.laz",
          "Amsterdam": "als/AHN4_Amsterdam_2496_9727.laz"}
 WITHIN_SITE = ("StBarth", "Amsterdam", "Topography", "ALS_Clip", "UAS_Clip")
 PEER_TREES = 100  # bench_airborne's plain forest
+#: the installed airborne model's sites (the pine patch flown twice is one site) and recipe
+SITES = {"St-Barthélemy": ("StBarth",), "Amsterdam": ("Amsterdam",),
+         "Topography": ("Topography",), "pine patch": ("ALS_Clip", "UAS_Clip")}
+MODEL_R1 = 1.5
+MODEL_CASCADE = CascadeParams(stages=2, context="hard", max_train_points=200_000, seed=0,
+                              forest=ForestParams(n_estimators=20, min_samples_leaf=20,
+                                                  n_jobs=2))
+SPACING = 1000.0  # metres between the tiles of one training scene
 NOISE = (7, 18)
 GROUND, VEGETATION, BUILDING, OTHER = 0, 1, 2, 3
 NAMES = ("ground", "vegetation", "building", "other")
@@ -88,25 +105,30 @@ class Cloud:
     name: str
     xyz: np.ndarray
     y: np.ndarray  # class indices (NAMES)
+    returns: tuple | None = None  # (return_number, number_of_returns), int64 (N,) each
 
     @property
     def density(self) -> float:
         return point_density(self.xyz)
 
     def subset(self, keep: np.ndarray, name: str) -> "Cloud":
-        return Cloud(name, self.xyz[keep], self.y[keep])
+        returns = None if self.returns is None else tuple(r[keep] for r in self.returns)
+        return Cloud(name, self.xyz[keep], self.y[keep], returns)
 
 
-def load(name: str) -> Cloud:
+def load(name: str, codes: dict | None = None) -> Cloud:
+    """The tile without noise; classes from ``codes`` (default: the tile's own mapping)."""
     import laspy
 
     las = laspy.read(DATA / FILES[name])
     code = np.asarray(las.classification, dtype=np.int64)
     keep = ~np.isin(code, NOISE)
     xyz = np.column_stack((las.x, las.y, las.z)).astype(np.float64)[keep]
-    codes = TILE_CODES.get(name, CODES)
+    codes = codes or TILE_CODES.get(name, CODES)
     y = np.vectorize(lambda c: codes.get(c, UNLABELLED), otypes=[np.int64])(code[keep])
-    return Cloud(name, xyz, y)
+    returns = tuple(np.asarray(d, dtype=np.int64)[keep]
+                    for d in (las.return_number, las.number_of_returns))
+    return Cloud(name, xyz, y, returns)
 
 
 VERSION = 2
@@ -119,13 +141,14 @@ def params_for(r1: float, version: int | None = None) -> FeatureParams:
 
 
 def features(cloud: Cloud, params: FeatureParams) -> np.ndarray:
-    return feature_set(params)(cloud.xyz, ids=np.arange(len(cloud.xyz), dtype=np.int64))
+    return feature_set(params)(cloud.xyz, ids=np.arange(len(cloud.xyz), dtype=np.int64),
+                               returns=cloud.returns if params.echoes else None)
 
 
-def _data(cloud, feats, labels, params, fitted=None) -> CloudData:
+def _data(cloud, feats, labels, params, fitted=None, cascade=CASCADE) -> CloudData:
     ids = np.arange(len(cloud.xyz), dtype=np.int64)
     return CloudData(cloud.xyz, ids, feats, labels, len(NAMES), r1=params.r1, r2=params.r2,
-                     context_mode=CASCADE.context,
+                     context_mode=cascade.context,
                      context_max_neighbors=params.context_max_neighbors,
                      fitted_stages=fitted)
 
@@ -134,17 +157,28 @@ def train_apply(train: Cloud, test: Cloud, version: int | None = None) -> dict:
     """Train the template on ``train`` (r1 from its density), apply it to ``test``."""
     params = params_for(auto_radius(train.density), version)
     started = time.perf_counter()
-    data = _data(train, features(train, params), train.y, params)
-    counts = np.bincount(train.y[train.y >= 0], minlength=len(NAMES))
-    stages = run_cascade(data, CASCADE, counts, predict_last=False)
-    scored = _data(test, features(test, params), np.full(len(test.y), -1), params, stages)
-    run_cascade(scored, CASCADE, n_stages=len(stages))
-    row = score(train, test, np.argmax(scored.proba[-1], axis=1))
+    stages = fit(train, features(train, params), params)
+    row = score(train, test, apply(stages, test, features(test, params), params))
     hag = test.xyz[:, 2] - scene_ground(test.xyz, params.terrain)
     return {**row, "r1": params.r1,
             "terrain_rule_ground_f1": round(_ground_f1(test.y[test.y >= 0],
                                                        hag[test.y >= 0] < HAG_GROUND), 3),
             "seconds": round(time.perf_counter() - started, 1)}
+
+
+def fit(train: Cloud, feats: np.ndarray, params: FeatureParams, cascade=CASCADE) -> list:
+    """The stages of ``cascade`` trained on ``train``'s labelled points."""
+    data = _data(train, feats, train.y, params, cascade=cascade)
+    counts = np.bincount(train.y[train.y >= 0], minlength=len(NAMES))
+    return run_cascade(data, cascade, counts, predict_last=False)
+
+
+def apply(stages: list, test: Cloud, feats: np.ndarray, params: FeatureParams,
+          cascade=CASCADE) -> np.ndarray:
+    """int64 (N,): the class the fitted ``stages`` give each point of ``test``."""
+    scored = _data(test, feats, np.full(len(test.y), -1), params, stages, cascade)
+    run_cascade(scored, cascade, n_stages=len(stages))
+    return np.argmax(scored.proba[-1], axis=1)
 
 
 def score(train: Cloud, test: Cloud, predicted: np.ndarray) -> dict:
@@ -230,6 +264,54 @@ def within_site(names) -> list[dict]:
     return rows
 
 
+def side_by_side(clouds: list[Cloud]) -> Cloud:
+    """One cloud of ``clouds``, each moved to start at x = 1 km times its rank, y = 0: no
+    neighbourhood reaches from one to the next."""
+    moved = [c.xyz - np.array([c.xyz[:, 0].min() - SPACING * i, c.xyz[:, 1].min(), 0.0])
+             for i, c in enumerate(clouds)]
+    returns = tuple(np.concatenate([c.returns[k] for c in clouds]) for k in (0, 1))
+    return Cloud(" + ".join(c.name for c in clouds), np.vstack(moved),
+                 np.concatenate([c.y for c in clouds]), returns)
+
+
+def leave_one_site_out() -> list[dict]:
+    """The installed airborne model's recipe trained on three sites, scored on the fourth."""
+    tiles = {name: load(name, CODES) for held in SITES.values() for name in held}
+    cache = {}
+
+    def feats(name, params):
+        if (name, params.version) not in cache:
+            cache[(name, params.version)] = features(tiles[name], params)
+        return cache[(name, params.version)]
+
+    print("| left out | scored tile | version | macro F1 (classes) | ground F1 | "
+          "vegetation called building |")
+    print("|---|---|---|---|---|---|")
+    rows = []
+    for site, held in SITES.items():
+        trained = [name for name in tiles if name not in held]
+        joined = side_by_side([tiles[name] for name in trained])
+        for version in (1, 2):
+            params = FeatureParams("default", MODEL_R1, voxel=auto_voxel(MODEL_R1, 64),
+                                   echoes=True, version=version)
+            stages = fit(joined, np.vstack([feats(n, params) for n in trained]), params,
+                         MODEL_CASCADE)
+            for name in held:
+                test = tiles[name]
+                predicted = apply(stages, test, feats(name, params), params, MODEL_CASCADE)
+                vegetation = test.y == VEGETATION
+                row = {**score(joined, test, predicted), "site": site, "version": version,
+                       "vegetation_called_building": round(100 * float(
+                           np.mean(predicted[vegetation] == BUILDING)), 1)
+                       if vegetation.any() else None}
+                rows.append(row)
+                called = row["vegetation_called_building"]
+                print(f"| {site} | {name} | {version} | {row['macro_f1']:.3f} "
+                      f"({', '.join(row['classes'])}) | {row['ground_f1']:.3f} | "
+                      f"{'-' if called is None else f'{called:.1f} %'} |", flush=True)
+    return rows
+
+
 def ks_distance(a: np.ndarray, b: np.ndarray) -> float:
     """The two-sample Kolmogorov-Smirnov distance of the finite values of ``a`` and ``b``
     (1.0 when one has none and the other some)."""
@@ -276,6 +358,9 @@ def main(argv=None) -> int:
                         help="the template within each tile, by halves at the median y")
     parser.add_argument("--tiles", nargs="+", default=list(WITHIN_SITE), choices=WITHIN_SITE,
                         help="--within-site: the tiles")
+    parser.add_argument("--leave-one-site-out", action="store_true",
+                        help="the installed airborne model's recipe, trained on three sites "
+                             "and scored on the fourth, feature versions 1 and 2")
     args = parser.parse_args(argv)
     VERSION = args.version
     missing = [f for f in FILES.values() if not (DATA / f).is_file()]
@@ -284,6 +369,8 @@ def main(argv=None) -> int:
         return 1
     if args.within_site:
         rows = within_site(args.tiles)
+    elif args.leave_one_site_out:
+        rows = leave_one_site_out()
     elif args.columns:
         tile = load("StBarth")
         drift = column_drift(tile, params_for(auto_radius(tile.density)))
