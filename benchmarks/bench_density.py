@@ -140,9 +140,24 @@ def params_for(r1: float, version: int | None = None) -> FeatureParams:
                          version=VERSION if version is None else version)
 
 
+_DESCRIBED = {}  # (cloud name, what) -> matrix: a cloud trained on and scored is described once
+
+
+def described(cloud: Cloud, what, compute) -> np.ndarray:
+    if (cloud.name, what) not in _DESCRIBED:
+        _DESCRIBED[(cloud.name, what)] = compute()
+    return _DESCRIBED[(cloud.name, what)]
+
+
 def features(cloud: Cloud, params: FeatureParams) -> np.ndarray:
-    return feature_set(params)(cloud.xyz, ids=np.arange(len(cloud.xyz), dtype=np.int64),
-                               returns=cloud.returns if params.echoes else None)
+    return described(cloud, params, lambda: feature_set(params)(
+        cloud.xyz, ids=np.arange(len(cloud.xyz), dtype=np.int64),
+        returns=cloud.returns if params.echoes else None))
+
+
+def peer_features(cloud: Cloud) -> np.ndarray:
+    """bench_airborne's peer columns of ``cloud``."""
+    return described(cloud, "peer", lambda: bench_airborne.peer_features(cloud.xyz))
 
 
 def _data(cloud, feats, labels, params, fitted=None, cascade=CASCADE) -> CloudData:
@@ -203,8 +218,8 @@ def peer_apply(train: Cloud, test: Cloud) -> dict:
         labelled = np.sort(rng.choice(labelled, CASCADE.max_train_points, replace=False))
     forest = RandomForestClassifier(n_estimators=PEER_TREES, n_jobs=CASCADE.forest.n_jobs,
                                     random_state=CASCADE.seed)
-    forest.fit(bench_airborne.peer_features(train.xyz)[labelled], train.y[labelled])
-    return score(train, test, forest.predict(bench_airborne.peer_features(test.xyz)))
+    forest.fit(peer_features(train)[labelled], train.y[labelled])
+    return score(train, test, forest.predict(peer_features(test)))
 
 
 def _ground_f1(y, called_ground) -> float:
@@ -277,12 +292,6 @@ def side_by_side(clouds: list[Cloud]) -> Cloud:
 def leave_one_site_out() -> list[dict]:
     """The installed airborne model's recipe trained on three sites, scored on the fourth."""
     tiles = {name: load(name, CODES) for held in SITES.values() for name in held}
-    cache = {}
-
-    def feats(name, params):
-        if (name, params.version) not in cache:
-            cache[(name, params.version)] = features(tiles[name], params)
-        return cache[(name, params.version)]
 
     print("| left out | scored tile | version | macro F1 (classes) | ground F1 | "
           "vegetation called building |")
@@ -294,11 +303,12 @@ def leave_one_site_out() -> list[dict]:
         for version in (1, 2):
             params = FeatureParams("default", MODEL_R1, voxel=auto_voxel(MODEL_R1, 64),
                                    echoes=True, version=version)
-            stages = fit(joined, np.vstack([feats(n, params) for n in trained]), params,
-                         MODEL_CASCADE)
+            stages = fit(joined, np.vstack([features(tiles[n], params) for n in trained]),
+                         params, MODEL_CASCADE)
             for name in held:
                 test = tiles[name]
-                predicted = apply(stages, test, feats(name, params), params, MODEL_CASCADE)
+                predicted = apply(stages, test, features(test, params), params,
+                                  MODEL_CASCADE)
                 vegetation = test.y == VEGETATION
                 row = {**score(joined, test, predicted), "site": site, "version": version,
                        "vegetation_called_building": round(100 * float(
