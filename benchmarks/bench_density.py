@@ -1,6 +1,8 @@
 """Does the forest template hold when a model meets another point density?
 
     python benchmarks/bench_density.py [--groups pine sites thinned] [--columns] [--json F]
+    python benchmarks/bench_density.py --within-site [--tiles NAME ...] [--json F]
+    python benchmarks/bench_density.py --leave-one-site-out [--json F]
 
 The forest template (configs/forest.yaml: the ``default`` set, r1 and voxel ``auto``, two
 stages of 20 trees with leaves of 20, soft out-of-fold context, seed 0) is trained on one
@@ -29,6 +31,22 @@ r1 is ``auto_radius`` of the training cloud's density and travels with the model
 (its own terrain model included). The last column is the rule "height above the cloud's own
 terrain model < 0.3 m" scored as ground: what the run's terrain alone gives.
 
+``--within-site`` runs the forest template within a site instead: every shared airborne
+tile (St-Barthélemy, AHN4 Amsterdam, Topography, the pine patch from the plane and from the
+drone) is cut at its median y, the template is trained on one half and scored on the other,
+north -> south and south -> north, with feature versions 1 and 2 side by side and the plain
+peer of ``bench_airborne.py`` (eigenvalue features at 1, 2 and 4 m and the heights above the
+lowest point within 5 and 10 m, a random forest of 100 trees) on the same halves. Amsterdam
+labels ground and building only (its class 1 holds the trees and is unlabelled here).
+
+``--leave-one-site-out`` measures the installed airborne model's recipe
+(docs/models/als-ground-vegetation-building.yaml: the ``default`` set with echo columns at r1
+1.5 m on voxels, two stages of 20 trees with leaves of 20 and hard context; classes 1 and 9
+unlabelled) on a site it never saw: for each of the four sites (St-Barthélemy, Amsterdam,
+Topography, the pine patch from the plane and the drone), trained on the whole tiles of the
+other three, placed side by side 1 km apart, and scored on the left-out site's tiles, with
+feature versions 1 and 2. In memory, the same cascade as ``silva run``.
+
 ``--columns`` prints instead, per feature column, the Kolmogorov-Smirnov distance between
 the column on St-Barthélemy's points and on the same points in the copies thinned 2x, 5x and
 10x: which columns follow the density.
@@ -42,6 +60,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from sklearn.ensemble import RandomForestClassifier
 from sklearn.metrics import f1_score
 
 from pipeline.cascade.driver import CloudData, run_cascade
@@ -49,9 +68,22 @@ from pipeline.cascade.params import CascadeParams, ForestParams
 from pipeline.cascade.thinning import point_density, thinned_mask
 from pipeline.features.sets import FeatureParams, auto_radius, auto_voxel, feature_set, scene_ground
 
+import bench_airborne
+
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 FILES = {"ALS_Clip": "trees/ALS_Clip.laz", "UAS_Clip": "trees/UAS_Clip.laz",
-         "StBarth": "als/StBarth_IGN_LiDARHD_100m.laz", "Topography": "als/Topography.laz"}
+         "StBarth": "als/StBarth_IGN_LiDARHD_100m.laz", "Topography": "als/Topography.laz",
+         "Amsterdam": "als/AHN4_Amsterdam_2496_9727.laz"}
+WITHIN_SITE = ("StBarth", "Amsterdam", "Topography", "ALS_Clip", "UAS_Clip")
+PEER_TREES = 100  # bench_airborne's plain forest
+#: the installed airborne model's sites (the pine patch flown twice is one site) and recipe
+SITES = {"St-Barthélemy": ("StBarth",), "Amsterdam": ("Amsterdam",),
+         "Topography": ("Topography",), "pine patch": ("ALS_Clip", "UAS_Clip")}
+MODEL_R1 = 1.5
+MODEL_CASCADE = CascadeParams(stages=2, context="hard", max_train_points=200_000, seed=0,
+                              forest=ForestParams(n_estimators=20, min_samples_leaf=20,
+                                                  n_jobs=2))
+SPACING = 1000.0  # metres between the tiles of one training scene
 NOISE = (7, 18)
 GROUND, VEGETATION, BUILDING, OTHER = 0, 1, 2, 3
 NAMES = ("ground", "vegetation", "building", "other")
@@ -73,66 +105,121 @@ class Cloud:
     name: str
     xyz: np.ndarray
     y: np.ndarray  # class indices (NAMES)
+    returns: tuple | None = None  # (return_number, number_of_returns), int64 (N,) each
 
     @property
     def density(self) -> float:
         return point_density(self.xyz)
 
     def subset(self, keep: np.ndarray, name: str) -> "Cloud":
-        return Cloud(name, self.xyz[keep], self.y[keep])
+        returns = None if self.returns is None else tuple(r[keep] for r in self.returns)
+        return Cloud(name, self.xyz[keep], self.y[keep], returns)
 
 
-def load(name: str) -> Cloud:
+def load(name: str, codes: dict | None = None) -> Cloud:
+    """The tile without noise; classes from ``codes`` (default: the tile's own mapping)."""
     import laspy
 
     las = laspy.read(DATA / FILES[name])
     code = np.asarray(las.classification, dtype=np.int64)
     keep = ~np.isin(code, NOISE)
     xyz = np.column_stack((las.x, las.y, las.z)).astype(np.float64)[keep]
-    codes = TILE_CODES.get(name, CODES)
+    codes = codes or TILE_CODES.get(name, CODES)
     y = np.vectorize(lambda c: codes.get(c, UNLABELLED), otypes=[np.int64])(code[keep])
-    return Cloud(name, xyz, y)
+    returns = tuple(np.asarray(d, dtype=np.int64)[keep]
+                    for d in (las.return_number, las.number_of_returns))
+    return Cloud(name, xyz, y, returns)
 
 
 VERSION = 2
 
 
-def params_for(r1: float) -> FeatureParams:
-    return FeatureParams("default", r1, voxel=auto_voxel(r1, 64), version=VERSION)
+def params_for(r1: float, version: int | None = None) -> FeatureParams:
+    """The template's features at ``r1``; ``version`` None: the one chosen by ``--version``."""
+    return FeatureParams("default", r1, voxel=auto_voxel(r1, 64),
+                         version=VERSION if version is None else version)
+
+
+_DESCRIBED = {}  # (cloud name, what) -> matrix: a cloud trained on and scored is described once
+
+
+def described(cloud: Cloud, what, compute) -> np.ndarray:
+    if (cloud.name, what) not in _DESCRIBED:
+        _DESCRIBED[(cloud.name, what)] = compute()
+    return _DESCRIBED[(cloud.name, what)]
 
 
 def features(cloud: Cloud, params: FeatureParams) -> np.ndarray:
-    return feature_set(params)(cloud.xyz, ids=np.arange(len(cloud.xyz), dtype=np.int64))
+    return described(cloud, params, lambda: feature_set(params)(
+        cloud.xyz, ids=np.arange(len(cloud.xyz), dtype=np.int64),
+        returns=cloud.returns if params.echoes else None))
 
 
-def _data(cloud, feats, labels, params, fitted=None) -> CloudData:
+def peer_features(cloud: Cloud) -> np.ndarray:
+    """bench_airborne's peer columns of ``cloud``."""
+    return described(cloud, "peer", lambda: bench_airborne.peer_features(cloud.xyz))
+
+
+def _data(cloud, feats, labels, params, fitted=None, cascade=CASCADE) -> CloudData:
     ids = np.arange(len(cloud.xyz), dtype=np.int64)
     return CloudData(cloud.xyz, ids, feats, labels, len(NAMES), r1=params.r1, r2=params.r2,
-                     context_mode=CASCADE.context,
+                     context_mode=cascade.context,
                      context_max_neighbors=params.context_max_neighbors,
                      fitted_stages=fitted)
 
 
-def train_apply(train: Cloud, test: Cloud) -> dict:
+def train_apply(train: Cloud, test: Cloud, version: int | None = None) -> dict:
     """Train the template on ``train`` (r1 from its density), apply it to ``test``."""
-    params = params_for(auto_radius(train.density))
+    params = params_for(auto_radius(train.density), version)
     started = time.perf_counter()
-    data = _data(train, features(train, params), train.y, params)
+    stages = fit(train, features(train, params), params)
+    row = score(train, test, apply(stages, test, features(test, params), params))
+    hag = test.xyz[:, 2] - scene_ground(test.xyz, params.terrain)
+    return {**row, "r1": params.r1,
+            "terrain_rule_ground_f1": round(_ground_f1(test.y[test.y >= 0],
+                                                       hag[test.y >= 0] < HAG_GROUND), 3),
+            "seconds": round(time.perf_counter() - started, 1)}
+
+
+def fit(train: Cloud, feats: np.ndarray, params: FeatureParams, cascade=CASCADE) -> list:
+    """The stages of ``cascade`` trained on ``train``'s labelled points."""
+    data = _data(train, feats, train.y, params, cascade=cascade)
     counts = np.bincount(train.y[train.y >= 0], minlength=len(NAMES))
-    stages = run_cascade(data, CASCADE, counts, predict_last=False)
-    scored = _data(test, features(test, params), np.full(len(test.y), -1), params, stages)
-    run_cascade(scored, CASCADE, n_stages=len(stages))
+    return run_cascade(data, cascade, counts, predict_last=False)
+
+
+def apply(stages: list, test: Cloud, feats: np.ndarray, params: FeatureParams,
+          cascade=CASCADE) -> np.ndarray:
+    """int64 (N,): the class the fitted ``stages`` give each point of ``test``."""
+    scored = _data(test, feats, np.full(len(test.y), -1), params, stages, cascade)
+    run_cascade(scored, cascade, n_stages=len(stages))
+    return np.argmax(scored.proba[-1], axis=1)
+
+
+def score(train: Cloud, test: Cloud, predicted: np.ndarray) -> dict:
+    """Macro F1 over the classes labelled in both clouds and ground F1 of ``predicted``
+    (N,) on the labelled points of ``test``."""
     labelled = test.y >= 0
-    y, predicted = test.y[labelled], np.argmax(scored.proba[-1], axis=1)[labelled]
+    y, predicted = test.y[labelled], predicted[labelled]
     present = [c for c in SCORED if (train.y == c).any() and (test.y == c).any()]
     macro = f1_score(y, predicted, labels=present, average="macro", zero_division=0)
-    hag = (test.xyz[:, 2] - scene_ground(test.xyz, params.terrain))[labelled]
     return {"train": train.name, "test": test.name, "train_density": round(train.density, 1),
-            "test_density": round(test.density, 1), "r1": params.r1,
-            "classes": [NAMES[c] for c in present], "macro_f1": round(float(macro), 3),
-            "ground_f1": round(_ground_f1(y, predicted == GROUND), 3),
-            "terrain_rule_ground_f1": round(_ground_f1(y, hag < HAG_GROUND), 3),
-            "seconds": round(time.perf_counter() - started, 1)}
+            "test_density": round(test.density, 1), "classes": [NAMES[c] for c in present],
+            "macro_f1": round(float(macro), 3),
+            "ground_f1": round(_ground_f1(y, predicted == GROUND), 3)}
+
+
+def peer_apply(train: Cloud, test: Cloud) -> dict:
+    """The plain peer of bench_airborne: its features on each cloud alone, a forest of
+    ``PEER_TREES`` trees on at most the template's number of training points."""
+    labelled = np.flatnonzero(train.y >= 0)
+    rng = np.random.default_rng(CASCADE.seed)
+    if len(labelled) > CASCADE.max_train_points:
+        labelled = np.sort(rng.choice(labelled, CASCADE.max_train_points, replace=False))
+    forest = RandomForestClassifier(n_estimators=PEER_TREES, n_jobs=CASCADE.forest.n_jobs,
+                                    random_state=CASCADE.seed)
+    forest.fit(peer_features(train)[labelled], train.y[labelled])
+    return score(train, test, forest.predict(peer_features(test)))
 
 
 def _ground_f1(y, called_ground) -> float:
@@ -160,6 +247,79 @@ def pairs(groups) -> list[tuple[Cloud, Cloud]]:
         for k in THINNING:
             out += [(w, thinned(e, k)), (thinned(w, k), e)]
     return out
+
+
+def halves(name: str) -> tuple[Cloud, Cloud]:
+    """The tile cut at its median y: (north, south)."""
+    tile = load(name)
+    north = tile.xyz[:, 1] >= np.median(tile.xyz[:, 1])
+    return tile.subset(north, f"{name} north"), tile.subset(~north, f"{name} south")
+
+
+def within_site(names) -> list[dict]:
+    """Each tile's halves, both ways: the template at feature versions 1 and 2 and the peer."""
+    print("| trained -> scored | pts/m² | r1 | classes | v1 macro / ground | "
+          "v2 macro / ground | peer macro / ground | HAG < 0.3 m ground |")
+    print("|---|---|---|---|---|---|---|---|")
+    rows = []
+    for name in names:
+        north, south = halves(name)
+        for train, test in ((north, south), (south, north)):
+            v1, v2 = train_apply(train, test, 1), train_apply(train, test, 2)
+            peer = peer_apply(train, test)
+            row = {**v2, "v1_macro_f1": v1["macro_f1"], "v1_ground_f1": v1["ground_f1"],
+                   "peer_macro_f1": peer["macro_f1"], "peer_ground_f1": peer["ground_f1"]}
+            rows.append(row)
+            print(f"| {train.name} -> {test.name.split()[-1]} | {row['train_density']:g} -> "
+                  f"{row['test_density']:g} | {row['r1']:g} m | {', '.join(row['classes'])} | "
+                  f"{v1['macro_f1']:.3f} / {v1['ground_f1']:.3f} | "
+                  f"{v2['macro_f1']:.3f} / {v2['ground_f1']:.3f} | "
+                  f"{peer['macro_f1']:.3f} / {peer['ground_f1']:.3f} | "
+                  f"{row['terrain_rule_ground_f1']:.3f} |", flush=True)
+    return rows
+
+
+def side_by_side(clouds: list[Cloud]) -> Cloud:
+    """One cloud of ``clouds``, each moved to start at x = 1 km times its rank, y = 0: no
+    neighbourhood reaches from one to the next."""
+    moved = [c.xyz - np.array([c.xyz[:, 0].min() - SPACING * i, c.xyz[:, 1].min(), 0.0])
+             for i, c in enumerate(clouds)]
+    returns = tuple(np.concatenate([c.returns[k] for c in clouds]) for k in (0, 1))
+    return Cloud(" + ".join(c.name for c in clouds), np.vstack(moved),
+                 np.concatenate([c.y for c in clouds]), returns)
+
+
+def leave_one_site_out() -> list[dict]:
+    """The installed airborne model's recipe trained on three sites, scored on the fourth."""
+    tiles = {name: load(name, CODES) for held in SITES.values() for name in held}
+
+    print("| left out | scored tile | version | macro F1 (classes) | ground F1 | "
+          "vegetation called building |")
+    print("|---|---|---|---|---|---|")
+    rows = []
+    for site, held in SITES.items():
+        trained = [name for name in tiles if name not in held]
+        joined = side_by_side([tiles[name] for name in trained])
+        for version in (1, 2):
+            params = FeatureParams("default", MODEL_R1, voxel=auto_voxel(MODEL_R1, 64),
+                                   echoes=True, version=version)
+            stages = fit(joined, np.vstack([features(tiles[n], params) for n in trained]),
+                         params, MODEL_CASCADE)
+            for name in held:
+                test = tiles[name]
+                predicted = apply(stages, test, features(test, params), params,
+                                  MODEL_CASCADE)
+                vegetation = test.y == VEGETATION
+                row = {**score(joined, test, predicted), "site": site, "version": version,
+                       "vegetation_called_building": round(100 * float(
+                           np.mean(predicted[vegetation] == BUILDING)), 1)
+                       if vegetation.any() else None}
+                rows.append(row)
+                called = row["vegetation_called_building"]
+                print(f"| {site} | {name} | {version} | {row['macro_f1']:.3f} "
+                      f"({', '.join(row['classes'])}) | {row['ground_f1']:.3f} | "
+                      f"{'-' if called is None else f'{called:.1f} %'} |", flush=True)
+    return rows
 
 
 def ks_distance(a: np.ndarray, b: np.ndarray) -> float:
@@ -204,13 +364,24 @@ def main(argv=None) -> int:
     parser.add_argument("--json", type=Path, help="also write the rows to this file")
     parser.add_argument("--version", type=int, default=VERSION, choices=(1, 2),
                         help="features.version of the feature values (default 2)")
+    parser.add_argument("--within-site", action="store_true",
+                        help="the template within each tile, by halves at the median y")
+    parser.add_argument("--tiles", nargs="+", default=list(WITHIN_SITE), choices=WITHIN_SITE,
+                        help="--within-site: the tiles")
+    parser.add_argument("--leave-one-site-out", action="store_true",
+                        help="the installed airborne model's recipe, trained on three sites "
+                             "and scored on the fourth, feature versions 1 and 2")
     args = parser.parse_args(argv)
     VERSION = args.version
     missing = [f for f in FILES.values() if not (DATA / f).is_file()]
     if missing:
         print(f"no {', '.join(missing)} in {DATA}", file=sys.stderr)
         return 1
-    if args.columns:
+    if args.within_site:
+        rows = within_site(args.tiles)
+    elif args.leave_one_site_out:
+        rows = leave_one_site_out()
+    elif args.columns:
         tile = load("StBarth")
         drift = column_drift(tile, params_for(auto_radius(tile.density)))
         print_columns(drift)
