@@ -21,6 +21,7 @@ import os
 import shlex
 import shutil
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 
 from pipeline.atomic import atomic_write_text, remove_parts
@@ -110,9 +111,10 @@ class Run:
         return self._store
 
     # -- derived configuration ------------------------------------------------------------
-    @property
+    @cached_property
     def features(self) -> FeatureParams:
-        """The resolved feature and context parameters (with the terrain model's)."""
+        """The resolved feature and context parameters (with the terrain model's): built
+        and validated once, as the plan they follow is."""
         return replace(self.cfg.features.params, terrain=self.terrain)
 
     @property
