@@ -33,3 +33,19 @@ def test_a_pile_up_is_classified_with_a_warning(tmp_path):
     result_las = laspy.read(written)
     assert len(result_las.points) == n + pile
     assert (np.asarray(result_las["PredictedClassification"]) > 0).all()
+
+
+def test_a_model_applied_to_a_scan_too_sparse_for_its_radius_says_what_to_do(tmp_path):
+    """A saved model fixes r1: the warning asks for a model of the scan's density, not for
+    a radius the run cannot change."""
+    (tile,) = write_synthetic_plot(tmp_path / "in", seed=4, size=6.0, tile_size=6.0)
+    las = laspy.read(tile)
+    sparse = laspy.LasData(las.header)
+    sparse.points = las.points[np.arange(0, len(las.points), 200)]  # r1 0.5 m sees few
+    sparse.write(tile)
+    result = silva("predict", "--model", "forest-tls-synthetic", "--out", tmp_path / "out",
+                   str(tile), "--in-process", "-q")
+    assert result.exit_code == 0, result.output
+    (warning,) = [line for line in result.output.splitlines() if "too few for a local" in line]
+    assert "the model applied was trained with that radius" in warning
+    assert "set features.r1" not in warning

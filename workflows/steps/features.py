@@ -107,9 +107,12 @@ def warn_neighbourhoods(run: Run, results) -> None:
     sampled = sum(value["sparse"][0] for value in results)
     sparse = sum(value["sparse"][1] for value in results)
     if sampled and sparse > sampled / 2:
+        fix = ("the model applied was trained with that radius, on denser scans: train one "
+               "on scans of this density (features.r1: auto)" if run.model is not None else
+               "set features.r1 larger, or to auto (from the point density)")
         say(f"warning: {100 * sparse / sampled:.0f}% of the points have fewer than "
-             f"{SPARSE_NEIGHBORS} neighbours within r1 = {run.r1:g} m, too few for a local "
-             "surface: set features.r1 larger, or to auto (from the point density)")
+            f"{SPARSE_NEIGHBORS} neighbours within r1 = {run.r1:g} m, too few for a local "
+            f"surface; {fix}")
     # .get: results stored by a version without these counts
     checked = sum(value.get("checked", 0) for value in results)
     piled = sum(value.get("piled", 0) for value in results)
