@@ -28,6 +28,7 @@ import shutil
 import tempfile
 import time
 from pathlib import Path
+from statistics import median
 
 from pipeline.synth import write_synthetic_plot
 from workflows.cli.main import main as silva
@@ -104,9 +105,8 @@ def cpu_overhead(tile: Path, model: str, overrides, repeat: int, profile: Path |
             rounds.append(runs)
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    overheads = sorted(r["overhead_cpu"] for r in rounds)
     return {"tile": str(tile), "model": model, "overrides": list(overrides), "rounds": rounds,
-            "overhead_cpu_median": overheads[len(overheads) // 2]}
+            "overhead_cpu_median": median(r["overhead_cpu"] for r in rounds)}
 
 
 def main() -> None:
