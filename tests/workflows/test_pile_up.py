@@ -36,8 +36,9 @@ def test_a_pile_up_is_classified_with_a_warning(tmp_path):
 
 
 def test_a_model_applied_to_a_scan_too_sparse_for_its_radius_says_what_to_do(tmp_path):
-    """A saved model fixes r1: the warning asks for a model of the scan's density, not for
-    a radius the run cannot change."""
+    """A saved model fixes r1: the warnings, from the tiles' density before any work and
+    from the points' neighbours after the features, ask for a model of the scan's density,
+    not for a radius the run cannot change."""
     (tile,) = write_synthetic_plot(tmp_path / "in", seed=4, size=6.0, tile_size=6.0)
     las = laspy.read(tile)
     sparse = laspy.LasData(las.header)
@@ -46,6 +47,10 @@ def test_a_model_applied_to_a_scan_too_sparse_for_its_radius_says_what_to_do(tmp
     result = silva("predict", "--model", "forest-tls-synthetic", "--out", tmp_path / "out",
                    str(tile), "--in-process", "-q")
     assert result.exit_code == 0, result.output
-    (warning,) = [line for line in result.output.splitlines() if "too few for a local" in line]
-    assert "the model applied was trained with that radius" in warning
-    assert "set features.r1" not in warning
+    lines = result.output.splitlines()
+    (before,) = [line for line in lines if "points/m² (the sparsest scene)" in line]
+    (measured,) = [line for line in lines if "too few for a local" in line]
+    assert lines.index(before) < lines.index(measured)  # said before any work
+    for warning in (before, measured):
+        assert "the model applied was trained with that radius" in warning
+        assert "set features.r1" not in warning

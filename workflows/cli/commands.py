@@ -151,6 +151,7 @@ def check_before_start(run, target: str, in_process: bool = False) -> tuple:
     applies was checked with its plan). Raises the error the step would raise later; returns
     the run's tiles."""
     from workflows.cli.plan import check_memory
+    from workflows.steps.features import warn_sparse_radius
     from workflows.steps.ingest import plan_tiles
 
     tiles = plan_tiles(run)
@@ -158,8 +159,10 @@ def check_before_start(run, target: str, in_process: bool = False) -> tuple:
     for step in steps:
         if step.check is not None:
             step.check(run, tiles)
-    if "features" in (step.name for step in steps) and not in_process:
-        check_memory(run, tiles)
+    if "features" in (step.name for step in steps):
+        warn_sparse_radius(run, tiles)
+        if not in_process:
+            check_memory(run, tiles)
     return tiles
 
 

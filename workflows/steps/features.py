@@ -7,6 +7,7 @@ they are computed once here, with a flag for the points whose features are undef
 Scenes classified in one pass (:mod:`workflows.steps.one_pass`) are left to that step.
 """
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,6 +20,7 @@ from pipeline.features.neighbors import RadiusIndex
 from pipeline.features.sets import FeatureParams, feature_set, query_box
 from pipeline.tiling import box_distance
 from workflows.exec.engine import chunk_tasks, chunk_window_returns
+from workflows.run.autoparams import sparsest_density
 from workflows.run.directory import Run
 from workflows.run.progress import say
 from workflows.steps.terrain import ground_under
@@ -100,6 +102,27 @@ def features(run: Run, engine, layout: RunLayout, only: str | None = None) -> np
     return counts
 
 
+def sparse_fix(run: Run) -> str:
+    """What to do when a sphere of r1 holds too few points for a local surface: a saved
+    model fixes r1, so a model of the scan's density is what helps."""
+    if run.model is not None:
+        return ("the model applied was trained with that radius, on denser scans: train one "
+                "on scans of this density (features.r1: auto)")
+    return "set features.r1 larger, or to auto (from the point density)"
+
+
+def warn_sparse_radius(run: Run, tiles) -> None:
+    """Before any work: warn when, at the sparsest scene's density (its tiles' headers), a
+    disc of r1 on a flat surface holds fewer than :data:`SPARSE_NEIGHBORS` points (a
+    surface seen edge-on, a stem or a wall, holds more: this errs towards silence)."""
+    density = sparsest_density(tiles)
+    expected = density * math.pi * run.r1 ** 2
+    if 0 < expected < SPARSE_NEIGHBORS:
+        say(f"warning: at {density:.2g} points/m² (the sparsest scene) a disc of r1 = "
+            f"{run.r1:g} m on flat ground holds about {expected:.1f} points, fewer than the "
+            f"{SPARSE_NEIGHBORS} the features need; {sparse_fix(run)}")
+
+
 def warn_neighbourhoods(run: Run, results) -> None:
     """Warn when most sampled points have too few neighbours, and when points pile up (the
     tasks' :func:`neighbourhood_checks`)."""
@@ -107,12 +130,9 @@ def warn_neighbourhoods(run: Run, results) -> None:
     sampled = sum(value["sparse"][0] for value in results)
     sparse = sum(value["sparse"][1] for value in results)
     if sampled and sparse > sampled / 2:
-        fix = ("the model applied was trained with that radius, on denser scans: train one "
-               "on scans of this density (features.r1: auto)" if run.model is not None else
-               "set features.r1 larger, or to auto (from the point density)")
         say(f"warning: {100 * sparse / sampled:.0f}% of the points have fewer than "
             f"{SPARSE_NEIGHBORS} neighbours within r1 = {run.r1:g} m, too few for a local "
-            f"surface; {fix}")
+            f"surface; {sparse_fix(run)}")
     # .get: results stored by a version without these counts
     checked = sum(value.get("checked", 0) for value in results)
     piled = sum(value.get("piled", 0) for value in results)
