@@ -148,8 +148,8 @@ def check_before_start(run, target: str, in_process: bool = False) -> tuple:
     return fields (with echo features), each step's own check (the trees' settings against
     the scan, the output point format, the rasters' size: the ``check`` of its row) and that a
     local cluster's workers have the memory for the largest chunk (the saved model a run
-    applies was checked with its plan). Raises the error the step would raise later; returns
-    the run's tiles."""
+    applies was checked with its plan); warns when r1 is too small for the tiles' density.
+    Raises the error the step would raise later; returns the run's tiles."""
     from workflows.cli.plan import check_memory
     from workflows.steps.features import warn_sparse_radius
     from workflows.steps.ingest import plan_tiles
@@ -160,7 +160,7 @@ def check_before_start(run, target: str, in_process: bool = False) -> tuple:
         if step.check is not None:
             step.check(run, tiles)
     if "features" in (step.name for step in steps):
-        warn_sparse_radius(run, tiles)
+        warn_sparse_radius(run)
         if not in_process:
             check_memory(run, tiles)
     return tiles

@@ -111,11 +111,12 @@ def sparse_fix(run: Run) -> str:
     return "set features.r1 larger, or to auto (from the point density)"
 
 
-def warn_sparse_radius(run: Run, tiles) -> None:
-    """Before any work: warn when, at the sparsest scene's density (its tiles' headers), a
-    disc of r1 on a flat surface holds fewer than :data:`SPARSE_NEIGHBORS` points (a
-    surface seen edge-on, a stem or a wall, holds more: this errs towards silence)."""
-    density = sparsest_density(tiles)
+def warn_sparse_radius(run: Run) -> None:
+    """Before any work: warn when, at the sparsest scene's density (the headers of the
+    run's catalogue), a disc of r1 on a flat surface holds fewer than
+    :data:`SPARSE_NEIGHBORS` points (a surface seen edge-on, a stem or a wall, holds more:
+    this errs towards silence)."""
+    density = sparsest_density(run.plan.tiles)
     expected = density * math.pi * run.r1 ** 2
     if 0 < expected < SPARSE_NEIGHBORS:
         say(f"warning: at {density:.2g} points/m² (the sparsest scene) a disc of r1 = "
