@@ -54,7 +54,7 @@ from workflows.store.marks import is_done, mark_done, read_array
 from workflows.store.scenes import RunLayout
 from workflows.store.trees import (
     TABLE, block_done, canopy_overview, crown_labels, read_tree_model, read_tree_table,
-    stored_trees, tile_table_group, trees_done, write_block, write_block_ids,
+    stored_trees, tile_table_group, tree_method, trees_done, write_block, write_block_ids,
     write_scene_trees, write_tree_table,
 )
 
@@ -234,7 +234,7 @@ def trees(run, engine, layout: RunLayout, final_stage: int, stage_fp: str) -> di
     remove_parts(out_dir)
     found, tile_tasks = {}, []
     for scene, table in scene_tables(run, engine, layout, task).items():
-        method = read_tree_model(root, scene)[1]
+        method = tree_method(root, scene)
         tiles = layout.tiles_of(scene)
         owner = tile_of(table, tiles)
         tile_tasks += [Task(key=f"trees-write-{tile.name}-{task.fingerprint[:8]}",

@@ -121,6 +121,11 @@ def read_tree_model(root: zarr.Group, scene: str) -> tuple[TreeModel, str]:
     return TreeModel.from_arrays(arrays, group.attrs["model"]), group.attrs["method"]
 
 
+def tree_method(root: zarr.Group, scene: str) -> str:
+    """The method that found the scene's trees, without reading its model."""
+    return TREES.scene_group(root, scene).attrs["method"]
+
+
 def read_scene_trees(root: zarr.Group, scene: str):
     """What assigns the scene's points to its trees: :class:`SceneCrowns` whose blocks are
     read when first needed (and kept, up to :data:`~workflows.store.models.CACHED_BLOCKS`),
