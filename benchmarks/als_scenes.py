@@ -11,7 +11,13 @@ coordinates and every dimension) to its own place, 1 km apart, in a local frame 
 CRS. Every feature of Silva is invariant to that move (coordinates are recentred, heights
 are taken above the scene's own terrain model). Noise (7, 18) stays: Silva excludes it.
 
+With ``--density D`` each half denser than D points/m² (its points over its box) is thinned
+to D by :func:`pipeline.cascade.thinning.thinned_mask` (a hash of each point's index, as the
+thinned copies of the cards); ``--copies K`` writes K such copies of each half, thinned with
+seeds 0 to K-1 (different points, the same density), each in its own place.
+
     python benchmarks/als_scenes.py OUT_DIR     # OUT_DIR/west/*.laz, OUT_DIR/east/*.laz
+    python benchmarks/als_scenes.py OUT_DIR --density 1 --copies 4
 """
 
 import argparse
@@ -20,6 +26,8 @@ from pathlib import Path
 
 import laspy
 import numpy as np
+
+from pipeline.cascade.thinning import thinned_mask
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 TILES = ("als/StBarth_IGN_LiDARHD_100m.laz", "als/AHN4_Amsterdam_2496_9727.laz",
@@ -41,10 +49,26 @@ def write_half(las: laspy.LasData, keep: np.ndarray, place: float, dst: Path) ->
     return int(keep.sum())
 
 
+def thinned_to(x: np.ndarray, y: np.ndarray, density: float | None, seed: int) -> np.ndarray:
+    """bool: the points of a half kept at ``density`` points/m² over its box (all of them
+    when it is not denser, or ``density`` is None)."""
+    keep = np.ones(len(x), dtype=bool)
+    area = np.ptp(x) * np.ptp(y)
+    if density is None or len(x) <= density * area:
+        return keep
+    return thinned_mask(np.arange(len(x), dtype=np.int64), density * area / len(x), seed)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path)
+    parser.add_argument("--density", type=float, default=None,
+                        help="thin each half to this many points/m² (if denser)")
+    parser.add_argument("--copies", type=int, default=1,
+                        help="copies of each half, thinned with seeds 0 to copies-1")
     args = parser.parse_args(argv)
+    if args.copies < 1 or (args.density is not None and not args.density > 0):
+        parser.error("--copies must be >= 1 and --density > 0")
     missing = [name for name in TILES if not (DATA / name).is_file()]
     if missing:
         print(f"no {', '.join(missing)} in {DATA}: nothing written", file=sys.stderr)
@@ -56,9 +80,18 @@ def main(argv=None) -> int:
         x = np.asarray(las.x)
         west = x < np.median(x)
         stem = Path(name).stem
-        for side, keep in (("west", west), ("east", ~west)):
-            n = write_half(las, keep, i * SPACING, args.out / side / f"{stem}_{side}.laz")
-            print(f"{side}/{stem}_{side}.laz: {n:,} points")
+        y = np.asarray(las.y)
+        for side, half in (("west", west), ("east", ~west)):
+            rows = np.flatnonzero(half)
+            thinned = args.density is not None and len(rows) > args.density * np.ptp(
+                x[rows]) * np.ptp(y[rows])
+            for copy in range(args.copies if thinned else 1):  # unthinned: one copy
+                keep = np.zeros(len(x), dtype=bool)
+                keep[rows[thinned_to(x[rows], y[rows], args.density, copy)]] = True
+                name = f"{stem}_{side}" + (f"_{copy}" if args.copies > 1 else "") + ".laz"
+                place = (copy * len(TILES) + i) * SPACING
+                n = write_half(las, keep, place, args.out / side / name)
+                print(f"{side}/{name}: {n:,} points")
     return 0
 
 

@@ -21,6 +21,7 @@ import numpy as np
 
 from workflows.config import load_config
 from workflows.exec.engine import Engine
+from workflows.run.autoparams import resolve_run
 from workflows.run.directory import Run
 from workflows.run.loop import execute
 from workflows.steps.table import STEPS
@@ -37,7 +38,7 @@ MEASURES = ("precision", "recall", "f1")
 def run_seed(seed: int, out: Path, overrides: list[str]) -> dict:
     """metrics.json of one run of the Oakland config with ``cascade.seed = seed``."""
     cfg = load_config(CONFIG, [*overrides, f"cascade.seed={seed}"])
-    run = Run(cfg, out, quiet=True, steps=STEPS)
+    run = Run(resolve_run(cfg), out, quiet=True, steps=STEPS)
     run.save_config()
     execute(run, Engine(None, quiet=True), "evaluate")
     return json.loads((out / "metrics.json").read_text())

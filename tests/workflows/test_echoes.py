@@ -239,10 +239,13 @@ def test_a_model_json_without_the_key_is_a_model_without_echoes(echo_survey):
 def test_silva_models_says_which_models_use_echoes():
     listed = {model["name"]: model["echoes"] for model in
               json.loads(silva("models", "--json").output)}
-    # the airborne model reads each point's returns; the terrestrial one was saved without
-    assert listed == {"als-ground-vegetation-building": True, "forest-tls-synthetic": False}
-    rows = {line.split()[0]: line for line in silva("models").output.splitlines()[1:3]}
+    # the airborne models read each point's returns; the terrestrial one was saved without
+    assert listed == {"als-ground-vegetation-building": True,
+                      "als-sparse-ground-vegetation-building": True,
+                      "forest-tls-synthetic": False}
+    rows = {line.split()[0]: line for line in silva("models").output.splitlines()[1:4]}
     assert " yes " in rows["als-ground-vegetation-building"]
+    assert " yes " in rows["als-sparse-ground-vegetation-building"]
     assert " no " in rows["forest-tls-synthetic"]
 
 

@@ -59,7 +59,8 @@ def test_silva_models_prints_a_table_of_kind_classes_densities_echoes_and_score(
     lines = result.output.splitlines()
     header = lines[0].split()
     assert header == ["MODEL", "KIND", "CLASSES", "(CODE)", "TRAINED", "AT", "ECHOES", "SCORE"]
-    rows = {line.split()[0]: line for line in lines[1:3]}
+    n = len(installed_models())
+    rows = {line.split()[0]: line for line in lines[1:1 + n]}
     assert set(rows) == set(installed_models())
     als, tls = rows["als-ground-vegetation-building"], rows["forest-tls-synthetic"]
     assert lines[1] == als  # sorted by name
@@ -76,6 +77,7 @@ def test_silva_models_prints_a_table_of_kind_classes_densities_echoes_and_score(
     assert "0.9-559 pts/m²" in als
     assert als.endswith("0.974 macro F1, held-out halves of 5 tiles")
     assert tls.endswith("0.943 macro F1, held-out synthetic plot, without misc")
+    assert "1 pt/m²" in rows["als-sparse-ground-vegetation-building"]
     assert "silva models --json" in result.output
 
 

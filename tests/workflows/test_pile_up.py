@@ -54,3 +54,41 @@ def test_a_model_applied_to_a_scan_too_sparse_for_its_radius_says_what_to_do(tmp
     for warning in (before, measured):
         assert "the model applied was trained with that radius" in warning
         assert "set features.r1" not in warning
+
+
+def _sparse_airborne_tile(path, density: float, size: float = 60.0):
+    """A flat airborne tile of ``density`` points/m², one return per pulse."""
+    rng = np.random.default_rng(0)
+    n = int(density * size * size)
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales, header.offsets = [0.01] * 3, [0.0, 0.0, 0.0]
+    las = laspy.LasData(header)
+    las.x, las.y = rng.uniform(0, size, n), rng.uniform(0, size, n)
+    las.z = rng.normal(0.0, 0.05, n)
+    las.return_number, las.number_of_returns = np.ones(n, np.uint8), np.ones(n, np.uint8)
+    las.write(path)
+    return path
+
+
+def test_a_sparse_airborne_scan_is_pointed_to_the_installed_model_of_its_density(
+        tmp_path, capsys):
+    """The dense airborne model at 1 point/m²: a disc of its r1 holds about 7 points, and the
+    warning names the installed model with the same classes whose r1 fits that density."""
+    from workflows.models import installed_models, models_for_density
+    from workflows.run.autoparams import run_config
+    from workflows.run.directory import Run
+    from workflows.steps.features import SPARSE_NEIGHBORS, warn_sparse_radius
+    from workflows.steps.table import STEPS
+
+    dense, sparse = "als-ground-vegetation-building", "als-sparse-ground-vegetation-building"
+    classes = {"ground": 2, "vegetation": 5, "building": 6}
+    assert models_for_density(1.0, SPARSE_NEIGHBORS, classes) == [sparse]
+    assert models_for_density(30.0, SPARSE_NEIGHBORS, classes) == [dense, sparse]
+    assert models_for_density(30.0, SPARSE_NEIGHBORS, {"ground": 2}) == []
+    tile = _sparse_airborne_tile(tmp_path / "sparse.las", 1.0)
+    for applied, named in ((dense, f"--model {sparse}"), (sparse, None)):
+        run = Run(run_config(None, model_dir=installed_models()[applied], inputs=[tile]),
+                  tmp_path / applied, steps=STEPS)
+        warn_sparse_radius(run)
+        warning = capsys.readouterr().err
+        assert (named in warning) if named else (warning == "")

@@ -4,6 +4,7 @@ writes them (model.json and one forest per stage), with its model card in ``card
 prediction). ``--model NAME`` takes one wherever a model directory is accepted."""
 
 import json
+import math
 from pathlib import Path
 
 from pipeline.errors import ModelError
@@ -59,3 +60,15 @@ def model_summary(name: str, directory: Path) -> dict:
         "path": str(directory),
         **{k: v for k, v in card.items() if k != "kind"},
     }
+
+
+def models_for_density(density: float, points: int, classes: dict) -> list[str]:
+    """The installed models with these ``classes`` (name -> code) whose r1 disc on flat
+    ground holds at least ``points`` points at ``density`` points per m², by name."""
+    fitting = []
+    for name, directory in installed_models().items():
+        description = json.loads((directory / "model.json").read_text())
+        same = {c["name"]: c["code"] for c in description.get("classes", ())} == classes
+        if same and density * math.pi * description["features.r1"] ** 2 >= points:
+            fitting.append(name)
+    return fitting

@@ -8,6 +8,7 @@ Scenes classified in one pass (:mod:`workflows.steps.one_pass`) are left to that
 """
 
 import math
+from pathlib import Path
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,6 +21,7 @@ from pipeline.features.neighbors import RadiusIndex
 from pipeline.features.sets import FeatureParams, feature_set, query_box
 from pipeline.tiling import box_distance
 from workflows.exec.engine import chunk_tasks, chunk_window_returns
+from workflows.models import installed_models, models_for_density
 from workflows.run.autoparams import sparsest_density
 from workflows.run.directory import Run
 from workflows.run.progress import say
@@ -104,11 +106,20 @@ def features(run: Run, engine, layout: RunLayout, only: str | None = None) -> np
 
 def sparse_fix(run: Run) -> str:
     """What to do when a sphere of r1 holds too few points for a local surface: a saved
-    model fixes r1, so a model of the scan's density is what helps."""
-    if run.model is not None:
-        return ("the model applied was trained with that radius, on denser scans: train one "
-                "on scans of this density (features.r1: auto)")
-    return "set features.r1 larger, or to auto (from the point density)"
+    model fixes r1, so a model of the scan's density is what helps, an installed one with
+    the same classes if one fits the sparsest scene."""
+    if run.model is None:
+        return "set features.r1 larger, or to auto (from the point density)"
+    classes = {c["name"]: c["code"] for c in run.model.description["classes"]}
+    fitting = models_for_density(sparsest_density(run.plan.tiles), SPARSE_NEIGHBORS, classes)
+    fitting = [name for name in fitting
+               if installed_models()[name] != Path(run.model.path).resolve()]
+    if fitting:
+        return (f"the model applied was trained with that radius, on denser scans: use "
+                f"--model {fitting[0]} (the same classes, trained on scans of about this "
+                "density), or train one on scans of this density (features.r1: auto)")
+    return ("the model applied was trained with that radius, on denser scans: train one "
+            "on scans of this density (features.r1: auto)")
 
 
 def warn_sparse_radius(run: Run) -> None:
