@@ -76,6 +76,14 @@ class Tile:
 STORED = tuple(f.name for f in fields(Tile) if f.name != "header")
 
 
+def header_density(tiles: Iterable[Tile]) -> float:
+    """Points per m² (XY) of ``tiles``, from their headers: their points over the sum of
+    their boxes' areas; 0.0 for no tiles."""
+    tiles = list(tiles)
+    area = sum(t.area for t in tiles)
+    return sum(t.n_points for t in tiles) / area if area else 0.0
+
+
 def tile_name(path) -> str:
     """The name of a tile's outputs: its file name without the last suffix and without
     leading dots (``plot.v1.laz`` -> ``plot.v1``, ``.hidden.laz`` -> ``hidden``)."""

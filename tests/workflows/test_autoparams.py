@@ -8,7 +8,7 @@ from pipeline.errors import ConfigError
 from pipeline.features.sets import AUTO_NEIGHBORS, auto_radius, auto_voxel
 from pipeline.io import write_las
 from workflows.config import validate_config
-from workflows.run.autoparams import adopt_model, header_density, resolve_auto
+from workflows.run.autoparams import adopt_model, resolve_auto, training_density
 from workflows.run.plan import catalogue, config_inputs
 
 
@@ -29,7 +29,7 @@ def _config(tile, **features):
 def test_r1_auto_follows_the_header_density(tmp_path, density, r1):
     cfg = _config(_tile(tmp_path / "t.laz", density))
     tiles = catalogue(cfg, config_inputs(cfg))
-    assert header_density(cfg, tiles) == pytest.approx(density, rel=0.01)
+    assert training_density(cfg, tiles) == pytest.approx(density, rel=0.01)
     resolved = resolve_auto(cfg, tiles)
     assert resolved.features.r1 == r1 == auto_radius(density)
     assert resolved.halo == one_pass_halo(resolved.features.params.halo, r1, 3)  # derived

@@ -21,7 +21,7 @@ from dask.utils import format_bytes
 from pipeline.atomic import atomic_path
 from pipeline.errors import ConfigError
 from pipeline.features.sets import feature_set
-from pipeline.io.catalogue import Tile
+from pipeline.io.catalogue import Tile, header_density
 from pipeline.terrain import factor_for_occupancy
 from pipeline.tiling import MIN_CHUNK_HALOS, Grid
 from workflows.exec.cluster import plan_workers
@@ -75,7 +75,7 @@ def terrain_seconds_per_cell(run: Run, tiles: list[Tile]) -> float:
     """:data:`TERRAIN_SECONDS_PER_CELL` over the square of the factor by which the terrain
     widens its cells at the tiles' mean density (points at random: the share of cells with a
     point is 1 - exp(-points a cell))."""
-    per_cell = mean_density(tiles) * run.terrain.cell ** 2 if tiles else 1.0
+    per_cell = header_density(tiles) * run.terrain.cell ** 2 if tiles else 1.0
     return TERRAIN_SECONDS_PER_CELL / factor_for_occupancy(-math.expm1(-per_cell)) ** 2
 
 
@@ -110,18 +110,11 @@ def foreseen_window(run: Run, tiles: list[Tile]) -> int:
     return int(largest)
 
 
-def mean_density(members: list[Tile]) -> float:
-    """Points per m² of the tiles ``members``, from their headers: their points over
-    their XY boxes."""
-    area = sum(t.area for t in members)
-    return sum(t.n_points for t in members) / max(area, 1e-9)
-
-
 def grid_window(members: list[Tile], size: float, halo: float) -> float:
     """Points of a grid chunk of side ``size`` with its ``halo`` over the tiles ``members``
     of a scene, at their mean density (at most the scene's points)."""
     points = sum(t.n_points for t in members)
-    return min(points, mean_density(members) * (size + 2 * halo) ** 2)
+    return min(points, header_density(members) * (size + 2 * halo) ** 2)
 
 
 def worker_memory_limit(run: Run) -> int | None:
@@ -400,7 +393,7 @@ def foreseen_copies(run: Run, tiles: list[Tile]) -> int:
     train = [t for t in tiles if t.scene == "train"]
     if not run.cfg.data.densities or not train or run.model is not None:
         return 0
-    points, density = sum(t.n_points for t in train), mean_density(train)
+    points, density = sum(t.n_points for t in train), header_density(train)
     return round(sum(points * target / density
                      for target in set(map(float, run.cfg.data.densities)) if target < density))
 

@@ -22,6 +22,7 @@ from pathlib import Path
 
 from pipeline.errors import ConfigError
 from pipeline.features.sets import auto_radius, auto_voxel
+from pipeline.io.catalogue import header_density
 from pipeline.model import LATER_KEYS, read_model_file
 from pipeline.trees.params import auto_resolution
 from workflows.config import SilvaConfig, validate_config
@@ -32,28 +33,19 @@ from workflows.run.plan import AppliedModel, RunPlan, catalogue, check_model, co
 log = logging.getLogger(__name__)
 
 
-def _points_and_area(tiles, scene: str) -> tuple[int, float]:
-    """The points and the sum of the XY boxes (m²) of the ``tiles`` (the run's catalogue,
-    :class:`~pipeline.io.catalogue.Tile`) of ``scene``, as their headers say."""
-    members = [t for t in tiles if t.scene == scene]
-    return sum(t.n_points for t in members), sum(t.area for t in members)
-
-
-def header_density(cfg: SilvaConfig, tiles) -> float:
+def training_density(cfg: SilvaConfig, tiles) -> float:
     """Points per m² (XY) of the training tiles (of all tiles without training tiles) of
-    the catalogue ``tiles``, from their headers: the sum of points over the sum of the
-    tiles' XY boxes."""
-    scenes = ["train"] if cfg.data.train else ["test", "predict"]
-    counts = [_points_and_area(tiles, scene) for scene in scenes]
-    area = sum(a for _, a in counts)
-    return sum(p for p, _ in counts) / area if area else 0.0
+    the catalogue ``tiles``, from their headers (:func:`header_density`)."""
+    scenes = ("train",) if cfg.data.train else ("test", "predict")
+    return header_density(t for t in tiles if t.scene in scenes)
 
 
 def sparsest_density(tiles) -> float:
     """Points per m² of the sparsest scene of the catalogue ``tiles``, from their headers;
     0 without tiles."""
-    counts = [_points_and_area(tiles, scene) for scene in ("train", "test", "predict")]
-    return min((p / a for p, a in counts if a > 0), default=0.0)
+    densities = [header_density(t for t in tiles if t.scene == scene)
+                 for scene in ("train", "test", "predict")]
+    return min((d for d in densities if d > 0), default=0.0)
 
 
 def resolve_tree_resolution(cfg: SilvaConfig, tiles) -> SilvaConfig:
@@ -81,7 +73,7 @@ def resolve_auto(cfg: SilvaConfig, tiles) -> SilvaConfig:
     raw = cfg.model_dump(mode="json")
     r1 = features.r1
     if r1 == "auto":
-        density = header_density(cfg, tiles)
+        density = training_density(cfg, tiles)
         r1 = auto_radius(density) if density > 0 else 0.5
         log.info("features.r1 auto: %.3g points/m² in the headers -> r1 = %g m", density, r1)
     voxel = features.voxel
