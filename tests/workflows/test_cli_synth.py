@@ -81,3 +81,18 @@ def test_synth_writes_a_hillside_on_request(tmp_path):
     assert plain < 3.0 and hill > 6.0 and 2.5 < ridge < hill
     refused = silva("synth", tmp_path / "x", "--slope", "70")
     assert refused.exit_code == 1 and refused.output.startswith("silva: error: stand.slope")
+
+
+def test_synth_places_a_plot_at_the_origin_asked(tmp_path):
+    """--origin X Y Z moves the plot (its points, not their arrangement) so that plots
+    written apart lie side by side in one scene."""
+    from pipeline.io import read_points
+
+    def xyz(*extra):
+        out = tmp_path / "-".join(("plot", *extra))
+        assert silva("synth", out, "--seed", 2, "--size", 6, "--tile-size", 6,
+                     *extra).exit_code == 0
+        return read_points(next(out.glob("*.laz"))).xyz
+
+    plain, moved = xyz(), xyz("--origin", "500100", "5500000", "410")
+    assert np.allclose(moved - plain, [100.0, 0.0, 10.0], atol=2e-3)
