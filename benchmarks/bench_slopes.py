@@ -3,12 +3,14 @@
     python benchmarks/bench_slopes.py [--model NAME|DIR] [--seeds 2] [--size 30]
                                       [--cases 0 20 40 40r] [--tolerance M] [--work DIR]
                                       [--json]
+    python benchmarks/bench_slopes.py --tiles "DIR/*.laz" --model NAME|DIR [--tolerance M]
 
 Each case is a plot written by ``silva synth --seed S --size SIZE --slope DEGREES`` (a
 trailing ``r``: ``--ridge``), classified by ``silva predict --model MODEL`` (default
 forest-tls-synthetic, the shipped terrestrial model) with the classifier in the loop, as a
 user runs it. Per case it prints the share of the true terrain points called terrain, the F1
-of terrain, tree and dead wood (sklearn's, over the points), and the terrain model's own
+of terrain, tree and dead wood (over the points but misc, the background class, as the
+model's evaluation and card score them), and the terrain model's own
 error on the true terrain points: the median and the 95th percentile of their
 |HeightAboveGround| (the output dimension: their distance to the run's DTM).
 
@@ -16,10 +18,15 @@ error on the true terrain points: the median and the 95th percentile of their
 (the rule that a point within M metres of seen ground is ground), re-digested: the same
 forests with the rule on, to measure it without retraining. ``0``: the rule off.
 
+``--tiles`` classifies labelled tiles instead (e.g. the east halves of
+benchmarks/als_scenes.py with the airborne model) and prints each tile's ground F1 (ASPRS
+code 2 against the predicted code; noise, codes 7 and 18, left out as the models leave it).
+
 Plots are kept under ``--work`` (default: a temporary directory) and written once.
 """
 
 import argparse
+import glob
 import json
 import os
 import shutil
@@ -39,6 +46,7 @@ from pipeline.synth import SYNTH_CLASSES  # noqa: E402
 
 CLASSES = ("terrain", "tree", "dead_wood")
 PREDICTED = "PredictedClassification"
+GROUND, NOISE = 2, (7, 18)
 HEIGHT = "HeightAboveGround"
 
 
@@ -79,6 +87,13 @@ def plot(work: Path, seed: int, size: float, case: str) -> Path:
     return out
 
 
+def case_name(case: str) -> str:
+    """How a table names a case: its slope and shape (0: the plain plot's gentle grade)."""
+    if float(case.rstrip("r")) == 0:
+        return "plain (3-18 % grade)" + (" ridge" if case.endswith("r") else "")
+    return f"{case.rstrip('r')}° {'ridge' if case.endswith('r') else 'hillside'}"
+
+
 def scores(plot_dir: Path, predictions: Path) -> dict:
     """The case's scores from the input tiles' truth and the predicted tiles."""
     truth, predicted, height = [], [], []
@@ -94,13 +109,39 @@ def scores(plot_dir: Path, predictions: Path) -> dict:
                                                          == SYNTH_CLASSES["terrain"])), 4),
            "terrain_hag_median": round(float(np.median(np.abs(height[terrain]))), 3),
            "terrain_hag_p95": round(float(np.percentile(np.abs(height[terrain]), 95)), 3)}
+    scored = truth != SYNTH_CLASSES["misc"]  # the background, as the model's evaluation
     for name in CLASSES:
         code = SYNTH_CLASSES[name]
-        true, said = truth == code, predicted == code
+        true, said = (truth == code) & scored, (predicted == code) & scored
         both = np.count_nonzero(true & said)
         row[f"f1_{name}"] = round(2 * both / max(np.count_nonzero(true)
                                                  + np.count_nonzero(said), 1), 4)
     return row
+
+
+def ground_f1(tile: Path, predicted_tile: Path) -> float:
+    """F1 of ground (code 2) of a labelled tile's prediction, noise left out."""
+    truth = read_points(tile).fields["classification"]
+    predicted = read_points(predicted_tile, fields=(PREDICTED,)).fields[PREDICTED]
+    scored = ~np.isin(truth, NOISE)
+    true, said = (truth == GROUND) & scored, (predicted == GROUND) & scored
+    return 2 * np.count_nonzero(true & said) / max(np.count_nonzero(true)
+                                                   + np.count_nonzero(said), 1)
+
+
+def score_tiles(pattern: str, model: Path, work: Path) -> list[dict]:
+    """Each tile of ``pattern`` classified by ``model`` in one run: its ground F1."""
+    out = work / f"tiles_{model.name}"
+    if out.exists():
+        shutil.rmtree(out)
+    silva("predict", "--model", model, "--out", out, "--quiet", pattern)
+    rows = []
+    print("| tile | ground F1 |\n|---|---|")
+    for tile in sorted(Path(p) for p in glob.glob(pattern)):
+        rows.append({"tile": tile.name, "ground_f1": round(
+            ground_f1(tile, out / "predictions" / tile.name), 4)})
+        print(f"| {tile.stem} | {rows[-1]['ground_f1']:.4f} |", flush=True)
+    return rows
 
 
 def main(argv=None) -> list[dict]:
@@ -113,13 +154,21 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--tolerance", type=float, default=None,
                         help="apply the model with terrain.ground_tolerance set to this")
     parser.add_argument("--work", type=Path, default=None)
+    parser.add_argument("--tiles", default=None,
+                        help="labelled tiles to score ground F1 on, instead of the plots")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_slopes_"))
     work.mkdir(parents=True, exist_ok=True)
     model = model_dir(args.model)
     if args.tolerance is not None:
-        model = with_tolerance(model, args.tolerance, work / f"model_tol{args.tolerance:g}")
+        model = with_tolerance(model, args.tolerance,
+                               work / f"{model.name}_tol{args.tolerance:g}")
+    if args.tiles:
+        rows = score_tiles(args.tiles, model, work)
+        if args.json:
+            print(json.dumps(rows))
+        return rows
     rows = []
     print("| plot | seed | terrain called terrain | F1 terrain | F1 tree | F1 dead wood "
           "| DTM |HAG| median / p95 (m) |\n|---|---|---|---|---|---|---|")
@@ -134,8 +183,7 @@ def main(argv=None) -> list[dict]:
             row = {"case": case, "seed": seed, "model": str(args.model),
                    "tolerance": args.tolerance, **scores(plot_dir, out / "predictions")}
             rows.append(row)
-            shape = "ridge" if case.endswith("r") else "hillside"
-            print(f"| {case.rstrip('r')}° {shape} | {seed} | {row['terrain_called_terrain']:.1%} "
+            print(f"| {case_name(case)} | {seed} | {row['terrain_called_terrain']:.1%} "
                   f"| {row['f1_terrain']:.3f} | {row['f1_tree']:.3f} "
                   f"| {row['f1_dead_wood']:.3f} | {row['terrain_hag_median']:.2f} / "
                   f"{row['terrain_hag_p95']:.2f} |", flush=True)
