@@ -20,7 +20,8 @@ forests with the rule on, to measure it without retraining. ``0``: the rule off.
 
 ``--tiles`` classifies labelled tiles instead (e.g. the east halves of
 benchmarks/als_scenes.py with the airborne model) and prints each tile's ground F1 (ASPRS
-code 2 against the predicted code; noise, codes 7 and 18, left out as the models leave it).
+code 2 against the predicted code; unclassified, water and noise, codes 1, 9, 7 and 18,
+left out as the airborne model's card leaves them out).
 
 Plots are kept under ``--work`` (default: a temporary directory) and written once.
 """
@@ -46,7 +47,9 @@ from pipeline.synth import SYNTH_CLASSES  # noqa: E402
 
 CLASSES = ("terrain", "tree", "dead_wood")
 PREDICTED = "PredictedClassification"
-GROUND, NOISE = 2, (7, 18)
+#: Ground, and what the airborne model's card leaves out of its scores: unclassified and
+#: water (its ignored classes) and noise (excluded).
+GROUND, UNSCORED = 2, (1, 7, 9, 18)
 HEIGHT = "HeightAboveGround"
 
 
@@ -120,10 +123,10 @@ def scores(plot_dir: Path, predictions: Path) -> dict:
 
 
 def ground_f1(tile: Path, predicted_tile: Path) -> float:
-    """F1 of ground (code 2) of a labelled tile's prediction, noise left out."""
+    """F1 of ground (code 2) of a labelled tile's prediction (:data:`UNSCORED` left out)."""
     truth = read_points(tile).fields["classification"]
     predicted = read_points(predicted_tile, fields=(PREDICTED,)).fields[PREDICTED]
-    scored = ~np.isin(truth, NOISE)
+    scored = ~np.isin(truth, UNSCORED)
     true, said = (truth == GROUND) & scored, (predicted == GROUND) & scored
     return 2 * np.count_nonzero(true & said) / max(np.count_nonzero(true)
                                                    + np.count_nonzero(said), 1)
