@@ -134,7 +134,7 @@ def ground_f1(tile: Path, predicted_tile: Path) -> float:
 
 def score_tiles(pattern: str, model: Path, work: Path) -> list[dict]:
     """Each tile of ``pattern`` classified by ``model`` in one run: its ground F1."""
-    out = work / f"tiles_{model.name}"
+    out = work / f"tiles_{model.parent.name}_{model.name}"
     if out.exists():
         shutil.rmtree(out)
     silva("predict", "--model", model, "--out", out, "--quiet", pattern)
@@ -178,7 +178,7 @@ def main(argv=None) -> list[dict]:
     for seed in args.seeds:
         for case in args.cases:
             plot_dir = plot(work, seed, args.size, case)
-            out = work / f"predict_{model.name}_{plot_dir.name}"
+            out = work / f"predict_{model.parent.name}_{model.name}_{plot_dir.name}"
             if out.exists():
                 shutil.rmtree(out)
             silva("predict", "--model", model, "--out", out, "--quiet",
