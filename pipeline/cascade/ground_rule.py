@@ -51,10 +51,8 @@ class GroundOverride:
         return proba
 
 
-def ground_override(terrain, xyz: np.ndarray, tolerance: float | None,
-                    column: int | None) -> GroundOverride | None:
+def ground_override(terrain, xyz: np.ndarray, tolerance: float, column: int
+                    ) -> GroundOverride:
     """The :class:`GroundOverride` of the points ``xyz`` (float (N, 3)) on ``terrain``
-    within ``tolerance`` (None: the rule is off, and None is returned)."""
-    if tolerance is None:
-        return None
+    within ``tolerance`` metres (:func:`on_ground`), for the ground class's ``column``."""
     return GroundOverride(on_ground(terrain, xyz, tolerance), int(column))

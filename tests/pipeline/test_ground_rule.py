@@ -48,7 +48,8 @@ def test_the_override_makes_certain_ground_of_the_points_on_it_and_leaves_the_re
     assert np.array_equal(rule.apply(proba[1:], np.array([1, 2])), out[1:])
     untouched = GroundOverride(np.zeros(3, bool), 0)
     assert untouched.apply(proba) is proba
-    assert ground_override(hillside_terrain(), np.zeros((1, 3)), None, 0) is None
+    found = ground_override(hillside_terrain(), np.array([[10.5, 20.5, 4.25]]), 0.1, 2)
+    assert found.rows.tolist() == [True] and found.column == 2
 
 
 def test_the_estimator_refuses_a_ground_label_that_is_not_a_class():
