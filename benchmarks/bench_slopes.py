@@ -147,6 +147,37 @@ def score_tiles(pattern: str, model: Path, work: Path) -> list[dict]:
     return rows
 
 
+def predicted(model: Path, plot_dir: Path, work: Path) -> Path:
+    """The predictions directory of ``model`` applied to one plot (made afresh)."""
+    out = work / f"predict_{model.parent.name}_{model.name}_{plot_dir.name}"
+    if out.exists():
+        shutil.rmtree(out)
+    silva("predict", "--model", model, "--out", out, "--quiet", str(plot_dir / "*.laz"))
+    return out / "predictions"
+
+
+def table_line(row: dict) -> str:
+    """A plot's row of the printed table."""
+    return (f"| {case_name(row['case'])} | {row['seed']} | {row['terrain_called_terrain']:.1%} "
+            f"| {row['f1_terrain']:.3f} | {row['f1_tree']:.3f} | {row['f1_dead_wood']:.3f} "
+            f"| {row['terrain_hag_median']:.2f} / {row['terrain_hag_p95']:.2f} |")
+
+
+def score_plots(args, model: Path, work: Path) -> list[dict]:
+    """Every case of every seed: written once, classified by ``model``, scored."""
+    rows = []
+    print("| plot | seed | terrain called terrain | F1 terrain | F1 tree | F1 dead wood "
+          "| DTM |HAG| median / p95 (m) |\n|---|---|---|---|---|---|---|")
+    for seed in args.seeds:
+        for case in args.cases:
+            plot_dir = plot(work, seed, args.size, case)
+            rows.append({"case": case, "seed": seed, "model": str(args.model),
+                         "tolerance": args.tolerance,
+                         **scores(plot_dir, predicted(model, plot_dir, work))})
+            print(table_line(rows[-1]), flush=True)
+    return rows
+
+
 def main(argv=None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--model", default="forest-tls-synthetic")
@@ -167,29 +198,8 @@ def main(argv=None) -> list[dict]:
     if args.tolerance is not None:
         model = with_tolerance(model, args.tolerance,
                                work / f"{model.name}_tol{args.tolerance:g}")
-    if args.tiles:
-        rows = score_tiles(args.tiles, model, work)
-        if args.json:
-            print(json.dumps(rows))
-        return rows
-    rows = []
-    print("| plot | seed | terrain called terrain | F1 terrain | F1 tree | F1 dead wood "
-          "| DTM |HAG| median / p95 (m) |\n|---|---|---|---|---|---|---|")
-    for seed in args.seeds:
-        for case in args.cases:
-            plot_dir = plot(work, seed, args.size, case)
-            out = work / f"predict_{model.parent.name}_{model.name}_{plot_dir.name}"
-            if out.exists():
-                shutil.rmtree(out)
-            silva("predict", "--model", model, "--out", out, "--quiet",
-                  str(plot_dir / "*.laz"))
-            row = {"case": case, "seed": seed, "model": str(args.model),
-                   "tolerance": args.tolerance, **scores(plot_dir, out / "predictions")}
-            rows.append(row)
-            print(f"| {case_name(case)} | {seed} | {row['terrain_called_terrain']:.1%} "
-                  f"| {row['f1_terrain']:.3f} | {row['f1_tree']:.3f} "
-                  f"| {row['f1_dead_wood']:.3f} | {row['terrain_hag_median']:.2f} / "
-                  f"{row['terrain_hag_p95']:.2f} |", flush=True)
+    rows = (score_tiles(args.tiles, model, work) if args.tiles
+            else score_plots(args, model, work))
     if args.json:
         print(json.dumps(rows))
     return rows
