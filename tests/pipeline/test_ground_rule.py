@@ -69,8 +69,9 @@ def test_a_forest_trained_on_gentle_ground_finds_a_steep_hillside_with_the_rule(
     terrain = hill.labels == 2
     recall = {}
     for tolerance in (None, 0.1):
-        model = CascadedForest(feature_set="covariance", stages=1, n_estimators=8, max_train_points=20_000,
-                               random_state=0, ground_tolerance=tolerance)
+        model = CascadedForest(feature_set="covariance", stages=1, n_estimators=8,
+                               max_train_points=20_000, random_state=0,
+                               ground_tolerance=tolerance)
         proba = model.fit(train.xyz, train.labels).predict_proba(hill.xyz)
         predicted = model.classes_[proba.argmax(axis=1)]
         recall[tolerance] = np.mean(predicted[terrain] == 2)
