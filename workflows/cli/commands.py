@@ -449,7 +449,8 @@ def synth(out_dir, seed, size, tile_size, stand, slope, ridge, origin):
       silva synth plots/train --seed 1
       silva synth plots/test --seed 2 --size 30 --tile-size 15
       silva synth plots/real --seed 3 --stand real
-      silva synth plots/hillside --seed 5 --slope 40 --ridge --origin 500100 5500000 400
+      silva synth plots/ridge --seed 5 --slope 40 --ridge
+      silva synth plots/hill --seed 11 --slope 35 --origin 500100 5500000 400
     """
     from dataclasses import replace
 
