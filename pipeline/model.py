@@ -249,8 +249,10 @@ def load_forest(path: Path):
 #: Keys a model description gained after models were first saved, with what a model.json
 #: without them means: a model saved before echoes existed was trained without them, one
 #: saved before feature versions existed on version 1
-#: (:data:`pipeline.features.sets.FEATURE_VERSION`).
-LATER_KEYS = {"features.echoes": False, "features.version": 1}
+#: (:data:`pipeline.features.sets.FEATURE_VERSION`), one saved before the ground rule
+#: (:mod:`pipeline.cascade.ground_rule`) without it.
+LATER_KEYS = {"features.echoes": False, "features.version": 1,
+              "terrain.ground_tolerance": None}
 
 
 def recorded(description: dict, key: str):

@@ -7,6 +7,7 @@
 - :mod:`~pipeline.cascade.stage`: one stage's work on the arrays of a chunk;
 - :mod:`~pipeline.cascade.driver`: the one loop over the stages, against a data interface;
 - :mod:`~pipeline.cascade.one_pass`: every stage of a fitted cascade for one chunk at once;
+- :mod:`~pipeline.cascade.ground_rule`: points on seen ground are ground, at every stage;
 - :mod:`~pipeline.cascade.estimator`: :class:`CascadedForest`, the scikit-learn estimator.
 
 Everything that selects or orders training rows depends on global point ids, never on
@@ -15,6 +16,7 @@ positions in an array, so the result does not depend on how a survey is chunked.
 
 from pipeline.cascade.driver import CascadeData, CloudData, FittedStage, run_cascade
 from pipeline.cascade.estimator import CascadedForest
+from pipeline.cascade.ground_rule import GroundOverride, ground_override, on_ground
 from pipeline.cascade.one_pass import one_pass, one_pass_halo
 from pipeline.cascade.params import CascadeParams, ForestParams, resolve_seed
 from pipeline.cascade.sampling import (
@@ -45,8 +47,8 @@ from pipeline.cascade.thinning import (
 
 __all__ = [
     "CascadeData", "CascadeParams", "CascadedForest", "CloudData", "FittedStage",
-    "ForestParams", "chunk_proba", "feature_matrix", "fit_stage", "fit_stage_forest",
-    "fold_of", "id_hash", "labels_from_proba", "one_pass", "one_pass_halo", "point_density",
+    "ForestParams", "GroundOverride", "chunk_proba", "feature_matrix", "fit_stage", "fit_stage_forest",
+    "fold_of", "ground_override", "id_hash", "labels_from_proba", "on_ground", "one_pass", "one_pass_halo", "point_density",
     "predict_stage", "predict_stage_proba", "resolve_seed", "run_cascade", "sampling_fractions",
     "stage_context", "stage_input", "stage_seed", "thinned_mask", "thinned_to_density",
     "thinning_fraction", "training_mask", "training_rows",

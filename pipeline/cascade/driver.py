@@ -100,17 +100,19 @@ class CloudData:
 
     ``features`` (N, d) are the point features, ``labels`` class indices of the training
     points and -1 elsewhere, ``ids`` the global ids; ``fitted_stages`` the forests of a
-    fitted model (applying it) or None (fitting). The probabilities of each stage are kept
-    in :attr:`proba`.
+    fitted model (applying it) or None (fitting); ``override`` the points on seen ground
+    (:class:`~pipeline.cascade.ground_rule.GroundOverride`, None: the rule is off). The
+    probabilities of each stage are kept in :attr:`proba`.
     """
 
     def __init__(self, xyz, ids, features, labels, n_classes, *, r1, r2, context_mode,
-                 context_max_neighbors, fitted_stages=None):
+                 context_max_neighbors, fitted_stages=None, override=None):
         self.xyz, self.ids, self.features, self.labels = xyz, ids, features, labels
         self.n_classes = n_classes
         self.context_args = dict(r1=r1, r2=r2, max_neighbors=context_max_neighbors)
         self.context_mode = context_mode
         self.fitted_stages = list(fitted_stages or [])
+        self.override = override
         self.context = None  # the first stage's context: 1/C everywhere
         self.proba = []
 
@@ -132,6 +134,6 @@ class CloudData:
         self.fitted_stages.append(fitted)
 
     def predict(self, stage, fitted, fractions, seed):
-        self.proba.append(chunk_proba(fitted.forest, fitted.fold_forests, self.features,
-                                      self.context, self.labels, self.ids, fractions, seed,
-                                      self.n_classes))
+        proba = chunk_proba(fitted.forest, fitted.fold_forests, self.features, self.context,
+                            self.labels, self.ids, fractions, seed, self.n_classes)
+        self.proba.append(proba if self.override is None else self.override.apply(proba))

@@ -7,12 +7,14 @@ from sklearn.base import BaseEstimator, ClassifierMixin
 from sklearn.utils.validation import check_is_fitted
 
 from pipeline.cascade.driver import CloudData, run_cascade
+from pipeline.cascade.ground_rule import ground_override
 from pipeline.cascade.params import CascadeParams, ForestParams, resolve_seed
 from pipeline.cascade.stage import labels_from_proba
 from pipeline.errors import InputError
 from pipeline.features.density import left_out, neighbourhood_members, pile_up_warning
 from pipeline.features.echo import has_returns
 from pipeline.features.sets import FeatureParams, feature_set
+from pipeline.terrain import scene_terrain
 
 _FEATURES, _CASCADE, _FOREST = FeatureParams(), CascadeParams(), ForestParams()
 
@@ -56,6 +58,12 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
         Cap on training rows, sampled by a hash of (point id, seed).
     balanced : bool
         Equal quotas per class above the cap, and class weights in every forest.
+    ground_tolerance : float or None
+        None: off. A distance in metres: at every stage, a point over a cell of the
+        cloud's terrain model where ground was seen and within this of its DTM is
+        ``ground_label``, with certainty (:mod:`pipeline.cascade.ground_rule`; the
+        workflow's ``terrain.ground_tolerance``).
+    ground_label : the label of ground in ``y`` (used with ``ground_tolerance``).
     random_state : int, RandomState, Generator or None
         An int is the seed of the training sample and of every forest (the workflow's
         ``cascade.seed``); otherwise a seed is drawn from it.
@@ -82,6 +90,8 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
         random_state=None,
         n_jobs=_FOREST.n_jobs,
         echoes=_FEATURES.echoes,
+        ground_tolerance=None,
+        ground_label=2,
     ):
         self.feature_set = feature_set
         self.stages = stages
@@ -100,6 +110,8 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
         self.random_state = random_state
         self.n_jobs = n_jobs
         self.echoes = echoes
+        self.ground_tolerance = ground_tolerance
+        self.ground_label = ground_label
 
     # -- parameters -------------------------------------------------------------------------
     def _feature_params(self) -> FeatureParams:
@@ -125,13 +137,20 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
         if piled:  # as the workflow says it: the points are classified, the fix is the input's
             warnings.warn(pile_up_warning(piled, len(xyz), params.r1), UserWarning,
                           stacklevel=3)
-        features = feature_set(params)(xyz, ids=ids, returns=_check_returns(params, returns))
+        compute, ground, override = feature_set(params), None, None
+        if self.ground_tolerance is not None:  # one terrain model for the features and the rule
+            terrain = scene_terrain(xyz, params.terrain)
+            ground = terrain.elevation(xyz[:, :2]) if compute.uses_ground else None
+            override = ground_override(terrain, xyz, self.ground_tolerance,
+                                       self.ground_column_)
+        features = compute(xyz, ids=ids, ground=ground,
+                           returns=_check_returns(params, returns))
         if labels is None:
             labels = np.full(len(xyz), -1, dtype=np.int64)
         return CloudData(xyz, ids, features, labels, len(self.classes_), r1=params.r1,
                          r2=params.r2, context_mode=self.context,
                          context_max_neighbors=params.context_max_neighbors,
-                         fitted_stages=fitted_stages)
+                         fitted_stages=fitted_stages, override=override)
 
     # -- estimator API ----------------------------------------------------------------------
     def fit(self, X, y, ids=None, returns=None):
@@ -152,6 +171,7 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
         self.classes_ = np.unique(y[y != -1]) if y.dtype.kind in "iu" else np.unique(y)
         if len(self.classes_) < 2:
             raise ValueError(f"y must hold at least 2 classes, got {list(self.classes_)}")
+        self.ground_column_ = self._ground_column()
         labels = np.full(len(y), -1, dtype=np.int64)
         known = np.isin(y, self.classes_)
         labels[known] = np.searchsorted(self.classes_, y[known])
@@ -162,6 +182,21 @@ class CascadedForest(ClassifierMixin, BaseEstimator):
         self.feature_names_ = feature_set(self.feature_params_).columns
         self.n_features_in_ = 3
         return self
+
+    def _ground_column(self) -> int | None:
+        """The column of ``ground_label`` in ``classes_`` (None with the rule off)."""
+        if self.ground_tolerance is None:
+            return None
+        if not (isinstance(self.ground_tolerance, (int, float))
+                and self.ground_tolerance > 0):
+            raise ValueError(f"ground_tolerance must be None or a distance in metres > 0, "
+                             f"got {self.ground_tolerance!r}")
+        found = np.flatnonzero(self.classes_ == self.ground_label)
+        if not found.size:
+            raise ValueError(f"ground_label {self.ground_label!r} is not a class of y "
+                             f"({list(self.classes_)}); set ground_label to the label of "
+                             "ground, or ground_tolerance=None")
+        return int(found[0])
 
     def staged_predict_proba(self, X, ids=None, returns=None):
         """Yield float32 (N, C) probabilities after each stage, in order."""

@@ -54,8 +54,8 @@ def stage_rows(xy: np.ndarray, n_core: int, box, r1: float, stages: int) -> list
 
 def one_pass(xyz: np.ndarray, ids: np.ndarray, n_core: int, box,
              features_of: Callable[[np.ndarray], np.ndarray], forests: Sequence, *,
-             n_classes: int, mode: str, r1: float, r2: float, max_neighbors: int | None
-             ) -> tuple[list[np.ndarray], np.ndarray]:
+             n_classes: int, mode: str, r1: float, r2: float, max_neighbors: int | None,
+             override=None) -> tuple[list[np.ndarray], np.ndarray]:
     """Each stage's float32 (n_core, C) probabilities of the core points, and a bool
     (n_core,) mask of the core points whose features are undefined.
 
@@ -63,7 +63,9 @@ def one_pass(xyz: np.ndarray, ids: np.ndarray, n_core: int, box,
     of at least :func:`one_pass_halo`; ``features_of(rows)`` gives the feature rows of
     those window rows; ``forests`` are the fitted stages in order; ``mode``, ``r1``, ``r2``
     and ``max_neighbors`` the context's, as :func:`pipeline.cascade.stage_context` takes
-    them. No point here is a training point of the forests.
+    them; ``override`` (a :class:`~pipeline.cascade.ground_rule.GroundOverride` of the
+    window's rows, or None) sets the points on seen ground to ground at every stage, as
+    the stage-by-stage cascade does. No point here is a training point of the forests.
     """
     rows = stage_rows(xyz, n_core, box, r1, len(forests))
     features = features_of(rows[0])
@@ -77,5 +79,7 @@ def one_pass(xyz: np.ndarray, ids: np.ndarray, n_core: int, box,
         stage_features = features[np.searchsorted(rows[0], rows[t])]
         proba = predict_stage_proba(forest, stage_input(stage_features, context, n_classes),
                                     n_classes)
+        if override is not None:
+            proba = override.apply(proba, rows[t])
         probas.append(proba[:n_core])
     return probas, np.isnan(features[:n_core]).any(axis=1)

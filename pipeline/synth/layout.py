@@ -137,7 +137,7 @@ def random_layout(rng: np.random.Generator, size: float, stand: Stand = Stand())
     ``stand`` adds touching crowns, suppressed trees and leaning stems; each draws from
     ``rng`` only when switched on, so the default stand gives the plain plot's draws.
     """
-    terrain = random_terrain(rng, size)
+    terrain = random_terrain(rng, size, stand.slope, stand.ridge)
     scanners = scanner_positions(rng, size, terrain)
     taken = _Occupancy()
     taken.add(scanners[:, :2], 0.6)

@@ -56,13 +56,20 @@ class Stand:
         dominant tree's crown, their top 45-85 % of its crown base.
     lean : degrees (0-15): every stem leans by between half this and this, in a random
         direction (0: the plain plot's slight lean, 1-2 degrees).
+    slope : degrees (0-60): the stand grows on a hillside this steep, in a random direction
+        (0: the plain plot's gentle 3-18 % grade); the plot's other draws are unchanged.
+    ridge : the ground is a ridge along the middle of the plot, its two faces falling at
+        the slope (``slope``, or the plain grade) on either side.
     """
 
     touching: float = 0.0
     suppressed: float = 0.0
     lean: float = 0.0
+    slope: float = 0.0
+    ridge: bool = False
 
 
 #: A stand with every kind of realism switched on (``silva synth``'s plain plot is Stand()).
 REAL_STAND = Stand(touching=0.5, suppressed=0.3, lean=5.0)
 MAX_LEAN = 15.0  # degrees
+MAX_SLOPE = 60.0  # degrees

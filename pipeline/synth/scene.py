@@ -16,6 +16,7 @@ from pipeline.synth.params import (
     DEFAULT_SIZE,
     MAX_LEAN,
     MAX_SIZE,
+    MAX_SLOPE,
     MIN_SIZE,
     Stand,
 )
@@ -118,10 +119,13 @@ def synthetic_plot(
 
 
 def check_stand(stand) -> Stand:
-    """``stand`` checked: a :class:`Stand` whose shares are in 0-1 and lean in 0-MAX_LEAN."""
+    """``stand`` checked: a :class:`Stand` whose shares are in 0-1, lean in 0-MAX_LEAN,
+    slope in 0-MAX_SLOPE and ridge a bool."""
     if not isinstance(stand, Stand):
         raise ConfigError(f"stand must be a pipeline.synth.Stand, got {stand!r}")
-    limits = {"touching": 1.0, "suppressed": 1.0, "lean": MAX_LEAN}
+    if not isinstance(stand.ridge, (bool, np.bool_)):
+        raise ConfigError(f"stand.ridge must be true or false, got {stand.ridge!r}")
+    limits = {"touching": 1.0, "suppressed": 1.0, "lean": MAX_LEAN, "slope": MAX_SLOPE}
     for name, top in limits.items():
         value = getattr(stand, name)
         try:
@@ -129,7 +133,7 @@ def check_stand(stand) -> Stand:
         except (TypeError, ValueError):
             ok = False
         if not ok:
-            unit = " degrees" if name == "lean" else ""
+            unit = " degrees" if name in ("lean", "slope") else ""
             raise ConfigError(f"stand.{name} must be a number from 0 to {top:g}{unit}, got "
                               f"{value!r}")
     return stand

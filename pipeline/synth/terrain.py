@@ -15,26 +15,37 @@ class Terrain:
     """Ground height as a smooth function of local (x, y): a plane plus random sinusoids.
 
     ``waves`` is (M, 4) float64: wave-vector x, wave-vector y (radians per metre), phase,
-    amplitude (metres).
+    amplitude (metres). ``crest``: None for a plane; else the ground is a ridge, two faces
+    falling at the plane's grade on either side of the line where the plane's height is
+    ``crest`` (a plane folded down along it).
     """
 
     slope: np.ndarray  # (2,) dz/dx, dz/dy
     waves: np.ndarray
+    crest: float | None = None
 
     def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Ground height (metres, local frame) at local coordinates ``x``, ``y`` (same shape)."""
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         z = self.slope[0] * x + self.slope[1] * y
+        if self.crest is not None:
+            z = -np.abs(z - self.crest)
         for kx, ky, phase, amp in self.waves:
             z = z + amp * np.sin(kx * x + ky * y + phase)
         return z
 
 
-def random_terrain(rng: np.random.Generator, size: float) -> Terrain:
+def random_terrain(rng: np.random.Generator, size: float, slope: float = 0.0,
+                   ridge: bool = False) -> Terrain:
+    """A plot's ground: a 3-18 % grade in a random direction, or a hillside of ``slope``
+    degrees (> 0) in one; with ``ridge``, folded into a ridge along the plot's middle. The
+    draws are the same whatever ``slope`` and ``ridge``: only the heights change."""
     grade = rng.uniform(0.03, 0.18)  # a 3-18 % slope in a random direction
     aspect = rng.uniform(0, 2 * np.pi)
-    slope = grade * np.array([np.cos(aspect), np.sin(aspect)])
+    if slope > 0:
+        grade = math.tan(math.radians(slope))
+    gradient = grade * np.array([np.cos(aspect), np.sin(aspect)])
     # (count, wavelength range in m, amplitude per metre of wavelength):
     # undulations, micro-relief (hummocks, pits), centimetre roughness.
     bands = ((6, (6.0, 30.0), 0.02), (8, (1.0, 4.0), 0.012), (6, (0.25, 0.8), 0.015))
@@ -51,7 +62,8 @@ def random_terrain(rng: np.random.Generator, size: float) -> Terrain:
                 amp_per_m * wavelength * rng.uniform(0.5, 1.0, count),
             ]
         )
-    return Terrain(slope=slope, waves=np.concatenate(waves))
+    crest = float(gradient @ np.array([size / 2, size / 2])) if ridge else None
+    return Terrain(slope=gradient, waves=np.concatenate(waves), crest=crest)
 
 
 def terrain_surface(rng, terrain: Terrain, size: float, density: float):

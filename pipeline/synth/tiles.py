@@ -54,7 +54,7 @@ log = logging.getLogger(__name__)
 
 def write_synthetic_plot(
     out_dir, seed: int = 0, size: float = DEFAULT_SIZE, tile_size: float = DEFAULT_TILE_SIZE,
-    stand: Stand = Stand(),
+    stand: Stand = Stand(), origin=DEFAULT_ORIGIN,
 ) -> list[Path]:
     """Write :func:`synthetic_plot` as LAZ tiles of a regular ``tile_size`` grid in ``out_dir``.
 
@@ -63,11 +63,13 @@ def write_synthetic_plot(
     ``TreeID`` (uint32, 0 in no living tree). Tile (ix, iy) holds the points of the half-open
     cell [ox + ix t, ox + (ix+1) t) x [oy + iy t, oy + (iy+1) t), so every point is in exactly
     one tile; empty tiles are not written. The trees' truth goes to ``out_dir/trees.csv``.
-    ``stand`` adds realism as in :func:`~pipeline.synth.scene.synthetic_scene`.
+    ``stand`` adds realism as in :func:`~pipeline.synth.scene.synthetic_scene`; ``origin``
+    is the plot's lower-left corner at ground level (x, y, z in the CRS), so that plots
+    written apart can be one scene side by side.
     Returns the paths ``plot_s{seed}_{ix}_{iy}.laz`` sorted by (ix, iy). Memory grows with the
     plot by 4 bytes per point only, the shuffle (module docstring); a tile is held whole.
     """
-    seed, size, _ = check_plot_args(seed, size, DEFAULT_ORIGIN)
+    seed, size, origin = check_plot_args(seed, size, origin)
     tile_size = finite_number(tile_size, "tile_size", hint="the tiles' side in metres")
     stand = check_stand(stand)
     out_dir = Path(out_dir)
@@ -77,7 +79,7 @@ def write_synthetic_plot(
     out_dir.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".synth-s{seed}-", dir=out_dir))
     try:
-        return _write_tiles(out_dir, work, seed, size, tile_size, stand)
+        return _write_tiles(out_dir, work, seed, size, tile_size, stand, origin)
     except BaseException:
         if created:
             shutil.rmtree(out_dir, ignore_errors=True)
@@ -145,11 +147,11 @@ def _by_key(keys: np.ndarray, values: np.ndarray):
 
 
 def _write_tiles(out_dir: Path, work: Path, seed: int, size: float, tile_size: float,
-                 stand: Stand):
+                 stand: Stand, origin: tuple[float, float, float]):
     """:func:`write_synthetic_plot` with its temporary files in ``work``."""
     rng = np.random.default_rng(seed)
     layout = random_layout(rng, size, stand)
-    origin = np.asarray(DEFAULT_ORIGIN)
+    origin = np.asarray(origin)
     n_tiles = max(1, math.ceil(size / tile_size))
     shares = {}
     _hide_shadowed(work, layout, _record_samples(work, rng, layout, shares))

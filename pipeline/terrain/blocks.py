@@ -180,7 +180,7 @@ class BlockGrid:
 
 
 #: The arrays of :meth:`BlockTerrain.to_arrays`, by name.
-BLOCK_ARRAYS = ("boxes", "values", "tiles", "tile_groups", "reach")
+BLOCK_ARRAYS = ("boxes", "values", "seen", "tiles", "tile_groups", "reach")
 
 
 @dataclass(frozen=True)
@@ -189,12 +189,15 @@ class BlockTerrain:
 
     dtms : the groups' DTMs (Rasters without NaN, one cell size), the largest first, each
         cut to the block's core and one cell around it (what :func:`bilinear` reads there).
+    seen : bool arrays of the DTMs' shapes: the cells whose own lowest point the filter
+        kept as ground (seen ground, not filled or interpolated).
     tiles : int64 (T, 2), the occupied tiles of ``reach`` x ``reach`` cells of the groups,
         and tile_groups : int64 (T,), the group of each; both may be empty for one group.
     reach : the tiles' side in cells (:func:`block_reach`).
     """
 
     dtms: tuple[Raster, ...]
+    seen: tuple[np.ndarray, ...]
     tiles: np.ndarray
     tile_groups: np.ndarray
     reach: int
@@ -227,26 +230,40 @@ class BlockTerrain:
                 out[mine] = bilinear(dtm, xy[mine])
         return out
 
+    def on_seen_ground(self, xy: np.ndarray) -> np.ndarray:
+        """bool (N,): whether each position's cell is a seen ground cell of its group's
+        model (False beyond the group's raster)."""
+        out = np.zeros(len(xy), dtype=bool)
+        groups = _members(self.group_of(xy), len(self.dtms))
+        for dtm, seen, mine in zip(self.dtms, self.seen, groups):
+            kx, ky = cell_indices(xy[mine, 0], xy[mine, 1], dtm.cell)
+            j, i = kx - round(dtm.x0 / dtm.cell), ky - round(dtm.y0 / dtm.cell)
+            inside = (i >= 0) & (i < seen.shape[0]) & (j >= 0) & (j < seen.shape[1])
+            out[mine[inside]] = seen[i[inside], j[inside]]
+        return out
+
     def to_arrays(self) -> dict[str, np.ndarray]:
         """The model as named arrays: every DTM's (kx0, ky0, nx, ny) (its south-west cell
-        key and shape), their values one after another (rows south first), the tiles, their
-        groups and the reach."""
+        key and shape), their values one after another (rows south first), their seen
+        ground cells likewise, the tiles, their groups and the reach."""
         cell = self.dtms[0].cell
         boxes = np.array([(round(d.x0 / cell), round(d.y0 / cell), d.shape[1], d.shape[0])
                           for d in self.dtms], dtype=np.int64)
         values = np.concatenate([d.values.reshape(-1) for d in self.dtms])
-        return dict(zip(BLOCK_ARRAYS, (boxes, values, self.tiles, self.tile_groups,
+        seen = np.concatenate([s.reshape(-1) for s in self.seen])
+        return dict(zip(BLOCK_ARRAYS, (boxes, values, seen, self.tiles, self.tile_groups,
                                        np.array([self.reach], np.int64))))
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], cell: float) -> "BlockTerrain":
         """The model of :meth:`to_arrays` with cells of ``cell`` metres."""
-        dtms, start = [], 0
+        dtms, seen, start = [], [], 0
         for kx0, ky0, nx, ny in arrays["boxes"].tolist():
             dtms.append(Raster(arrays["values"][start:start + nx * ny].reshape(ny, nx),
                                kx0 * cell, ky0 * cell, cell))
+            seen.append(np.asarray(arrays["seen"][start:start + nx * ny], bool).reshape(ny, nx))
             start += nx * ny
-        return cls(tuple(dtms), np.asarray(arrays["tiles"], np.int64).reshape(-1, 2),
+        return cls(tuple(dtms), tuple(seen), np.asarray(arrays["tiles"], np.int64).reshape(-1, 2),
                    np.asarray(arrays["tile_groups"], np.int64), int(arrays["reach"][0]))
 
 
@@ -298,7 +315,7 @@ def block_model(keys: np.ndarray, zmin: np.ndarray, xy: np.ndarray, grid: BlockG
         raise InputError(f"terrain block {block[0]}_{block[1]} holds no point")
     labels, tiles, groups = group_labels(keys, grid.reach)
     kept = np.unique(labels[in_core])  # in order: the largest group first
-    dtms, occupied, unseen = [], 0, 0
+    dtms, seen, occupied, unseen = [], [], 0, 0
     members = _members(labels, int(labels.max()) + 1)
     for group in kept:
         mine = members[group]
@@ -306,13 +323,14 @@ def block_model(keys: np.ndarray, zmin: np.ndarray, xy: np.ndarray, grid: BlockG
         model = _lone_cell_model(minima) if mine.size == 1 else ground_model(
             minima, params, minima_offsets(keys[mine], xy[mine], minima))
         core_minima = _core_cut(minima, core_low, core_high).values
-        core_ground = _core_cut(Raster(model.ground.astype(float), minima.x0, minima.y0,
-                                       grid.cell), core_low, core_high).values
+        ground = Raster(model.ground.astype(float), minima.x0, minima.y0, grid.cell)
+        core_ground = _core_cut(ground, core_low, core_high).values
         occupied += int(np.count_nonzero(~np.isnan(core_minima)))
         unseen += int(np.count_nonzero(~np.isnan(core_minima) & (core_ground == 0)))
         dtms.append(_core_cut(model.dtm, core_low - 1, core_high + 1))
+        seen.append(_core_cut(ground, core_low - 1, core_high + 1).values == 1)
     on_kept = np.isin(groups, kept)
-    return BlockModel(BlockTerrain(tuple(dtms), tiles[on_kept],
+    return BlockModel(BlockTerrain(tuple(dtms), tuple(seen), tiles[on_kept],
                                    np.searchsorted(kept, groups[on_kept]), grid.reach),
                       occupied, unseen)
 
@@ -348,12 +366,21 @@ class SceneTerrain:
 
     def elevation(self, xy: np.ndarray) -> np.ndarray:
         """float64 (N,): each position's elevation in the model of its block."""
+        return self._per_block(xy, np.float64, BlockTerrain.elevation)
+
+    def on_seen_ground(self, xy: np.ndarray) -> np.ndarray:
+        """bool (N,): whether each position's cell is seen ground in the model of its block
+        (:meth:`BlockTerrain.on_seen_ground`)."""
+        return self._per_block(xy, bool, BlockTerrain.on_seen_ground)
+
+    def _per_block(self, xy: np.ndarray, dtype, read) -> np.ndarray:
+        """``read(block_terrain, xy)`` of each position in the model of its block."""
         xy = np.asarray(xy, dtype=np.float64)
-        out = np.empty(len(xy))
+        out = np.empty(len(xy), dtype=dtype)
         rows = self.block_of(xy)
         for row in np.unique(rows):
             mine = rows == row
-            out[mine] = self.load(int(row)).elevation(xy[mine])
+            out[mine] = read(self.load(int(row)), xy[mine])
         return out
 
 

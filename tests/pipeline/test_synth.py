@@ -404,10 +404,39 @@ def test_real_stand_tiles_are_the_scene(tmp_path):
     assert np.allclose(np.sort(xyz[:, 2]), np.sort(scene.xyz[:, 2]), atol=5e-4)
 
 
+def _fitted_grade(terrain, size: float) -> tuple[np.ndarray, np.ndarray]:
+    """The true ground's heights on a 1 m grid of the plot and its gradient there."""
+    x, y = np.meshgrid(np.arange(0.5, size), np.arange(0.5, size))
+    z = terrain.height(x, y)
+    return z, np.hypot(*np.gradient(z, 1.0))
+
+
+def test_a_hillside_slopes_at_the_angle_asked_and_a_ridge_falls_both_ways():
+    """The median gradient of a 40 degree hillside is tan(40) (the undulations add a
+    little); the plain plot's is a gentle grade; a ridge's highest line runs along the
+    plot's middle, its edges lower on both sides; the placement draws are unchanged."""
+    size = 20.0
+    plain, hill, ridge = (layout_of(3, Stand(**kw), size)
+                          for kw in ({}, {"slope": 40.0}, {"slope": 40.0, "ridge": True}))
+    _, grade = _fitted_grade(hill.terrain, size)
+    assert abs(np.median(grade) - np.tan(np.radians(40))) < 0.1
+    assert np.median(_fitted_grade(plain.terrain, size)[1]) < 0.3
+    z, grade = _fitted_grade(ridge.terrain, size)
+    assert abs(np.median(grade) - np.tan(np.radians(40))) < 0.1
+    middle = ridge.terrain.height(np.array([size / 2]), np.array([size / 2]))[0]
+    assert middle > np.percentile(z, 90)
+    for other in (hill, ridge):
+        assert np.array_equal(other.terrain.waves, plain.terrain.waves)
+        assert np.array_equal([t.stem.base[:2] for t in other.trees],
+                              [t.stem.base[:2] for t in plain.trees])
+
+
 @pytest.mark.parametrize("stand, name", [(Stand(touching=1.5), "stand.touching"),
                                          (Stand(suppressed=-0.1), "stand.suppressed"),
                                          (Stand(lean=20.0), "stand.lean"),
                                          (Stand(lean="a"), "stand.lean"),
+                                         (Stand(slope=61.0), "stand.slope"),
+                                         (Stand(ridge="yes"), "stand.ridge"),
                                          ({"lean": 5}, "stand must be")])
 def test_invalid_stands_are_refused(stand, name):
     with pytest.raises(ConfigError, match=name):

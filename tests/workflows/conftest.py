@@ -157,6 +157,11 @@ def a_tile(n_points=1000, mins=(0.0, 0.0, 0.0), maxs=(10.0, 10.0, 1.0), *, index
                 **more)
 
 
+#: The ground rule's tolerance of the quick configs: every run of the workflow tests applies
+#: the rule, so their invariances (chunks, workers, resume, the estimator) hold with it.
+GROUND_TOLERANCE = 0.1
+
+
 def write_config(path: Path, survey: dict, **sections) -> Path:
     """A quick config for ``survey``; keyword arguments update whole sections."""
     config = {
@@ -168,6 +173,7 @@ def write_config(path: Path, survey: dict, **sections) -> Path:
         },
         "tiling": {"chunk_size": 100.0},
         "features": {"r1": 0.5},
+        "terrain": {"ground_tolerance": GROUND_TOLERANCE},
         "cascade": {"stages": 2, "n_estimators": 6, "min_samples_leaf": 15,
                     "max_train_points": 8000, "seed": 3},
         "cluster": {"kind": "local", "n_workers": 1, "threads_per_worker": 1,

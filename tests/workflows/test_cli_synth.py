@@ -60,3 +60,39 @@ def test_synth_writes_a_real_stand_on_request(tmp_path):
     assert len(real) > len(plain)
     refused = silva("synth", tmp_path / "x", "--stand", "dense")
     assert refused.exit_code != 0 and "--stand" in refused.output
+
+
+def test_synth_writes_a_hillside_on_request(tmp_path):
+    """--slope 40: the plot's ground rises about 0.84 m a metre (its terrain points span
+    far more height than the plain plot's); --ridge folds it; a slope beyond 60 degrees is
+    one error line."""
+    from pipeline.io import read_points
+
+    def terrain_span(*extra):
+        out = tmp_path / "-".join(("plot", *extra))
+        result = silva("synth", out, "--seed", 4, "--size", 10, "--tile-size", 10, *extra)
+        assert result.exit_code == 0, result.output
+        points = read_points(next(out.glob("*.laz")))
+        z = points.xyz[points.fields["classification"] == SYNTH_CLASSES["terrain"], 2]
+        return np.ptp(z)
+
+    plain, hill, ridge = terrain_span(), terrain_span("--slope", "40"), terrain_span(
+        "--slope", "40", "--ridge")
+    assert plain < 3.0 and hill > 6.0 and 2.5 < ridge < hill
+    refused = silva("synth", tmp_path / "x", "--slope", "70")
+    assert refused.exit_code == 1 and refused.output.startswith("silva: error: stand.slope")
+
+
+def test_synth_places_a_plot_at_the_origin_asked(tmp_path):
+    """--origin X Y Z moves the plot (its points, not their arrangement) so that plots
+    written apart lie side by side in one scene."""
+    from pipeline.io import read_points
+
+    def xyz(*extra):
+        out = tmp_path / "-".join(("plot", *extra))
+        assert silva("synth", out, "--seed", 2, "--size", 6, "--tile-size", 6,
+                     *extra).exit_code == 0
+        return read_points(next(out.glob("*.laz"))).xyz
+
+    plain, moved = xyz(), xyz("--origin", "500100", "5500000", "410")
+    assert np.allclose(moved - plain, [100.0, 0.0, 10.0], atol=2e-3)

@@ -108,7 +108,7 @@ def test_defaults():
                            "trees": False}
     assert d["trees"]["method"] == "auto" and d["trees"]["min_height"] == 2.0
     assert d["terrain"] == {"cell": 1.0, "slope": 0.15, "window": 18.0, "threshold": 0.5,
-                            "scalar": 1.25, "block": "auto"}
+                            "scalar": 1.25, "block": "auto", "ground_tolerance": None}
 
 
 def test_derived_radii_and_halo():

@@ -4,6 +4,7 @@ the estimator gives the workflow's bits, the model records the key (a model.json
 reads as false), and tiles without returns are refused in one line before any feature."""
 
 import json
+import shutil
 from pathlib import Path
 
 import laspy
@@ -12,6 +13,7 @@ import pytest
 
 from pipeline.cascade import CascadedForest
 from pipeline.errors import ConfigError
+from pipeline.model import DIGEST_KEY, description_digest
 from pipeline.store import open_store
 from workflows.config import validate_config
 from workflows.models import installed_models
@@ -19,6 +21,7 @@ from workflows.run.autoparams import run_config
 from workflows.steps.table import STEPS as TABLE
 from workflows.store.layout import proba_array
 from tests.workflows.conftest import (
+    GROUND_TOLERANCE,
     assert_same_predictions,
     error_line,
     read_predictions,
@@ -126,7 +129,8 @@ def test_the_estimator_equals_the_workflow_with_echoes(reference):
     train = scene_arrays(reference, "train", names)
     test = scene_arrays(reference, "test", (*names, proba_array(0), proba_array(1)))
     model = CascadedForest(feature_set="covariance", echoes=True, stages=2, n_estimators=6,
-                           min_samples_leaf=15, r1=0.5, max_train_points=8000, random_state=3)
+                           min_samples_leaf=15, r1=0.5, max_train_points=8000, random_state=3,
+                           ground_tolerance=GROUND_TOLERANCE, ground_label=0)
     model.fit(train["xyz"], train["label"], ids=train["gid"],
               returns=(train["return_number"], train["number_of_returns"]))
     assert model.feature_names_[-1] == "return_number_std_r2"
@@ -220,20 +224,23 @@ def test_toggling_echoes_changes_the_ingest_and_every_later_step():
     assert all(fingerprint(off, step) == fingerprint(said, step) for step in STEPS)
 
 
-def test_a_model_json_without_the_key_is_a_model_without_echoes(echo_survey):
-    """The shipped forest model was saved before the key: it applies as before, without
-    echoes, and a configuration asking for echoes with it is refused naming the key."""
-    name = "forest-tls-synthetic"
-    description = json.loads((installed_models()[name] / "model.json").read_text())
-    assert "features.echoes" not in description
+def test_a_model_json_without_the_key_is_a_model_without_echoes(echo_survey, tmp_path):
+    """A model saved before the key (the shipped forest model without it, re-digested)
+    applies as before, without echoes, and a configuration asking for echoes with it is
+    refused naming the key."""
+    model = tmp_path / "before-echoes"
+    shutil.copytree(installed_models()["forest-tls-synthetic"], model)
+    description = json.loads((model / "model.json").read_text())
+    del description["features.echoes"]
+    description[DIGEST_KEY] = description_digest(description)
+    (model / "model.json").write_text(json.dumps(description))
     tile = sorted(echo_survey["test"].glob("*.laz"))[0]
-    plan = run_config(None, model_dir=installed_models()[name], inputs=[tile])
+    plan = run_config(None, model_dir=model, inputs=[tile])
     assert plan.cfg.features.echoes is False and not plan.cfg.features.params.echoes
     with pytest.raises(ConfigError, match="features.echoes is true in the configuration, but "
-                                        f"the model .*{name} was trained with "
+                                        "the model .*before-echoes was trained with "
                                         "features.echoes=false"):
-        run_config(None, ["features.echoes=true"], model_dir=installed_models()[name],
-                   inputs=[tile])
+        run_config(None, ["features.echoes=true"], model_dir=model, inputs=[tile])
 
 
 def test_silva_models_says_which_models_use_echoes():

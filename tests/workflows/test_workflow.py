@@ -25,6 +25,7 @@ from workflows.cli.main import main
 from workflows.store.layout import proba_array
 from workflows.steps.table import STEPS
 from tests.workflows.conftest import (
+    GROUND_TOLERANCE,
     assert_chunked,
     assert_same_predictions,
     read_predictions,
@@ -61,6 +62,7 @@ def test_outputs_of_a_complete_run(reference, survey):
     assert list(importances)[:2] == ["I2_22", "I2_222"] and len(importances) == 11 + 2 * 4
     assert abs(sum(importances.values()) - 1) < 1e-3
     assert model["versions"]["scikit-learn"] and model["features.columns"][0] == "I2_22"
+    assert model["terrain.ground_tolerance"] == GROUND_TOLERANCE
     assert (reference / "config.yaml").is_file()
     # every input point comes back, in order, with its original dimensions
     import laspy
@@ -135,13 +137,16 @@ def test_estimator_equals_the_workflow(survey_run_kept, many_chunks):
     """CascadedForest and `silva run` are one method: same seed and parameters, the same
     probabilities bit for bit, stage by stage over stored features in one chunk in this
     process (write_config's defaults with output.keep_features true), and in one pass over
-    many chunks on 2 workers (which keeps the first stage's labels only)."""
+    many chunks on 2 workers (which keeps the first stage's labels only). Both apply the
+    ground rule (terrain, class 0, is certain on seen ground) at every stage."""
     train, test = _scene_points(survey_run_kept, "train"), _scene_points(survey_run_kept, "test")
     model = CascadedForest(stages=2, n_estimators=6, min_samples_leaf=15, r1=0.5,
-                           max_train_points=8000, random_state=3)
+                           max_train_points=8000, random_state=3,
+                           ground_tolerance=GROUND_TOLERANCE, ground_label=0)
     model.fit(train["xyz"], train["label"], ids=train["gid"])
     assert list(model.classes_) == [0, 1, 2, 3]
     staged = list(model.staged_predict_proba(test["xyz"], ids=test["gid"]))
+    assert (staged[0][:, 0] == 1).mean() > 0.2  # the rule took points
     assert np.array_equal(staged[0], test["stage1_proba"])
     assert np.array_equal(staged[1], test["stage2_proba"])
     distributed = _scene_points(many_chunks, "test", first="stage1_labels")

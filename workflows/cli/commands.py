@@ -432,7 +432,15 @@ def demo(out, quiet, in_process, overwrite, overrides, plot_size, verbose):
               show_default=True,
               help="real: touching crowns, suppressed trees under dominant ones and stems "
                    "leaning up to 5 degrees, as in real stands.")
-def synth(out_dir, seed, size, tile_size, stand):
+@click.option("--slope", default=0.0, type=float, show_default=True, metavar="DEGREES",
+              help="A hillside this steep (up to 60), in a random direction; 0: a gentle "
+                   "3-18 % grade.")
+@click.option("--ridge", is_flag=True,
+              help="A ridge along the plot's middle, its faces falling at the slope.")
+@click.option("--origin", type=float, nargs=3, default=None, metavar="X Y Z",
+              help="The plot's lower-left corner at ground level [default: 500000 5500000 "
+                   "400, UTM 32N]: plots written apart then lie side by side in one scene.")
+def synth(out_dir, seed, size, tile_size, stand, slope, ridge, origin):
     """Write a labelled synthetic forest plot as LAZ tiles into OUT_DIR, with the trees'
     truth in OUT_DIR/trees.csv.
 
@@ -441,11 +449,17 @@ def synth(out_dir, seed, size, tile_size, stand):
       silva synth plots/train --seed 1
       silva synth plots/test --seed 2 --size 30 --tile-size 15
       silva synth plots/real --seed 3 --stand real
+      silva synth plots/ridge --seed 5 --slope 40 --ridge
+      silva synth plots/hill --seed 11 --slope 35 --origin 500100 5500000 400
     """
+    from dataclasses import replace
+
     from pipeline.synth import REAL_STAND, Stand, write_synthetic_plot
 
-    kwargs = {k: v for k, v in {"size": size, "tile_size": tile_size}.items() if v is not None}
-    kwargs["stand"] = REAL_STAND if stand == "real" else Stand()
+    kwargs = {k: v for k, v in {"size": size, "tile_size": tile_size,
+                                "origin": origin}.items() if v is not None}
+    kwargs["stand"] = replace(REAL_STAND if stand == "real" else Stand(), slope=slope,
+                              ridge=ridge)
     paths = write_synthetic_plot(out_dir, seed=seed, **kwargs)
     for path in paths:
         click.echo(str(path))

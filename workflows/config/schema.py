@@ -449,6 +449,16 @@ class TerrainConfig(Section):
         "coordinates: the memory of a block's model follows it, not the survey's area. "
         "'auto': 1,000 cells (1 km at 1 m cells). The results depend on it (a little, at the "
         "blocks' edges), never on the chunking or the workers.")
+    ground_tolerance: Number | None = Field(
+        None, gt=0,
+        description="Where the terrain model is confident, its answer is the class: a point "
+        "over a cell whose own lowest point the filter kept as ground (seen, not filled) and "
+        "within this many metres of the DTM is ground (the class of code 2), certainly, at "
+        "every cascade stage and whatever the forests say; a model records it. Unset: off "
+        "(the forests decide; models saved before the key). 0.1 m, the installed "
+        "terrestrial model's, calls 99 % of a 40-degree synthetic hillside's terrain terrain "
+        "where forests trained on gentle ground alone call 55 %, and costs their dead wood "
+        "on gentle ground 0.01 F1 (docs/BENCHMARKS.md, 'Steep slopes').")
 
     @model_validator(mode="after")
     def _check_params(self) -> "TerrainConfig":
@@ -800,6 +810,21 @@ class SilvaConfig(Section):
                     raise fail(f"{key}: '{name}' is not a class; classes: "
                                + ", ".join(self.data.class_names))
         return self
+
+    @model_validator(mode="after")
+    def _check_ground_class(self) -> "SilvaConfig":
+        if self.terrain.ground_tolerance is not None and self.data.class_names \
+                and self.ground_class is None:
+            raise fail("terrain.ground_tolerance makes points on seen ground ground, but no "
+                       f"class of data.classes has the code {GROUND_CODE} (ground); give the "
+                       "ground class that code or remove terrain.ground_tolerance")
+        return self
+
+    @property
+    def ground_class(self) -> int | None:
+        """Index of the class whose first code is :data:`GROUND_CODE` (None: none is)."""
+        codes = self.data.class_codes
+        return codes.index(GROUND_CODE) if GROUND_CODE in codes else None
 
     @property
     def canopy_classes(self) -> list[int]:

@@ -107,6 +107,7 @@ def feature_description(cfg: SilvaConfig) -> dict:
         "features.version": params.version,
         "cascade.context": cfg.cascade.context,
         **{f"terrain.{k}": v for k, v in asdict(terrain).items()},
+        "terrain.ground_tolerance": cfg.terrain.ground_tolerance,
     }
 
 

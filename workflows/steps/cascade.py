@@ -44,6 +44,7 @@ from workflows.run.directory import Run
 from workflows.run.plan import AppliedModel, check_model
 from workflows.run.progress import say
 from workflows.steps.copies import trained_copies
+from workflows.steps.terrain import GroundRule
 from workflows.store.layout import ROLE_TRAIN, context_array, labels_array, proba_array
 from workflows.store.scenes import RunLayout
 
@@ -69,6 +70,7 @@ class StageTask:
     seed: int
     forest_path: str = ""
     fold_paths: tuple[str, ...] = ()
+    ground: GroundRule = GroundRule()
 
 
 def _chunk_inputs(view, task):
@@ -134,6 +136,9 @@ def chunk_predict(view, task: StageTask):
     proba = chunk_proba(cached_forest(task.forest_path),
                         [cached_forest(p) for p in task.fold_paths], features, context, labels,
                         gid, np.asarray(task.fractions), task.seed, task.n_classes)
+    override = task.ground.override(view, view.read("xyz"))
+    if override is not None:
+        proba = override.apply(proba)
     view.write(**{proba_array(task.stage): proba,
                   labels_array(task.stage): labels_from_proba(proba)})
 
@@ -208,7 +213,8 @@ class StoreCascade:
             folds = tuple(str(stage_file(self.run.work_path / "folds", stage, k))
                           for k in range(self.params.folds))
         return StageTask(stage, self.n_classes, tuple(float(f) for f in fractions), seed,
-                         str(stage_file(self.run.model_path, stage)), folds)
+                         str(stage_file(self.run.model_path, stage)), folds,
+                         GroundRule.of(self.run))
 
     # -- the CascadeData interface ------------------------------------------------------
     def update_context(self, stage):

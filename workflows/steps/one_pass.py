@@ -24,7 +24,7 @@ from workflows.exec.engine import chunk_tasks, chunk_window_returns
 from workflows.run.directory import Run
 from workflows.steps.cascade import cached_forest
 from workflows.steps.features import neighbourhood_checks, warn_neighbourhoods
-from workflows.steps.terrain import ground_under
+from workflows.steps.terrain import GroundRule, ground_under
 from workflows.store.layout import labels_array, proba_array
 from workflows.store.scenes import RunLayout, SceneLayout
 
@@ -40,6 +40,7 @@ class OnePassTask:
     tiles: tuple[int, ...]  # the tiles with points in this scene
     grid: Grid | BalancedLayout
     forest_paths: tuple[str, ...]  # the fitted stages, in order
+    ground: GroundRule = GroundRule()
 
 
 def chunk_box(grid, name: str) -> np.ndarray:
@@ -66,7 +67,8 @@ def chunk_one_pass(view, task: OnePassTask):
         xyz, ids, n_core, chunk_box(task.grid, view.chunk), features_of,
         [cached_forest(p) for p in task.forest_paths],
         n_classes=task.n_classes, mode=task.context, r1=params.r1, r2=params.r2,
-        max_neighbors=params.context_max_neighbors)
+        max_neighbors=params.context_max_neighbors,
+        override=task.ground.override(view, xyz))
     last = len(probas) - 1  # what export and evaluate read: the earlier stages' labels
     write_arrays(view.group, {"undefined": undefined, proba_array(last): probas[last],
                               **{labels_array(t): labels_from_proba(p)
@@ -127,6 +129,6 @@ def classify_in_one_pass(run: Run, engine, layout: RunLayout, stages: list[dict]
     tasks = chunk_tasks(
         run, layout, "apply", chunk_one_pass,
         lambda info: OnePassTask(run.features, run.cfg.cascade.context, run.n_classes,
-                                 info.tiles, info.grid, forests),
+                                 info.tiles, info.grid, forests, GroundRule.of(run)),
         fingerprint, "train" if run.model_dir is None else "predict", only=only)
     warn_neighbourhoods(run, engine.map("apply", tasks).values())

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.cascade import GroundOverride, ground_override
 from pipeline.errors import InputError
 from pipeline.store import open_store, write_arrays
 from pipeline.terrain import (
@@ -126,3 +127,24 @@ def terrain(run: Run, engine, layout: RunLayout) -> None:
 def ground_under(view, xyz: np.ndarray) -> np.ndarray:
     """float64 (N,): the elevation of the chunk's scene's terrain model under ``xyz``."""
     return ground_elevation(stored_terrain(view.root, view.store_path, view.scene), xyz[:, :2])
+
+
+@dataclass(frozen=True)
+class GroundRule:
+    """The run's ground rule (:mod:`pipeline.cascade.ground_rule`): ``tolerance`` in
+    metres (None: off) and ``column``, the ground class's index."""
+
+    tolerance: float | None = None
+    column: int | None = None
+
+    @classmethod
+    def of(cls, run: Run) -> "GroundRule":
+        return cls(run.cfg.terrain.ground_tolerance, run.cfg.ground_class)
+
+    def override(self, view, xyz: np.ndarray) -> GroundOverride | None:
+        """The points of ``xyz`` (the chunk's) on seen ground of its scene's terrain model
+        (None with the rule off)."""
+        if self.tolerance is None:
+            return None
+        return ground_override(stored_terrain(view.root, view.store_path, view.scene), xyz,
+                               self.tolerance, self.column)
