@@ -339,6 +339,54 @@ _CCW_STATIC = _CCW_BOUND * 8.0
 _ICC_STATIC = _ICC_BOUND * 192.0
 
 
+_LOW32 = np.uint64(0xFFFFFFFF)
+_SHIFT32 = np.uint64(32)
+
+
+@_inline
+def _product_magnitude(a, b):
+    """|a * b| as (high, low) uint64 words, for int64 a, b with |a|, |b| < 2**62: the
+    32-bit halves multiplied separately, so nothing overflows."""
+    ua = np.uint64(abs(a))
+    ub = np.uint64(abs(b))
+    a1 = ua >> _SHIFT32
+    a0 = ua & _LOW32
+    b1 = ub >> _SHIFT32
+    b0 = ub & _LOW32
+    middle = a1 * b0 + a0 * b1  # < 2**63
+    low0 = a0 * b0
+    low = low0 + (middle << _SHIFT32)
+    carry = np.uint64(1) if low < low0 else np.uint64(0)
+    return a1 * b1 + (middle >> _SHIFT32) + carry, low
+
+
+@_inline
+def _sign_of(x):
+    return 1 if x > 0 else (-1 if x < 0 else 0)
+
+
+@_jit
+def _orient_grid_exact(ax, ay, bx, by, cx, cy):
+    """orient2d's exact sign for points on the predicates' grid, in integer arithmetic:
+    there every coordinate times ``_GRID`` is an integer of at most 2**60, so the
+    differences fit in int64 and their products in 128 bits (two words). No work arrays,
+    unlike the expansions of :func:`_orient2d_exact`."""
+    dax = np.int64(ax * _GRID) - np.int64(cx * _GRID)
+    dby = np.int64(by * _GRID) - np.int64(cy * _GRID)
+    day = np.int64(ay * _GRID) - np.int64(cy * _GRID)
+    dbx = np.int64(bx * _GRID) - np.int64(cx * _GRID)
+    left = _sign_of(dax) * _sign_of(dby)
+    right = _sign_of(day) * _sign_of(dbx)
+    if left != right or left == 0:  # the products differ in sign, or one is zero
+        return float(_sign_of(left - right))
+    left_high, left_low = _product_magnitude(dax, dby)
+    right_high, right_low = _product_magnitude(day, dbx)
+    if left_high == right_high and left_low == right_low:
+        return 0.0
+    larger = left_high > right_high or (left_high == right_high and left_low > right_low)
+    return float(left) if larger else float(-left)
+
+
 @_inline
 def _orient_idx(xy, a, b, c):
     """orient2d of points a, b, c of xy, which lie on the predicates' grid: a static error
@@ -355,7 +403,7 @@ def _orient_idx(xy, a, b, c):
     det = _orient2d_filtered(ax, ay, bx, by, cx, cy)
     if det == det:
         return det
-    return _orient2d_exact(ax, ay, bx, by, cx, cy)
+    return _orient_grid_exact(ax, ay, bx, by, cx, cy)
 
 
 @_inline
@@ -671,10 +719,12 @@ def _triangulate_core(xy, order, n, workspace):
                     ver, nbr, hull_next, hull_prev, hull_tri, n_tri, t, edge, p, stack
                 )
         else:
-            # the whole visible chain first -> ... -> last
+            # the whole visible chain first -> ... -> last; the edge before e was seen
+            # not to be visible unless the walk stopped at once
             first = e
-            while _orient_idx(xy, hull_prev[first], first, p) < 0.0:
-                first = hull_prev[first]
+            if e == start:
+                while _orient_idx(xy, hull_prev[first], first, p) < 0.0:
+                    first = hull_prev[first]
             last = hull_next[e]
             while _orient_idx(xy, last, hull_next[last], p) < 0.0:
                 last = hull_next[last]
