@@ -339,52 +339,98 @@ _CCW_STATIC = _CCW_BOUND * 8.0
 _ICC_STATIC = _ICC_BOUND * 192.0
 
 
-_LOW32 = np.uint64(0xFFFFFFFF)
-_SHIFT32 = np.uint64(32)
+# --- exact predicates on the grid, in integers ----------------------------------------------
+# On the grid every coordinate times _GRID is an integer of at most 2**60 in magnitude, so the
+# predicates are polynomials in integers: evaluated exactly as integers written in base 2**30
+# (int64 digits, the top one signed), with no expansion and no large work array.
+
+_DIGIT_BITS = 30
+_DIGIT_MASK = (1 << _DIGIT_BITS) - 1
 
 
 @_inline
-def _product_magnitude(a, b):
-    """|a * b| as (high, low) uint64 words, for int64 a, b with |a|, |b| < 2**62: the
-    32-bit halves multiplied separately, so nothing overflows."""
-    ua = np.uint64(abs(a))
-    ub = np.uint64(abs(b))
-    a1 = ua >> _SHIFT32
-    a0 = ua & _LOW32
-    b1 = ub >> _SHIFT32
-    b0 = ub & _LOW32
-    middle = a1 * b0 + a0 * b1  # < 2**63
-    low0 = a0 * b0
-    low = low0 + (middle << _SHIFT32)
-    carry = np.uint64(1) if low < low0 else np.uint64(0)
-    return a1 * b1 + (middle >> _SHIFT32) + carry, low
+def _grid_difference(u, v, out):
+    """(u - v) * _GRID for grid coordinates u, v (|.| <= 2**61) as 3 base-2**30 digits
+    into out."""
+    d = np.int64(u * _GRID) - np.int64(v * _GRID)
+    out[0] = d & _DIGIT_MASK
+    out[1] = (d >> _DIGIT_BITS) & _DIGIT_MASK
+    out[2] = d >> (2 * _DIGIT_BITS)
 
 
 @_inline
-def _sign_of(x):
-    return 1 if x > 0 else (-1 if x < 0 else 0)
+def _multiply_add(a, b, sign, out):
+    """out += sign * a * b, digit by digit (no carries): |digits| < 2**31 keep sums of up
+    to 3 products within int64 when out starts at zero or normalised."""
+    for i in range(a.shape[0]):
+        for j in range(b.shape[0]):
+            out[i + j] += sign * a[i] * b[j]
+
+
+@_inline
+def _normalise(c):
+    """Carry the digits of c: every digit but the last in [0, 2**30), the last signed. The
+    value is unchanged; returns its sign."""
+    carry = np.int64(0)
+    nonzero = False
+    last = c.shape[0] - 1
+    for i in range(last):
+        t = c[i] + carry
+        c[i] = t & _DIGIT_MASK
+        carry = t >> _DIGIT_BITS
+        nonzero = nonzero or c[i] != 0
+    c[last] += carry
+    if c[last] != 0:
+        return 1.0 if c[last] > 0 else -1.0
+    return 1.0 if nonzero else 0.0
 
 
 @_jit
 def _orient_grid_exact(ax, ay, bx, by, cx, cy):
-    """orient2d's exact sign for points on the predicates' grid, in integer arithmetic:
-    there every coordinate times ``_GRID`` is an integer of at most 2**60, so the
-    differences fit in int64 and their products in 128 bits (two words). No work arrays,
-    unlike the expansions of :func:`_orient2d_exact`."""
-    dax = np.int64(ax * _GRID) - np.int64(cx * _GRID)
-    dby = np.int64(by * _GRID) - np.int64(cy * _GRID)
-    day = np.int64(ay * _GRID) - np.int64(cy * _GRID)
-    dbx = np.int64(bx * _GRID) - np.int64(cx * _GRID)
-    left = _sign_of(dax) * _sign_of(dby)
-    right = _sign_of(day) * _sign_of(dbx)
-    if left != right or left == 0:  # the products differ in sign, or one is zero
-        return float(_sign_of(left - right))
-    left_high, left_low = _product_magnitude(dax, dby)
-    right_high, right_low = _product_magnitude(day, dbx)
-    if left_high == right_high and left_low == right_low:
-        return 0.0
-    larger = left_high > right_high or (left_high == right_high and left_low > right_low)
-    return float(left) if larger else float(-left)
+    """The exact sign of orient2d for points on the predicates' grid. (Coordinates, not xy
+    and indices: an array passed here would cost reference counts on the callers' fast
+    path.)"""
+    d = np.zeros((4, 3), dtype=np.int64)
+    _grid_difference(ax, cx, d[0])
+    _grid_difference(by, cy, d[1])
+    _grid_difference(ay, cy, d[2])
+    _grid_difference(bx, cx, d[3])
+    det = np.zeros(6, dtype=np.int64)
+    _multiply_add(d[0], d[1], 1, det)
+    _multiply_add(d[2], d[3], -1, det)
+    return _normalise(det)
+
+
+@_jit
+def _incircle_grid_exact(ax, ay, bx, by, cx, cy, px, py):
+    """The exact sign of incircle for points on the predicates' grid:
+    alift (bx cy - cx by) + blift (cx ay - ax cy) + clift (ax by - bx ay), coordinates
+    relative to p. Each lift and cross product is normalised before their product, whose
+    digits are then sums of at most 5 products below 2**61."""
+    d = np.zeros((6, 3), dtype=np.int64)
+    for row, (x, y) in enumerate(((ax, ay), (bx, by), (cx, cy))):
+        _grid_difference(x, px, d[2 * row])
+        _grid_difference(y, py, d[2 * row + 1])
+    lift = np.zeros(6, dtype=np.int64)
+    cross = np.zeros(6, dtype=np.int64)
+    total = np.zeros(12, dtype=np.int64)
+    for k in range(3):
+        u = 2 * ((k + 1) % 3)  # the two other points, in cyclic order
+        w = 2 * ((k + 2) % 3)
+        lift[:] = 0
+        _multiply_add(d[2 * k], d[2 * k], 1, lift)
+        _multiply_add(d[2 * k + 1], d[2 * k + 1], 1, lift)
+        _normalise(lift)
+        cross[:] = 0
+        _multiply_add(d[u], d[w + 1], 1, cross)
+        _multiply_add(d[w], d[u + 1], -1, cross)
+        _normalise(cross)
+        term = np.zeros(12, dtype=np.int64)
+        _multiply_add(lift, cross, 1, term)
+        _normalise(term)
+        for i in range(12):
+            total[i] += term[i]
+    return _normalise(total)
 
 
 @_inline
@@ -435,7 +481,7 @@ def _incircle_idx(xy, a, b, c, d):
     det = _incircle_filtered(ax, ay, bx, by, cx, cy, dx, dy)
     if det == det:
         return det
-    return _incircle_exact(ax, ay, bx, by, cx, cy, dx, dy)
+    return _incircle_grid_exact(ax, ay, bx, by, cx, cy, dx, dy)
 
 
 @_inline

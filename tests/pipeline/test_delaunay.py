@@ -11,6 +11,7 @@ from scipy.spatial import Delaunay
 from pipeline.errors import InputError
 from pipeline.features.delaunay import (
     TRIANGLES,
+    _incircle_grid_exact,
     _incircle_idx,
     _orient_grid_exact,
     _orient_idx,
@@ -211,17 +212,19 @@ def test_grid_predicates_give_exact_signs():
 
 
 
-def test_grid_orient_in_integers_is_exact():
-    """The integer orient2d behind the filters, called directly on grid points that are
-    collinear (exactly or up to an ulp) or at the extremes of the grid (|x| = 1, where the
-    products need all 122 bits)."""
+def test_grid_predicates_in_integers_are_exact():
+    """The integer predicates behind the filters, called directly on grid points that are
+    degenerate (exactly or up to an ulp) or at the extremes of the grid (|x| = 1, where the
+    products are largest)."""
     rng = np.random.default_rng(11)
-    extremes = np.array([-1.0, 1.0, 1 - 2**-52, -(1 - 2**-52), 0.0, 2**-60, -(2**-60)])
-    cases = [xy[:3] for xy in grid_quadruples(rng, 1500)]
-    cases += [snap_to_grid(np.vstack([rng.choice(extremes, size=(3, 2)), [[1.0, 1.0]]]))[:3]
+    extremes = np.array([-1.0, 1.0, 1 - 2**-52, -(1 - 2**-52), 0.5, 0.0, 2**-60, -(2**-60)])
+    cases = list(grid_quadruples(rng, 1500))
+    cases += [snap_to_grid(np.vstack([rng.choice(extremes, size=(4, 2)), [[1.0, 1.0]]]))[:4]
               for _ in range(1500)]
-    for a, b, c in cases:
+    for xy in cases:
+        a, b, c, d = xy
         assert sign(_orient_grid_exact(*a, *b, *c)) == sign(exact_orient(a, b, c))
+        assert sign(_incircle_grid_exact(*a, *b, *c, *d)) == sign(exact_incircle(a, b, c, d))
 
 # --- triangulation ------------------------------------------------------------------------------
 
