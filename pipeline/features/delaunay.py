@@ -25,7 +25,9 @@ Both predicates, ``orient2d`` and ``incircle``, are exact: a floating-point eval
 Shewchuk's static error bound decides almost every call, and the undecided ones are evaluated
 exactly with floating-point expansions (two_sum / two_product arithmetic, as in Shewchuk's
 "Adaptive precision floating-point arithmetic and fast robust geometric predicates", 1997).
-Hence no infinite loop and no crash on degenerate input.
+Hence no infinite loop and no crash on degenerate input. The triangulation's own predicates
+see only points on the grid below, where the coordinates are integers times 2^-60: their
+undecided calls are evaluated in integer arithmetic instead, with no work arrays.
 
 The expansions are exact only while no product underflows, so the points are first rounded to
 a grid: scaled by a power of two (exact, and the signs of both predicates are unchanged) to
