@@ -362,8 +362,8 @@ def _grid_difference(u, v, out):
 
 @_inline
 def _multiply_add(a, b, sign, out):
-    """out += sign * a * b, digit by digit (no carries): |digits| < 2**31 keep sums of up
-    to 3 products within int64 when out starts at zero or normalised."""
+    """out += sign * a * b, digit by digit, without carries: the callers keep every sum of
+    digit products within int64 (at most 6 products below 2**60)."""
     for i in range(a.shape[0]):
         for j in range(b.shape[0]):
             out[i + j] += sign * a[i] * b[j]
@@ -408,7 +408,7 @@ def _incircle_grid_exact(ax, ay, bx, by, cx, cy, px, py):
     """The exact sign of incircle for points on the predicates' grid:
     alift (bx cy - cx by) + blift (cx ay - ax cy) + clift (ax by - bx ay), coordinates
     relative to p. Each lift and cross product is normalised before their product, whose
-    digits are then sums of at most 5 products below 2**61."""
+    digits are then sums of at most 5 products below 2**60."""
     d = np.zeros((6, 3), dtype=np.int64)
     for row, (x, y) in enumerate(((ax, ay), (bx, by), (cx, cy))):
         _grid_difference(x, px, d[2 * row])
