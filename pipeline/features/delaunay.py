@@ -25,7 +25,9 @@ Both predicates, ``orient2d`` and ``incircle``, are exact: a floating-point eval
 Shewchuk's static error bound decides almost every call, and the undecided ones are evaluated
 exactly with floating-point expansions (two_sum / two_product arithmetic, as in Shewchuk's
 "Adaptive precision floating-point arithmetic and fast robust geometric predicates", 1997).
-Hence no infinite loop and no crash on degenerate input.
+Hence no infinite loop and no crash on degenerate input. The triangulation's own predicates
+see only points on the grid below, where the coordinates are integers times 2^-60: their
+undecided calls are evaluated in integer arithmetic instead, with no work arrays.
 
 The expansions are exact only while no product underflows, so the points are first rounded to
 a grid: scaled by a power of two (exact, and the signs of both predicates are unchanged) to
@@ -339,6 +341,100 @@ _CCW_STATIC = _CCW_BOUND * 8.0
 _ICC_STATIC = _ICC_BOUND * 192.0
 
 
+# --- exact predicates on the grid, in integers ----------------------------------------------
+# On the grid every coordinate times _GRID is an integer of at most 2**60 in magnitude, so the
+# predicates are polynomials in integers: evaluated exactly as integers written in base 2**30
+# (int64 digits, the top one signed), with no expansion and no large work array.
+
+_DIGIT_BITS = 30
+_DIGIT_MASK = (1 << _DIGIT_BITS) - 1
+
+
+@_inline
+def _grid_difference(u, v, out):
+    """(u - v) * _GRID for grid coordinates u, v (|.| <= 2**61) as 3 base-2**30 digits
+    into out."""
+    d = np.int64(u * _GRID) - np.int64(v * _GRID)
+    out[0] = d & _DIGIT_MASK
+    out[1] = (d >> _DIGIT_BITS) & _DIGIT_MASK
+    out[2] = d >> (2 * _DIGIT_BITS)
+
+
+@_inline
+def _multiply_add(a, b, sign, out):
+    """out += sign * a * b, digit by digit, without carries: the callers keep every sum of
+    digit products within int64 (at most 6 products below 2**60)."""
+    for i in range(a.shape[0]):
+        for j in range(b.shape[0]):
+            out[i + j] += sign * a[i] * b[j]
+
+
+@_inline
+def _normalise(c):
+    """Carry the digits of c: every digit but the last in [0, 2**30), the last signed. The
+    value is unchanged; returns its sign."""
+    carry = np.int64(0)
+    nonzero = False
+    last = c.shape[0] - 1
+    for i in range(last):
+        t = c[i] + carry
+        c[i] = t & _DIGIT_MASK
+        carry = t >> _DIGIT_BITS
+        nonzero = nonzero or c[i] != 0
+    c[last] += carry
+    if c[last] != 0:
+        return 1.0 if c[last] > 0 else -1.0
+    return 1.0 if nonzero else 0.0
+
+
+@_jit
+def _orient_grid_exact(ax, ay, bx, by, cx, cy):
+    """The exact sign of orient2d for points on the predicates' grid. (Coordinates, not xy
+    and indices: an array passed here would cost reference counts on the callers' fast
+    path.)"""
+    d = np.zeros((4, 3), dtype=np.int64)
+    _grid_difference(ax, cx, d[0])
+    _grid_difference(by, cy, d[1])
+    _grid_difference(ay, cy, d[2])
+    _grid_difference(bx, cx, d[3])
+    det = np.zeros(6, dtype=np.int64)
+    _multiply_add(d[0], d[1], 1, det)
+    _multiply_add(d[2], d[3], -1, det)
+    return _normalise(det)
+
+
+@_jit
+def _incircle_grid_exact(ax, ay, bx, by, cx, cy, px, py):
+    """The exact sign of incircle for points on the predicates' grid:
+    alift (bx cy - cx by) + blift (cx ay - ax cy) + clift (ax by - bx ay), coordinates
+    relative to p. Each lift and cross product is normalised before their product, whose
+    digits are then sums of at most 5 products below 2**60."""
+    d = np.zeros((6, 3), dtype=np.int64)
+    for row, (x, y) in enumerate(((ax, ay), (bx, by), (cx, cy))):
+        _grid_difference(x, px, d[2 * row])
+        _grid_difference(y, py, d[2 * row + 1])
+    lift = np.zeros(6, dtype=np.int64)
+    cross = np.zeros(6, dtype=np.int64)
+    total = np.zeros(12, dtype=np.int64)
+    for k in range(3):
+        u = 2 * ((k + 1) % 3)  # the two other points, in cyclic order
+        w = 2 * ((k + 2) % 3)
+        lift[:] = 0
+        _multiply_add(d[2 * k], d[2 * k], 1, lift)
+        _multiply_add(d[2 * k + 1], d[2 * k + 1], 1, lift)
+        _normalise(lift)
+        cross[:] = 0
+        _multiply_add(d[u], d[w + 1], 1, cross)
+        _multiply_add(d[w], d[u + 1], -1, cross)
+        _normalise(cross)
+        term = np.zeros(12, dtype=np.int64)
+        _multiply_add(lift, cross, 1, term)
+        _normalise(term)
+        for i in range(12):
+            total[i] += term[i]
+    return _normalise(total)
+
+
 @_inline
 def _orient_idx(xy, a, b, c):
     """orient2d of points a, b, c of xy, which lie on the predicates' grid: a static error
@@ -355,7 +451,7 @@ def _orient_idx(xy, a, b, c):
     det = _orient2d_filtered(ax, ay, bx, by, cx, cy)
     if det == det:
         return det
-    return _orient2d_exact(ax, ay, bx, by, cx, cy)
+    return _orient_grid_exact(ax, ay, bx, by, cx, cy)
 
 
 @_inline
@@ -387,7 +483,7 @@ def _incircle_idx(xy, a, b, c, d):
     det = _incircle_filtered(ax, ay, bx, by, cx, cy, dx, dy)
     if det == det:
         return det
-    return _incircle_exact(ax, ay, bx, by, cx, cy, dx, dy)
+    return _incircle_grid_exact(ax, ay, bx, by, cx, cy, dx, dy)
 
 
 @_inline
@@ -671,10 +767,12 @@ def _triangulate_core(xy, order, n, workspace):
                     ver, nbr, hull_next, hull_prev, hull_tri, n_tri, t, edge, p, stack
                 )
         else:
-            # the whole visible chain first -> ... -> last
+            # the whole visible chain first -> ... -> last; the edge before e was seen
+            # not to be visible unless the walk stopped at once
             first = e
-            while _orient_idx(xy, hull_prev[first], first, p) < 0.0:
-                first = hull_prev[first]
+            if e == start:
+                while _orient_idx(xy, hull_prev[first], first, p) < 0.0:
+                    first = hull_prev[first]
             last = hull_next[e]
             while _orient_idx(xy, last, hull_next[last], p) < 0.0:
                 last = hull_next[last]

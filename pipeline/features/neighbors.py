@@ -215,6 +215,7 @@ def _search_block(
     """
     capacity = 256
     cd2 = np.empty(capacity)
+    cs = np.empty(capacity, dtype=np.int64)  # a candidate's position in the sorted cloud
     cid = np.empty(capacity, dtype=np.int64)
     crow = np.empty(capacity, dtype=np.int64)
     perm = np.empty(capacity, dtype=np.int64)
@@ -270,29 +271,32 @@ def _search_block(
                         while n + stop - start > capacity:
                             capacity *= 2
                         new_d2 = np.empty(capacity)
-                        new_id = np.empty(capacity, dtype=np.int64)
-                        new_row = np.empty(capacity, dtype=np.int64)
+                        new_s = np.empty(capacity, dtype=np.int64)
                         new_d2[:n] = cd2[:n]
-                        new_id[:n] = cid[:n]
-                        new_row[:n] = crow[:n]
-                        cd2, cid, crow = new_d2, new_id, new_row
+                        new_s[:n] = cs[:n]
+                        cd2, cs = new_d2, new_s
+                        cid = np.empty(capacity, dtype=np.int64)
+                        crow = np.empty(capacity, dtype=np.int64)
                         perm = np.empty(capacity, dtype=np.int64)
                         bucket_end = np.empty(capacity + 1, dtype=np.int64)
                         scratch = np.empty(capacity, dtype=np.int64)
                     # every candidate is written at n, which moves on only for those
                     # within the bound: no branch for the processor to mispredict on the
-                    # fifth or so of a column's points that are in the sphere
+                    # fifth or so of a column's points that are in the sphere; their ids
+                    # and rows are read below, for those kept only
                     for s in range(start, stop):
                         d2 = squared_distance(sxyz, s, xq, yq, zq)
                         cd2[n] = d2
-                        cid[n] = sids[s]
-                        crow[n] = srows[s]
+                        cs[n] = s
                         n += d2 <= bound
             if far == first_far:
                 kept = (cx, cy, cz)
             if far >= span or n >= m:
                 break
             far += 1
+        for k in range(n):
+            cid[k] = sids[cs[k]]
+            crow[k] = srows[cs[k]]
         size = _select(cd2, cid, crow, n, m, bound, perm, bucket_end, scratch)
         for k in range(size):
             out[b, k] = crow[perm[k]]

@@ -11,7 +11,9 @@ from scipy.spatial import Delaunay
 from pipeline.errors import InputError
 from pipeline.features.delaunay import (
     TRIANGLES,
+    _incircle_grid_exact,
     _incircle_idx,
+    _orient_grid_exact,
     _orient_idx,
     incircle,
     make_workspace,
@@ -208,6 +210,21 @@ def test_grid_predicates_give_exact_signs():
             a, b, c, d = xy
         assert sign(_incircle_idx(xy, 0, 1, 2, 3)) == sign(exact_incircle(a, b, c, d))
 
+
+
+def test_grid_predicates_in_integers_are_exact():
+    """The integer predicates behind the filters, called directly on grid points that are
+    degenerate (exactly or up to an ulp) or at the extremes of the grid (|x| = 1, where the
+    products are largest)."""
+    rng = np.random.default_rng(11)
+    extremes = np.array([-1.0, 1.0, 1 - 2**-52, -(1 - 2**-52), 0.5, 0.0, 2**-60, -(2**-60)])
+    cases = list(grid_quadruples(rng, 1500))
+    cases += [snap_to_grid(np.vstack([rng.choice(extremes, size=(4, 2)), [[1.0, 1.0]]]))[:4]
+              for _ in range(1500)]
+    for xy in cases:
+        a, b, c, d = xy
+        assert sign(_orient_grid_exact(*a, *b, *c)) == sign(exact_orient(a, b, c))
+        assert sign(_incircle_grid_exact(*a, *b, *c, *d)) == sign(exact_incircle(a, b, c, d))
 
 # --- triangulation ------------------------------------------------------------------------------
 
