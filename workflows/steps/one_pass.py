@@ -79,7 +79,8 @@ def chunk_one_pass(view, task: OnePassTask):
 #: features of those points cost more than writing and reading back every point's. On the
 #: TLS plot in 2 chunks, 1 worker, the one pass was faster at a share of 0.129 (forest
 #: template, 2 stages: 61.5 s against 70.0 s) and slower at 0.18 (the demo's model, 3
-#: stages: 81.1 s against 75.5 s, docs/PERFORMANCE.md).
+#: stages: 81.1 s against 75.5 s, docs/PERFORMANCE.md), shares of a ring of a context reach
+#: per later stage; the ring is now r1 per later stage, which makes them 0.116 and 0.162.
 MAX_BORDER_SHARE = 0.14
 
 
