@@ -39,7 +39,6 @@ from pipeline.features.neighbors import (_Grid, _cell_keys, _check_cloud, _check
                                         _check_query, _column_run, _query_cell, _select,
                                         squared_distance)  # fmt: skip
 from pipeline.features.voxel import halo, voxel_representatives
-from pipeline.tiling import query_distance
 
 #: Column order of :func:`covariance_features` (see the module docstring).
 COVARIANCE_NAMES: tuple[str, ...] = (
@@ -218,16 +217,6 @@ def multiscale_halo(radii, voxel_ratio=DEFAULT_VOXEL_RATIO) -> float:
     return max(halo(r, r / ratio) for r in values)
 
 
-def _representatives_near(xyz, ids, near: np.ndarray, voxel: float) -> np.ndarray:
-    """Rows of the voxel representatives of the points ``near`` (bool (N,)): the others
-    (a chunk's halo beyond a smaller radius' own) can neither be nor pick a representative
-    within reach of a query, and are not voxelised at all."""
-    if near.all():
-        return voxel_representatives(xyz, ids, voxel)
-    rows = np.flatnonzero(near)
-    return rows[voxel_representatives(xyz[rows], ids[rows], voxel)]
-
-
 def multiscale_covariance(xyz, ids, query, radii, voxel_ratio=DEFAULT_VOXEL_RATIO):
     """Covariance features at several radii on voxel-subsampled neighbourhoods.
 
@@ -250,9 +239,8 @@ def multiscale_covariance(xyz, ids, query, radii, voxel_ratio=DEFAULT_VOXEL_RATI
     out = np.empty((len(query), len(values) * N_COVARIANCE), dtype=np.float32)
     if len(query) == 0:
         return out
-    distance = query_distance(xyz, query)
     for i, r in enumerate(values):
-        reps = _representatives_near(xyz, ids, distance <= halo(r, r / ratio), r / ratio)
+        reps = voxel_representatives(xyz, ids, r / ratio)
         sub = xyz[reps]
         origin = sub.min(axis=0)
         grid = _Grid(sub, ids[reps], origin, sub.max(axis=0) - origin, r * (1.0 + 1e-6))

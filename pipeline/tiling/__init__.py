@@ -35,7 +35,6 @@ from pipeline.tiling.grid import (
     auto_chunk_size,
     box_distance,
     global_ids,
-    query_distance,
     series_ceil,
     split_global_ids,
     tile_area,
@@ -46,7 +45,6 @@ __all__ = [
     "SIZE_SERIES",
     "TILE_SHIFT", "BalancedLayout", "CellCounts", "Grid", "auto_chunk_size",
     "box_distance", "count_cell_size", "global_ids", "group_tiles", "layout_from_dict",
-    "query_distance",
     "series_ceil", "split_global_ids", "tile_area",
 ]
 

@@ -150,22 +150,6 @@ def box_distance(xy: np.ndarray, box) -> np.ndarray:
     return np.maximum(dx, dy)
 
 
-def query_box(xy: np.ndarray) -> tuple[float, float, float, float]:
-    """The XY box (xmin, ymin, xmax, ymax) of the query points ``xy``: every point within
-    distance d of one of them lies within d of it (:func:`box_distance`)."""
-    (x0, y0), (x1, y1) = xy.min(axis=0), xy.max(axis=0)
-    return (float(x0), float(y0), float(x1), float(y1))
-
-
-def query_distance(xyz: np.ndarray, query: np.ndarray) -> np.ndarray:
-    """float64 (N,): the :func:`box_distance` of every point of ``xyz`` (N, >= 2) from
-    the XY box of its ``query`` rows (zeros without a query): a point farther than d lies
-    farther than d from every query point."""
-    if not len(query):
-        return np.zeros(len(xyz))
-    return box_distance(xyz[:, :2], query_box(xyz[query, :2]))
-
-
 def is_integer(value) -> bool:
     """True for an integer that is not a bool (a count from YAML or NumPy)."""
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)

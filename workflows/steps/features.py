@@ -17,8 +17,8 @@ from pipeline.features.density import (
     capped_halo, left_out, neighbourhood_members, pile_up_warning,
 )
 from pipeline.features.neighbors import RadiusIndex
-from pipeline.features.sets import FeatureParams, feature_set
-from pipeline.tiling import query_distance
+from pipeline.features.sets import FeatureParams, feature_set, query_box
+from pipeline.tiling import box_distance
 from workflows.exec.engine import chunk_tasks, chunk_window_returns
 from workflows.run.autoparams import sparsest_density
 from workflows.run.directory import Run
@@ -58,7 +58,9 @@ def near_query(xyz: np.ndarray, ids: np.ndarray, query: np.ndarray, reach: float
     """``xyz``, ``ids`` and ``query`` cut to the rows within ``reach`` of the query points'
     XY box: what capped neighbourhoods of the query points can see (the rest of a chunk's
     halo only costs a sort and a grid)."""
-    near = np.flatnonzero(query_distance(xyz, query) <= reach)
+    if not len(query):
+        return xyz, ids, query
+    near = np.flatnonzero(box_distance(xyz[:, :2], query_box(xyz[query, :2])) <= reach)
     if len(near) == len(xyz):
         return xyz, ids, query
     return xyz[near], ids[near], np.searchsorted(near, query)
