@@ -5,12 +5,12 @@ Stage t of a point needs the stage t-1 probabilities of its neighbours within r1
 need their own features, and so on back to the first stage. A chunk whose halo covers all
 of that, the features' reach plus one context reach per later stage (r1 and the voxels
 that decide which points count, :func:`pipeline.features.density.capped_halo`), can compute
-every stage itself: stage 1 for its core and the halo points within (stages - 1) radii r1
-of it, stage 2 for one radius less, and the last stage for its core alone. The points
-a little farther, up to a context reach, only decide which of those neighbours count
-(their voxels): they take part in the context's search, and no stage is computed for
-them. Nothing has to be read back from neighbouring chunks, and the features never leave
-the worker.
+every stage itself: the last stage for its core alone, each earlier stage also for the
+halo points within r1 of a point of the next (at most (stages - 1) radii r1 from the core:
+the neighbours whose probabilities a context counts). The points a little farther, up to
+a context reach, only decide which of those neighbours count (their voxels): they take part
+in the context's search, and no stage is computed for them. Nothing has to be read back
+from neighbouring chunks, and the features never leave the worker.
 
 The results equal those of the stage-by-stage cascade bit for bit: every point's features
 and context follow from the same points by the same code (the chunk invariance that the
@@ -20,6 +20,7 @@ halo contract gives), and each forest answers a row alone.
 from collections.abc import Callable, Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from pipeline.cascade.stage import predict_stage_proba, stage_context, stage_input
 from pipeline.features.density import capped_halo
@@ -39,8 +40,8 @@ def one_pass_halo(feature_reach: float, r1: float, stages: int) -> float:
 
 
 def ring_width(r1: float, stages: int) -> float:
-    """How far beyond its core a chunk's one pass computes the first stage: one radius r1
-    (plus slack) per later stage, the neighbours whose probabilities a context counts."""
+    """How far beyond its core a chunk's one pass may compute the first stage: one radius
+    r1 (plus slack) per later stage, the neighbours whose probabilities a context counts."""
     return (stages - 1) * (r1 + SLACK)
 
 
@@ -51,14 +52,38 @@ def _within(distance: np.ndarray, n_core: int, width: float) -> np.ndarray:
                            n_core + np.flatnonzero(distance <= width)])
 
 
-def stage_rows(xy: np.ndarray, n_core: int, box, r1: float, stages: int) -> list[np.ndarray]:
+def stage_rows(xyz: np.ndarray, n_core: int, box, r1: float, stages: int
+               ) -> list[np.ndarray]:
     """Rows of a chunk's window (core first, then halo) that each stage is computed for:
-    the core and the halo points within :func:`ring_width` of ``stages - t`` stages of the
-    box for stage t. Ascending and nested, the last stage's rows are the core (without
-    the halo points on the box's edge)."""
-    distance = box_distance(xy[n_core:], box)
-    return [_within(distance, n_core, ring_width(r1, stages - t)) if t < stages - 1
-            else np.arange(n_core, dtype=np.int64) for t in range(stages)]
+    the core, and for stage t < stages - 1 the halo points within r1 (plus slack, in 3-D) of
+    a row of stage t + 1, whose context counts them. Ascending and nested, the last
+    stage's rows are the core (without the halo points on the box's edge)."""
+    distance = box_distance(xyz[n_core:], box)
+    core = np.arange(n_core, dtype=np.int64)
+    rows = [core]
+    for t in range(stages - 2, -1, -1):  # from the last stage back, rows[0] is stage t + 1's
+        candidates = n_core + np.flatnonzero(distance <= ring_width(r1, stages - t))
+        counted = _near(xyz[candidates], xyz[_by_the_border(xyz, rows[0], box, r1 + SLACK)],
+                        r1 + SLACK)
+        rows.insert(0, np.concatenate([core, candidates[counted]]))
+    return rows
+
+
+def _by_the_border(xyz: np.ndarray, rows: np.ndarray, box, width: float) -> np.ndarray:
+    """The ``rows`` of the window that lie outside the box or within ``width`` of its
+    edges inside: the only ones a point outside it can lie within ``width`` of."""
+    x0, y0, x1, y1 = box
+    x, y = xyz[rows, 0], xyz[rows, 1]
+    inside = np.minimum(np.minimum(x - x0, x1 - x), np.minimum(y - y0, y1 - y))
+    return rows[inside <= width]
+
+
+def _near(points: np.ndarray, sources: np.ndarray, radius: float) -> np.ndarray:
+    """bool (len(points),): which ``points`` lie within ``radius`` of one of ``sources``."""
+    if not len(points) or not len(sources):
+        return np.zeros(len(points), dtype=bool)
+    distance, _ = cKDTree(sources).query(points, k=1, distance_upper_bound=radius)
+    return np.isfinite(distance)
 
 
 def context_rows(xy: np.ndarray, n_core: int, box, r1: float, stages: int

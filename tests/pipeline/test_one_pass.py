@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 from sklearn.ensemble import RandomForestClassifier
 
 from pipeline.cascade import one_pass, one_pass_halo, predict_stage_proba, stage_context
-from pipeline.cascade.one_pass import context_rows, ring_width, stage_rows
+from pipeline.cascade.one_pass import SLACK, context_rows, ring_width, stage_rows
 from pipeline.cascade.stage import stage_input
 from pipeline.features.density import VOXEL_CAP, VOXELS_PER_RADIUS, capped_halo
 from pipeline.tiling import box_distance
@@ -113,10 +113,18 @@ def test_stage_rows_nest_and_hold_every_context_neighbour(cloud):
     tree = cKDTree(window)
     for outer, inner, search in zip(rows, rows[1:], searched[1:]):
         assert set(inner) <= set(outer) <= set(search) and np.all(np.diff(outer) > 0)
-        assert {j for i in inner for j in tree.query_ball_point(window[i], R1)} <= set(outer)
+        counted = {j for i in inner for j in tree.query_ball_point(window[i], R1)}
+        assert counted <= set(outer)
+        # and no other beyond the core than the points the next stage's context counts
+        # (within the slack)
+        slack = {j for i in inner for j in tree.query_ball_point(window[i], R1 + SLACK)}
+        assert set(outer) <= slack | set(range(len(core)))
         needed = {j for i in inner for j in tree.query_ball_point(window[i], capped_halo(R1))}
         assert needed <= set(search)
         assert len(outer) < len(search)  # no stage computed for the voxels' other points
+    # fewer than every halo point within the first stage's ring width of the box
+    band = box_distance(window[len(core):], box) <= ring_width(R1, 4)
+    assert len(rows[0]) - len(core) < np.count_nonzero(band)
 
 
 class ContextEcho:
