@@ -80,9 +80,9 @@ def chunk_one_pass(view, task: OnePassTask):
 #: TLS plot in 2 chunks, 1 worker, the one pass was faster at a share of 0.129 (forest
 #: template, 2 stages: 61.5 s against 70.0 s) and slower at 0.18 (the demo's model, 3
 #: stages: 81.1 s against 75.5 s, docs/PERFORMANCE.md), shares of a ring of a context reach
-#: per later stage; in the measure of ``ring_width`` now, r1 per later stage, 0.116 and 0.162 (the
-#: one pass now computes only the points within r1 of the next stage's, about three
-#: quarters of that band on the TLS plot).
+#: per later stage; in the measure of ``ring_width`` now, r1 per later stage, 0.116 and
+#: 0.162 (the one pass computes only the points within r1 of the next stage's, about
+#: three quarters of that band on the TLS plot).
 MAX_BORDER_SHARE = 0.14
 
 
