@@ -5,9 +5,12 @@ Stage t of a point needs the stage t-1 probabilities of its neighbours within r1
 need their own features, and so on back to the first stage. A chunk whose halo covers all
 of that, the features' reach plus one context reach per later stage (r1 and the voxels
 that decide which points count, :func:`pipeline.features.density.capped_halo`), can compute
-every stage itself: stage 1 for its core and the halo points within (stages - 1) context
-reaches of it, stage 2 for one reach less, and the last stage for its core alone. Nothing has to
-be read back from neighbouring chunks, and the features never leave the worker.
+every stage itself: the last stage for its core alone, each earlier stage also for the
+halo points within r1 of a point of the next (at most (stages - 1) radii r1 from the core:
+the neighbours whose probabilities a context counts). The points a little farther, up to
+a context reach, only decide which of those neighbours count (their voxels): they take part
+in the context's search, and no stage is computed for them. Nothing has to be read back
+from neighbouring chunks, and the features never leave the worker.
 
 The results equal those of the stage-by-stage cascade bit for bit: every point's features
 and context follow from the same points by the same code (the chunk invariance that the
@@ -17,6 +20,7 @@ halo contract gives), and each forest answers a row alone.
 from collections.abc import Callable, Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from pipeline.cascade.stage import predict_stage_proba, stage_context, stage_input
 from pipeline.features.density import capped_halo
@@ -36,20 +40,62 @@ def one_pass_halo(feature_reach: float, r1: float, stages: int) -> float:
 
 
 def ring_width(r1: float, stages: int) -> float:
-    """How far beyond its core a chunk's one pass computes the first stage: one context
-    reach (plus slack) per later stage."""
-    return (stages - 1) * (capped_halo(r1) + SLACK)
+    """How far beyond its core a chunk's one pass may compute the first stage: one radius
+    r1 (plus slack) per later stage, the neighbours whose probabilities a context counts."""
+    return (stages - 1) * (r1 + SLACK)
 
 
-def stage_rows(xy: np.ndarray, n_core: int, box, r1: float, stages: int) -> list[np.ndarray]:
+def _within(distance: np.ndarray, n_core: int, width: float) -> np.ndarray:
+    """Window rows of the core and of the halo points within ``width`` of the box,
+    ascending (``distance``: the halo's, in window order after the core)."""
+    return np.concatenate([np.arange(n_core, dtype=np.int64),
+                           n_core + np.flatnonzero(distance <= width)])
+
+
+def stage_rows(xyz: np.ndarray, n_core: int, box, r1: float, stages: int
+               ) -> list[np.ndarray]:
     """Rows of a chunk's window (core first, then halo) that each stage is computed for:
-    the core and the halo points within (stages - 1 - t) context reaches (plus slack) of
-    the box for stage t. Ascending and nested, the last stage's rows are the core."""
-    distance = box_distance(xy[n_core:], box)
+    the core, and for stage t < stages - 1 the halo points within r1 (plus slack, in 3-D) of
+    a row of stage t + 1, whose context counts them. Ascending and nested, the last
+    stage's rows are the core (without the halo points on the box's edge)."""
+    distance = box_distance(xyz[n_core:], box)
     core = np.arange(n_core, dtype=np.int64)
-    return [np.concatenate([core, n_core + np.flatnonzero(
-        distance <= ring_width(r1, stages - t))]) if t < stages - 1 else core
-        for t in range(stages)]
+    rows = [core]
+    for t in range(stages - 2, -1, -1):  # from the last stage back, rows[0] is stage t + 1's
+        candidates = n_core + np.flatnonzero(distance <= ring_width(r1, stages - t))
+        counted = _near(xyz[candidates], xyz[_by_the_border(xyz, rows[0], box, r1 + SLACK)],
+                        r1 + SLACK)
+        rows.insert(0, np.concatenate([core, candidates[counted]]))
+    return rows
+
+
+def _by_the_border(xyz: np.ndarray, rows: np.ndarray, box, width: float) -> np.ndarray:
+    """The ``rows`` of the window that lie outside the box or within ``width`` of its
+    edges inside: the only ones a point outside it can lie within ``width`` of."""
+    x0, y0, x1, y1 = box
+    x, y = xyz[rows, 0], xyz[rows, 1]
+    inside = np.minimum(np.minimum(x - x0, x1 - x), np.minimum(y - y0, y1 - y))
+    return rows[inside <= width]
+
+
+def _near(points: np.ndarray, sources: np.ndarray, radius: float) -> np.ndarray:
+    """bool (len(points),): which ``points`` lie within ``radius`` of one of ``sources``."""
+    if not len(points) or not len(sources):
+        return np.zeros(len(points), dtype=bool)
+    distance, _ = cKDTree(sources).query(points, k=1, distance_upper_bound=radius)
+    return np.isfinite(distance)
+
+
+def context_rows(xy: np.ndarray, n_core: int, box, r1: float, stages: int
+                 ) -> list[np.ndarray | None]:
+    """Rows of the window that stage t's context search runs over (None for the first
+    stage, which has none): every point within a context reach (plus slack) of stage t's
+    rows, so that each voxel that decides which of their neighbours count is whole. They
+    hold stage t - 1's rows, the neighbours within r1 that it counts."""
+    distance = box_distance(xy[n_core:], box)
+    return [None] + [_within(distance, n_core,
+                             ring_width(r1, stages - t) + capped_halo(r1) + SLACK)
+                     for t in range(1, stages)]
 
 
 def one_pass(xyz: np.ndarray, ids: np.ndarray, n_core: int, box,
@@ -68,15 +114,21 @@ def one_pass(xyz: np.ndarray, ids: np.ndarray, n_core: int, box,
     the stage-by-stage cascade does. No point here is a training point of the forests.
     """
     rows = stage_rows(xyz, n_core, box, r1, len(forests))
+    searched = context_rows(xyz, n_core, box, r1, len(forests))
     features = features_of(rows[0])
     probas, proba = [], None
     for t, forest in enumerate(forests):
         context = None
         if t:
+            # the points searched beyond stage t - 1's rows lie farther than r1 from every
+            # query: no neighbour, their zero probabilities are never counted
+            known = np.zeros((len(searched[t]), n_classes), dtype=proba.dtype)
+            known[np.searchsorted(searched[t], rows[t - 1])] = proba
             context = stage_context(
-                xyz[rows[t - 1]], proba, mode, r1=r1, r2=r2, max_neighbors=max_neighbors,
-                query=np.searchsorted(rows[t - 1], rows[t]), ids=ids[rows[t - 1]])
-        stage_features = features[np.searchsorted(rows[0], rows[t])]
+                xyz[searched[t]], known, mode, r1=r1, r2=r2, max_neighbors=max_neighbors,
+                query=np.searchsorted(searched[t], rows[t]), ids=ids[searched[t]])
+        # rows[0] is every row computed: the first stage reads the features as they are
+        stage_features = features if t == 0 else features[np.searchsorted(rows[0], rows[t])]
         proba = predict_stage_proba(forest, stage_input(stage_features, context, n_classes),
                                     n_classes)
         if override is not None:

@@ -8,9 +8,9 @@ from scipy.spatial import cKDTree
 from sklearn.ensemble import RandomForestClassifier
 
 from pipeline.cascade import one_pass, one_pass_halo, predict_stage_proba, stage_context
-from pipeline.cascade.one_pass import ring_width, stage_rows
+from pipeline.cascade.one_pass import SLACK, context_rows, ring_width, stage_rows
 from pipeline.cascade.stage import stage_input
-from pipeline.features.density import capped_halo
+from pipeline.features.density import VOXEL_CAP, VOXELS_PER_RADIUS, capped_halo
 from pipeline.tiling import box_distance
 
 R1, R2, REACH, N_CLASSES = 0.6, 0.3, 0.9, 3
@@ -99,20 +99,72 @@ def test_a_narrower_halo_changes_the_last_stage(cloud):
 
 
 def test_stage_rows_nest_and_hold_every_context_neighbour(cloud):
-    """Each stage's rows hold the neighbours within r1 of the next stage's rows, and every
-    point of their density voxels (which decide whether a piled-up point counts); the last
-    stage is the core alone (halo points on the box's edge included in no core)."""
+    """Each stage's rows hold the neighbours within r1 of the next stage's rows, and the
+    next stage's context searches every point of their density voxels (which decide
+    whether a piled-up point counts); the last stage is the core alone (halo points on the
+    box's edge included in no core)."""
     xyz, *_ = cloud
     box = (3.0, 4.0, 7.5, 8.0)
     core, halo = window_of(xyz, box, one_pass_halo(REACH, R1, 4))
     window = xyz[np.concatenate([core, halo])]
     rows = stage_rows(window, len(core), box, R1, 4)
-    assert np.array_equal(rows[-1], np.arange(len(core)))
+    searched = context_rows(window, len(core), box, R1, 4)
+    assert np.array_equal(rows[-1], np.arange(len(core))) and searched[0] is None
     tree = cKDTree(window)
-    for outer, inner in zip(rows, rows[1:]):
-        assert set(inner) <= set(outer) and np.all(np.diff(outer) > 0)
+    for outer, inner, search in zip(rows, rows[1:], searched[1:]):
+        assert set(inner) <= set(outer) <= set(search) and np.all(np.diff(outer) > 0)
+        counted = {j for i in inner for j in tree.query_ball_point(window[i], R1)}
+        assert counted <= set(outer)
+        # and no other beyond the core than the points the next stage's context counts
+        # (within the slack)
+        slack = {j for i in inner for j in tree.query_ball_point(window[i], R1 + SLACK)}
+        assert set(outer) <= slack | set(range(len(core)))
         needed = {j for i in inner for j in tree.query_ball_point(window[i], capped_halo(R1))}
-        assert needed <= set(outer)
+        assert needed <= set(search)
+        assert len(outer) < len(search)  # no stage computed for the voxels' other points
+    # fewer than every halo point within the first stage's ring width of the box
+    band = box_distance(window[len(core):], box) <= ring_width(R1, 4)
+    assert len(rows[0]) - len(core) < np.count_nonzero(band)
+
+
+class ContextEcho:
+    """A stage whose probabilities are the S1 frequencies of its context: any neighbour
+    counted or not shows."""
+
+    classes_ = np.arange(N_CLASSES)
+
+    def predict_proba(self, x):
+        return x[:, -2 * N_CLASSES:-N_CLASSES]
+
+
+@pytest.mark.parametrize("mode", ["soft", "hard"])
+def test_one_pass_counts_the_piled_voxels_as_the_whole_cloud(cloud, mode):
+    """A voxel holding more points than the cap, straddling r1 of the core: which of its
+    points count depends on its points beyond r1, which the one pass searches without
+    computing a stage for them."""
+    xyz, ids, _, forests = cloud
+    box = (3.0, 4.0, 7.5, 8.0)
+    side = R1 / VOXELS_PER_RADIUS
+    # a core point on the box's edge, and 3 caps of points in the voxel whose near third
+    # lies within r1 of it and whose far part lies beyond the first stage's ring
+    edge = ring_width(R1, 2)
+    low = np.ceil((8.0 + edge - side) / side) * side
+    assert 8.0 + R1 > low and low + side > 8.0 + edge
+    rng = np.random.default_rng(9)
+    corner = np.array([np.floor(5.0 / side) * side, low, np.floor(1.0 / side) * side])
+    pile = corner + rng.uniform(0.0, side, size=(3 * VOXEL_CAP, 3))
+    query = corner + [side / 2, 0.0, side / 2]
+    query[1] = 8.0 - 1e-6
+    xyz = np.concatenate([xyz, [query], pile])
+    ids = np.concatenate([ids, 10 * len(ids) + rng.permutation(len(pile) + 1)])
+    forests = [forests[0], ContextEcho()]  # stage 2 answers its context's frequencies
+    expected, _ = staged_over_the_cloud(xyz, ids, forests, mode)
+    core, halo = window_of(xyz, box, one_pass_halo(REACH, R1, 2))
+    window = np.concatenate([core, halo])
+    probas, _ = one_pass(xyz[window], ids[window], len(core), box,
+                         lambda rows: neighbourhood_features(xyz[window], rows), forests,
+                         n_classes=N_CLASSES, mode=mode, r1=R1, r2=R2, max_neighbors=None)
+    assert np.array_equal(probas[1], expected[1][core])
 
 
 def test_box_distance_is_the_halo_measure():
@@ -130,5 +182,5 @@ def test_one_pass_halo_adds_a_context_reach_per_later_stage():
     assert one_pass_halo(3.5, 0.5, 3) == pytest.approx(3.5 + 2 * (reach + 0.01))
     # the first stage's ring lies within the halo, with the features' reach beyond it
     for stages in (1, 2, 3):
-        assert ring_width(0.5, stages) == pytest.approx((stages - 1) * (reach + 0.005))
+        assert ring_width(0.5, stages) == pytest.approx((stages - 1) * (0.5 + 0.005))
         assert one_pass_halo(3.5, 0.5, stages) >= 3.5 + ring_width(0.5, stages)

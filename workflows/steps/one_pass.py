@@ -81,7 +81,10 @@ def chunk_one_pass(view, task: OnePassTask):
 #: features of those points cost more than writing and reading back every point's. On the
 #: TLS plot in 2 chunks, 1 worker, the one pass was faster at a share of 0.129 (forest
 #: template, 2 stages: 61.5 s against 70.0 s) and slower at 0.18 (the demo's model, 3
-#: stages: 81.1 s against 75.5 s, docs/PERFORMANCE.md).
+#: stages: 81.1 s against 75.5 s, docs/PERFORMANCE.md), shares of a ring of a context reach
+#: per later stage; in the measure of ``ring_width`` now, r1 per later stage, 0.116 and
+#: 0.162 (the one pass computes only the points within r1 of the next stage's, about
+#: three quarters of that band on the TLS plot).
 MAX_BORDER_SHARE = 0.14
 
 
@@ -107,7 +110,7 @@ def one_pass_scenes(layout: RunLayout) -> set[str]:
 
 def border_share(info: SceneLayout, width: float) -> float:
     """Estimated share of a scene's points, beside its chunks' cores, that lie within
-    ``width`` of a core (as many again as the one pass computes twice), from its layout:
+    ``width`` of a core (the one pass computes at most these twice), from its layout:
     the counted points of its median balanced chunk, or a regular grid's squares at
     uniform density; zero for a single chunk, whose outer sides are open."""
     grid, halo = info.grid, info.halo
