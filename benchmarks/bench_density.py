@@ -69,6 +69,7 @@ from pipeline.cascade.thinning import point_density, thinned_mask
 from pipeline.features.sets import FeatureParams, auto_radius, auto_voxel, feature_set, scene_ground
 
 import bench_airborne
+from als_scenes import thinned_to
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 FILES = {"ALS_Clip": "trees/ALS_Clip.laz", "UAS_Clip": "trees/UAS_Clip.laz",
@@ -289,9 +290,15 @@ def side_by_side(clouds: list[Cloud]) -> Cloud:
                  np.concatenate([c.y for c in clouds]), returns)
 
 
-def leave_one_site_out() -> list[dict]:
-    """The installed airborne model's recipe trained on three sites, scored on the fourth."""
+def leave_one_site_out(density: float | None = None) -> list[dict]:
+    """The installed airborne model's recipe trained on three sites, scored on the fourth;
+    with ``density``, every tile thinned to it (als_scenes.thinned_to, seed 0) and the
+    sparse model's recipe (r1 auto at that density)."""
     tiles = {name: load(name, CODES) for held in SITES.values() for name in held}
+    r1 = MODEL_R1 if density is None else auto_radius(density)
+    if density is not None:
+        tiles = {name: cloud.subset(thinned_to(cloud.xyz[:, 0], cloud.xyz[:, 1], density, 0),
+                                    f"{name}@{density:g}") for name, cloud in tiles.items()}
 
     print("| left out | scored tile | version | macro F1 (classes) | ground F1 | "
           "vegetation called building |")
@@ -301,8 +308,8 @@ def leave_one_site_out() -> list[dict]:
         trained = [name for name in tiles if name not in held]
         joined = side_by_side([tiles[name] for name in trained])
         for version in (1, 2):
-            params = FeatureParams("default", MODEL_R1, voxel=auto_voxel(MODEL_R1, 64),
-                                   echoes=True, version=version)
+            params = FeatureParams("default", r1, voxel=auto_voxel(r1, 64), echoes=True,
+                                   version=version)
             stages = fit(joined, np.vstack([features(tiles[n], params) for n in trained]),
                          params, MODEL_CASCADE)
             for name in held:
@@ -371,6 +378,9 @@ def main(argv=None) -> int:
     parser.add_argument("--leave-one-site-out", action="store_true",
                         help="the installed airborne model's recipe, trained on three sites "
                              "and scored on the fourth, feature versions 1 and 2")
+    parser.add_argument("--density", type=float, default=None,
+                        help="--leave-one-site-out: every tile thinned to this many "
+                             "points/m², the sparse model's recipe (r1 auto)")
     args = parser.parse_args(argv)
     VERSION = args.version
     missing = [f for f in FILES.values() if not (DATA / f).is_file()]
@@ -380,7 +390,7 @@ def main(argv=None) -> int:
     if args.within_site:
         rows = within_site(args.tiles)
     elif args.leave_one_site_out:
-        rows = leave_one_site_out()
+        rows = leave_one_site_out(args.density)
     elif args.columns:
         tile = load("StBarth")
         drift = column_drift(tile, params_for(auto_radius(tile.density)))
