@@ -27,7 +27,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 
-from pipeline.cascade.thinning import thinned_mask
+from pipeline.cascade.thinning import thinned_mask, thinning_fraction
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 TILES = ("als/StBarth_IGN_LiDARHD_100m.laz", "als/AHN4_Amsterdam_2496_9727.laz",
@@ -49,14 +49,18 @@ def write_half(las: laspy.LasData, keep: np.ndarray, place: float, dst: Path) ->
     return int(keep.sum())
 
 
+def box_fraction(x: np.ndarray, y: np.ndarray, density: float | None) -> float:
+    """The share of the points ``x``, ``y`` that thins them to ``density`` points/m² over
+    their box (1: not denser, or ``density`` None)."""
+    if density is None:
+        return 1.0
+    return thinning_fraction(len(x) / (np.ptp(x) * np.ptp(y)), density)
+
+
 def thinned_to(x: np.ndarray, y: np.ndarray, density: float | None, seed: int) -> np.ndarray:
-    """bool: the points of a half kept at ``density`` points/m² over its box (all of them
-    when it is not denser, or ``density`` is None)."""
-    keep = np.ones(len(x), dtype=bool)
-    area = np.ptp(x) * np.ptp(y)
-    if density is None or len(x) <= density * area:
-        return keep
-    return thinned_mask(np.arange(len(x), dtype=np.int64), density * area / len(x), seed)
+    """bool: the points of a half kept at ``density`` points/m² over its box
+    (:func:`box_fraction`), by a hash of each point's index."""
+    return thinned_mask(np.arange(len(x), dtype=np.int64), box_fraction(x, y, density), seed)
 
 
 def main(argv=None) -> int:
@@ -83,8 +87,7 @@ def main(argv=None) -> int:
         y = np.asarray(las.y)
         for side, half in (("west", west), ("east", ~west)):
             rows = np.flatnonzero(half)
-            thinned = args.density is not None and len(rows) > args.density * np.ptp(
-                x[rows]) * np.ptp(y[rows])
+            thinned = box_fraction(x[rows], y[rows], args.density) < 1.0
             for copy in range(args.copies if thinned else 1):  # unthinned: one copy
                 keep = np.zeros(len(x), dtype=bool)
                 keep[rows[thinned_to(x[rows], y[rows], args.density, copy)]] = True

@@ -11,7 +11,7 @@ import laspy
 import numpy as np
 import pytest
 
-from pipeline.cascade.thinning import thinned_mask
+from pipeline.cascade.thinning import thinned_mask, thinning_fraction
 from tests.workflows.conftest import silva
 
 #: How far a score may move: a few points' classes (another CPU's last bits), not a shift.
@@ -61,10 +61,9 @@ def _east_half(source, path, density=None):
     x, y = np.asarray(las.x), np.asarray(las.y)
     keep = x >= np.median(x)
     if density is not None:
-        area = np.ptp(x[keep]) * np.ptp(y[keep])
         rows = np.flatnonzero(keep)
-        keep[rows] = thinned_mask(np.arange(len(rows), dtype=np.int64),
-                                  density * area / len(rows))
+        fraction = thinning_fraction(len(rows) / (np.ptp(x[rows]) * np.ptp(y[rows])), density)
+        keep[rows] = thinned_mask(np.arange(len(rows), dtype=np.int64), fraction)
     half = laspy.LasData(las.header)
     half.points = las.points[keep].copy()
     half.write(path)
