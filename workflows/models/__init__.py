@@ -62,11 +62,15 @@ def model_summary(name: str, directory: Path) -> dict:
     }
 
 
-def models_for_density(density: float, points: int, classes: dict) -> list[str]:
+def models_for_density(density: float, points: int, classes: dict, besides=None
+                       ) -> list[str]:
     """The installed models with these ``classes`` (name -> code) whose r1 disc on flat
-    ground holds at least ``points`` points at ``density`` points per m², by name."""
+    ground holds at least ``points`` points at ``density`` points per m², by name; not the
+    one in the directory ``besides``."""
     fitting = []
     for name, directory in installed_models().items():
+        if besides is not None and directory == Path(besides).resolve():
+            continue
         description = json.loads((directory / "model.json").read_text())
         same = {c["name"]: c["code"] for c in description.get("classes", ())} == classes
         if same and density * math.pi * description["features.r1"] ** 2 >= points:

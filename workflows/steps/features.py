@@ -8,7 +8,6 @@ Scenes classified in one pass (:mod:`workflows.steps.one_pass`) are left to that
 """
 
 import math
-from pathlib import Path
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,7 +20,7 @@ from pipeline.features.neighbors import RadiusIndex
 from pipeline.features.sets import FeatureParams, feature_set, query_box
 from pipeline.tiling import box_distance
 from workflows.exec.engine import chunk_tasks, chunk_window_returns
-from workflows.models import installed_models, models_for_density
+from workflows.models import models_for_density
 from workflows.run.autoparams import sparsest_density
 from workflows.run.directory import Run
 from workflows.run.progress import say
@@ -111,9 +110,8 @@ def sparse_fix(run: Run) -> str:
     if run.model is None:
         return "set features.r1 larger, or to auto (from the point density)"
     classes = {c["name"]: c["code"] for c in run.model.description["classes"]}
-    fitting = models_for_density(sparsest_density(run.plan.tiles), SPARSE_NEIGHBORS, classes)
-    fitting = [name for name in fitting
-               if installed_models()[name] != Path(run.model.path).resolve()]
+    fitting = models_for_density(sparsest_density(run.plan.tiles), SPARSE_NEIGHBORS, classes,
+                                 besides=run.model.path)
     if fitting:
         return (f"the model applied was trained with that radius, on denser scans: use "
                 f"--model {fitting[0]} (the same classes, trained on scans of about this "
