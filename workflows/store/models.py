@@ -63,10 +63,13 @@ class SceneModels:
         group = root[self.block_path(scene, block)]
         return {name: read_array(group, name) for name in names}
 
-    def done(self, root: zarr.Group, scene: str) -> str | None:
-        """The fingerprint the scene's model was marked done with (None: not done)."""
+    def done(self, root: zarr.Group, scene: str, mark: str | None = None) -> str | None:
+        """The fingerprint the scene's model was marked done with (None: not done); with
+        ``mark``, that of another mark kept in its group (a table kept with it)."""
         path = self.path(scene)
-        return root[path].attrs.get("done", {}).get(self.kind) if path in root else None
+        if path not in root:
+            return None
+        return root[path].attrs.get("done", {}).get(mark or self.kind)
 
     def scene_group(self, root: zarr.Group, scene: str) -> zarr.Group:
         """The group of the scene's model marked done, or a StoreError that says so."""

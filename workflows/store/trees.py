@@ -14,7 +14,7 @@ from pipeline.terrain import BlockGrid
 from pipeline.trees import TreeModel
 from pipeline.trees.model import TABLE_DTYPE
 from pipeline.trees.blocks import CROWN_ARRAYS, BlockCrowns, SceneCrowns, WholeTrees
-from workflows.store.marks import is_done, mark_done, read_array
+from workflows.store.marks import mark_done, read_array
 from workflows.store.models import OVERVIEW_CELLS, SceneModels, lazy_blocks, thinned
 
 #: Where the scenes' trees live.
@@ -98,10 +98,10 @@ def write_tree_table(root: zarr.Group, scene: str, table: np.ndarray, fingerprin
 
 def read_tree_table(root: zarr.Group, scene: str, fingerprint: str) -> np.ndarray | None:
     """The scene's tree table kept with ``fingerprint`` (None: not kept)."""
-    path = TREES.path(scene)
-    if path not in root or not is_done(root[path], TABLE, fingerprint):
+    if TREES.done(root, scene, TABLE) != fingerprint:
         return None
-    columns = {name: read_array(root[path], f"table_{name}") for name in TABLE_DTYPE.names}
+    group = root[TREES.path(scene)]
+    columns = {name: read_array(group, f"table_{name}") for name in TABLE_DTYPE.names}
     table = np.zeros(len(columns["tree_id"]), TABLE_DTYPE)
     for name, values in columns.items():
         table[name] = values
