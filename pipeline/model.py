@@ -250,9 +250,10 @@ def load_forest(path: Path):
 #: without them means: a model saved before echoes existed was trained without them, one
 #: saved before feature versions existed on version 1
 #: (:data:`pipeline.features.sets.FEATURE_VERSION`), one saved before the ground rule
-#: (:mod:`pipeline.cascade.ground_rule`) without it.
+#: (:mod:`pipeline.cascade.ground_rule`) without it, one saved before terrain versions on
+#: heights above the terrain model of version 1 (:data:`pipeline.terrain.TERRAIN_VERSION`).
 LATER_KEYS = {"features.echoes": False, "features.version": 1,
-              "terrain.ground_tolerance": None}
+              "terrain.ground_tolerance": None, "terrain.version": 1}
 
 
 def recorded(description: dict, key: str):

@@ -11,7 +11,8 @@ is filtered into a DTM (:func:`ground_model`; at the data's own resolution where
 points are sparse for the cells, :func:`sparse_factor`). Each chunk reads the models of the blocks
 under its points (:class:`SceneTerrain`) to compute heights above ground
 (:func:`ground_elevation`). :func:`terrain_model` does the chain on one cloud as one raster,
-:func:`scene_terrain` on one cloud as a scene.
+:func:`scene_terrain` on one cloud as a scene. :data:`TERRAIN_VERSION` says which code
+made the DTMs: a saved model records it.
 """
 
 from pipeline.terrain.blocks import (
@@ -35,9 +36,10 @@ from pipeline.terrain.smrf import (
     sparse_factor,
     terrain_model,
 )
+from pipeline.terrain.version import TERRAIN_VERSION
 
 __all__ = [
-    "LOW_DEPTH", "BlockGrid", "BlockModel", "BlockTerrain", "GroundModel",
+    "LOW_DEPTH", "TERRAIN_VERSION", "BlockGrid", "BlockModel", "BlockTerrain", "GroundModel",
     "SceneTerrain", "TerrainParams", "block_model", "block_reach", "cell_minima",
     "factor_for_occupancy", "fill",
     "fill_near", "ground_elevation", "ground_model", "merge_minima", "minima_offsets",

@@ -148,11 +148,13 @@ def check_before_start(run, target: str, in_process: bool = False) -> tuple:
     return fields (with echo features), each step's own check (the trees' settings against
     the scan, the output point format, the rasters' size: the ``check`` of its row) and that a
     local cluster's workers have the memory for the largest chunk (the saved model a run
-    applies was checked with its plan); warns when r1 is too small for the tiles' density.
+    applies was checked with its plan); warns when r1 is too small for the tiles' density
+    and when the model applied was trained on another terrain version's heights.
     Raises the error the step would raise later; returns the run's tiles."""
     from workflows.cli.plan import check_memory
     from workflows.steps.features import warn_sparse_radius
     from workflows.steps.ingest import plan_tiles
+    from workflows.steps.terrain import warn_terrain_version
 
     tiles = plan_tiles(run)
     steps = run.table.until(target, run.cfg)
@@ -161,6 +163,7 @@ def check_before_start(run, target: str, in_process: bool = False) -> tuple:
             step.check(run, tiles)
     if "features" in (step.name for step in steps):
         warn_sparse_radius(run)
+        warn_terrain_version(run)
         if not in_process:
             check_memory(run, tiles)
     return tiles

@@ -146,8 +146,10 @@ def data_filters(cfg: SilvaConfig) -> dict:
 
 #: The sections whose recorded keys (model.json's "section.key") a run applying a model takes.
 MODEL_SECTIONS = ("features", "cascade", "terrain")
-#: Recorded keys that are derived, not set: the feature set's column names.
-DERIVED_KEYS = ("features.columns",)
+#: Recorded keys that no configuration sets: the feature set's column names (derived from
+#: the other keys) and the version of the terrain code that made the model's heights (this
+#: code's own: :func:`workflows.steps.terrain.warn_terrain_version` says when it differs).
+NOT_SETTINGS = ("features.columns", "terrain.version")
 
 
 def _same(a, b) -> bool:
@@ -170,7 +172,7 @@ def adopt_model(raw: dict, description: dict, model_path) -> dict:
     raw = copy.deepcopy(raw)
     # a model.json saved before a key existed records its old meaning (LATER_KEYS)
     recorded = {k: v for k, v in {**LATER_KEYS, **description}.items()
-                if k.partition(".")[0] in MODEL_SECTIONS and k not in DERIVED_KEYS}
+                if k.partition(".")[0] in MODEL_SECTIONS and k not in NOT_SETTINGS}
     # the run applies every stage the model has: its stage count is one more recorded value
     recorded["cascade.stages"] = len(description.get("stages") or ())
     for key, value in recorded.items():

@@ -37,6 +37,7 @@ from pipeline.model import (
     write_description,
 )
 from pipeline.store import rows_of
+from pipeline.terrain import TERRAIN_VERSION
 from pipeline.tiling import BalancedLayout, Grid
 from workflows.exec.engine import chunk_tasks
 from workflows.run.autoparams import data_filters
@@ -303,6 +304,7 @@ class StoreCascade:
         run = self.run
         write_description(run.model_path, {
             **run.feature_description(),
+            "terrain.version": TERRAIN_VERSION,
             "classes": [{"name": n, "code": c} for n, c in zip(run.classes, run.class_codes)],
             **data_filters(run.cfg),
             "seed": self.params.seed,

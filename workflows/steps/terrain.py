@@ -19,9 +19,10 @@ import numpy as np
 
 from pipeline.cascade import GroundOverride, ground_override
 from pipeline.errors import InputError
+from pipeline.model import recorded
 from pipeline.store import open_store, write_arrays
 from pipeline.terrain import (
-    BlockGrid, TerrainParams, block_model, cell_minima, ground_elevation, merge_minima,
+    TERRAIN_VERSION, BlockGrid, TerrainParams, block_model, cell_minima, ground_elevation, merge_minima,
 )
 from workflows.exec.engine import Task, chunk_tasks, chunk_window, results_by_scene
 from workflows.run.directory import Run
@@ -122,6 +123,22 @@ def terrain(run: Run, engine, layout: RunLayout) -> None:
                 f"{params.cell:g} m cells that hold its points (dense canopy, roofs, or no "
                 "ground in the scan); the terrain model is interpolated there and heights "
                 "above it are less certain")
+
+
+def warn_terrain_version(run: Run) -> None:
+    """Before any work: warn when the model ``run`` applies was trained on heights above
+    the terrain model of another version of the terrain code
+    (:data:`pipeline.terrain.TERRAIN_VERSION`): its forests see other heights than those
+    they learned, and score lower, with nothing else to say so."""
+    if run.model is None:
+        return
+    trained = recorded(run.model.description, "terrain.version")
+    if trained != TERRAIN_VERSION:
+        say(f"warning: model {run.model.path} was trained on heights above the terrain "
+            f"model of terrain version {trained}, this Silva computes version "
+            f"{TERRAIN_VERSION}: the heights it sees may differ from those it learned, and its "
+            "scores with them (docs/MODELS.md); retrain it with 'silva run' or 'silva train' "
+            "on its training configuration")
 
 
 def ground_under(view, xyz: np.ndarray) -> np.ndarray:
