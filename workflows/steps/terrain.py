@@ -22,7 +22,8 @@ from pipeline.errors import InputError
 from pipeline.model import recorded
 from pipeline.store import open_store, write_arrays
 from pipeline.terrain import (
-    TERRAIN_VERSION, BlockGrid, TerrainParams, block_model, cell_minima, ground_elevation, merge_minima,
+    TERRAIN_VERSION, BlockGrid, TerrainParams, block_model, cell_minima, ground_elevation,
+    merge_minima,
 )
 from workflows.exec.engine import Task, chunk_tasks, chunk_window, results_by_scene
 from workflows.run.directory import Run
