@@ -273,6 +273,12 @@ def read_records(group: zarr.Group, name: str) -> dict[str, np.ndarray]:
     return arrays
 
 
+def has_array(group: zarr.Group, name: str) -> bool:
+    """Whether a pack of ``group`` holds the array ``name`` (written by :func:`write_arrays`;
+    a pack written again without it no longer does)."""
+    return _member(group, name) is not None
+
+
 def read_array(group: zarr.Group, name: str) -> np.ndarray:
     """A whole array of a group as NumPy, checked against the checksum written with it.
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from pipeline.errors import ChunkError, InputError, SilvaError
 from pipeline.progress import reporting
-from pipeline.store import open_store, write_arrays
+from pipeline.store import has_array, open_store, write_arrays
 from workflows.run.progress import StepProgress, say, uncounted
 from workflows.store.assembly import chunk_points
 from workflows.store.layout import RETURNS, chunk_path
@@ -215,6 +215,10 @@ class ChunkView:
 
     def write(self, **arrays) -> None:
         write_arrays(self.group, arrays)
+
+    def has(self, name: str) -> bool:
+        """Whether the chunk holds the array ``name`` (one of its packs)."""
+        return has_array(self.group, name)
 
     def neighbour(self, chunk: str) -> "ChunkView":
         """Another chunk of the same scene (the owner of some halo points)."""

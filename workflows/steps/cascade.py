@@ -137,7 +137,7 @@ def chunk_predict(view, task: StageTask):
     proba = chunk_proba(cached_forest(task.forest_path),
                         [cached_forest(p) for p in task.fold_paths], features, context, labels,
                         gid, np.asarray(task.fractions), task.seed, task.n_classes)
-    override = task.ground.override(view, view.read("xyz"))
+    override = task.ground.override(view)  # the mask stored with the chunk's features
     if override is not None:
         proba = override.apply(proba)
     view.write(**{proba_array(task.stage): proba,

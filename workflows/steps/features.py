@@ -3,7 +3,8 @@
 Core and halo points are sorted by global id, so a chunk's arrays do not depend on the order
 in which tiles and batches were read (:func:`workflows.store.assembly.chunk_points`, which also removes
 the parts once the chunk is assembled). The features never change between cascade stages:
-they are computed once here, with a flag for the points whose features are undefined.
+they are computed once here, with a flag for the points whose features are undefined and,
+with the ground rule, which points it takes (the same at every stage).
 Scenes classified in one pass (:mod:`workflows.steps.one_pass`) are left to that step.
 """
 
@@ -24,7 +25,7 @@ from workflows.models import models_for_density
 from workflows.run.autoparams import sparsest_density
 from workflows.run.directory import Run
 from workflows.run.progress import say
-from workflows.steps.terrain import ground_under
+from workflows.steps.terrain import GroundRule, ground_under
 from workflows.store.layout import ROLE_TRAIN
 from workflows.store.scenes import RunLayout
 
@@ -39,6 +40,7 @@ class FeatureTask:
     features: FeatureParams
     n_classes: int
     tiles: tuple[int, ...]  # the tiles with points in this scene
+    ground: GroundRule = GroundRule()
 
 
 def chunk_features(view, task: FeatureTask):
@@ -48,7 +50,8 @@ def chunk_features(view, task: FeatureTask):
     query = np.arange(len(core["gid"]), dtype=np.int64)
     features = compute(xyz, query, ids,
                        ground_under(view, xyz) if compute.uses_ground else None, returns)
-    view.write(features=features, undefined=np.isnan(features).any(axis=1))
+    view.write(features=features, undefined=np.isnan(features).any(axis=1),
+               **task.ground.stored(view, core["xyz"]))
     trained = (core["role"] == ROLE_TRAIN) & (core["label"] >= 0)
     return {"train_counts": np.bincount(core["label"][trained],
                                         minlength=task.n_classes).tolist(),
@@ -92,7 +95,7 @@ def features(run: Run, engine, layout: RunLayout, only: str | None = None) -> np
     """Compute every chunk's features; return the training points per class (C,)."""
     tasks = chunk_tasks(
         run, layout, "features", chunk_features,
-        lambda info: FeatureTask(run.features, run.n_classes, info.tiles),
+        lambda info: FeatureTask(run.features, run.n_classes, info.tiles, GroundRule.of(run)),
         run.fingerprint("features"), "features", only=only,
     ) if layout.scenes else []  # every scene classified in one pass
     results = list(engine.map("features", tasks).values()) if tasks else []

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.cascade import GroundOverride, ground_override
+from pipeline.cascade import GroundOverride, on_ground
 from pipeline.errors import InputError
 from pipeline.model import recorded
 from pipeline.store import open_store, write_arrays
@@ -28,7 +28,7 @@ from pipeline.terrain import (
 from workflows.exec.engine import Task, chunk_tasks, chunk_window, results_by_scene
 from workflows.run.directory import Run
 from workflows.run.progress import say
-from workflows.store.layout import chunk_path
+from workflows.store.layout import ON_GROUND, chunk_path
 from workflows.store.marks import read_array
 from workflows.store.scenes import RunLayout, SceneLayout
 from workflows.store.terrain import (
@@ -159,10 +159,26 @@ class GroundRule:
     def of(cls, run: Run) -> "GroundRule":
         return cls(run.cfg.terrain.ground_tolerance, run.cfg.ground_class)
 
-    def override(self, view, xyz: np.ndarray) -> GroundOverride | None:
+    def stored(self, view, xyz: np.ndarray) -> dict[str, np.ndarray]:
+        """What the chunk's features task stores for the rule, so that no stage computes it
+        again: ``{ON_GROUND: bool (N,)}``, which of its core points ``xyz`` lie on seen
+        ground of its scene's terrain model ({} with the rule off)."""
+        if self.tolerance is None:
+            return {}
+        return {ON_GROUND: self._on_ground(view, xyz)}
+
+    def override(self, view, xyz: np.ndarray | None = None) -> GroundOverride | None:
         """The points of ``xyz`` (the chunk's) on seen ground of its scene's terrain model
-        (None with the rule off)."""
+        (None with the rule off); without ``xyz``, the chunk's core points, as its features
+        task stored them (:meth:`stored`)."""
         if self.tolerance is None:
             return None
-        return ground_override(stored_terrain(view.root, view.store_path, view.scene), xyz,
-                               self.tolerance, self.column)
+        if xyz is None and view.has(ON_GROUND):
+            rows = view.read(ON_GROUND)
+        else:  # the one pass's window, or features stored before the mask was
+            rows = self._on_ground(view, view.read("xyz") if xyz is None else xyz)
+        return GroundOverride(rows, self.column)
+
+    def _on_ground(self, view, xyz: np.ndarray) -> np.ndarray:
+        terrain = stored_terrain(view.root, view.store_path, view.scene)
+        return on_ground(terrain, xyz, self.tolerance)

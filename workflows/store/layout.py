@@ -15,7 +15,10 @@ Layout::
                           halo_xyz, halo_gid (halo copies sorted by global id); with
                           features.echoes also return_number, number_of_returns (u1) and
                           halo_return_number, halo_number_of_returns
-          features/ pack: features (n, d) f4, the feature set's columns
+          features/ pack: features (n, d) f4, the feature set's columns; undefined (n,)
+                          bool, the points whose features are not; with
+                          terrain.ground_tolerance also on_ground (n,) bool, the points
+                          the ground rule takes, read by every stage
           terrain/  pack: minima_keys (k, 2) i8, minima_z (k,) f8: the lowest core point
                           of each terrain cell (pipeline.terrain.cell_minima)
           stage<t>_context (n, 2C) f4, stage<t>_proba (n, C) f4     (t = 1, 2, ...)
@@ -76,6 +79,11 @@ def unit_path(scene: str, key) -> str:
 
 def part_path(scene: str, tile_index: int, chunk_name: str) -> str:
     return f"{unit_path(scene, tile_index)}/{chunk_name}"
+
+
+#: The chunk's core points on seen ground of the terrain model (the ground rule,
+#: ``terrain.ground_tolerance``): computed once with the features, read by every stage.
+ON_GROUND = "on_ground"
 
 
 def proba_array(stage: int) -> str:
