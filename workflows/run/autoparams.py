@@ -148,7 +148,7 @@ def data_filters(cfg: SilvaConfig) -> dict:
 MODEL_SECTIONS = ("features", "cascade", "terrain")
 #: Recorded keys that no configuration sets: the feature set's column names (derived from
 #: the other keys) and the version of the terrain code that made the model's heights (this
-#: code's own: :func:`workflows.steps.terrain.warn_terrain_version` says when it differs).
+#: code's own: a run applying a model of another version warns, see docs/MODELS.md).
 NOT_SETTINGS = ("features.columns", "terrain.version")
 
 
