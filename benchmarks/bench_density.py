@@ -66,7 +66,8 @@ from sklearn.metrics import f1_score
 from pipeline.cascade.driver import CloudData, run_cascade
 from pipeline.cascade.params import CascadeParams, ForestParams
 from pipeline.cascade.thinning import point_density, thinned_mask
-from pipeline.features.sets import FeatureParams, auto_radius, auto_voxel, feature_set, scene_ground
+from pipeline.features.sets import (FEATURE_VERSIONS, FeatureParams, auto_radius, auto_voxel,
+                                   feature_set, scene_ground)
 
 import bench_airborne
 from als_scenes import thinned_to
@@ -257,25 +258,28 @@ def halves(name: str) -> tuple[Cloud, Cloud]:
     return tile.subset(north, f"{name} north"), tile.subset(~north, f"{name} south")
 
 
-def within_site(names) -> list[dict]:
-    """Each tile's halves, both ways: the template at feature versions 1 and 2 and the peer."""
-    print("| trained -> scored | pts/m² | r1 | classes | v1 macro / ground | "
-          "v2 macro / ground | peer macro / ground | HAG < 0.3 m ground |")
-    print("|---|---|---|---|---|---|---|---|")
+def within_site(names, versions=(1, 2)) -> list[dict]:
+    """Each tile's halves, both ways: the template at each feature version and the peer."""
+    print("| trained -> scored | pts/m² | r1 | classes | "
+          + " | ".join(f"v{v} macro / ground" for v in versions)
+          + " | peer macro / ground | HAG < 0.3 m ground |")
+    print("|---|---|---|---|" + "---|" * len(versions) + "---|---|")
     rows = []
     for name in names:
         north, south = halves(name)
         for train, test in ((north, south), (south, north)):
-            v1, v2 = train_apply(train, test, 1), train_apply(train, test, 2)
+            by_version = {v: train_apply(train, test, v) for v in versions}
             peer = peer_apply(train, test)
-            row = {**v2, "v1_macro_f1": v1["macro_f1"], "v1_ground_f1": v1["ground_f1"],
+            row = {**by_version[versions[-1]],
+                   **{f"v{v}_{k}": r[k] for v, r in by_version.items()
+                      for k in ("macro_f1", "ground_f1")},
                    "peer_macro_f1": peer["macro_f1"], "peer_ground_f1": peer["ground_f1"]}
             rows.append(row)
             print(f"| {train.name} -> {test.name.split()[-1]} | {row['train_density']:g} -> "
                   f"{row['test_density']:g} | {row['r1']:g} m | {', '.join(row['classes'])} | "
-                  f"{v1['macro_f1']:.3f} / {v1['ground_f1']:.3f} | "
-                  f"{v2['macro_f1']:.3f} / {v2['ground_f1']:.3f} | "
-                  f"{peer['macro_f1']:.3f} / {peer['ground_f1']:.3f} | "
+                  + " | ".join(f"{r['macro_f1']:.3f} / {r['ground_f1']:.3f}"
+                               for r in by_version.values())
+                  + f" | {peer['macro_f1']:.3f} / {peer['ground_f1']:.3f} | "
                   f"{row['terrain_rule_ground_f1']:.3f} |", flush=True)
     return rows
 
@@ -290,7 +294,7 @@ def side_by_side(clouds: list[Cloud]) -> Cloud:
                  np.concatenate([c.y for c in clouds]), returns)
 
 
-def leave_one_site_out(density: float | None = None) -> list[dict]:
+def leave_one_site_out(density: float | None = None, versions=(1, 2)) -> list[dict]:
     """The installed airborne model's recipe trained on three sites, scored on the fourth;
     with ``density``, every tile thinned to it (als_scenes.thinned_to, seed 0) and the
     sparse model's recipe (r1 auto at that density)."""
@@ -307,7 +311,7 @@ def leave_one_site_out(density: float | None = None) -> list[dict]:
     for site, held in SITES.items():
         trained = [name for name in tiles if name not in held]
         joined = side_by_side([tiles[name] for name in trained])
-        for version in (1, 2):
+        for version in versions:
             params = FeatureParams("default", r1, voxel=auto_voxel(r1, 64), echoes=True,
                                    version=version)
             stages = fit(joined, np.vstack([features(tiles[n], params) for n in trained]),
@@ -369,8 +373,12 @@ def main(argv=None) -> int:
     parser.add_argument("--columns", action="store_true",
                         help="per-column KS distance to thinned copies instead")
     parser.add_argument("--json", type=Path, help="also write the rows to this file")
-    parser.add_argument("--version", type=int, default=VERSION, choices=(1, 2),
-                        help="features.version of the feature values (default 2)")
+    parser.add_argument("--version", type=int, default=VERSION, choices=FEATURE_VERSIONS,
+                        help=f"features.version of the feature values (default {VERSION})")
+    parser.add_argument("--versions", type=int, nargs="+", default=None,
+                        choices=FEATURE_VERSIONS,
+                        help="--within-site and --leave-one-site-out: the versions side by "
+                             "side (default 1 2)")
     parser.add_argument("--within-site", action="store_true",
                         help="the template within each tile, by halves at the median y")
     parser.add_argument("--tiles", nargs="+", default=list(WITHIN_SITE), choices=WITHIN_SITE,
@@ -388,9 +396,10 @@ def main(argv=None) -> int:
         print(f"no {', '.join(missing)} in {DATA}", file=sys.stderr)
         return 1
     if args.within_site:
-        rows = within_site(args.tiles)
+        rows = within_site(args.tiles, *([tuple(args.versions)] if args.versions else []))
     elif args.leave_one_site_out:
-        rows = leave_one_site_out(args.density)
+        rows = leave_one_site_out(args.density,
+                                  *([tuple(args.versions)] if args.versions else []))
     elif args.columns:
         tile = load("StBarth")
         drift = column_drift(tile, params_for(auto_radius(tile.density)))
