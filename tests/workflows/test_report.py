@@ -334,7 +334,7 @@ def test_points_without_features_are_counted_in_the_report(full_report, tmp_path
     _, path, _ = full_report
     page = path.read_text(encoding="utf-8")
     assert re.search(r'Points without features</div><div class="value">1,234</div>', page)
-    assert "1,234 of the 1,234,567 points written (0.10%) have no features" in page
+    assert "1,234 of the 1,234,567 points written (0.10%) have a feature column undefined" in page
     assert "NoFeatures = 1" in page
     assert "scored test points" not in page  # the metrics do not count them
     metrics, _, _ = fake_run(n=200)

@@ -188,9 +188,11 @@ def _no_features_note(no_features, scored=None, n_test=0) -> str:
     if points == 0:
         return f"Every one of the {total:,} points written has its features."
     note = (f"{points:,} of the {total:,} points written ({points / max(total, 1):.2%}) have "
-            "no features (too few neighbours within features.r1 to form a surface, or "
-            "collinear ones): their predictions are unreliable. They are marked NoFeatures = 1 "
-            "in the output files.")
+            "a feature column undefined (no surface within features.r1, fewer than 3 "
+            "neighbours in one of the covariance spheres, or collinear ones): the forests "
+            "classify them with those columns missing, as they learned such points in "
+            "training; a point without a surface is the least reliable. They are marked "
+            "NoFeatures = 1 in the output files.")
     if scored is not None:
         note += (f" Of the {n_test:,} scored test points, {int(scored):,} "
                  f"({int(scored) / max(n_test, 1):.2%}) are among them.")

@@ -81,7 +81,7 @@ def extra_dims(classes: list[str], codes: list[int], probabilities: bool,
         ExtraDim(PREDICTED, dtype, "Predicted class code"),
         ExtraDim(CONFIDENCE, "float32", "Probability of predicted class"),
         ExtraDim(ENTROPY, "float32", "Entropy of class probabilities"),
-        ExtraDim(NO_FEATURES, "uint8", "1: features undefined"),
+        ExtraDim(NO_FEATURES, "uint8", "1: a feature column undefined"),
         ExtraDim(HEIGHT_ABOVE_GROUND, "float32", "Height above terrain model (m)"),
     ]
     if excluded:
@@ -484,8 +484,9 @@ def export(run: Run, engine, layout: RunLayout, final_stage: int, stage_fp: str
     undefined = sum(r["no_features"] for r in results)
     if undefined:
         share = undefined / max(layout.n_points, 1)
-        say(f"export: {counted(undefined, 'point')} ({share:.2%}) have no "
-            "features (too few neighbours within features.r1 to form a surface, or collinear "
-            f"ones); their predictions are unreliable and marked {NO_FEATURES}=1",
+        say(f"export: {counted(undefined, 'point')} ({share:.2%}) have a feature column "
+            "undefined (no surface within features.r1, fewer than 3 neighbours in a "
+            "covariance sphere, or collinear ones), classified with it missing; marked "
+            f"{NO_FEATURES}=1",
             quiet=run.quiet)  # -q keeps one line per step; the log has it
     return written
