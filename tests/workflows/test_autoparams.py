@@ -20,6 +20,43 @@ def _tile(path, density, side=40.0):
     return write_las(path, xyz, fields={"classification": np.full(n, 2, np.uint8)})
 
 
+def _echoed(path, returns: int, side=20.0):
+    """A tile of 400 points whose pulses return ``returns`` times each (its header counts
+    them by return), or whose return fields are left empty (``returns`` 0)."""
+    n = 400
+    xyz = np.c_[np.random.default_rng(1).uniform(0, side, (n, 2)) + [500_000, 4_000_000],
+                np.zeros(n)]
+    fields = {"classification": np.full(n, 2, np.uint8)}
+    if returns:
+        fields |= {"return_number": (np.arange(n) % returns + 1).astype(np.uint8),
+                   "number_of_returns": np.full(n, returns, np.uint8)}
+    return write_las(path, xyz, fields=fields)
+
+
+@pytest.mark.parametrize("returns, feature_set, on", [
+    ([2], "default", True), ([3, 2], "covariance", True),
+    ([1], "default", False),  # a single-return scan
+    ([0], "default", False),  # return fields left empty, as silva synth writes them
+    ([2, 1], "default", False),  # one tile without later returns: off for the whole run
+    ([2], "paper", False),  # the published set takes no echo columns
+])
+def test_echoes_auto_is_on_when_every_tile_counts_later_returns(tmp_path, returns, feature_set,
+                                                               on):
+    tiles = [_echoed(tmp_path / f"t{i}.laz", r) for i, r in enumerate(returns)]
+    cfg = validate_config({
+        "data": {"train": [str(tiles[0])], "test": [str(t) for t in tiles[1:]],
+                 "classes": {"a": [1], "b": [2]}, "allow_overlap": True},
+        "features": {"set": feature_set, "echoes": "auto"}})
+    assert not cfg.features.resolved
+    resolved = resolve_auto(cfg, catalogue(cfg, config_inputs(cfg)))
+    assert resolved.features.echoes is on and resolved.features.params.echoes is on
+
+
+def test_echoes_auto_is_refused_as_anything_but_auto_true_or_false():
+    with pytest.raises(ConfigError, match="features.echoes.*'auto', true or false"):
+        validate_config({"features": {"set": "default", "echoes": "sometimes"}})
+
+
 def _config(tile, **features):
     return validate_config({"data": {"train": [str(tile)], "classes": {"a": [1], "b": [2]}},
                             "features": {"r1": "auto", **features}})

@@ -319,13 +319,16 @@ class FeaturesConfig(Section):
         "dense scans then see all of S1, not a patch of its 64 nearest points. 'auto': the "
         "side at which S1 holds about max_neighbors voxels of a surface.",
     )
-    echoes: bool = Field(
+    echoes: AutoBool = Field(
         _FEATURES.echoes,
         description="Sets 'covariance' and 'default': add, in the sphere of each covariance "
         "radius, the share of points of multi-return pulses, the share of last returns and "
         "the spread of return numbers, from each point's return number and number of "
         "returns (LAS tiles whose points record them; a tile without them is refused). On "
-        "airborne surveys they tell crowns from roofs.",
+        "airborne surveys they tell crowns from roofs. 'auto': on for those sets when the "
+        "header of every tile of the run counts points of second or later returns "
+        "(multi-return airborne surveys), off otherwise (text files, single-return scans, "
+        "headers that count no returns).",
     )
     version: Integer = Field(
         _FEATURES.version,
@@ -346,18 +349,20 @@ class FeaturesConfig(Section):
 
     @property
     def resolved(self) -> bool:
-        """False while r1 or voxel is 'auto' (resolved from the data when a run starts)."""
-        return "auto" not in (self.r1, self.voxel)
+        """False while r1, voxel or echoes is 'auto' (resolved from the data when a run
+        starts)."""
+        return all(value != "auto" for value in (self.r1, self.voxel, self.echoes))
 
     @model_validator(mode="after")
     def _check_params(self) -> "FeaturesConfig":
-        # FeatureParams checks the values; while r1 or voxel waits for the data ('auto'),
-        # it checks the others at the paper's radius, and everything once the run resolves
+        # FeatureParams checks the values; while r1, voxel or echoes waits for the data
+        # ('auto'), it checks the others at the paper's radius, and everything once the run
+        # resolves
         try:
             params = (self.params if self.resolved else
                       FeatureParams(self.set, plane=self.plane, scales=tuple(self.scales),
-                                    column=self.column, cell=self.cell, echoes=self.echoes,
-                                    version=self.version))
+                                    column=self.column, cell=self.cell,
+                                    echoes=self.echoes is True, version=self.version))
         except ValueError as err:
             raise fail(str(err)) from None
         if self.resolved and self.r2 is None:

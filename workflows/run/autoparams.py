@@ -9,7 +9,9 @@ model's value.
 
 ``features.r1: auto`` comes from the point density of the training tiles' headers (or, when
 a saved model is applied, from the model: its forests know only the radius they were
-trained with); ``features.voxel: auto`` from r1 and ``features.max_neighbors``. The run
+trained with); ``features.voxel: auto`` from r1 and ``features.max_neighbors``;
+``features.echoes: auto`` on when every tile's header counts later returns
+(:func:`multi_return`). The run
 then holds an ordinary, fully resolved configuration: saved in OUT/config.yaml, hashed by the
 fingerprints, shown by the report.
 """
@@ -21,7 +23,7 @@ import math
 from pathlib import Path
 
 from pipeline.errors import ConfigError
-from pipeline.features.sets import auto_radius, auto_voxel
+from pipeline.features.sets import ECHO_SETS, auto_radius, auto_voxel
 from pipeline.io.catalogue import header_density
 from pipeline.model import LATER_KEYS, read_model_file
 from pipeline.trees.params import auto_resolution
@@ -48,6 +50,15 @@ def sparsest_density(tiles) -> float:
     return min((d for d in densities if d > 0), default=0.0)
 
 
+def multi_return(tiles) -> bool:
+    """Whether every tile of the catalogue ``tiles`` counts, in its header, points of a
+    second or later return: a multi-return survey, whose echoes tell crowns from roofs.
+    Text files, single-return scans and headers that count no returns (as ``silva synth``
+    writes them) do not."""
+    counts = [None if t.header is None else t.header.points_by_return for t in tiles]
+    return bool(counts) and all(c is not None and sum(c[1:]) > 0 for c in counts)
+
+
 def resolve_tree_resolution(cfg: SilvaConfig, tiles) -> SilvaConfig:
     """``cfg`` with ``trees.resolution: auto`` as a number (:func:`auto_resolution` of the
     sparsest scene's density in the catalogue ``tiles``), when the run finds trees."""
@@ -63,8 +74,9 @@ def resolve_tree_resolution(cfg: SilvaConfig, tiles) -> SilvaConfig:
 
 
 def resolve_auto(cfg: SilvaConfig, tiles) -> SilvaConfig:
-    """``cfg`` with ``features.r1`` and ``features.voxel`` as numbers (a model applied has
-    set them already: :func:`adopt_model`), and ``trees.resolution``
+    """``cfg`` with ``features.r1`` and ``features.voxel`` as numbers and
+    ``features.echoes`` true or false (a model applied has set them already:
+    :func:`adopt_model`), and ``trees.resolution``
     (:func:`resolve_tree_resolution`), from the headers of the catalogue ``tiles``."""
     cfg = resolve_tree_resolution(cfg, tiles)
     features = cfg.features
@@ -79,7 +91,11 @@ def resolve_auto(cfg: SilvaConfig, tiles) -> SilvaConfig:
     voxel = features.voxel
     if voxel == "auto":
         voxel = auto_voxel(float(r1), int(features.max_neighbors))
-    raw["features"].update(r1=r1, voxel=voxel)
+    echoes = features.echoes
+    if echoes == "auto":
+        echoes = features.set in ECHO_SETS and multi_return(tiles)
+        log.info("features.echoes auto: %s", echoes)
+    raw["features"].update(r1=r1, voxel=voxel, echoes=echoes)
     return validate_config(raw)
 
 
