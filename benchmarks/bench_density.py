@@ -134,11 +134,12 @@ def load(name: str, codes: dict | None = None) -> Cloud:
 
 
 VERSION = 2
+ECHOES = False  # --echoes: the echo columns of the spheres (the template's 'auto' on these tiles)
 
 
 def params_for(r1: float, version: int | None = None) -> FeatureParams:
     """The template's features at ``r1``; ``version`` None: the one chosen by ``--version``."""
-    return FeatureParams("default", r1, voxel=auto_voxel(r1, 64),
+    return FeatureParams("default", r1, voxel=auto_voxel(r1, 64), echoes=ECHOES,
                          version=VERSION if version is None else version)
 
 
@@ -366,7 +367,7 @@ def print_columns(drift: dict) -> None:
 
 
 def main(argv=None) -> int:
-    global VERSION
+    global VERSION, ECHOES
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--groups", nargs="+", default=["pine", "sites", "thinned"],
                         choices=["pine", "sites", "thinned"])
@@ -379,6 +380,9 @@ def main(argv=None) -> int:
                         choices=FEATURE_VERSIONS,
                         help="--within-site and --leave-one-site-out: the versions side by "
                              "side (default 1 2)")
+    parser.add_argument("--echoes", action="store_true",
+                        help="the template with the echo columns (features.echoes: auto "
+                             "turns them on for these multi-return tiles)")
     parser.add_argument("--within-site", action="store_true",
                         help="the template within each tile, by halves at the median y")
     parser.add_argument("--tiles", nargs="+", default=list(WITHIN_SITE), choices=WITHIN_SITE,
@@ -390,7 +394,7 @@ def main(argv=None) -> int:
                         help="--leave-one-site-out: every tile thinned to this many "
                              "points/m², the sparse model's recipe (r1 auto)")
     args = parser.parse_args(argv)
-    VERSION = args.version
+    VERSION, ECHOES = args.version, args.echoes
     missing = [f for f in FILES.values() if not (DATA / f).is_file()]
     if missing:
         print(f"no {', '.join(missing)} in {DATA}", file=sys.stderr)
