@@ -24,7 +24,7 @@ TEMPLATES = sorted((ROOT / "configs").glob("*.yaml"))
 
 def shipped_profiles() -> dict[str, tuple[FeatureParams, str, int]]:
     """name -> (features, cascade.context, number of classes) of every model installed with
-    Silva and every template ('auto' r1 and voxel resolved as a run resolves them)."""
+    Silva and every template ('auto' r1 and voxel resolved as a run resolves them, 'auto' echoes on)."""
     found = {}
     for name, path in installed_models().items():
         d = json.loads((path / "model.json").read_text())
@@ -41,7 +41,8 @@ def shipped_profiles() -> dict[str, tuple[FeatureParams, str, int]]:
         voxel = auto_voxel(r1, f.max_neighbors) if f.voxel == "auto" else f.voxel
         found[path.stem] = (FeatureParams(
             f.set, r1, f.r2, f.max_neighbors, f.context_max_neighbors, f.plane,
-            tuple(f.scales), f.column, f.cell, voxel, echoes=f.echoes),
+            tuple(f.scales), f.column, f.cell, voxel,
+            echoes=f.echoes in (True, "auto")),  # 'auto' turns them on for airborne tiles
             cfg.cascade.context, len(cfg.data.classes))
     return found
 

@@ -121,6 +121,10 @@ def test_only_a_key_that_changes_the_features_gets_a_run_directory_per_value(sur
     assert [r.work for r in plan] == [out / "features.r1=0.4" / "run"] * 2 + [
         out / "features.r1=0.5" / "run"] * 2
     assert [r.result.name for r in plan] == ["seed0", "seed1"] * 2
+    # the forest template's 'auto' values are resolved from the tiles before the plan
+    plan = plan_sweep(config, "cascade.n_estimators", "3,6", 1, out,
+                      ("features.set=default", "features.r1=auto", "features.echoes=auto"))
+    assert {r.work for r in plan} == {out / "run"}
     plan = plan_sweep(config, "cascade.seed", "5,7", 1, out)
     assert [(r.seed, r.result.name) for r in plan] == [(5, "seed5"), (7, "seed7")]
     assert not out.exists()  # planning does no work

@@ -77,6 +77,7 @@ def plan_sweep(config: Path, key: str, values: str, seeds: int, out: Path,
                overrides=()) -> list[SweepRun]:
     """Every run of the sweep, each configuration validated, before any work is done."""
     from workflows.config import load_config
+    from workflows.run.autoparams import resolve_run
     from workflows.run.directory import read_paths
     from workflows.steps.table import STEPS
 
@@ -104,7 +105,8 @@ def plan_sweep(config: Path, key: str, values: str, seeds: int, out: Path,
                                       "(data.test or data.split); a sweep compares test "
                                       "metrics")
                 read_paths(cfg, config, None)  # every input exists
-            features = STEPS.fingerprint(cfg, "features")
+            # 'auto' values (r1, voxel, echoes) resolved from the tiles, as the run will
+            features = STEPS.fingerprint(resolve_run(cfg).cfg, "features")
             groups.setdefault(features, out / name / "run")
             plan.append(SweepRun(text, value, cfg.cascade.seed, cfg, groups[features],
                                  out / name / f"seed{cfg.cascade.seed}"))
