@@ -14,8 +14,9 @@ which a loaded machine inflates far less than wall time. ``silva predict --in-pr
 the tile, cut as ``--set`` says (default: the bench's 1-worker layout), against the same
 run in one chunk, in this process, taking turns ``--repeat`` times (which goes first
 alternates); the CPU seconds are
-this process's and its children's (``getrusage``). A small predict runs first, so that
-neither kind pays for loading the kernels and the forests. ``--profile DIR`` keeps a
+this process's and its children's (``getrusage``). A small predict in several chunks and a
+whole one in one chunk run first, so that neither kind pays for what the process loads or
+allocates once (the kernels, the forests, the code of either path, its memory). ``--profile DIR`` keeps a
 cProfile (CPU time) of every run there: what grows with the number of chunks.
 
     python benchmarks/bench_workflow.py --cpu-overhead --model forest-tls-synthetic --repeat 2
@@ -75,8 +76,8 @@ def predict(tile: Path, model: str, out: Path, sets, profile: Path | None = None
 
 
 def warm_tile(tile: Path, dst: Path) -> Path:
-    """The first :data:`WARM_POINTS` points of ``tile`` in ``dst`` (a small predict loads
-    what every later one in this process reuses)."""
+    """The first :data:`WARM_POINTS` points of ``tile`` in ``dst`` (small predicts, in one
+    chunk and in several, load what every later one in this process reuses)."""
     import laspy
 
     with laspy.open(tile) as reader:
@@ -90,7 +91,12 @@ def cpu_overhead(tile: Path, model: str, overrides, repeat: int, profile: Path |
     """The CPU seconds of ``tile`` predicted in chunks and in one chunk (see module)."""
     work = Path(tempfile.mkdtemp(prefix="silva-bench-overhead-"))
     try:
-        predict(warm_tile(tile, work / "warm.laz"), model, work / "warm", ONE_CHUNK)
+        # what a process pays once is no chunk's overhead: the forests and kernels, the code
+        # of the chunked path (a small tile in several chunks), and the memory a whole run
+        # takes from the system (the first whole run took 6-11 CPU s more than later ones)
+        predict(warm_tile(tile, work / "warm.laz"), model, work / "warm",
+                (*CHUNKED, f"tiling.target_points={WARM_POINTS // 4}"))
+        predict(tile, model, work / "warm", ONE_CHUNK)
         rounds = []
         for turn in range(repeat):
             runs = {}
