@@ -11,9 +11,8 @@ model's value.
 a saved model is applied, from the model: its forests know only the radius they were
 trained with); ``features.voxel: auto`` from r1 and ``features.max_neighbors``;
 ``features.echoes: auto`` on when every tile's header counts later returns
-(:func:`multi_return`). The run
-then holds an ordinary, fully resolved configuration: saved in OUT/config.yaml, hashed by the
-fingerprints, shown by the report.
+(:func:`multi_return`). The run then holds an ordinary, fully resolved configuration: saved
+in OUT/config.yaml, hashed by the fingerprints, shown by the report.
 """
 
 import copy
