@@ -376,7 +376,7 @@ def main(argv=None) -> int:
     parser.add_argument("--json", type=Path, help="also write the rows to this file")
     parser.add_argument("--version", type=int, default=VERSION, choices=FEATURE_VERSIONS,
                         help=f"features.version of the feature values (default {VERSION})")
-    parser.add_argument("--versions", type=int, nargs="+", default=None,
+    parser.add_argument("--versions", type=int, nargs="+", default=[1, 2],
                         choices=FEATURE_VERSIONS,
                         help="--within-site and --leave-one-site-out: the versions side by "
                              "side (default 1 2)")
@@ -400,10 +400,9 @@ def main(argv=None) -> int:
         print(f"no {', '.join(missing)} in {DATA}", file=sys.stderr)
         return 1
     if args.within_site:
-        rows = within_site(args.tiles, *([tuple(args.versions)] if args.versions else []))
+        rows = within_site(args.tiles, tuple(args.versions))
     elif args.leave_one_site_out:
-        rows = leave_one_site_out(args.density,
-                                  *([tuple(args.versions)] if args.versions else []))
+        rows = leave_one_site_out(args.density, tuple(args.versions))
     elif args.columns:
         tile = load("StBarth")
         drift = column_drift(tile, params_for(auto_radius(tile.density)))

@@ -16,8 +16,9 @@ run in one chunk, in this process, taking turns ``--repeat`` times (which goes f
 alternates); the CPU seconds are
 this process's and its children's (``getrusage``). A small predict in several chunks and a
 whole one in one chunk run first, so that neither kind pays for what the process loads or
-allocates once (the kernels, the forests, the code of either path, its memory). ``--profile DIR`` keeps a
-cProfile (CPU time) of every run there: what grows with the number of chunks.
+allocates once (the kernels, the forests, the code of either path, its memory).
+``--profile DIR`` keeps a cProfile (CPU time) of every run there: what grows with the
+number of chunks.
 
     python benchmarks/bench_workflow.py --cpu-overhead --model forest-tls-synthetic --repeat 2
 """
@@ -76,8 +77,8 @@ def predict(tile: Path, model: str, out: Path, sets, profile: Path | None = None
 
 
 def warm_tile(tile: Path, dst: Path) -> Path:
-    """The first :data:`WARM_POINTS` points of ``tile`` in ``dst`` (small predicts, in one
-    chunk and in several, load what every later one in this process reuses)."""
+    """The first :data:`WARM_POINTS` points of ``tile`` in ``dst`` (a small predict in
+    several chunks loads the code of the chunked path for every later one)."""
     import laspy
 
     with laspy.open(tile) as reader:

@@ -2,11 +2,12 @@
 
 A model trained on one survey is applied to others, denser or sparser. A column whose
 distribution moves when the same scene is thinned tells the forests about the survey, not the
-surface: every column of the ``default`` set is checked on a scene thinned 2x, 5x and 10x (the
-Kolmogorov-Smirnov distance between a column on the kept points of the whole scene and of the
-thinned copy), the heights above the terrain tightly, the neighbourhood columns within what
-they are measured to move (a regression guard, not a claim of invariance). Points far under the terrain model (multipath, noise) must not enter the
-other points' neighbourhoods or columns.
+surface: every column of the ``default`` set is checked on a scene thinned 2x, 5x and 10x
+(the Kolmogorov-Smirnov distance between a column on the kept points of the whole scene and
+of the thinned copy), the heights above the terrain tightly, the neighbourhood columns within
+what they are measured to move (a regression guard, not a claim of invariance). Points far
+under the terrain model (multipath, noise) must not enter the other points' neighbourhoods
+or columns.
 """
 
 import numpy as np
