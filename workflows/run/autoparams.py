@@ -11,8 +11,8 @@ model's value.
 a saved model is applied, from the model: its forests know only the radius they were
 trained with); ``features.voxel: auto`` from r1 and ``features.max_neighbors``;
 ``features.echoes: auto`` on when every tile's header counts later returns
-(:func:`multi_return`). The run then holds an ordinary, fully resolved configuration: saved
-in OUT/config.yaml, hashed by the fingerprints, shown by the report.
+(:func:`~workflows.run.echoes.multi_return`). The run then holds an ordinary, fully resolved
+configuration: saved in OUT/config.yaml, hashed by the fingerprints, shown by the report.
 """
 
 import copy
@@ -29,6 +29,7 @@ from pipeline.trees.params import auto_resolution
 from workflows.config import SilvaConfig, validate_config
 from workflows.config.loading import load_raw
 from workflows.config.inputs import InputFile
+from workflows.run.echoes import multi_return
 from workflows.run.plan import AppliedModel, RunPlan, catalogue, check_model, config_inputs
 
 log = logging.getLogger(__name__)
@@ -47,15 +48,6 @@ def sparsest_density(tiles) -> float:
     densities = [header_density(t for t in tiles if t.scene == scene)
                  for scene in ("train", "test", "predict")]
     return min((d for d in densities if d > 0), default=0.0)
-
-
-def multi_return(tiles) -> bool:
-    """Whether every tile of the catalogue ``tiles`` counts, in its header, points of a
-    second or later return: a multi-return survey, whose echoes tell crowns from roofs.
-    Text files, single-return scans and headers that count no returns (as ``silva synth``
-    writes them) do not."""
-    counts = [None if t.header is None else t.header.points_by_return for t in tiles]
-    return bool(counts) and all(c is not None and sum(c[1:]) > 0 for c in counts)
 
 
 def resolve_tree_resolution(cfg: SilvaConfig, tiles) -> SilvaConfig:

@@ -1,5 +1,6 @@
 """Echo features in a run (``features.echoes``): which tiles carry the return numbers they
-are computed from, and the one line that refuses a tile without them.
+are computed from (and, for ``auto``, which are multi-return surveys: :func:`multi_return`),
+and the one line that refuses a tile without them.
 
 A run computes echo features when its configuration sets ``features.echoes: true`` or when
 the model it applies was trained with them (:func:`workflows.run.autoparams.adopt_model` takes
@@ -75,6 +76,15 @@ def echo_need(run) -> EchoNeed | None:
     return EchoNeed("features.echoes: true",
                     "set features.echoes: false, or give LAS tiles whose points record their "
                     "return numbers")
+
+
+def multi_return(tiles) -> bool:
+    """Whether every tile of the catalogue ``tiles`` counts, in its header, points of a
+    second or later return: a multi-return survey, whose echoes tell crowns from roofs.
+    Text files, single-return scans and headers that count no returns (as ``silva synth``
+    writes them) do not."""
+    counts = [None if t.header is None else t.header.points_by_return for t in tiles]
+    return bool(counts) and all(c is not None and sum(c[1:]) > 0 for c in counts)
 
 
 def has_return_fields(dimensions) -> bool:
