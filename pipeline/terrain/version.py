@@ -2,7 +2,8 @@
 applied after the DTM changed can say so (its forests learned heights above another DTM)."""
 
 #: The version of the terrain model's code: raised whenever a change moves the DTM values
-#: of data a model may have been trained on (not for a refactor that keeps every bit).
+#: of data a model may have been trained on (not for a refactor that keeps every bit). The
+#: terrain step's fingerprint holds it: a store of another version redoes its terrain.
 #:
 #: 1. Before the DTM that follows steep slopes (fb47284): a ground cell's value was its
 #:    lowest point's z, wherever in the cell it lay, and the fill levelled off at the edges.

@@ -234,14 +234,18 @@ def training_seconds(run: Run, train_points: int, cores: int) -> float:
 
 
 def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
-    """The lines ``silva plan`` prints; with ``picture``, a PNG of the chunk layouts.
-    ConfigError, naming the key to change, for a run that will not fit (the memory of a
+    """The lines ``silva plan`` prints, after the warnings the run would give before any
+    work; with ``picture``, a PNG of the chunk layouts. ConfigError, naming the key to change, for a run that will not fit (the memory of a
     worker of the local cluster, the trees' and rasters' settings), as the run itself
     refuses it before its cluster starts."""
     from workflows.steps.export import check_raster_size
+    from workflows.steps.features import warn_sparse_radius
+    from workflows.steps.terrain import warn_terrain_version
     from workflows.steps.trees import check_tree_settings
 
     tiles = plan_tiles(run)
+    warn_sparse_radius(run)  # the warnings the run gives before any work, on stderr
+    warn_terrain_version(run)
     check_memory(run, tiles)
     check_raster_size(run, tiles)
     if run.cfg.output.trees:

@@ -135,6 +135,14 @@ def _ingest_part(cfg, d: dict) -> dict:
     return part
 
 
+def _terrain_part(cfg, d: dict) -> dict:
+    """The terrain section, and the version of the code that makes the DTM: a store made by
+    another version redoes its terrain, and every step built on it, when resumed."""
+    from pipeline.terrain.version import TERRAIN_VERSION
+
+    return {**d["terrain"], "version": TERRAIN_VERSION}
+
+
 def _trees_part(cfg, d: dict) -> dict | None:
     """The trees, with the classes their crowns grow on; nothing when none are found."""
     return ({**d["trees"], "canopy_classes": d["output"]["canopy_classes"]}
@@ -153,7 +161,7 @@ STEPS = StepTable(
          command="Stream the input tiles of CONFIG into chunks with halos (store.zarr)."
          + examples("silva ingest survey.yaml --out results/")),
     Step("terrain", terrain_step, needs=("layout",),
-         fingerprint=Fingerprint({"terrain": "terrain"}, after="ingest")),
+         fingerprint=Fingerprint({"terrain": _terrain_part}, after="ingest")),
     Step("features", features_step, needs=("layout",), sets=("staged", "one_pass", "counts"),
          fingerprint=Fingerprint(
              {"features": lambda cfg, d: {k: d["features"][k] for k in FEATURE_KEYS}},
