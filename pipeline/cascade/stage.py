@@ -8,6 +8,7 @@ workflow compute a stage with the same code.
 
 import numpy as np
 from sklearn.ensemble import RandomForestClassifier
+from sklearn.utils.class_weight import compute_class_weight
 
 from pipeline.cascade.params import ForestParams
 from pipeline.cascade.sampling import fold_of, stage_seed, training_mask
@@ -40,7 +41,7 @@ def fit_stage_forest(
         n_estimators=params.n_estimators,
         min_samples_leaf=params.min_samples_leaf,
         max_features=params.max_features,
-        class_weight=params.class_weight,
+        class_weight=_class_weight(params.class_weight, labels),
         n_jobs=params.n_jobs,
         random_state=random_state,
     )
@@ -56,6 +57,16 @@ def fit_stage_forest(
         forest.fit(features, labels)
         progress(grown, total)
     return forest.set_params(warm_start=False)
+
+
+def _class_weight(class_weight, labels: np.ndarray):
+    """The weights "balanced" stands for, written out: the same weights, and a forest grown
+    in rounds on the same rows is then not warned about rounds fitting other data."""
+    if class_weight != "balanced":
+        return class_weight
+    classes = np.unique(labels)
+    weights = compute_class_weight("balanced", classes=classes, y=labels)
+    return {int(c): float(w) for c, w in zip(classes, weights)}
 
 
 def predict_stage_proba(forest: RandomForestClassifier, features: np.ndarray, n_classes: int):

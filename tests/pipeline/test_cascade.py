@@ -145,18 +145,29 @@ def test_unfitted_and_bad_parameters():
         CascadedForest().fit(np.zeros((3, 3)), [0, 0, 0])
 
 
-def test_a_forest_grown_in_rounds_is_the_forest_grown_at_once():
+@pytest.mark.parametrize("class_weight", [None, "balanced"])
+def test_a_forest_grown_in_rounds_is_the_forest_grown_at_once(class_weight):
+    import warnings
+
+    from sklearn.ensemble import RandomForestClassifier
+
     from pipeline.cascade.params import ForestParams
     from pipeline.cascade.stage import fit_stage, fit_stage_forest
 
     rng = np.random.default_rng(3)
     x = rng.normal(size=(600, 5)).astype(np.float32)
-    y = (x[:, 0] + 0.3 * rng.normal(size=600) > 0).astype(np.int64)
-    params = ForestParams(n_estimators=13, min_samples_leaf=2, n_jobs=2)
+    y = (x[:, 0] + 0.3 * rng.normal(size=600) > 0.5).astype(np.int64)
+    params = ForestParams(n_estimators=13, min_samples_leaf=2, n_jobs=2,
+                          class_weight=class_weight)
     seen = []
-    rounds = fit_stage_forest(x, y, params, 7, progress=lambda done, total: seen.append(
-        (done, total)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no warning for the rounds: they fit the same rows
+        rounds = fit_stage_forest(x, y, params, 7, progress=lambda done, total: seen.append(
+            (done, total)))
     once = fit_stage_forest(x, y, params, 7)
+    preset = RandomForestClassifier(13, min_samples_leaf=2, class_weight=class_weight,
+                                    random_state=7).fit(x, y)
+    assert np.array_equal(preset.predict_proba(x), once.set_params(n_jobs=1).predict_proba(x))
     for forest in (rounds, once):
         forest.set_params(n_jobs=1)  # threads would sum the trees in any order
     assert np.array_equal(rounds.predict_proba(x), once.predict_proba(x))
