@@ -18,6 +18,14 @@ seeds 0 to K-1 (different points, the same density), each in its own place.
 
     python benchmarks/als_scenes.py OUT_DIR     # OUT_DIR/west/*.laz, OUT_DIR/east/*.laz
     python benchmarks/als_scenes.py OUT_DIR --density 1 --copies 4
+    python benchmarks/als_scenes.py OUT_DIR --west-share 0.25   # half the west area
+
+``--whole`` also writes each whole tile, in one piece, to OUT_DIR/whole: the west and east
+halves of a tile lie at the same place in their two scenes, so a scene of both directories
+would overlay them; a model trained on all the data trains on OUT_DIR/whole/*.laz.
+``--west-share Q`` keeps as the west side only the points west of the Q-quantile of x (the
+east side is unchanged): 0.25 gives the western half of each west half, to measure what
+a model gains from twice the training area.
 """
 
 import argparse
@@ -70,22 +78,29 @@ def main(argv=None) -> int:
                         help="thin each half to this many points/m² (if denser)")
     parser.add_argument("--copies", type=int, default=1,
                         help="copies of each half, thinned with seeds 0 to copies-1")
+    parser.add_argument("--whole", action="store_true",
+                        help="also write each whole tile to OUT_DIR/whole (to train on all)")
+    parser.add_argument("--west-share", type=float, default=0.5,
+                        help="the west side: the points west of this quantile of x (<= 0.5)")
     args = parser.parse_args(argv)
+    if not 0 < args.west_share <= 0.5:
+        parser.error("--west-share must be in (0, 0.5]: the west side stays west of the east")
     if args.copies < 1 or (args.density is not None and not args.density > 0):
         parser.error("--copies must be >= 1 and --density > 0")
     missing = [name for name in TILES if not (DATA / name).is_file()]
     if missing:
         print(f"no {', '.join(missing)} in {DATA}: nothing written", file=sys.stderr)
         return 1
-    for side in ("west", "east"):
+    for side in ("west", "east") + (("whole",) if args.whole else ()):
         (args.out / side).mkdir(parents=True, exist_ok=True)
     for i, name in enumerate(TILES):
         las = laspy.read(DATA / name)
         x = np.asarray(las.x)
-        west = x < np.median(x)
+        west, east = x < np.quantile(x, args.west_share), x >= np.median(x)
         stem = Path(name).stem
         y = np.asarray(las.y)
-        for side, half in (("west", west), ("east", ~west)):
+        whole = (("whole", np.ones(len(x), dtype=bool)),) if args.whole else ()
+        for side, half in (("west", west), ("east", east)) + whole:
             rows = np.flatnonzero(half)
             thinned = box_fraction(x[rows], y[rows], args.density) < 1.0
             for copy in range(args.copies if thinned else 1):  # unthinned: one copy

@@ -4,6 +4,7 @@
                                       [--cases 0 20 40 40r] [--tolerance M] [--work DIR]
                                       [--json]
     python benchmarks/bench_slopes.py --tiles "DIR/*.laz" --model NAME|DIR [--tolerance M]
+                                      [--shear 0 20 30 40]
 
 Each case is a plot written by ``silva synth --seed S --size SIZE --slope DEGREES`` (a
 trailing ``r``: ``--ridge``), classified by ``silva predict --model MODEL`` (default
@@ -19,9 +20,14 @@ error on the true terrain points: the median and the 95th percentile of their
 forests with the rule on, to measure it without retraining. ``0``: the rule off.
 
 ``--tiles`` classifies labelled tiles instead (e.g. the east halves of
-benchmarks/als_scenes.py with the airborne model) and prints each tile's ground F1 (ASPRS
-code 2 against the predicted code; unclassified, water and noise, codes 1, 9, 7 and 18,
-left out as the airborne model's card leaves them out).
+benchmarks/als_scenes.py with the airborne model) and prints, per tile and over all their
+points, the ground F1 (ASPRS code 2 against the predicted code), the share of true ground
+called ground, the share of vegetation (3-5) called building (6) and the DTM's error on the
+true ground (its |HeightAboveGround|); unclassified, water and noise (1, 9, 7, 18) are left
+out as the airborne model's card leaves them out. ``--shear D1 D2 ...`` classifies, per
+value, copies of the tiles whose ground slopes D degrees more: z += tan(D) * x (from each
+tile's west edge), real airborne forests and towns on a synthetic hillside whose trees and
+walls stay vertical.
 
 Plots are kept under ``--work`` (default: a temporary directory) and written once.
 """
@@ -36,6 +42,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+import laspy
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,6 +57,7 @@ PREDICTED = "PredictedClassification"
 #: Ground, and what the airborne model's card leaves out of its scores: unclassified and
 #: water (its ignored classes) and noise (excluded).
 GROUND, UNSCORED = 2, (1, 7, 9, 18)
+VEGETATION, BUILDING = (3, 4, 5), 6
 HEIGHT = "HeightAboveGround"
 
 
@@ -122,28 +130,72 @@ def scores(plot_dir: Path, predictions: Path) -> dict:
     return row
 
 
-def ground_f1(tile: Path, predicted_tile: Path) -> float:
-    """F1 of ground (code 2) of a labelled tile's prediction (:data:`UNSCORED` left out)."""
-    truth = read_points(tile).fields["classification"]
-    predicted = read_points(predicted_tile, fields=(PREDICTED,)).fields[PREDICTED]
-    scored = ~np.isin(truth, UNSCORED)
-    true, said = (truth == GROUND) & scored, (predicted == GROUND) & scored
-    return 2 * np.count_nonzero(true & said) / max(np.count_nonzero(true)
-                                                   + np.count_nonzero(said), 1)
+def tile_arrays(predicted_tile: Path) -> dict:
+    """The scored points of one predicted tile (its input classes kept beside the prediction):
+    truth, prediction and HeightAboveGround, :data:`UNSCORED` left out."""
+    fields = read_points(predicted_tile, fields=("classification", PREDICTED, HEIGHT)).fields
+    scored = ~np.isin(fields["classification"], UNSCORED)
+    return {"truth": fields["classification"][scored], "said": fields[PREDICTED][scored],
+            "height": fields[HEIGHT][scored]}
 
 
-def score_tiles(pattern: str, model: Path, work: Path) -> list[dict]:
-    """Each tile of ``pattern`` classified by ``model`` in one run: its ground F1."""
-    out = work / f"tiles_{model.parent.name}_{model.name}"
+def ground_scores(truth: np.ndarray, said: np.ndarray, height: np.ndarray) -> dict:
+    """Ground F1, the share of true ground called ground, the share of vegetation (3-5)
+    called building (6), and the DTM's error on true ground (median and 95th percentile of
+    its |HeightAboveGround|)."""
+    true, called = truth == GROUND, said == GROUND
+    vegetation = np.isin(truth, VEGETATION)
+    both = np.count_nonzero(true & called)
+    return {"points": int(truth.size),
+            "ground_f1": round(2 * both / max(np.count_nonzero(true)
+                                              + np.count_nonzero(called), 1), 4),
+            "ground_called_ground": round(both / max(np.count_nonzero(true), 1), 4),
+            "vegetation_called_building": (round(float(np.mean(said[vegetation] == BUILDING)), 4)
+                                           if vegetation.any() else None),
+            "ground_hag_median": round(float(np.median(np.abs(height[true]))), 3),
+            "ground_hag_p95": round(float(np.percentile(np.abs(height[true]), 95)), 3)}
+
+
+def sheared(pattern: str, degrees: float, work: Path) -> str:
+    """Copies of the tiles of ``pattern`` whose ground slopes ``degrees`` more, eastwards:
+    z += tan(degrees) * (x - the tile's min x). Trees and walls stay vertical, the ground
+    tilts; every other dimension is kept. Returns the copies' pattern."""
+    out = work / f"shear{degrees:g}"
+    out.mkdir(parents=True, exist_ok=True)
+    for tile in sorted(Path(p) for p in glob.glob(pattern)):
+        las = laspy.read(tile)
+        x = np.asarray(las.x)
+        las.z = np.asarray(las.z) + np.tan(np.radians(degrees)) * (x - x.min())
+        las.write(out / tile.name)
+    return str(out / "*.laz")
+
+
+def tile_line(name: str, row: dict) -> str:
+    """A tile's row of the printed table."""
+    building = row["vegetation_called_building"]
+    return (f"| {name} | {row.get('shear', 0):g}° | {row['ground_f1']:.4f} "
+            f"| {row['ground_called_ground']:.1%} "
+            f"| {'–' if building is None else f'{building:.1%}'} "
+            f"| {row['ground_hag_median']:.2f} / {row['ground_hag_p95']:.2f} |")
+
+
+def score_tiles(pattern: str, model: Path, work: Path, shear: float = 0.0) -> list[dict]:
+    """Each tile of ``pattern`` (sheared by ``shear`` degrees) classified by ``model`` in one
+    run: its :func:`ground_scores`, and theirs over all the tiles' points."""
+    if shear:
+        pattern = sheared(pattern, shear, work)
+    out = work / f"tiles_{model.parent.name}_{model.name}_shear{shear:g}"
     if out.exists():
         shutil.rmtree(out)
     silva("predict", "--model", model, "--out", out, "--quiet", pattern)
-    rows = []
-    print("| tile | ground F1 |\n|---|---|")
+    rows, pooled = [], []
     for tile in sorted(Path(p) for p in glob.glob(pattern)):
-        rows.append({"tile": tile.name, "ground_f1": round(
-            ground_f1(tile, out / "predictions" / tile.name), 4)})
-        print(f"| {tile.stem} | {rows[-1]['ground_f1']:.4f} |", flush=True)
+        pooled.append(tile_arrays(out / "predictions" / tile.name))
+        rows.append({"tile": tile.stem, "shear": shear, **ground_scores(**pooled[-1])})
+        print(tile_line(tile.stem, rows[-1]), flush=True)
+    rows.append({"tile": "all", "shear": shear, **ground_scores(
+        **{key: np.concatenate([p[key] for p in pooled]) for key in pooled[0]})})
+    print(tile_line("**all**", rows[-1]), flush=True)
     return rows
 
 
@@ -190,6 +242,8 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--work", type=Path, default=None)
     parser.add_argument("--tiles", default=None,
                         help="labelled tiles to score ground F1 on, instead of the plots")
+    parser.add_argument("--shear", type=float, nargs="+", default=[0.0],
+                        help="with --tiles: tilt the tiles' ground by these many degrees")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args(argv)
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_slopes_"))
@@ -198,8 +252,13 @@ def main(argv=None) -> list[dict]:
     if args.tolerance is not None:
         model = with_tolerance(model, args.tolerance,
                                work / f"{model.name}_tol{args.tolerance:g}")
-    rows = (score_tiles(args.tiles, model, work) if args.tiles
-            else score_plots(args, model, work))
+    if args.tiles:
+        print("| tile | shear | ground F1 | ground called ground | vegetation called building "
+              "| DTM |HAG| of ground, median / p95 (m) |\n|---|---|---|---|---|---|")
+        rows = [row for shear in args.shear for row in score_tiles(args.tiles, model, work,
+                                                                  shear)]
+    else:
+        rows = score_plots(args, model, work)
     if args.json:
         print(json.dumps(rows))
     return rows
