@@ -23,6 +23,10 @@ seeds 0 to K-1 (different points, the same density), each in its own place.
 ``--whole`` also writes each whole tile, in one piece, to OUT_DIR/whole: the west and east
 halves of a tile lie at the same place in their two scenes, so a scene of both directories
 would overlay them; a model trained on all the data trains on OUT_DIR/whole/*.laz.
+``--tilt DEGREES`` also writes the west halves with their ground sloping DEGREES northwards
+(z += tan(DEGREES) * (y - min y): trees and walls stay vertical) to OUT_DIR/west-tilted,
+each beside the west halves in the same frame: a model trained on both has seen slopes (the
+east halves are scored tilted eastwards by ``bench_slopes.py --shear``).
 ``--west-share Q`` keeps as the west side only the points west of the Q-quantile of x (the
 east side is unchanged): 0.25 gives the western half of each west half, to measure what
 a model gains from twice the training area.
@@ -43,15 +47,22 @@ TILES = ("als/StBarth_IGN_LiDARHD_100m.laz", "als/AHN4_Amsterdam_2496_9727.laz",
 SPACING = 1000.0  # metres between the halves in the local frame
 
 
-def write_half(las: laspy.LasData, keep: np.ndarray, place: float, dst: Path) -> int:
-    """Write the points ``keep`` of ``las`` moved so that their box starts at (place, 0)."""
+def write_half(las: laspy.LasData, keep: np.ndarray, place: float, dst: Path,
+               tilt: float = 0.0) -> int:
+    """Write the points ``keep`` of ``las`` moved so that their box starts at (place, 0),
+    with their ground sloping ``tilt`` degrees northwards (z += tan(tilt) * (y - min y)):
+    trees and walls stay vertical."""
     header = laspy.LasHeader(point_format=las.header.point_format, version=las.header.version)
     header.scales = las.header.scales
     x, y = np.asarray(las.x)[keep], np.asarray(las.y)[keep]
     shift = np.array([place - x.min(), -y.min(), 0.0])
     header.offsets = las.header.offsets + shift
     out = laspy.LasData(header)
-    out.points = las.points[keep].copy()
+    points = las.points[keep].copy()
+    if tilt:  # on the integer coordinates, so every other dimension stays as it was
+        rise = np.tan(np.radians(tilt)) * (y - y.min()) / header.scales[2]
+        points.Z = np.asarray(points.Z) + np.round(rise).astype(np.asarray(points.Z).dtype)
+    out.points = points
     out.header.offsets = header.offsets
     out.write(dst)
     return int(keep.sum())
@@ -80,6 +91,10 @@ def main(argv=None) -> int:
                         help="copies of each half, thinned with seeds 0 to copies-1")
     parser.add_argument("--whole", action="store_true",
                         help="also write each whole tile to OUT_DIR/whole (to train on all)")
+    parser.add_argument("--tilt", type=float, default=None, metavar="DEGREES",
+                        help="also write the west halves with their ground tilted this many "
+                        "degrees northwards to OUT_DIR/west-tilted, placed beside the west "
+                        "halves (to train on slopes)")
     parser.add_argument("--west-share", type=float, default=0.5,
                         help="the west side: the points west of this quantile of x (<= 0.5)")
     args = parser.parse_args(argv)
@@ -91,7 +106,8 @@ def main(argv=None) -> int:
     if missing:
         print(f"no {', '.join(missing)} in {DATA}: nothing written", file=sys.stderr)
         return 1
-    for side in ("west", "east") + (("whole",) if args.whole else ()):
+    tilted = ("west-tilted",) if args.tilt else ()
+    for side in ("west", "east") + (("whole",) if args.whole else ()) + tilted:
         (args.out / side).mkdir(parents=True, exist_ok=True)
     for i, name in enumerate(TILES):
         las = laspy.read(DATA / name)
@@ -100,15 +116,17 @@ def main(argv=None) -> int:
         stem = Path(name).stem
         y = np.asarray(las.y)
         whole = (("whole", np.ones(len(x), dtype=bool)),) if args.whole else ()
-        for side, half in (("west", west), ("east", east)) + whole:
+        for side, half in (("west", west), ("east", east)) + whole + (
+                (("west-tilted", west),) if args.tilt else ()):
             rows = np.flatnonzero(half)
             thinned = box_fraction(x[rows], y[rows], args.density) < 1.0
             for copy in range(args.copies if thinned else 1):  # unthinned: one copy
                 keep = np.zeros(len(x), dtype=bool)
                 keep[rows[thinned_to(x[rows], y[rows], args.density, copy)]] = True
                 name = f"{stem}_{side}" + (f"_{copy}" if args.copies > 1 else "") + ".laz"
-                place = (copy * len(TILES) + i) * SPACING
-                n = write_half(las, keep, place, args.out / side / name)
+                tilt = args.tilt if side == "west-tilted" else 0.0
+                place = ((copy + bool(tilt) * args.copies) * len(TILES) + i) * SPACING
+                n = write_half(las, keep, place, args.out / side / name, tilt)
                 print(f"{side}/{name}: {n:,} points")
     return 0
 
