@@ -125,7 +125,9 @@ def main(argv=None) -> int:
                 keep[rows[thinned_to(x[rows], y[rows], args.density, copy)]] = True
                 name = f"{stem}_{side}" + (f"_{copy}" if args.copies > 1 else "") + ".laz"
                 tilt = args.tilt if side == "west-tilted" else 0.0
-                place = ((copy + bool(tilt) * args.copies) * len(TILES) + i) * SPACING
+                # the tilted copies after the flat ones: one frame holds both sides
+                slot = copy + (args.copies if tilt else 0)
+                place = (slot * len(TILES) + i) * SPACING
                 n = write_half(las, keep, place, args.out / side / name, tilt)
                 print(f"{side}/{name}: {n:,} points")
     return 0
