@@ -47,6 +47,13 @@ TILES = ("als/StBarth_IGN_LiDARHD_100m.laz", "als/AHN4_Amsterdam_2496_9727.laz",
 SPACING = 1000.0  # metres between the halves in the local frame
 
 
+def raised(Z: np.ndarray, run: np.ndarray, degrees: float, z_scale: float) -> np.ndarray:
+    """The integer coordinates ``Z`` raised by tan(degrees) * run (metres from the foot of
+    the slope): the ground tilted by ``degrees``, trees and walls still vertical, every other
+    dimension untouched."""
+    return Z + np.round(np.tan(np.radians(degrees)) * run / z_scale).astype(Z.dtype)
+
+
 def write_half(las: laspy.LasData, keep: np.ndarray, place: float, dst: Path,
                tilt: float = 0.0) -> int:
     """Write the points ``keep`` of ``las`` moved so that their box starts at (place, 0),
@@ -59,9 +66,8 @@ def write_half(las: laspy.LasData, keep: np.ndarray, place: float, dst: Path,
     header.offsets = las.header.offsets + shift
     out = laspy.LasData(header)
     points = las.points[keep].copy()
-    if tilt:  # on the integer coordinates, so every other dimension stays as it was
-        rise = np.tan(np.radians(tilt)) * (y - y.min()) / header.scales[2]
-        points.Z = np.asarray(points.Z) + np.round(rise).astype(np.asarray(points.Z).dtype)
+    if tilt:
+        points.Z = raised(np.asarray(points.Z), y - y.min(), tilt, header.scales[2])
     out.points = points
     out.header.offsets = header.offsets
     out.write(dst)

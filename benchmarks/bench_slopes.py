@@ -48,6 +48,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from als_scenes import raised  # noqa: E402
 from pipeline.io import read_points  # noqa: E402
 from pipeline.model import DIGEST_KEY, MODEL_FILE, description_digest  # noqa: E402
 from pipeline.synth import SYNTH_CLASSES  # noqa: E402
@@ -165,7 +166,7 @@ def sheared(pattern: str, degrees: float, work: Path) -> str:
     for tile in sorted(Path(p) for p in glob.glob(pattern)):
         las = laspy.read(tile)
         x = np.asarray(las.x)
-        las.z = np.asarray(las.z) + np.tan(np.radians(degrees)) * (x - x.min())
+        las.Z = raised(np.asarray(las.Z), x - x.min(), degrees, las.header.scales[2])
         las.write(out / tile.name)
     return str(out / "*.laz")
 
