@@ -151,10 +151,8 @@ def check_before_start(run, target: str, in_process: bool = False) -> tuple:
     applies was checked with its plan); warns when r1 is too small for the tiles' density
     and when the model applied was trained on another terrain version's heights.
     Raises the error the step would raise later; returns the run's tiles."""
-    from workflows.cli.plan import check_memory
-    from workflows.steps.features import warn_sparse_radius
+    from workflows.cli.plan import check_memory, warn_before_work
     from workflows.steps.ingest import plan_tiles
-    from workflows.steps.terrain import warn_terrain_version
 
     tiles = plan_tiles(run)
     steps = run.table.until(target, run.cfg)
@@ -162,8 +160,7 @@ def check_before_start(run, target: str, in_process: bool = False) -> tuple:
         if step.check is not None:
             step.check(run, tiles)
     if "features" in (step.name for step in steps):
-        warn_sparse_radius(run)
-        warn_terrain_version(run)
+        warn_before_work(run)
         if not in_process:
             check_memory(run, tiles)
     return tiles

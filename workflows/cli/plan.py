@@ -233,19 +233,27 @@ def training_seconds(run: Run, train_points: int, cores: int) -> float:
             / max(1, min(cores, trees)))
 
 
+def warn_before_work(run: Run) -> None:
+    """The warnings a run gives before any work, on stderr, and ``silva plan`` with it: r1
+    too small for the tiles' density, a model trained on another terrain version's heights."""
+    from workflows.steps.features import warn_sparse_radius
+    from workflows.steps.terrain import warn_terrain_version
+
+    warn_sparse_radius(run)
+    warn_terrain_version(run)
+
+
 def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
     """The lines ``silva plan`` prints, after the warnings the run would give before any
-    work; with ``picture``, a PNG of the chunk layouts. ConfigError, naming the key to change, for a run that will not fit (the memory of a
+    work (:func:`warn_before_work`); with ``picture``, a PNG of the chunk layouts.
+    ConfigError, naming the key to change, for a run that will not fit (the memory of a
     worker of the local cluster, the trees' and rasters' settings), as the run itself
     refuses it before its cluster starts."""
     from workflows.steps.export import check_raster_size
-    from workflows.steps.features import warn_sparse_radius
-    from workflows.steps.terrain import warn_terrain_version
     from workflows.steps.trees import check_tree_settings
 
     tiles = plan_tiles(run)
-    warn_sparse_radius(run)  # the warnings the run gives before any work, on stderr
-    warn_terrain_version(run)
+    warn_before_work(run)
     check_memory(run, tiles)
     check_raster_size(run, tiles)
     if run.cfg.output.trees:
