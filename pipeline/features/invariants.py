@@ -13,10 +13,10 @@ From the raw surface moments M_kln of a patch (see :mod:`pipeline.features.momen
    (order and definitions in :data:`INVARIANT_NAMES`).
 
 The Clebsch–Gordan coefficients are computed once at import with Racah's exact formula in
-rational arithmetic; the per-row work is elementwise NumPy complex arithmetic over blocks of
-rows, so memory stays bounded whatever the number of rows, and every row gets the same
-operations in the same order: a point's invariants do not depend, to the last bit, on the other
-rows of the call (no BLAS, whose results vary with the array size).
+rational arithmetic; the per-row work is a numba kernel that takes each row through the four
+steps in scalar complex arithmetic, so every row gets the same operations in the same order: a
+point's invariants do not depend, to the last bit, on the other rows of the call (no BLAS,
+whose results vary with the array size).
 
 Every coupling used has a + b - J even, so every invariant is real; the imaginary parts are
 rounding noise and :func:`moment_invariants` returns the real parts.
@@ -25,6 +25,7 @@ rounding noise and :func:`moment_invariants` returns the real parts.
 import math
 from fractions import Fraction
 
+import numba
 import numpy as np
 
 from pipeline.errors import ConfigError, InputError
@@ -52,10 +53,6 @@ INVARIANT_NAMES: tuple[str, ...] = (
 )
 
 N_INVARIANTS = len(INVARIANT_NAMES)
-
-#: Rows per block. Bounds the temporaries (about 100 complex values per row) and keeps them
-#: in cache: blocks of 16384 rows or more ran over 1.5x slower.
-BLOCK_ROWS = 8192
 
 
 def _racah(j1: int, m1: int, j2: int, m2: int, j: int, m: int) -> tuple[int, Fraction]:
@@ -122,14 +119,33 @@ _PAIR_COLUMN = {}
 for _col, _ax in enumerate(_AXES):
     if len(_ax) == 2:
         _PAIR_COLUMN[_ax] = _PAIR_COLUMN[_ax[::-1]] = _col
-_ORDER2_TERMS = [(col, *ax) for col, ax in enumerate(_AXES) if len(ax) == 2]
-_ORDER3_TERMS = [
+_ORDER2_TERMS = np.array([(col, *ax) for col, ax in enumerate(_AXES) if len(ax) == 2])
+_ORDER3_TERMS = np.array([
     (col, i, j, k, _PAIR_COLUMN[j, k], _PAIR_COLUMN[i, k], _PAIR_COLUMN[i, j])
     for col, (i, j, k) in ((col, ax) for col, ax in enumerate(_AXES) if len(ax) == 3)
-]
-_ORDER2 = [t[0] for t in _ORDER2_TERMS]
-_ORDER3 = [t[0] for t in _ORDER3_TERMS]
-_FIRST = [moment_index(1, 0, 0), moment_index(0, 1, 0), moment_index(0, 0, 1)]
+])  # fmt: skip
+_FIRST = np.array([moment_index(1, 0, 0), moment_index(0, 1, 0), moment_index(0, 0, 1)])
+
+# The columns the complex moments read.
+(_XX, _YY, _ZZ, _XY, _XZ, _YZ, _XXX, _YYY, _ZZZ, _XXY, _XXZ, _XYY, _YYZ, _XZZ, _YZZ,
+ _XYZ) = (moment_index(*e) for e in (
+    (2, 0, 0), (0, 2, 0), (0, 0, 2), (1, 1, 0), (1, 0, 1), (0, 1, 1), (3, 0, 0), (0, 3, 0),
+    (0, 0, 3), (2, 1, 0), (2, 0, 1), (1, 2, 0), (0, 2, 1), (1, 0, 2), (0, 1, 2),
+    (1, 1, 1)))  # fmt: skip
+
+
+def _coupling_table(a: int, b: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_coupling_terms` as constant arrays for the compiled kernels: int64 (T, 3)
+    rows (K + j, ma + a, mb + b) and their float64 (T,) coefficients."""
+    terms = _coupling_terms(a, b, j)
+    return np.array([t[:3] for t in terms]), np.array([t[3] for t in terms])
+
+
+# The couplings of the invariants, computed once.
+(_T22_0, _C22_0), (_T22_2, _C22_2) = _coupling_table(2, 2, 0), _coupling_table(2, 2, 2)
+(_T33_0, _C33_0), (_T33_2, _C33_2) = _coupling_table(3, 3, 0), _coupling_table(3, 3, 2)
+(_T11_0, _C11_0), (_T11_2, _C11_2) = _coupling_table(1, 1, 0), _coupling_table(1, 1, 2)
+_T31_2, _C31_2 = _coupling_table(3, 1, 2)
 
 
 def _check_moments(moments) -> np.ndarray:
@@ -143,130 +159,175 @@ def _check_moments(moments) -> np.ndarray:
     return arr
 
 
-# Internal kernels work component-major, (20, n) and (2l+1, n): each component is a
-# contiguous row, which keeps the elementwise NumPy passes fast.
+# The kernels below work row by row: every row gets the same operations in the same order,
+# whatever the other rows of the call. NumPy's error model: a division by zero gives inf or
+# NaN (rows without a surface), not an exception. The kernels of central_moments and
+# complex_moments, which no feature calls, are compiled when used and not cached on disk.
+_jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+_inline = numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+_uncached = numba.njit(nogil=True, error_model="numpy")
 
 
-def _central_t(m: np.ndarray) -> np.ndarray:
-    """Central moments of raw moments m (20, n); NaN except M000 where M000 == 0."""
+@_inline
+def _central(m, c, mu):
+    """Central moments of raw moments m (20,) into mu (20,); c (3,) is work space.
+
+    NaN except M000 where M000 == 0."""
     m0 = m[0]
-    c = m[_FIRST] / m0
-    out = np.empty_like(m)
-    out[0] = m0
-    out[_FIRST] = np.where(np.isfinite(c), 0.0, np.nan)
-    for col, i, j in _ORDER2_TERMS:
-        out[col] = m[col] - m0 * c[i] * c[j]
-    for col, i, j, k, jk, ik, ij in _ORDER3_TERMS:
-        out[col] = m[col] - c[i] * m[jk] - c[j] * m[ik] - c[k] * m[ij]
-        out[col] += 2.0 * m0 * c[i] * c[j] * c[k]
-    return out
+    for a in range(3):
+        c[a] = m[_FIRST[a]] / m0
+    mu[0] = m0
+    for a in range(3):
+        mu[_FIRST[a]] = 0.0 if np.isfinite(c[a]) else np.nan
+    for t in range(_ORDER2_TERMS.shape[0]):
+        col, i, j = _ORDER2_TERMS[t]
+        mu[col] = m[col] - m0 * c[i] * c[j]
+    for t in range(_ORDER3_TERMS.shape[0]):
+        col, i, j, k, jk, ik, ij = _ORDER3_TERMS[t]
+        mu[col] = m[col] - c[i] * m[jk] - c[j] * m[ik] - c[k] * m[ij]
+        mu[col] += 2.0 * m0 * c[i] * c[j] * c[k]
 
 
-def _normalise_t(mu: np.ndarray) -> np.ndarray:
-    """Divide the central moments mu (20, n) by mu000^((k+l+n+2)/2), in place."""
+@_inline
+def _normalise(mu):
+    """Divide the central moments mu (20,) by mu000^((k+l+n+2)/2), in place."""
     inv2 = 1.0 / (mu[0] * mu[0])
-    mu[_ORDER2] *= inv2
-    mu[_ORDER3] *= inv2 / np.sqrt(mu[0])
+    inv3 = inv2 / np.sqrt(mu[0])
+    for t in range(_ORDER2_TERMS.shape[0]):
+        mu[_ORDER2_TERMS[t, 0]] *= inv2
+    for t in range(_ORDER3_TERMS.shape[0]):
+        mu[_ORDER3_TERMS[t, 0]] *= inv3
     mu[0] = 1.0  # the first-order moments stay 0 (or NaN)
-    return mu
 
 
-def _complex(re, im) -> np.ndarray:
-    """re + i im as a new complex128 array, without complex temporaries."""
-    out = np.empty(np.shape(re), dtype=np.complex128)
-    out.real = re
-    out.imag = im
-    return out
-
-
-def _with_negative_orders(non_negative) -> np.ndarray:
-    """(2l+1, ...) components m = -l .. l from the list [nu^0, ..., nu^l]."""
-    l_max = len(non_negative) - 1
-    out = np.empty((2 * l_max + 1,) + np.shape(non_negative[0]), dtype=np.complex128)
-    for m, value in enumerate(non_negative):
-        out[l_max + m] = value
+@_inline
+def _set_orders(nu, positive):
+    """nu (2l+1,) from its components m = 0 .. l: nu^(-m) = (-1)^m conj(nu^m)."""
+    l_max = len(positive) - 1
+    for m in range(l_max + 1):
+        nu[l_max + m] = positive[m]
         if m:
-            negative = out[l_max - m, ...]  # a view even for 0-d components
-            np.conjugate(value, out=negative)
-            if m % 2:
-                negative *= -1.0
-    return out
+            nu[l_max - m] = (-1.0 if m % 2 else 1.0) * np.conj(positive[m])
 
 
-def _spherical_t(mu: np.ndarray):
-    """nu0 (...), nu1 (3, ...), nu2 (5, ...), nu3 (7, ...) of central moments mu (20, ...)."""
+# The constants of the complex moments (see :func:`complex_moments`).
+_K0 = 2.0 * math.sqrt(math.pi) / 3.0
+_K2 = math.sqrt(2.0 * math.pi / 15.0)
+_K20 = math.sqrt(4.0 * math.pi / 45.0)
+_K1 = -math.sqrt(6.0 * math.pi) / 5.0
+_K10 = 2.0 * math.sqrt(3.0 * math.pi) / 5.0
+_K33 = -math.sqrt(math.pi / 35.0)
+_K32 = math.sqrt(6.0 * math.pi / 35.0)
+_K31 = -math.sqrt(3.0 * math.pi / 7.0) / 5.0
+_K30 = (2.0 / 5.0) * math.sqrt(math.pi / 7.0)
 
-    def col(k, l, n):
-        return mu[moment_index(k, l, n)]
 
-    xx, yy, zz = col(2, 0, 0), col(0, 2, 0), col(0, 0, 2)
-    xy, xz, yz = col(1, 1, 0), col(1, 0, 1), col(0, 1, 1)
-    xxx, yyy, zzz = col(3, 0, 0), col(0, 3, 0), col(0, 0, 3)
-    xxy, xxz, xyy = col(2, 1, 0), col(2, 0, 1), col(1, 2, 0)
-    yyz, xzz, yzz = col(0, 2, 1), col(1, 0, 2), col(0, 1, 2)
-    xyz = col(1, 1, 1)
-    pi = math.pi
-
-    nu0 = (2.0 * math.sqrt(pi) / 3.0) * (xx + yy + zz)
-
-    k2 = math.sqrt(2.0 * pi / 15.0)
-    nu2_2 = _complex(k2 * (xx - yy), (2.0 * k2) * xy)
-    nu2_1 = _complex((-2.0 * k2) * xz, (-2.0 * k2) * yz)
-    nu2_0 = math.sqrt(4.0 * pi / 45.0) * (2.0 * zz - xx - yy)
-    nu2 = _with_negative_orders([nu2_0, nu2_1, nu2_2])
-
-    k1 = -math.sqrt(6.0 * pi) / 5.0
+@_inline
+def _spherical(mu, nu1, nu2, nu3):
+    """nu1 (3,), nu2 (5,), nu3 (7,) of central moments mu (20,); returns nu0."""
+    xx, yy, zz = mu[_XX], mu[_YY], mu[_ZZ]
+    xy, xz, yz = mu[_XY], mu[_XZ], mu[_YZ]
+    xxx, yyy, zzz, xyz = mu[_XXX], mu[_YYY], mu[_ZZZ], mu[_XYZ]
+    xxy, xxz, xyy = mu[_XXY], mu[_XXZ], mu[_XYY]
+    yyz, xzz, yzz = mu[_YYZ], mu[_XZZ], mu[_YZZ]
+    _set_orders(nu2, (
+        complex(_K20 * (2.0 * zz - xx - yy), 0.0),
+        complex((-2.0 * _K2) * xz, (-2.0 * _K2) * yz),
+        complex(_K2 * (xx - yy), (2.0 * _K2) * xy),
+    ))  # fmt: skip
     vx, vy, vz = xxx + xyy + xzz, xxy + yyy + yzz, xxz + yyz + zzz
-    nu1_1 = _complex(k1 * vx, k1 * vy)
-    nu1_0 = (2.0 * math.sqrt(3.0 * pi) / 5.0) * vz
-    nu1 = _with_negative_orders([nu1_0, nu1_1])
-
-    k33 = -math.sqrt(pi / 35.0)
-    k32 = math.sqrt(6.0 * pi / 35.0)
-    k31 = -math.sqrt(3.0 * pi / 7.0) / 5.0
-    nu3_3 = _complex(k33 * (xxx - 3.0 * xyy), k33 * (3.0 * xxy - yyy))
-    nu3_2 = _complex(k32 * (xxz - yyz), (2.0 * k32) * xyz)
-    nu3_1 = _complex(k31 * (4.0 * xzz - xxx - xyy), k31 * (4.0 * yzz - xxy - yyy))
-    nu3_0 = (2.0 / 5.0) * math.sqrt(pi / 7.0) * (2.0 * zzz - 3.0 * xxz - 3.0 * yyz)
-    nu3 = _with_negative_orders([nu3_0, nu3_1, nu3_2, nu3_3])
-    return nu0, nu1, nu2, nu3
+    _set_orders(nu1, (complex(_K10 * vz, 0.0), complex(_K1 * vx, _K1 * vy)))
+    _set_orders(nu3, (
+        complex(_K30 * (2.0 * zzz - 3.0 * xxz - 3.0 * yyz), 0.0),
+        complex(_K31 * (4.0 * xzz - xxx - xyy), _K31 * (4.0 * yzz - xxy - yyy)),
+        complex(_K32 * (xxz - yyz), (2.0 * _K32) * xyz),
+        complex(_K33 * (xxx - 3.0 * xyy), _K33 * (3.0 * xxy - yyy)),
+    ))  # fmt: skip
+    return _K0 * (xx + yy + zz)
 
 
-def _couple(a: np.ndarray, b: np.ndarray, terms, j: int) -> np.ndarray:
-    """(A (x) B)_j (2j+1, n) of spherical tensors a (2a+1, n) and b (2b+1, n).
-
-    Elementwise products summed in a fixed order, no BLAS: every row gets exactly the same
-    arithmetic whatever the number of rows, so results do not depend on how points are chunked.
-    """
-    out = np.zeros((2 * j + 1, a.shape[1]), dtype=np.complex128)
-    product = np.empty(a.shape[1], dtype=np.complex128)
-    for k, ia, ib, coefficient in terms:
-        np.multiply(a[ia], b[ib], out=product)
-        product *= coefficient
-        out[k] += product
-    return out
+@_jit
+def _couple(a, b, terms, coefficients, out):
+    """(A (x) B)_j into out (2j+1,) of spherical tensors a (2a+1,) and b (2b+1,), the terms
+    of a coupling table summed in its order."""
+    for k in range(out.shape[0]):
+        out[k] = 0.0
+    for t in range(terms.shape[0]):
+        product = a[terms[t, 1]] * b[terms[t, 2]]
+        coefficient = coefficients[t]  # real: two products, not a complex one
+        out[terms[t, 0]] += complex(product.real * coefficient, product.imag * coefficient)
 
 
-def _invariants_t(mu: np.ndarray) -> np.ndarray:
-    """complex128 (11, n) invariants of (normalised) central moments mu (20, n)."""
-    _, nu1, nu2, nu3 = _spherical_t(mu)
-    n22 = _couple(nu2, nu2, _T22_2, 2)
-    n33 = _couple(nu3, nu3, _T33_2, 2)
-    n11 = _couple(nu1, nu1, _T11_2, 2)
-    n31 = _couple(nu3, nu1, _T31_2, 2)
-    out = np.empty((N_INVARIANTS, mu.shape[1]), dtype=np.complex128)
-    out[0] = _couple(nu2, nu2, _T22_0, 0)[0]
-    out[1] = _couple(n22, nu2, _T22_0, 0)[0]
-    out[2] = _couple(nu3, nu3, _T33_0, 0)[0]
-    out[3] = _couple(nu1, nu1, _T11_0, 0)[0]
-    out[4] = _couple(n33, nu2, _T22_0, 0)[0]
-    out[5] = _couple(n31, nu2, _T22_0, 0)[0]
-    out[6] = _couple(n11, nu2, _T22_0, 0)[0]
-    out[7] = _couple(n33, n33, _T22_0, 0)[0]
-    out[8] = _couple(n31, n31, _T22_0, 0)[0]
-    out[9] = _couple(n33, n31, _T22_0, 0)[0]
-    out[10] = _couple(n31, n11, _T22_0, 0)[0]
-    return out
+@_jit
+def _scalar(a, b, terms, coefficients, out):
+    """(A (x) B)_0 of two spherical tensors of the same rank; out (1,) is work space."""
+    _couple(a, b, terms, coefficients, out)
+    return out[0]
+
+
+@_uncached
+def _central_kernel(moments, out):
+    """:func:`_central` of each row of moments (n, 20) into out (n, 20)."""
+    c = np.empty(3)
+    for row in range(moments.shape[0]):
+        _central(moments[row], c, out[row])
+
+
+@_uncached
+def _spherical_kernel(mu, nu0, nu1, nu2, nu3):
+    """:func:`_spherical` of each row of mu (n, 20) into nu0 (n,), nu1 (n, 3), nu2 (n, 5)
+    and nu3 (n, 7)."""
+    for row in range(mu.shape[0]):
+        nu0[row] = _spherical(mu[row], nu1[row], nu2[row], nu3[row])
+
+
+@_inline
+def _all_finite(values) -> bool:
+    """Whether every element of the 1-D array ``values`` is finite."""
+    for value in values:
+        if not np.isfinite(value):
+            return False
+    return True
+
+
+@_jit
+def _invariants_kernel(moments, area, out):
+    """complex128 (n, 11) invariants of raw moments (n, 20) into out; scale-normalised
+    moments when ``area``. NaN rows where undefined (see :func:`moment_invariants`)."""
+    c = np.empty(3)
+    mu = np.empty(N_MOMENTS)
+    nu1 = np.empty(3, dtype=np.complex128)
+    nu2 = np.empty(5, dtype=np.complex128)
+    nu3 = np.empty(7, dtype=np.complex128)
+    n22 = np.empty(5, dtype=np.complex128)
+    n33 = np.empty(5, dtype=np.complex128)
+    n11 = np.empty(5, dtype=np.complex128)
+    n31 = np.empty(5, dtype=np.complex128)
+    s = np.empty(1, dtype=np.complex128)
+    for row in range(moments.shape[0]):
+        m = moments[row]
+        values = out[row]
+        _central(m, c, mu)
+        if area:
+            _normalise(mu)
+        _spherical(mu, nu1, nu2, nu3)
+        _couple(nu2, nu2, _T22_2, _C22_2, n22)
+        _couple(nu3, nu3, _T33_2, _C33_2, n33)
+        _couple(nu1, nu1, _T11_2, _C11_2, n11)
+        _couple(nu3, nu1, _T31_2, _C31_2, n31)
+        values[0] = _scalar(nu2, nu2, _T22_0, _C22_0, s)
+        values[1] = _scalar(n22, nu2, _T22_0, _C22_0, s)
+        values[2] = _scalar(nu3, nu3, _T33_0, _C33_0, s)
+        values[3] = _scalar(nu1, nu1, _T11_0, _C11_0, s)
+        values[4] = _scalar(n33, nu2, _T22_0, _C22_0, s)
+        values[5] = _scalar(n31, nu2, _T22_0, _C22_0, s)
+        values[6] = _scalar(n11, nu2, _T22_0, _C22_0, s)
+        values[7] = _scalar(n33, n33, _T22_0, _C22_0, s)
+        values[8] = _scalar(n31, n31, _T22_0, _C22_0, s)
+        values[9] = _scalar(n33, n31, _T22_0, _C22_0, s)
+        values[10] = _scalar(n31, n11, _T22_0, _C22_0, s)
+        if not (m[0] > 0.0 and _all_finite(m) and _all_finite(values)):
+            values[:] = np.nan  # also e.g. the overflow of a near-zero area
 
 
 def central_moments(moments: np.ndarray) -> np.ndarray:
@@ -286,10 +347,10 @@ def central_moments(moments: np.ndarray) -> np.ndarray:
         Rows with M000 == 0 have no centroid: every column but M000 is NaN.
     """
     arr = _check_moments(moments)
-    flat = arr.reshape(-1, N_MOMENTS)
-    with np.errstate(all="ignore"):
-        out = _central_t(np.ascontiguousarray(flat.T))
-    return out.T.reshape(arr.shape)
+    flat = np.ascontiguousarray(arr.reshape(-1, N_MOMENTS))
+    out = np.empty_like(flat)
+    _central_kernel(flat, out)
+    return out.reshape(arr.shape)
 
 
 def complex_moments(central: np.ndarray):
@@ -317,32 +378,27 @@ def complex_moments(central: np.ndarray):
         nu_l^m is a constant times the integral of r^s Y_l^m over the surface (s = 2 for
         l = 0, 2 and s = 3 for l = 1, 3): 4 pi / 3, 4 pi / 5, 8 pi / 15 and 8 pi / 35.
     """
-    mu = np.moveaxis(_check_moments(central), -1, 0)
-    nu0, nu1, nu2, nu3 = _spherical_t(mu)
-    return nu0, np.moveaxis(nu1, 0, -1), np.moveaxis(nu2, 0, -1), np.moveaxis(nu3, 0, -1)
+    mu = _check_moments(central)
+    flat = np.ascontiguousarray(mu.reshape(-1, N_MOMENTS))
+    lead = mu.shape[:-1]
+    nu0 = np.empty(len(flat))
+    nu1, nu2, nu3 = (np.empty((len(flat), 2 * l + 1), dtype=np.complex128) for l in (1, 2, 3))
+    _spherical_kernel(flat, nu0, nu1, nu2, nu3)
+    return nu0.reshape(lead), nu1.reshape(lead + (3,)), nu2.reshape(lead + (5,)), nu3.reshape(
+        lead + (7,))
 
 
-def _evaluate(moments, normalise, dtype) -> np.ndarray:
-    """Validate, then evaluate the invariants block by block into a (..., 11) array of dtype."""
+def _evaluate(moments, normalise) -> np.ndarray:
+    """Validate, then the complex128 (..., 11) invariants of every row."""
     if not (normalise is None or (isinstance(normalise, str) and normalise == "area")):
         raise ConfigError(
             f"normalise must be 'area' or None, got {normalise!r}; use 'area' for "
             "scale-invariant features or None for the raw central moments"
         )
     arr = _check_moments(moments)
-    flat = arr.reshape(-1, N_MOMENTS)
-    out = np.empty((flat.shape[0], N_INVARIANTS), dtype=dtype)
-    for start in range(0, flat.shape[0], BLOCK_ROWS):
-        block = np.ascontiguousarray(flat[start : start + BLOCK_ROWS].T)
-        valid = np.isfinite(block).all(axis=0) & (block[0] > 0.0)
-        with np.errstate(all="ignore"):
-            mu = _central_t(block)
-            if normalise == "area":
-                mu = _normalise_t(mu)
-            result = _invariants_t(mu)
-        valid &= np.isfinite(result).all(axis=0)  # e.g. overflow of a near-zero area
-        result[:, ~valid] = np.nan
-        out[start : start + BLOCK_ROWS] = (result if dtype == np.complex128 else result.real).T
+    flat = np.ascontiguousarray(arr.reshape(-1, N_MOMENTS))
+    out = np.empty((len(flat), N_INVARIANTS), dtype=np.complex128)
+    _invariants_kernel(flat, normalise == "area", out)
     return out.reshape(arr.shape[:-1] + (N_INVARIANTS,))
 
 
@@ -352,7 +408,7 @@ def complex_invariants(moments: np.ndarray, normalise: str | None = "area") -> n
     Same parameters, errors and NaN rows as :func:`moment_invariants`; returns complex128
     (..., 11) whose imaginary parts are rounding noise (every coupling is real).
     """
-    return _evaluate(moments, normalise, np.complex128)
+    return _evaluate(moments, normalise)
 
 
 def moment_invariants(moments: np.ndarray, normalise: str | None = "area") -> np.ndarray:
@@ -384,4 +440,4 @@ def moment_invariants(moments: np.ndarray, normalise: str | None = "area") -> np
     ConfigError (a ValueError)
         ``normalise`` is neither ``"area"`` nor ``None``.
     """
-    return _evaluate(moments, normalise, np.float64)
+    return np.ascontiguousarray(_evaluate(moments, normalise).real)

@@ -111,8 +111,9 @@ def kernels_cold(groups=None, folder: str | os.PathLike | None = None) -> bool:
 
 #: kernel group -> the modules of this package whose kernels it compiles: every kernel they
 #: define that numba caches (not the inlined ones) is loaded or compiled with the group.
-GROUP_MODULES = {"surface": ("local", "moments"), "search": ("neighbors", "context"),
-                 "covariance": ("covariance", "height"), "voxel": ("voxel",)}
+GROUP_MODULES = {"surface": ("local", "moments", "invariants"),
+                 "search": ("neighbors", "context"), "covariance": ("covariance", "height"),
+                 "voxel": ("voxel",)}
 
 
 def _cached_kernels(module: str) -> list:
@@ -199,16 +200,17 @@ def _tiny_cloud():
 
 def _warm_surface() -> None:
     """The triangulation + moments kernel, on neighbourhoods found by brute force (so this
-    group compiles no search kernel)."""
+    group compiles no search kernel), and the invariants of the moments."""
     import numpy as np
 
+    from pipeline.features.invariants import moment_invariants
     from pipeline.features.local import local_moments
 
     xyz, _, query = _tiny_cloud()
     d2 = ((xyz[query, None, :] - xyz[None, :, :]) ** 2).sum(axis=2)
     nearest = np.argsort(d2, axis=1, kind="stable")[:, :16]
     nbr_ptr = np.arange(0, 16 * len(query) + 1, 16, dtype=np.int64)
-    local_moments(xyz, nearest.ravel().astype(np.int64), nbr_ptr, query)
+    moment_invariants(local_moments(xyz, nearest.ravel().astype(np.int64), nbr_ptr, query))
 
 
 def _warm_search() -> None:

@@ -12,7 +12,6 @@ from scipy.spatial import Delaunay
 from scipy.spatial.transform import Rotation
 from scipy import special
 
-import pipeline.features.invariants as inv
 from pipeline.features.invariants import (
     INVARIANT_NAMES,
     central_moments,
@@ -446,9 +445,8 @@ def test_rows_are_evaluated_independently_bit_for_bit(random_moments):
     np.testing.assert_array_equal(batch[5000:9000], moment_invariants(many[5000:9000]))
 
 
-def test_leading_dimensions_and_blocks(random_moments, monkeypatch):
+def test_leading_dimensions(random_moments):
     rowwise = np.array([moment_invariants(m) for m in random_moments])
-    monkeypatch.setattr(inv, "BLOCK_ROWS", 3)
     stacked = moment_invariants(random_moments.reshape(4, 5, 20))
     assert stacked.shape == (4, 5, 11) and stacked.dtype == np.float64
     np.testing.assert_array_equal(stacked.reshape(20, 11), rowwise)
