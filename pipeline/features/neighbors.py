@@ -164,8 +164,8 @@ def _select(cd2, cid, crow, n, m, r2, perm, bucket_end, scratch):
     """Sort the first min(n, m) of n candidates by (d2, id, row) into perm[:size].
 
     Counting sort into n buckets of d2 (monotone: d2 <= d2' gives bucket <= bucket'), then
-    an insertion sort of each bucket (a merge sort for a crowded one), stopping once m are
-    out: linear time in practice, no unpredictable heap branches. Returns min(n, m).
+    a merge sort of each crowded bucket and one insertion sort over the buckets that hold the
+    first m: linear time in practice, no unpredictable heap branches. Returns min(n, m).
     ``scratch`` (>= n) is the merge sort's work space.
     """
     scale = n / r2
@@ -187,15 +187,17 @@ def _select(cd2, cid, crow, n, m, r2, perm, bucket_end, scratch):
         hi = bucket_end[key]
         if hi - lo > 32:  # many ties (duplicate points)
             _merge_sort(perm, lo, hi, scratch, cd2, cid, crow)
-        else:
-            for i in range(lo + 1, hi):
-                v = perm[i]
-                j = i - 1
-                while j >= lo and _before(cd2, cid, crow, v, perm[j]):
-                    perm[j + 1] = perm[j]
-                    j -= 1
-                perm[j + 1] = v
         lo = hi
+    # one insertion sort over the buckets that hold the first `size`: no candidate moves
+    # out of its bucket, so it only puts each small bucket in order, and its loop exits are
+    # predictable where a loop per bucket (of 0, 1, 2 ... candidates) was not
+    for i in range(1, lo):
+        v = perm[i]
+        j = i - 1
+        while j >= 0 and _before(cd2, cid, crow, v, perm[j]):
+            perm[j + 1] = perm[j]
+            j -= 1
+        perm[j + 1] = v
     return size
 
 
