@@ -291,9 +291,11 @@ def _all_finite(values) -> bool:
 
 
 @_jit
-def _invariants_kernel(moments, area, out):
-    """complex128 (n, 11) invariants of raw moments (n, 20) into out; scale-normalised
-    moments when ``area``. NaN rows where undefined (see :func:`moment_invariants`)."""
+def _invariants_kernel(moments, area, real, imag):
+    """The invariants of raw moments (n, 20), scale-normalised moments when ``area``: their
+    real parts into ``real`` (n, 11) and, unless it has no rows, their imaginary parts into
+    ``imag``. NaN rows where undefined (see :func:`moment_invariants`)."""
+    values = np.empty(N_INVARIANTS, dtype=np.complex128)
     c = np.empty(3)
     mu = np.empty(N_MOMENTS)
     nu1 = np.empty(3, dtype=np.complex128)
@@ -306,7 +308,6 @@ def _invariants_kernel(moments, area, out):
     s = np.empty(1, dtype=np.complex128)
     for row in range(moments.shape[0]):
         m = moments[row]
-        values = out[row]
         _central(m, c, mu)
         if area:
             _normalise(mu)
@@ -328,6 +329,11 @@ def _invariants_kernel(moments, area, out):
         values[10] = _scalar(n31, n11, _T22_0, _C22_0, s)
         if not (m[0] > 0.0 and _all_finite(m) and _all_finite(values)):
             values[:] = np.nan  # also e.g. the overflow of a near-zero area
+        for k in range(N_INVARIANTS):
+            real[row, k] = values[k].real
+        if imag.shape[0]:
+            for k in range(N_INVARIANTS):
+                imag[row, k] = values[k].imag
 
 
 def central_moments(moments: np.ndarray) -> np.ndarray:
@@ -384,12 +390,13 @@ def complex_moments(central: np.ndarray):
     nu0 = np.empty(len(flat))
     nu1, nu2, nu3 = (np.empty((len(flat), 2 * l + 1), dtype=np.complex128) for l in (1, 2, 3))
     _spherical_kernel(flat, nu0, nu1, nu2, nu3)
-    return nu0.reshape(lead), nu1.reshape(lead + (3,)), nu2.reshape(lead + (5,)), nu3.reshape(
-        lead + (7,))
+    return (nu0.reshape(lead), nu1.reshape(lead + (3,)), nu2.reshape(lead + (5,)),
+            nu3.reshape(lead + (7,)))
 
 
-def _evaluate(moments, normalise) -> np.ndarray:
-    """Validate, then the complex128 (..., 11) invariants of every row."""
+def _evaluate(moments, normalise, imaginary: bool):
+    """Validate, then the real parts (..., 11) of the invariants of every row and, if
+    ``imaginary``, their imaginary parts (else None)."""
     if not (normalise is None or (isinstance(normalise, str) and normalise == "area")):
         raise ConfigError(
             f"normalise must be 'area' or None, got {normalise!r}; use 'area' for "
@@ -397,9 +404,11 @@ def _evaluate(moments, normalise) -> np.ndarray:
         )
     arr = _check_moments(moments)
     flat = np.ascontiguousarray(arr.reshape(-1, N_MOMENTS))
-    out = np.empty((len(flat), N_INVARIANTS), dtype=np.complex128)
-    _invariants_kernel(flat, normalise == "area", out)
-    return out.reshape(arr.shape[:-1] + (N_INVARIANTS,))
+    real = np.empty((len(flat), N_INVARIANTS))
+    imag = np.empty((len(flat) if imaginary else 0, N_INVARIANTS))
+    _invariants_kernel(flat, normalise == "area", real, imag)
+    shape = arr.shape[:-1] + (N_INVARIANTS,)
+    return real.reshape(shape), imag.reshape(shape) if imaginary else None
 
 
 def complex_invariants(moments: np.ndarray, normalise: str | None = "area") -> np.ndarray:
@@ -408,7 +417,11 @@ def complex_invariants(moments: np.ndarray, normalise: str | None = "area") -> n
     Same parameters, errors and NaN rows as :func:`moment_invariants`; returns complex128
     (..., 11) whose imaginary parts are rounding noise (every coupling is real).
     """
-    return _evaluate(moments, normalise)
+    real, imag = _evaluate(moments, normalise, imaginary=True)
+    out = np.empty(real.shape, dtype=np.complex128)
+    out.real = real
+    out.imag = imag
+    return out
 
 
 def moment_invariants(moments: np.ndarray, normalise: str | None = "area") -> np.ndarray:
@@ -440,4 +453,4 @@ def moment_invariants(moments: np.ndarray, normalise: str | None = "area") -> np
     ConfigError (a ValueError)
         ``normalise`` is neither ``"area"`` nor ``None``.
     """
-    return np.ascontiguousarray(_evaluate(moments, normalise).real)
+    return _evaluate(moments, normalise, imaginary=False)[0]
