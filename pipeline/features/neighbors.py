@@ -286,10 +286,12 @@ def _search_block(
                     # within the bound: no branch for the processor to mispredict on the
                     # fifth or so of a column's points that are in the sphere; their ids
                     # and rows are read below, for those kept only
+                    # (indices as uint64: numba then adds no negative-index wrap-around,
+                    # a third of this loop's instructions)
                     for s in range(start, stop):
-                        d2 = squared_distance(sxyz, s, xq, yq, zq)
-                        cd2[n] = d2
-                        cs[n] = s
+                        d2 = squared_distance(sxyz, np.uint64(s), xq, yq, zq)
+                        cd2[np.uint64(n)] = d2
+                        cs[np.uint64(n)] = s
                         n += d2 <= bound
             if far == first_far:
                 kept = (cx, cy, cz)
