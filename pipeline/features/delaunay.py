@@ -333,12 +333,10 @@ def incircle(ax, ay, bx, by, cx, cy, dx, dy):
 
 
 #: Once the points are on the predicates' grid (|x|, |y| <= 1), every difference is at most 2
-#: in magnitude, so the floating-point sums of absolute products that scale the filters'
-#: error bounds are at most 8 for orient2d (|detleft| + |detright|) and 192 for incircle (the
-#: permanent: 3 x (4 + 4) x 8). A determinant larger than the bound those maxima give has the
-#: sign the adaptive filter would give it, without computing the sums.
+#: in magnitude, so the floating-point sum of absolute products that scales orient2d's error
+#: bound (|detleft| + |detright|) is at most 8. A determinant larger than the bound this
+#: maximum gives has the sign the adaptive filter would give it, without computing the sum.
 _CCW_STATIC = _CCW_BOUND * 8.0
-_ICC_STATIC = _ICC_BOUND * 192.0
 
 
 # --- exact predicates on the grid, in integers ----------------------------------------------
@@ -454,31 +452,51 @@ def _orient_idx(xy, a, b, c):
     return _orient_grid_exact(ax, ay, bx, by, cx, cy)
 
 
+#: The incircle determinant of the flips, with each point's lift z = x^2 + y^2 computed once
+#: per triangulation and the other three points taken relative to the fourth, d:
+#: X = fl(x - x_d), Y = fl(y - y_d), Z = fl(z - z_d), and
+#: det = Z_a (X_b Y_c - X_c Y_b) + Z_b (X_c Y_a - X_a Y_c) + Z_c (X_a Y_b - X_b Y_a),
+#: which is incircle(a, b, c, d) (the 4 x 4 lifted determinant less row d). Its rounding error
+#: on the grid (|x|, |y| <= 1), u = 2**-53, each fl adding at most u times the magnitude of
+#: its exact result (no underflow: nonzero values stay above 2**-240), with bounds on the
+#: magnitudes of both the computed values and their exact counterparts:
+#: - X, Y: |X| <= 2, error <= 2u.  Lifts: fl(x^2), fl(y^2) <= 1, z <= 2, error
+#:   <= u x^2 + u y^2 + u (fl(x^2) + fl(y^2)) <= 4u.  Z: |Z| <= 2, error <= 4u + 4u + 2u = 10u.
+#: - a product X Y: <= 4, error <= 2u * 2 + 2 * 2u + 4u = 12u; a minor (difference of two):
+#:   <= 8, error <= 12u + 12u + 8u = 32u.
+#: - a term Z M: <= 16, error <= 10u * 8 + 2 * 32u + 16u = 160u; the sum of the first two
+#:   <= 32, error <= 320u + 32u = 352u; of all three <= 48, error <= 352u + 160u + 48u = 560u.
+#: A determinant above 560u in magnitude therefore has the exact sign
+#: (``test_lifted_incircle_error_is_within_its_bound`` measures the error against this bound).
+_ICC_LIFTED_STATIC = 560.0 * _EPS
+
+
 @_inline
-def _incircle_idx(xy, a, b, c, d):
-    """incircle of points a, b, c, d of xy, which lie on the predicates' grid: a static
-    error bound decides almost every call, then the adaptive filter, then the exact
-    evaluation."""
+def _lifted_determinant(ax, ay, az, bx, by, bz, cx, cy, cz, dx, dy, dz):
+    """The incircle determinant in floating point from the points' lifts (above)."""
+    adx = ax - dx
+    ady = ay - dy
+    bdx = bx - dx
+    bdy = by - dy
+    cdx = cx - dx
+    cdy = cy - dy
+    return ((az - dz) * (bdx * cdy - cdx * bdy) + (bz - dz) * (cdx * ady - adx * cdy)
+            + (cz - dz) * (adx * bdy - bdx * ady))  # fmt: skip
+
+
+@_inline
+def _incircle_lifted(xy, lift, a, b, c, dx, dy, dz):
+    """incircle of points a, b, c of xy and d = (dx, dy), all on the predicates' grid, with
+    lift[i] = fl(fl(x_i^2) + fl(y_i^2)) and dz d's: a static error bound decides almost every
+    call, then the adaptive filter, then the exact evaluation."""
     ax = xy[a, 0]
     ay = xy[a, 1]
     bx = xy[b, 0]
     by = xy[b, 1]
     cx = xy[c, 0]
     cy = xy[c, 1]
-    dx = xy[d, 0]
-    dy = xy[d, 1]
-    adx = ax - dx
-    bdx = bx - dx
-    cdx = cx - dx
-    ady = ay - dy
-    bdy = by - dy
-    cdy = cy - dy
-    alift = adx * adx + ady * ady
-    blift = bdx * bdx + bdy * bdy
-    clift = cdx * cdx + cdy * cdy
-    det = (alift * (bdx * cdy - cdx * bdy) + blift * (cdx * ady - adx * cdy)
-           + clift * (adx * bdy - bdx * ady))  # fmt: skip
-    if abs(det) > _ICC_STATIC:
+    det = _lifted_determinant(ax, ay, lift[a], bx, by, lift[b], cx, cy, lift[c], dx, dy, dz)
+    if abs(det) > _ICC_LIFTED_STATIC:
         return det
     det = _incircle_filtered(ax, ay, bx, by, cx, cy, dx, dy)
     if det == det:
@@ -694,11 +712,13 @@ def _locate(xy, ver, nbr, n_tri, start, p):
 def _triangulate_core(xy, order, n, workspace):
     """See :func:`triangulate_into`; xy[order[:n]] must already be on the predicates' grid
     (:func:`_snap_to_grid`), which the static error bounds of the predicates rely on."""
-    hull_next, hull_prev, hull_tri, hull_hash, ver, nbr, stack = workspace
+    hull_next, hull_prev, hull_tri, hull_hash, ver, nbr, stack, lift = workspace
     if n < 3:
         return 0
     for i in range(n):
-        hull_next[order[i]] = -1
+        q = order[i]
+        hull_next[q] = -1
+        lift[q] = xy[q, 0] * xy[q, 0] + xy[q, 1] * xy[q, 1]
     # seeds: the first point, the first one distinct from it, the first one off their line
     a = order[0]
     ib = 1
@@ -739,6 +759,7 @@ def _triangulate_core(xy, order, n, workspace):
         p = order[i]
         px = xy[p, 0]
         py = xy[p, 1]
+        pz = lift[p]
         h = _hash_key(px, py, hx, hy, n_hash)
         start = a
         for j in range(n_hash):
@@ -812,12 +833,14 @@ def _triangulate_core(xy, order, n, workspace):
             u = nbr[t, 0]
             if u < 0:
                 continue
+            # d inside the circle through (p, b, c) <=> p inside the one through u = (d, c, b)
+            # (the same 4 x 4 determinant, rows permuted evenly): u's vertices need no search
+            if not _incircle_lifted(xy, lift, ver[u, 0], ver[u, 1], ver[u, 2], px, py, pz) > 0.0:
+                continue
             j = _index_in_row(nbr, u, t)
             b = ver[t, 1]
             c = ver[t, 2]
             d = ver[u, j]
-            if not _incircle_idx(xy, p, b, c, d) > 0.0:
-                continue
             n_pb = nbr[t, 2]
             n_cp = nbr[t, 1]
             j1 = j + 1 if j < 2 else 0
@@ -854,6 +877,7 @@ def make_workspace(n):
         np.empty((2 * cap, 3), dtype=np.int64),  # triangles
         np.empty((2 * cap, 3), dtype=np.int64),  # neighbours
         np.empty(4 * cap + 16, dtype=np.int64),  # flip stack
+        np.empty(cap),  # lifts x^2 + y^2 of the incircle tests
     )
 
 
