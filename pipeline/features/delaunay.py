@@ -605,6 +605,16 @@ def _hash_key(x, y, cx, cy, size):
     return key - size if key >= size else key
 
 
+@_inline
+def _push(stack, k, t, across):
+    """Entry k of the flip stack: triangle t, with the new point at index 0, and the triangle
+    across its opposite edge (-1 on the hull), known when t is made: testing t then starts
+    from a load fewer. It stays valid until t is popped: the flips rewrite only triangles
+    holding the new point and the one across the edge they flip."""
+    stack[k, 0] = t
+    stack[k, 1] = across
+
+
 @_jit
 def _insert_inside(ver, nbr, hull_tri, n_tri, t, p, stack):
     """Split triangle t = (a, b, c) at p into (p, b, c), (p, c, a), (p, a, b)."""
@@ -621,9 +631,9 @@ def _insert_inside(ver, nbr, hull_tri, n_tri, t, p, stack):
     _set_triangle(ver, nbr, t2, p, a, b, nc, t, t1)
     _hand_over_edge(nbr, hull_tri, nb, t, t1, c)
     _hand_over_edge(nbr, hull_tri, nc, t, t2, a)
-    stack[0] = t
-    stack[1] = t1
-    stack[2] = t2
+    _push(stack, 0, t, na)
+    _push(stack, 1, t1, nb)
+    _push(stack, 2, t2, nc)
     return n_tri + 2, 3
 
 
@@ -642,8 +652,8 @@ def _insert_on_edge(ver, nbr, hull_next, hull_prev, hull_tri, n_tri, t, e, p, st
     _set_triangle(ver, nbr, t, p, a, b, nc, u, t1)
     _set_triangle(ver, nbr, t1, p, c, a, nb, t, u1)
     _hand_over_edge(nbr, hull_tri, nb, t, t1, c)
-    stack[0] = t
-    stack[1] = t1
+    _push(stack, 0, t, nc)
+    _push(stack, 1, t1, nb)
     if u < 0:
         _link_hull(hull_next, hull_prev, b, p)
         _link_hull(hull_next, hull_prev, p, c)
@@ -657,8 +667,8 @@ def _insert_on_edge(ver, nbr, hull_next, hull_prev, hull_tri, n_tri, t, e, p, st
     _set_triangle(ver, nbr, u, p, b, d, u_bd, u1, t)
     _set_triangle(ver, nbr, u1, p, d, c, u_dc, t1, u)
     _hand_over_edge(nbr, hull_tri, u_dc, u, u1, d)
-    stack[2] = u
-    stack[3] = u1
+    _push(stack, 2, u, u_bd)
+    _push(stack, 3, u1, u_dc)
     return n_tri + 2, 4
 
 
@@ -813,7 +823,7 @@ def _triangulate_core(xy, order, n, workspace):
                 else:
                     hull_tri[v] = t  # new hull edge first -> p
                 previous = t
-                stack[sp] = t
+                _push(stack, sp, t, old)
                 sp += 1
                 v = w
             hull_tri[p] = previous  # new hull edge p -> last
@@ -822,15 +832,16 @@ def _triangulate_core(xy, order, n, workspace):
             # only p enters the hash: rehashing ``first`` too (as Delaunator does) cost a
             # division per insertion and saved fewer probes than that
             hull_hash[h] = p
-        # Lawson flips from the new triangles on the stack, each with p at index 0:
-        # t = (p, b, c) and its neighbour u = (d, c, b) across b-c become t = (p, b, d) and
-        # u = (p, d, c) when d lies strictly inside the circumcircle of (p, b, c). (Written
+        # Lawson flips from the new triangles on the stack, each with p at index 0 and the
+        # triangle across from p: t = (p, b, c) and u = (d, c, b) across b-c become
+        # t = (p, b, d) and u = (p, d, c) when d lies strictly inside the circumcircle of
+        # (p, b, c). (Written
         # out here, once: as a function, called or inlined, numba would count references to
         # its five arrays at every insertion, a fifth of the triangulation's time.)
         while sp > 0:
             sp -= 1
-            t = stack[sp]
-            u = nbr[t, 0]
+            t = stack[sp, 0]
+            u = stack[sp, 1]
             if u < 0:
                 continue
             # d inside the circle through (p, b, c) <=> p inside the one through u = (d, c, b)
@@ -858,8 +869,8 @@ def _triangulate_core(xy, order, n, workspace):
                 _replace_neighbor(nbr, n_bd, u, t)
             else:
                 hull_tri[b] = t
-            stack[sp] = t
-            stack[sp + 1] = u
+            _push(stack, sp, t, n_bd)
+            _push(stack, sp + 1, u, n_dc)
             sp += 2
     return n_tri
 
@@ -876,7 +887,7 @@ def make_workspace(n):
         np.empty(n_hash, dtype=np.int64),  # hull hash
         np.empty((2 * cap, 3), dtype=np.int64),  # triangles
         np.empty((2 * cap, 3), dtype=np.int64),  # neighbours
-        np.empty(4 * cap + 16, dtype=np.int64),  # flip stack
+        np.empty((4 * cap + 16, 2), dtype=np.int64),  # flip stack
         np.empty(cap),  # lifts x^2 + y^2 of the incircle tests
     )
 
