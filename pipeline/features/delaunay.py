@@ -292,14 +292,15 @@ def _incircle_exact(ax, ay, bx, by, cx, cy, dx, dy):
 
 
 @_inline
+def _relative_to(ax, ay, bx, by, cx, cy, dx, dy):
+    """a, b and c relative to d: (a - d, b - d, c - d) as six floating-point differences."""
+    return ax - dx, ay - dy, bx - dx, by - dy, cx - dx, cy - dy
+
+
+@_inline
 def _incircle_filtered(ax, ay, bx, by, cx, cy, dx, dy):
     """incircle when the floating-point value has a certain sign, else NaN."""
-    adx = ax - dx
-    bdx = bx - dx
-    cdx = cx - dx
-    ady = ay - dy
-    bdy = by - dy
-    cdy = cy - dy
+    adx, ady, bdx, bdy, cdx, cdy = _relative_to(ax, ay, bx, by, cx, cy, dx, dy)
     bdxcdy = bdx * cdy
     cdxbdy = cdx * bdy
     alift = adx * adx + ady * ady
@@ -474,12 +475,7 @@ _ICC_LIFTED_STATIC = 560.0 * _EPS
 @_inline
 def _lifted_determinant(ax, ay, az, bx, by, bz, cx, cy, cz, dx, dy, dz):
     """The incircle determinant in floating point from the points' lifts (above)."""
-    adx = ax - dx
-    ady = ay - dy
-    bdx = bx - dx
-    bdy = by - dy
-    cdx = cx - dx
-    cdy = cy - dy
+    adx, ady, bdx, bdy, cdx, cdy = _relative_to(ax, ay, bx, by, cx, cy, dx, dy)
     return ((az - dz) * (bdx * cdy - cdx * bdy) + (bz - dz) * (cdx * ady - adx * cdy)
             + (cz - dz) * (adx * bdy - bdx * ady))  # fmt: skip
 
