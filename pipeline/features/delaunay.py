@@ -292,14 +292,15 @@ def _incircle_exact(ax, ay, bx, by, cx, cy, dx, dy):
 
 
 @_inline
+def _relative_to(ax, ay, bx, by, cx, cy, dx, dy):
+    """a, b and c relative to d: (a - d, b - d, c - d) as six floating-point differences."""
+    return ax - dx, ay - dy, bx - dx, by - dy, cx - dx, cy - dy
+
+
+@_inline
 def _incircle_filtered(ax, ay, bx, by, cx, cy, dx, dy):
     """incircle when the floating-point value has a certain sign, else NaN."""
-    adx = ax - dx
-    bdx = bx - dx
-    cdx = cx - dx
-    ady = ay - dy
-    bdy = by - dy
-    cdy = cy - dy
+    adx, ady, bdx, bdy, cdx, cdy = _relative_to(ax, ay, bx, by, cx, cy, dx, dy)
     bdxcdy = bdx * cdy
     cdxbdy = cdx * bdy
     alift = adx * adx + ady * ady
@@ -333,12 +334,10 @@ def incircle(ax, ay, bx, by, cx, cy, dx, dy):
 
 
 #: Once the points are on the predicates' grid (|x|, |y| <= 1), every difference is at most 2
-#: in magnitude, so the floating-point sums of absolute products that scale the filters'
-#: error bounds are at most 8 for orient2d (|detleft| + |detright|) and 192 for incircle (the
-#: permanent: 3 x (4 + 4) x 8). A determinant larger than the bound those maxima give has the
-#: sign the adaptive filter would give it, without computing the sums.
+#: in magnitude, so the floating-point sum of absolute products that scales orient2d's error
+#: bound (|detleft| + |detright|) is at most 8. A determinant larger than the bound this
+#: maximum gives has the sign the adaptive filter would give it, without computing the sum.
 _CCW_STATIC = _CCW_BOUND * 8.0
-_ICC_STATIC = _ICC_BOUND * 192.0
 
 
 # --- exact predicates on the grid, in integers ----------------------------------------------
@@ -454,31 +453,46 @@ def _orient_idx(xy, a, b, c):
     return _orient_grid_exact(ax, ay, bx, by, cx, cy)
 
 
+#: The incircle determinant of the flips, with each point's lift z = x^2 + y^2 computed once
+#: per triangulation and the other three points taken relative to the fourth, d:
+#: X = fl(x - x_d), Y = fl(y - y_d), Z = fl(z - z_d), and
+#: det = Z_a (X_b Y_c - X_c Y_b) + Z_b (X_c Y_a - X_a Y_c) + Z_c (X_a Y_b - X_b Y_a),
+#: which is incircle(a, b, c, d) (the 4 x 4 lifted determinant less row d). Its rounding error
+#: on the grid (|x|, |y| <= 1), u = 2**-53, each fl adding at most u times the magnitude of
+#: its exact result (no underflow: nonzero values stay above 2**-240), with bounds on the
+#: magnitudes of both the computed values and their exact counterparts:
+#: - X, Y: |X| <= 2, error <= 2u.  Lifts: fl(x^2), fl(y^2) <= 1, z <= 2, error
+#:   <= u x^2 + u y^2 + u (fl(x^2) + fl(y^2)) <= 4u.  Z: |Z| <= 2, error <= 4u + 4u + 2u = 10u.
+#: - a product X Y: <= 4, error <= 2u * 2 + 2 * 2u + 4u = 12u; a minor (difference of two):
+#:   <= 8, error <= 12u + 12u + 8u = 32u.
+#: - a term Z M: <= 16, error <= 10u * 8 + 2 * 32u + 16u = 160u; the sum of the first two
+#:   <= 32, error <= 320u + 32u = 352u; of all three <= 48, error <= 352u + 160u + 48u = 560u.
+#: A determinant above 560u in magnitude therefore has the exact sign
+#: (``test_lifted_incircle_error_is_within_its_bound`` measures the error against this bound).
+_ICC_LIFTED_STATIC = 560.0 * _EPS
+
+
 @_inline
-def _incircle_idx(xy, a, b, c, d):
-    """incircle of points a, b, c, d of xy, which lie on the predicates' grid: a static
-    error bound decides almost every call, then the adaptive filter, then the exact
-    evaluation."""
+def _lifted_determinant(ax, ay, az, bx, by, bz, cx, cy, cz, dx, dy, dz):
+    """The incircle determinant in floating point from the points' lifts (above)."""
+    adx, ady, bdx, bdy, cdx, cdy = _relative_to(ax, ay, bx, by, cx, cy, dx, dy)
+    return ((az - dz) * (bdx * cdy - cdx * bdy) + (bz - dz) * (cdx * ady - adx * cdy)
+            + (cz - dz) * (adx * bdy - bdx * ady))  # fmt: skip
+
+
+@_inline
+def _incircle_lifted(xy, lift, a, b, c, dx, dy, dz):
+    """incircle of points a, b, c of xy and d = (dx, dy), all on the predicates' grid, with
+    lift[i] = fl(fl(x_i^2) + fl(y_i^2)) and dz d's: a static error bound decides almost every
+    call, then the adaptive filter, then the exact evaluation."""
     ax = xy[a, 0]
     ay = xy[a, 1]
     bx = xy[b, 0]
     by = xy[b, 1]
     cx = xy[c, 0]
     cy = xy[c, 1]
-    dx = xy[d, 0]
-    dy = xy[d, 1]
-    adx = ax - dx
-    bdx = bx - dx
-    cdx = cx - dx
-    ady = ay - dy
-    bdy = by - dy
-    cdy = cy - dy
-    alift = adx * adx + ady * ady
-    blift = bdx * bdx + bdy * bdy
-    clift = cdx * cdx + cdy * cdy
-    det = (alift * (bdx * cdy - cdx * bdy) + blift * (cdx * ady - adx * cdy)
-           + clift * (adx * bdy - bdx * ady))  # fmt: skip
-    if abs(det) > _ICC_STATIC:
+    det = _lifted_determinant(ax, ay, lift[a], bx, by, lift[b], cx, cy, lift[c], dx, dy, dz)
+    if abs(det) > _ICC_LIFTED_STATIC:
         return det
     det = _incircle_filtered(ax, ay, bx, by, cx, cy, dx, dy)
     if det == det:
@@ -587,6 +601,16 @@ def _hash_key(x, y, cx, cy, size):
     return key - size if key >= size else key
 
 
+@_inline
+def _push(stack, k, t, across):
+    """Entry k of the flip stack: triangle t, with the new point at index 0, and the triangle
+    across its opposite edge (-1 on the hull), known when t is made: testing t then starts
+    from a load fewer. It stays valid until t is popped: the flips rewrite only triangles
+    holding the new point and the one across the edge they flip."""
+    stack[k, 0] = t
+    stack[k, 1] = across
+
+
 @_jit
 def _insert_inside(ver, nbr, hull_tri, n_tri, t, p, stack):
     """Split triangle t = (a, b, c) at p into (p, b, c), (p, c, a), (p, a, b)."""
@@ -603,9 +627,9 @@ def _insert_inside(ver, nbr, hull_tri, n_tri, t, p, stack):
     _set_triangle(ver, nbr, t2, p, a, b, nc, t, t1)
     _hand_over_edge(nbr, hull_tri, nb, t, t1, c)
     _hand_over_edge(nbr, hull_tri, nc, t, t2, a)
-    stack[0] = t
-    stack[1] = t1
-    stack[2] = t2
+    _push(stack, 0, t, na)
+    _push(stack, 1, t1, nb)
+    _push(stack, 2, t2, nc)
     return n_tri + 2, 3
 
 
@@ -624,8 +648,8 @@ def _insert_on_edge(ver, nbr, hull_next, hull_prev, hull_tri, n_tri, t, e, p, st
     _set_triangle(ver, nbr, t, p, a, b, nc, u, t1)
     _set_triangle(ver, nbr, t1, p, c, a, nb, t, u1)
     _hand_over_edge(nbr, hull_tri, nb, t, t1, c)
-    stack[0] = t
-    stack[1] = t1
+    _push(stack, 0, t, nc)
+    _push(stack, 1, t1, nb)
     if u < 0:
         _link_hull(hull_next, hull_prev, b, p)
         _link_hull(hull_next, hull_prev, p, c)
@@ -639,8 +663,8 @@ def _insert_on_edge(ver, nbr, hull_next, hull_prev, hull_tri, n_tri, t, e, p, st
     _set_triangle(ver, nbr, u, p, b, d, u_bd, u1, t)
     _set_triangle(ver, nbr, u1, p, d, c, u_dc, t1, u)
     _hand_over_edge(nbr, hull_tri, u_dc, u, u1, d)
-    stack[2] = u
-    stack[3] = u1
+    _push(stack, 2, u, u_bd)
+    _push(stack, 3, u1, u_dc)
     return n_tri + 2, 4
 
 
@@ -694,11 +718,13 @@ def _locate(xy, ver, nbr, n_tri, start, p):
 def _triangulate_core(xy, order, n, workspace):
     """See :func:`triangulate_into`; xy[order[:n]] must already be on the predicates' grid
     (:func:`_snap_to_grid`), which the static error bounds of the predicates rely on."""
-    hull_next, hull_prev, hull_tri, hull_hash, ver, nbr, stack = workspace
+    hull_next, hull_prev, hull_tri, hull_hash, ver, nbr, stack, lift = workspace
     if n < 3:
         return 0
     for i in range(n):
-        hull_next[order[i]] = -1
+        q = order[i]
+        hull_next[q] = -1
+        lift[q] = xy[q, 0] * xy[q, 0] + xy[q, 1] * xy[q, 1]
     # seeds: the first point, the first one distinct from it, the first one off their line
     a = order[0]
     ib = 1
@@ -739,6 +765,7 @@ def _triangulate_core(xy, order, n, workspace):
         p = order[i]
         px = xy[p, 0]
         py = xy[p, 1]
+        pz = lift[p]
         h = _hash_key(px, py, hx, hy, n_hash)
         start = a
         for j in range(n_hash):
@@ -792,7 +819,7 @@ def _triangulate_core(xy, order, n, workspace):
                 else:
                     hull_tri[v] = t  # new hull edge first -> p
                 previous = t
-                stack[sp] = t
+                _push(stack, sp, t, old)
                 sp += 1
                 v = w
             hull_tri[p] = previous  # new hull edge p -> last
@@ -801,23 +828,26 @@ def _triangulate_core(xy, order, n, workspace):
             # only p enters the hash: rehashing ``first`` too (as Delaunator does) cost a
             # division per insertion and saved fewer probes than that
             hull_hash[h] = p
-        # Lawson flips from the new triangles on the stack, each with p at index 0:
-        # t = (p, b, c) and its neighbour u = (d, c, b) across b-c become t = (p, b, d) and
-        # u = (p, d, c) when d lies strictly inside the circumcircle of (p, b, c). (Written
+        # Lawson flips from the new triangles on the stack, each with p at index 0 and the
+        # triangle across from p: t = (p, b, c) and u = (d, c, b) across b-c become
+        # t = (p, b, d) and u = (p, d, c) when d lies strictly inside the circumcircle of
+        # (p, b, c). (Written
         # out here, once: as a function, called or inlined, numba would count references to
         # its five arrays at every insertion, a fifth of the triangulation's time.)
         while sp > 0:
             sp -= 1
-            t = stack[sp]
-            u = nbr[t, 0]
+            t = stack[sp, 0]
+            u = stack[sp, 1]
             if u < 0:
+                continue
+            # d inside the circle through (p, b, c) <=> p inside the one through u = (d, c, b)
+            # (the same 4 x 4 determinant, rows permuted evenly): u's vertices need no search
+            if not _incircle_lifted(xy, lift, ver[u, 0], ver[u, 1], ver[u, 2], px, py, pz) > 0.0:
                 continue
             j = _index_in_row(nbr, u, t)
             b = ver[t, 1]
             c = ver[t, 2]
             d = ver[u, j]
-            if not _incircle_idx(xy, p, b, c, d) > 0.0:
-                continue
             n_pb = nbr[t, 2]
             n_cp = nbr[t, 1]
             j1 = j + 1 if j < 2 else 0
@@ -835,8 +865,8 @@ def _triangulate_core(xy, order, n, workspace):
                 _replace_neighbor(nbr, n_bd, u, t)
             else:
                 hull_tri[b] = t
-            stack[sp] = t
-            stack[sp + 1] = u
+            _push(stack, sp, t, n_bd)
+            _push(stack, sp + 1, u, n_dc)
             sp += 2
     return n_tri
 
@@ -853,7 +883,8 @@ def make_workspace(n):
         np.empty(n_hash, dtype=np.int64),  # hull hash
         np.empty((2 * cap, 3), dtype=np.int64),  # triangles
         np.empty((2 * cap, 3), dtype=np.int64),  # neighbours
-        np.empty(4 * cap + 16, dtype=np.int64),  # flip stack
+        np.empty((4 * cap + 16, 2), dtype=np.int64),  # flip stack
+        np.empty(cap),  # lifts x^2 + y^2 of the incircle tests
     )
 
 

@@ -10,9 +10,11 @@ from scipy.spatial import Delaunay
 
 from pipeline.errors import InputError
 from pipeline.features.delaunay import (
+    _ICC_LIFTED_STATIC,
     TRIANGLES,
     _incircle_grid_exact,
-    _incircle_idx,
+    _incircle_lifted,
+    _lifted_determinant,
     _orient_grid_exact,
     _orient_idx,
     incircle,
@@ -208,8 +210,29 @@ def test_grid_predicates_give_exact_signs():
         if exact_orient(a, b, c) < 0:
             xy = xy[[0, 2, 1, 3]]
             a, b, c, d = xy
-        assert sign(_incircle_idx(xy, 0, 1, 2, 3)) == sign(exact_incircle(a, b, c, d))
+        lift = xy[:, 0] * xy[:, 0] + xy[:, 1] * xy[:, 1]
+        assert sign(_incircle_lifted(xy, lift, 0, 1, 2, *d, lift[3])) == sign(
+            exact_incircle(a, b, c, d))
 
+
+def test_lifted_incircle_error_is_within_its_bound():
+    """The flips' incircle determinant, from lifts computed once per point, is off by at most
+    its static bound on the grid (derived next to ``_ICC_LIFTED_STATIC``), and the
+    near-degenerate cases do give it wrong signs: a bound below their errors fails
+    ``test_grid_predicates_give_exact_signs``."""
+    rng = np.random.default_rng(7)  # the cases of test_grid_predicates_give_exact_signs
+    extremes = np.array([-1.0, 1.0, 1 - 2**-52, -(1 - 2**-52), 0.75, -0.75, 2**-60])
+    cases = list(grid_quadruples(rng, 3000))
+    cases += [snap_to_grid(np.vstack([rng.choice(extremes, size=(4, 2)), [[1.0, 1.0]]]))[:4]
+              for _ in range(1500)]
+    wrong_signs = 0
+    for xy in cases:
+        lift = xy[:, 0] * xy[:, 0] + xy[:, 1] * xy[:, 1]
+        det = _lifted_determinant(*(v for k in range(4) for v in (*xy[k], lift[k])))
+        exact = exact_incircle(*xy)
+        assert abs(Fraction(float(det)) - exact) <= Fraction(_ICC_LIFTED_STATIC)
+        wrong_signs += sign(det) != sign(exact)
+    assert wrong_signs > 0
 
 
 def test_grid_predicates_in_integers_are_exact():
