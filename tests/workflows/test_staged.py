@@ -60,10 +60,10 @@ def test_a_file_not_whole_or_without_the_fields_is_not_taken(tmp_path, tile):
     assert not list(tmp_path.glob("0-*"))
 
 
-def _ingest(config, out):
+def _ingest(config, out, exit_code: int = 0):
     result = CliRunner().invoke(main, ["ingest", str(config), "--out", str(out),
                                        "--in-process"], catch_exceptions=False)
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == exit_code, result.output
 
 
 def _parts(out) -> dict:
@@ -99,3 +99,30 @@ def test_balanced_ingest_decodes_each_tile_once_to_the_same_parts(tmp_path, surv
     assert once.keys() == twice.keys() and any("halo" in key for key in once)
     for key, members in once.items():
         assert all(np.array_equal(members[name], twice[key][name]) for name in members), key
+
+
+def test_ingest_killed_after_a_tile_resumes_from_what_was_kept(tmp_path, survey, monkeypatch):
+    """Killed once the first read unit is stored: the rerun takes the points kept for the
+    others, reads no tile again and stores the same parts as an ingest never killed."""
+    config = write_config(tmp_path / "c.yaml", survey,
+                          tiling={"chunk_size": "auto", "target_points": 12_000})
+    _ingest(config, tmp_path / "clean")
+    stored = ingest_step.ingest_tile
+
+    def killed_after_one(task):
+        if list((tmp_path / "out" / "store.zarr").glob("scenes/*/parts/*/*/core")):
+            raise KeyboardInterrupt
+        return stored(task)
+
+    monkeypatch.setattr(ingest_step, "ingest_tile", killed_after_one)
+    _ingest(config, tmp_path / "out", exit_code=130)  # as after Ctrl-C
+    kept = list((tmp_path / "out" / "work" / "staged").glob("*.npy"))
+    assert len(kept) > 1
+    monkeypatch.setattr(ingest_step, "ingest_tile", stored)
+    monkeypatch.setattr(ingest_step, "iter_points", None)  # no tile is read again
+    _ingest(config, tmp_path / "out")
+    assert not (tmp_path / "out" / "work" / "staged").exists()
+    out, clean = _parts(tmp_path / "out"), _parts(tmp_path / "clean")
+    assert out.keys() == clean.keys()
+    for key, members in out.items():
+        assert all(np.array_equal(members[name], clean[key][name]) for name in members), key
