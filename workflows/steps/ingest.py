@@ -8,6 +8,8 @@ Small tiles of one chunk are read by one task, up to a share of a chunk's
 points (:func:`~pipeline.tiling.group_tiles`), and stored as one part per chunk: the cost
 follows the points, not the number of files. A LAS/LAZ tile of more than a chunk's points
 is read in point ranges, a task each, so that the workers share a survey of a few big files.
+The balanced layout's counting pass keeps what ingest reads of the points in the run's work
+folder (:mod:`workflows.store.staged`), so that ingest decodes no tile twice.
 Memory is bounded by the read batch, not by the tile or survey size. The thinned copies of
 the training scene (``data.densities``, :mod:`workflows.steps.copies`) are written in the
 same read, each of the points it keeps.
@@ -16,6 +18,7 @@ same read, each of the points it keeps.
 import logging
 import shlex
 import shutil
+from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from functools import cache, partial
 from pathlib import Path
@@ -205,16 +208,13 @@ def count_tile(path, cell: float, read_batch: int, span=None, staged=None,
     file with ``fields`` for ingest (:mod:`workflows.store.staged`)."""
     start, stop = span or (0, None)
     counts = CellCounts.empty(cell)
-    batches = iter_points(path, batch_size=read_batch, fields=fields if staged else (),
-                          start=start, stop=stop)
-    if staged is None:
-        for batch in batches:
+    stager = None if staged is None else Stager(*staged)
+    with stager or nullcontext():
+        for batch in iter_points(path, batch_size=read_batch, fields=fields if stager else (),
+                                 start=start, stop=stop):
             counts = counts + CellCounts.of(batch.xyz, cell)
-        return counts
-    with Stager(*staged) as stager:
-        for batch in batches:
-            counts = counts + CellCounts.of(batch.xyz, cell)
-            stager.write(batch)
+            if stager is not None:
+                stager.write(batch)
     return counts
 
 
