@@ -22,7 +22,8 @@ import numpy as np
 
 from pipeline.io import PointBatch
 
-#: Points of a scene kept between the two reads at most (about 28 bytes each on disk).
+#: Points of a scene kept between the two reads at most (24 bytes each on disk, and the
+#: fields ingest reads).
 MAX_STAGED_POINTS = 50_000_000
 
 
