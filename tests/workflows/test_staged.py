@@ -116,7 +116,7 @@ def test_ingest_killed_after_a_tile_resumes_from_what_was_kept(tmp_path, survey,
 
     monkeypatch.setattr(ingest_step, "ingest_tile", killed_after_one)
     _ingest(config, tmp_path / "out", exit_code=130)  # as after Ctrl-C
-    kept = list((tmp_path / "out" / "work" / "staged").glob("*.npy"))
+    kept = list((tmp_path / "out" / "work" / "staged").rglob("*.npy"))
     assert len(kept) > 1
     monkeypatch.setattr(ingest_step, "ingest_tile", stored)
     monkeypatch.setattr(ingest_step, "iter_points", None)  # no tile is read again

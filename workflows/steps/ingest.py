@@ -707,8 +707,8 @@ def ingest(run: Run, engine) -> RunLayout:
                 if key in root:
                     del root[key]
             root.attrs["layout"] = None
-        shutil.rmtree(staged_folder(run), ignore_errors=True)  # kept for another plan
-        scenes = plan_scenes(run, tiles, engine, staged_folder(run))
+        shutil.rmtree(staged_folder(run, fingerprint).parent, ignore_errors=True)  # old plans
+        scenes = plan_scenes(run, tiles, engine, staged_folder(run, fingerprint))
         root.attrs["planned"] = {"fingerprint": fingerprint,
                                  "scenes": {s: info.to_dict() for s, info in scenes.items()}}
     say_scenes(run, scenes)
@@ -727,13 +727,14 @@ def ingest(run: Run, engine) -> RunLayout:
             "with Excluded=1", quiet=run.quiet)
     layout = RunLayout(fingerprint, tiles, scenes)
     root.attrs["layout"] = layout.to_dict()
-    shutil.rmtree(staged_folder(run), ignore_errors=True)  # what no ingest task took
+    shutil.rmtree(staged_folder(run, fingerprint).parent, ignore_errors=True)  # none left
     return layout
 
 
-def staged_folder(run: Run) -> Path:
-    """Where the counting pass keeps the points it read for ingest."""
-    return run.work_path / "staged"
+def staged_folder(run: Run, fingerprint: str) -> Path:
+    """Where the counting pass of the ingest ``fingerprint`` keeps the points it read: a
+    run of other inputs killed while counting leaves none where this one looks."""
+    return run.work_path / "staged" / fingerprint
 
 
 def ingest_tasks(run: Run, scenes: dict[str, SceneLayout], tiles: list[Tile],
@@ -768,7 +769,7 @@ def ingest_tasks(run: Run, scenes: dict[str, SceneLayout], tiles: list[Tile],
                     echoes=echoes,
                     copies=copies,
                     seed=run.cfg.cascade.seed,
-                    staged=str(staged_folder(run)),
+                    staged=str(staged_folder(run, fingerprint)),
                 )},
                 where=(f"{tiles_text(list(members))}"
                        f"{f' (points {span[0]:,} to {span[1]:,})' if span else ''}"
