@@ -4,31 +4,51 @@ synthetic generator: it writes a plot through files, tile by tile."""
 import tracemalloc
 
 import numpy as np
+import pytest
 
 from pipeline.io import read_info, write_las
 from pipeline.store import open_store
 from pipeline.tiling import Grid
 from tests.workflows.conftest import a_tile
-from workflows.steps.ingest import IngestTask, ingest_tile
+from workflows.steps.ingest import IngestTask, count_tile, ingest_tile
+from workflows.store.staged import staged_file
 
 
-def _peak_ingest(tmp_path, tile_path, n_points, read_batch):
-    store = tmp_path / f"store-{read_batch}.zarr"
+def _peak_ingest(tmp_path, tile_path, n_points, read_batch, staged=None):
+    store = tmp_path / f"store-{read_batch}-{n_points}.zarr"
     open_store(store)
     tile = a_tile(n_points, path=str(tile_path), name="big", scene="train")
     grid = Grid(0.0, 0.0, 100.0, 1, 1)
+    return _peak(ingest_tile, IngestTask(str(store), "train", tile, grid, 0.5,
+                                         "classification", {2: 0}, None, read_batch, "fp",
+                                         staged=staged))
+
+
+def _peak(fn, *args) -> int:
+    """Bytes traced at most while ``fn(*args)`` runs."""
     tracemalloc.start()
-    ingest_tile(IngestTask(str(store), "train", tile, grid, 0.5, "classification",
-                           {2: 0}, None, read_batch, "fp"))
-    peak = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
-    return peak
+    try:
+        fn(*args)
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
 
 
-def test_ingest_memory_does_not_grow_with_the_tile(tmp_path):
+@pytest.fixture
+def held_rows(monkeypatch):
+    """Parts written every 50,000 rows (a worker's default holds a million, more than
+    these tiles: memory then follows the tile up to that bound)."""
+    import workflows.steps.ingest as ingest_step
+    from pipeline.store import Appender
+
+    monkeypatch.setattr(ingest_step, "Appender", lambda: Appender(hold_rows=50_000))
+
+
+def test_ingest_memory_does_not_grow_with_the_tile(tmp_path, held_rows):
     """Three times the points, the same read batch: the peak barely moves.
 
-    What remains is the read batch plus zarr's chunk buffers (fixed in size).
+    What remains is the read batch and the rows held before a write, plus zarr's chunk
+    buffers (fixed in size).
     """
     peaks = []
     for n in (300_000, 900_000):
@@ -39,6 +59,22 @@ def test_ingest_memory_does_not_grow_with_the_tile(tmp_path):
     assert peaks[1] < 1.4 * peaks[0], peaks
     tile_bytes = 900_000 * (3 * 8 + 8 + 2 + 1)  # the larger tile as the store holds it
     assert peaks[1] < tile_bytes, (peaks, tile_bytes)
+
+
+def test_points_kept_for_ingest_stream_both_ways(tmp_path, held_rows):
+    """The counting pass keeps a tile's points and ingest reads them back in read batches
+    (:mod:`workflows.store.staged`): neither peak grows with the tile."""
+    counting, ingesting = [], []
+    for n in (300_000, 900_000):
+        xyz = np.random.default_rng(1).uniform([0, 0, 0], [90, 90, 10], size=(n, 3))
+        path = write_las(tmp_path / f"tile{n}.laz", xyz,
+                         fields={"classification": np.full(n, 2, np.uint8)})
+        kept = (str(staged_file(tmp_path / "staged", 0, None)), n)
+        counting.append(_peak(count_tile, path, 1.0, 10_000, None, kept, ("classification",)))
+        ingesting.append(_peak_ingest(tmp_path, path, n, 10_000, str(tmp_path / "staged")))
+        assert not list((tmp_path / "staged").glob("*.npy"))  # taken, then removed
+    for peaks in (counting, ingesting):
+        assert peaks[1] < 1.4 * peaks[0], (counting, ingesting)
 
 
 def test_synth_streams_the_plot(tmp_path, monkeypatch):

@@ -8,6 +8,8 @@ Small tiles of one chunk are read by one task, up to a share of a chunk's
 points (:func:`~pipeline.tiling.group_tiles`), and stored as one part per chunk: the cost
 follows the points, not the number of files. A LAS/LAZ tile of more than a chunk's points
 is read in point ranges, a task each, so that the workers share a survey of a few big files.
+The balanced layout's counting pass keeps what ingest reads of the points in the run's work
+folder (:mod:`workflows.store.staged`), so that ingest decodes no tile twice.
 Memory is bounded by the read batch, not by the tile or survey size. The thinned copies of
 the training scene (``data.densities``, :mod:`workflows.steps.copies`) are written in the
 same read, each of the points it keeps.
@@ -15,6 +17,8 @@ same read, each of the points it keeps.
 
 import logging
 import shlex
+import shutil
+from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from functools import cache, partial
 from pathlib import Path
@@ -56,6 +60,9 @@ from workflows.store.layout import (
 )
 from workflows.store.marks import is_done, mark_done
 from workflows.store.scenes import RunLayout, SceneLayout, read_units
+from workflows.store.staged import (
+    MAX_STAGED_POINTS, Stager, remove_staged, staged_batches, staged_file,
+)
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +81,8 @@ def plan_tiles(run: Run) -> tuple[Tile, ...]:
     return tiles
 
 
-def plan_scenes(run: Run, tiles: list[Tile], engine=None) -> dict[str, SceneLayout]:
+def plan_scenes(run: Run, tiles: list[Tile], engine=None, staged: Path | None = None
+                ) -> dict[str, SceneLayout]:
     """The layout of each scene (:class:`~workflows.store.scenes.SceneLayout`): its chunks,
     covering all its tiles, its halo, its mode, and the tiles each ingest task reads
     (``groups``, see :func:`ingest_groups`; ``ranges``, the point ranges a big tile is read
@@ -84,7 +92,9 @@ def plan_scenes(run: Run, tiles: list[Tile], engine=None) -> dict[str, SceneLayo
     pass counts each tile's points on a lattice (one task per tile, per group of small
     tiles or per range of a big one, on ``engine``, or in this process) and the scene is cut
     into chunks balanced by point count (:class:`~pipeline.tiling.BalancedLayout`), with
-    the ``estimate`` of its chunks' points. Otherwise a regular grid: of ``chunk_size``
+    the ``estimate`` of its chunks' points; with ``staged`` (a folder), that pass also
+    keeps there what ingest reads of the points (:mod:`workflows.store.staged`), so that
+    ingest decodes no tile twice. Otherwise a regular grid: of ``chunk_size``
     metres, or with ``layout: grid`` sized from the headers (see :func:`scene_chunk_size`).
 
     A scene that may be classified in one pass (:func:`~workflows.steps.one_pass.
@@ -103,7 +113,7 @@ def plan_scenes(run: Run, tiles: list[Tile], engine=None) -> dict[str, SceneLayo
         if not members:
             continue
         # the counting pass, made at most once per scene (and only if a layout needs it)
-        counts = cache(partial(scene_counts, run, scene, members, engine))
+        counts = cache(partial(scene_counts, run, scene, members, engine, staged))
         reach = run.features.halo
         one_pass = wants_one_pass(run, scene)
         info = _cut_scene(run, members, run.halo if one_pass else reach, counts)
@@ -191,40 +201,51 @@ def _cut_scene(run: Run, members: list[Tile], halo: float, counts) -> SceneLayou
     return SceneLayout(layout, halo, groups=(), estimate=estimate)
 
 
-def count_tile(path, cell: float, read_batch: int, span=None) -> CellCounts:
+def count_tile(path, cell: float, read_batch: int, span=None, staged=None,
+               fields: tuple[str, ...] = ()) -> CellCounts:
     """The points of one tile (or of its point range ``span``, (start, stop)) counted on the
-    lattice of ``cell`` metres."""
+    lattice of ``cell`` metres; with ``staged``, (file, points read), also kept in that
+    file with ``fields`` for ingest (:mod:`workflows.store.staged`)."""
     start, stop = span or (0, None)
     counts = CellCounts.empty(cell)
-    for batch in iter_points(path, batch_size=read_batch, fields=(), start=start, stop=stop):
-        counts = counts + CellCounts.of(batch.xyz, cell)
+    stager = None if staged is None else Stager(*staged)
+    with stager or nullcontext():
+        for batch in iter_points(path, batch_size=read_batch, fields=fields if stager else (),
+                                 start=start, stop=stop):
+            counts = counts + CellCounts.of(batch.xyz, cell)
+            if stager is not None:
+                stager.write(batch)
     return counts
 
 
-def count_tiles(paths, cell: float, read_batch: int, span=None) -> CellCounts:
+def count_tiles(paths, cell: float, read_batch: int, span=None, staged=None,
+                fields: tuple[str, ...] = ()) -> CellCounts:
     """Worker task: the points of some tiles (or the point range ``span`` of one) counted
-    on the lattice of ``cell`` metres."""
+    on the lattice of ``cell`` metres, each kept for ingest as its ``staged`` says (one
+    (file, points) per path, or None: not kept)."""
     counts = CellCounts.empty(cell)
-    for path in paths:
-        counts = counts + count_tile(path, cell, read_batch, span)
+    for path, target in zip(paths, staged or [None] * len(paths)):
+        counts = counts + count_tile(path, cell, read_batch, span, target, fields)
     return counts
 
 
 def _pass_over_tiles(run: Run, scene: str, members: list[Tile], engine, name: str, key: str,
-                     fn, **kwargs) -> list:
+                     fn, per_unit=None, **kwargs) -> list:
     """The results of the worker task ``fn`` over a scene's tiles, in order: small tiles
     read together (the layout that groups them by chunk is not known yet), big ones by point
     ranges (:func:`point_ranges`), a task each (in this process without ``engine``). Each
-    call gets ``paths``, ``read_batch``, ``span`` and ``kwargs``; ``name`` is the pass's,
-    ``key`` ends its tasks' keys."""
+    call gets ``paths``, ``read_batch``, ``span``, ``kwargs`` and what ``per_unit(tiles,
+    span)`` gives (a dict); ``name`` is the pass's, ``key`` ends its tasks' keys."""
     groups = [[members[i] for i in group] for group in
               group_tiles([t.n_points for t in members], np.zeros(len(members), np.int64),
                           group_budget(run))]
     by_index = {t.index: t for t in members}
     units = [(unit, [by_index[i] for i in unit.tiles])
              for unit in read_units(**read_plan(run, groups))]
+    spans = [unit.span(tiles[0].n_points) for unit, tiles in units]
     calls = [dict(paths=[t.path for t in tiles], read_batch=run.cfg.tiling.read_batch,
-                  span=unit.span(tiles[0].n_points), **kwargs) for unit, tiles in units]
+                  span=span, **kwargs, **(per_unit(tiles, span) if per_unit else {}))
+             for (unit, tiles), span in zip(units, spans)]
     if engine is None:
         return [fn(**call) for call in calls]
     tasks = [Task(key=f"{name}-{scene}-{unit.key}{key}", fn=fn, kwargs=call,
@@ -236,18 +257,53 @@ def _pass_over_tiles(run: Run, scene: str, members: list[Tile], engine, name: st
     return [results[task.key] for task in tasks]
 
 
-def scene_counts(run: Run, scene: str, members: list[Tile], engine=None) -> CellCounts:
+def scene_counts(run: Run, scene: str, members: list[Tile], engine=None,
+                 staged: Path | None = None) -> CellCounts:
     """The points of a scene's tiles counted on one lattice (the balanced layout's first
-    pass: XY only, streamed in read batches)."""
+    pass: XY only, streamed in read batches); with ``staged`` (a folder), kept there for
+    ingest (:func:`staging`)."""
     area = sum(t.area for t in members)
     n_points = sum(t.n_points for t in members)
     cell = count_cell_size(run.halo, area, area * run.cfg.tiling.target_points / n_points)
+    keep = {} if staged is None else {
+        "per_unit": staging(staged), "fields": read_fields(
+            scene, run.cfg.data.points_filter, run.cfg.data.label_field, echo_need(run))}
     parts = _pass_over_tiles(run, scene, members, engine, "count", f"-{cell:g}", count_tiles,
-                             cell=cell)
+                             cell=cell, **keep)
     total = CellCounts.empty(cell)
     for part in parts:
         total = total + part
     return total
+
+
+def staging(folder: Path):
+    """The counting pass's ``per_unit`` (:func:`_pass_over_tiles`): each tile it reads is
+    kept for ingest in a file of ``folder`` ("staged": one (file, points) per tile), while
+    the scene's kept points stay within :data:`~workflows.store.staged.MAX_STAGED_POINTS`
+    (the others: None, read again from the tile)."""
+    left = MAX_STAGED_POINTS
+
+    def targets(tiles: list[Tile], span) -> dict:
+        nonlocal left
+        start, stop = span or (0, None)
+        staged = []
+        for tile in tiles:
+            n_points = (tile.n_points if stop is None else stop) - start
+            kept = n_points <= left
+            left -= n_points if kept else 0
+            staged.append((str(staged_file(folder, tile.index, span)), n_points) if kept
+                          else None)
+        return {"staged": staged}
+
+    return targets
+
+
+def read_fields(scene: str, points_filter: PointFilter, label_field: str,
+                echoes: EchoNeed | None) -> tuple[str, ...]:
+    """The dimensions ingest reads of a scene's points: the labels (of a labelled scene),
+    what ``points_filter`` looks at, and with ``echoes`` the return numbers."""
+    fields = points_filter.fields(label_field if scene != "predict" else None)
+    return fields if echoes is None else tuple(dict.fromkeys(fields + RETURNS))
 
 
 def occupied_cells(paths, read_batch: int, span=None, *, label_field: str = "classification",
@@ -367,6 +423,7 @@ class IngestTask:
     echoes: EchoNeed | None = None  # set: store each point's return numbers (features.echoes)
     copies: tuple = ()  # (copy, fraction): the thinned copies written beside (data.densities)
     seed: int = 0  # of the copies' thinning hash (cascade.seed)
+    staged: str | None = None  # the folder of the points the counting pass kept, if any
 
     def __post_init__(self):
         if isinstance(self.tiles, Tile):
@@ -400,6 +457,7 @@ def ingest_tile(task: IngestTask) -> dict:
     marker = root.require_group(unit_path(scene, task.key))
     if is_done(marker, "ingest", fingerprint) and copies_done(root, task.key, task.copies,
                                                                fingerprint):
+        _forget_staged(task)
         return {"core_counts": marker.attrs["core_counts"],
                 "excluded": _excluded(marker.attrs, tiles),
                 "bounds": marker.attrs.get("bounds", {}),
@@ -410,18 +468,15 @@ def ingest_tile(task: IngestTask) -> dict:
                          task.seed, fingerprint, lambda part: _PartWriter(part, grid, task.halo))
     start, stop = task.span or (0, None)
     labelled = scene != "predict"
+    fields = read_fields(scene, task.points_filter, task.label_field, task.echoes)
     excluded: dict[str, int] = {}
     bounds: dict[str, list] = {}  # tile index -> [mins, maxs] of the points read
     returns: dict[str, list] = {}  # tile index -> its points' return counts (with echoes)
-    fields = task.points_filter.fields(task.label_field if labelled else None)
-    if task.echoes is not None:
-        fields = tuple(dict.fromkeys(fields + RETURNS))
     pending, held = [], 0  # points read and not yet written: less than a read batch
     for tile in tiles:
         n_read = n_excluded = 0
         counts = (0, 0, 0)  # (valid, empty, above) return fields of the points read
-        for batch in iter_points(tile.path, batch_size=read_batch, fields=fields,
-                                 start=start, stop=stop):
+        for batch in _read(task, tile, fields):
             n_read += len(batch.xyz)
             bounds[str(tile.index)] = widened(bounds.get(str(tile.index)), batch.xyz)
             columns, n_dropped, batch_counts = _stored_columns(task, tile, batch, labelled)
@@ -446,8 +501,30 @@ def ingest_tile(task: IngestTask) -> dict:
     parts = writer.seal()
     mark_done(marker, "ingest", fingerprint, core_counts=writer.counts, excluded=excluded,
               parts=parts, bounds=bounds, returns=returns)
+    _forget_staged(task)
     return {"core_counts": writer.counts, "excluded": excluded, "bounds": bounds,
             "returns": returns, **copy_counts(root, task.key, task.copies)}
+
+
+def _read(task: IngestTask, tile: Tile, fields: tuple[str, ...]):
+    """The read batches of ``tile`` (of the task's point range): those the counting pass
+    kept (:mod:`workflows.store.staged`) when it kept them whole, else from the tile."""
+    start, stop = task.span or (0, None)
+    if task.staged is not None:
+        batches = staged_batches(
+            staged_file(task.staged, tile.index, task.span), fields,
+            (tile.n_points if stop is None else stop) - start, start, task.read_batch)
+        if batches is not None:
+            return batches
+    return iter_points(tile.path, batch_size=task.read_batch, fields=fields, start=start,
+                       stop=stop)
+
+
+def _forget_staged(task: IngestTask) -> None:
+    """Remove the points the counting pass kept for ``task``: they are in the store."""
+    if task.staged is not None:
+        for tile in task.tiles:
+            remove_staged(staged_file(task.staged, tile.index, task.span))
 
 
 def _stored_columns(task: IngestTask, tile: Tile, batch, labelled: bool):
@@ -630,7 +707,8 @@ def ingest(run: Run, engine) -> RunLayout:
                 if key in root:
                     del root[key]
             root.attrs["layout"] = None
-        scenes = plan_scenes(run, tiles, engine)
+        shutil.rmtree(staged_folder(run, fingerprint).parent, ignore_errors=True)  # old plans
+        scenes = plan_scenes(run, tiles, engine, staged_folder(run, fingerprint))
         root.attrs["planned"] = {"fingerprint": fingerprint,
                                  "scenes": {s: info.to_dict() for s, info in scenes.items()}}
     say_scenes(run, scenes)
@@ -649,7 +727,14 @@ def ingest(run: Run, engine) -> RunLayout:
             "with Excluded=1", quiet=run.quiet)
     layout = RunLayout(fingerprint, tiles, scenes)
     root.attrs["layout"] = layout.to_dict()
+    shutil.rmtree(staged_folder(run, fingerprint).parent, ignore_errors=True)  # none left
     return layout
+
+
+def staged_folder(run: Run, fingerprint: str) -> Path:
+    """Where the counting pass of the ingest ``fingerprint`` keeps the points it read: a
+    run of other inputs killed while counting leaves none where this one looks."""
+    return run.work_path / "staged" / fingerprint
 
 
 def ingest_tasks(run: Run, scenes: dict[str, SceneLayout], tiles: list[Tile],
@@ -684,6 +769,7 @@ def ingest_tasks(run: Run, scenes: dict[str, SceneLayout], tiles: list[Tile],
                     echoes=echoes,
                     copies=copies,
                     seed=run.cfg.cascade.seed,
+                    staged=str(staged_folder(run, fingerprint)),
                 )},
                 where=(f"{tiles_text(list(members))}"
                        f"{f' (points {span[0]:,} to {span[1]:,})' if span else ''}"
