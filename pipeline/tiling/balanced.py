@@ -2,7 +2,6 @@
 
 import math
 from dataclasses import dataclass, fields
-from functools import cached_property
 
 import numpy as np
 
@@ -202,50 +201,48 @@ class BalancedLayout:
     def chunk_name(self, chunk: int) -> str:
         return f"k{chunk}"
 
-    @cached_property
-    def _arrays(self):
-        cuts = np.array(self.cuts, dtype=np.float64).reshape(-1, 4)
-        return (cuts[:, 0].astype(np.int64), cuts[:, 1], cuts[:, 2].astype(np.int64),
-                cuts[:, 3].astype(np.int64))
-
     def chunk_of(self, xy: np.ndarray) -> np.ndarray:
         """Chunk index of each point's core chunk, int64 (n,)."""
-        n = len(xy)
-        if not self.cuts:
-            return np.zeros(n, dtype=np.int64)
-        axis, position, left, right = self._arrays
-        node = np.zeros(n, dtype=np.int64)
-        pending = np.arange(n)
-        while pending.size:
-            at = node[pending]
-            below = xy[pending, axis[at]] < position[at]
-            node[pending] = np.where(below, left[at], right[at])
-            pending = pending[node[pending] >= 0]
-        return -1 - node
+        out = np.zeros(len(xy), dtype=np.int64)
+        for chunk, rows in self._descend(xy, 0.0):
+            out[rows] = chunk
+        return out
 
     def halo_members(self, xy: np.ndarray, halo: float):
         """Yield (chunk, row indices) for each chunk whose halo holds some of these points.
 
         A point is in the halo of every other chunk whose cell, grown by ``halo`` on each
-        side, contains it: it goes down the left side of a cut at p when its coordinate is
-        below p + halo, down the right side when it is at least p - halo.
+        side, contains it.
         """
         if not self.cuts:
             return
         core = self.chunk_of(xy)
-        stack = [(0, np.arange(len(xy)))]
+        for chunk, rows in self._descend(xy, halo):
+            rows = rows[core[rows] != chunk]
+            if rows.size:
+                yield chunk, rows
+
+    def _descend(self, xy: np.ndarray, halo: float):
+        """Yield (chunk, row indices) for each chunk whose cell grown by ``halo`` holds some
+        of these points: at a cut at p a point goes left when its coordinate is below
+        p + halo, right when it is at least p - halo (with no halo, right when not left).
+        Rows are split cut by cut, a column at a time: no gather of every point per level."""
+        if not self.cuts:
+            yield 0, np.arange(len(xy))
+            return
+        stack = [(0, None)]  # None: every row, not yet gathered
         while stack:
             node, rows = stack.pop()
             if node < 0:
-                chunk = -1 - node
-                rows = rows[core[rows] != chunk]
-                if rows.size:
-                    yield chunk, rows
+                yield -1 - node, rows
                 continue
             axis, position, left, right = self.cuts[node]
-            coord = xy[rows, axis]
-            stack.append((right, rows[coord >= position - halo]))
-            stack.append((left, rows[coord < position + halo]))
+            coord = xy[:, axis] if rows is None else xy[rows, axis]
+            below = coord < position + halo
+            above = ~below if halo == 0.0 else coord >= position - halo
+            for child, keep in ((right, above), (left, below)):
+                if keep.any():
+                    stack.append((child, np.flatnonzero(keep) if rows is None else rows[keep]))
 
     def boxes(self) -> np.ndarray:
         """float64 (n_chunks, 4) cells (xmin, ymin, xmax, ymax) by chunk index, the outer
