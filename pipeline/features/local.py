@@ -114,11 +114,13 @@ def _plane_basis(rel, n, basis, a, v):
 
 
 @_inline
-def _radial_order(xy, n, order, bucket):
+def _radial_order(xy, n, order, bucket, key, d2):
     """order[:n] = the points by distance from their centroid, roughly (n buckets, stable).
 
     The triangulation inserts points fastest from the centre outwards (each new point then
     lies outside the current hull); exact order does not matter, so a counting sort will do.
+    ``key`` (int64) and ``d2`` (float64) are work arrays of at least n entries: each point's
+    squared distance and bucket are computed once.
     """
     cx = 0.0
     cy = 0.0
@@ -129,19 +131,19 @@ def _radial_order(xy, n, order, bucket):
     cy /= n
     far = 0.0
     for k in range(n):
-        far = max(far, (xy[k, 0] - cx) ** 2 + (xy[k, 1] - cy) ** 2)
+        d2[k] = (xy[k, 0] - cx) ** 2 + (xy[k, 1] - cy) ** 2
+        far = max(far, d2[k])
     scale = (n - 1) / far if far > 0.0 else 0.0
     for k in range(n + 1):
         bucket[k] = 0
     for k in range(n):
-        key = int(((xy[k, 0] - cx) ** 2 + (xy[k, 1] - cy) ** 2) * scale)
-        bucket[key + 1] += 1
+        key[k] = int(d2[k] * scale)
+        bucket[key[k] + 1] += 1
     for k in range(n):
         bucket[k + 1] += bucket[k]
     for k in range(n):
-        key = int(((xy[k, 0] - cx) ** 2 + (xy[k, 1] - cy) ** 2) * scale)
-        order[bucket[key]] = k
-        bucket[key] += 1
+        order[bucket[key[k]]] = k
+        bucket[key[k]] += 1
 
 
 @_jit
@@ -160,6 +162,8 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, horizontal, out):
     xy = np.empty((max_n, 2))
     order = np.empty(max_n, dtype=np.int64)
     bucket = np.empty(max_n + 1, dtype=np.int64)
+    key = np.empty(max_n, dtype=np.int64)
+    d2 = np.empty(max_n)
     basis = np.empty((2, 3))
     cov = np.empty((3, 3))
     axes = np.empty((3, 3))
@@ -186,7 +190,7 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, horizontal, out):
         for k in range(n):
             xy[k, 0] = rel[k, 0] * basis[0, 0] + rel[k, 1] * basis[0, 1] + rel[k, 2] * basis[0, 2]
             xy[k, 1] = rel[k, 0] * basis[1, 0] + rel[k, 1] * basis[1, 1] + rel[k, 2] * basis[1, 2]
-        _radial_order(xy, n, order, bucket)
+        _radial_order(xy, n, order, bucket, key, d2)
         m = triangulate_into(xy, order, n, workspace)
         add_mesh_moments_into(rel, tri, m, out[row], corners, terms)
 
