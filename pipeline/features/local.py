@@ -32,7 +32,7 @@ import numpy as np
 
 from pipeline.features.delaunay import TRIANGLES, make_workspace, triangulate_into
 from pipeline.features.density import neighbourhood_members
-from pipeline.features.eigen import jacobi3
+from pipeline.features.eigen import jacobi3_registers
 from pipeline.features.invariants import INVARIANT_NAMES, moment_invariants
 from pipeline.features.moments import N_MOMENTS, add_mesh_moments_into, mesh_workspace
 from pipeline.features.neighbors import (
@@ -64,13 +64,13 @@ LINE_VARIANCE_RATIO = 1e-12
 
 
 @_inline
-def _plane_basis(rel, n, basis, a, v):
+def _plane_basis(rel, n, basis):
     """Unit vectors of the two largest principal axes of rel[:n] into basis[0], basis[1].
 
     Covariance about the mean, diagonalised by cyclic Jacobi rotations (at most 50 sweeps;
-    3 to 5 in practice). Ties between eigenvalues keep the lower axis index. Returns False
-    when the points lie on a line up to rounding (see ``LINE_VARIANCE_RATIO``). ``a`` and
-    ``v`` are float64 (3, 3) work arrays.
+    3 to 5 in practice), held in registers. Ties between eigenvalues keep the lower axis
+    index. Returns False when the points lie on a line up to rounding (see
+    ``LINE_VARIANCE_RATIO``).
     """
     mx = 0.0
     my = 0.0
@@ -82,35 +82,30 @@ def _plane_basis(rel, n, basis, a, v):
     mx /= n
     my /= n
     mz /= n
-    for i in range(3):
-        for j in range(3):
-            a[i, j] = 0.0
+    sxx = sxy = sxz = syy = syz = szz = 0.0
     for k in range(n):
         dx = rel[k, 0] - mx
         dy = rel[k, 1] - my
         dz = rel[k, 2] - mz
-        a[0, 0] += dx * dx
-        a[0, 1] += dx * dy
-        a[0, 2] += dx * dz
-        a[1, 1] += dy * dy
-        a[1, 2] += dy * dz
-        a[2, 2] += dz * dz
-    a[1, 0] = a[0, 1]
-    a[2, 0] = a[0, 2]
-    a[2, 1] = a[1, 2]
-    jacobi3(a, v)
+        sxx += dx * dx
+        sxy += dx * dy
+        sxz += dx * dz
+        syy += dy * dy
+        syz += dy * dz
+        szz += dz * dz
+    values, vectors = jacobi3_registers(sxx, sxy, sxz, syy, syz, szz)
     # axes by decreasing eigenvalue
     i0, i1, i2 = 0, 1, 2
-    if a[i1, i1] > a[i0, i0]:
+    if values[i1] > values[i0]:
         i0, i1 = i1, i0
-    if a[i2, i2] > a[i1, i1]:
+    if values[i2] > values[i1]:
         i1, i2 = i2, i1
-        if a[i1, i1] > a[i0, i0]:
+        if values[i1] > values[i0]:
             i0, i1 = i1, i0
     for k in range(3):
-        basis[0, k] = v[k, i0]
-        basis[1, k] = v[k, i1]
-    return a[i1, i1] > LINE_VARIANCE_RATIO * a[i0, i0]
+        basis[0, k] = vectors[i0][k]
+        basis[1, k] = vectors[i1][k]
+    return values[i1] > LINE_VARIANCE_RATIO * values[i0]
 
 
 @_inline
@@ -165,8 +160,6 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, horizontal, out):
     key = np.empty(max_n, dtype=np.int64)
     d2 = np.empty(max_n)
     basis = np.empty((2, 3))
-    cov = np.empty((3, 3))
-    axes = np.empty((3, 3))
     corners, terms = mesh_workspace()
     for row in range(n_query):
         for col in range(out.shape[1]):
@@ -181,7 +174,7 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, horizontal, out):
             rel[k, 0] = xyz[j, 0] - xyz[q, 0]
             rel[k, 1] = xyz[j, 1] - xyz[q, 1]
             rel[k, 2] = xyz[j, 2] - xyz[q, 2]
-        if not _plane_basis(rel, n, basis, cov, axes):
+        if not _plane_basis(rel, n, basis):
             continue
         if horizontal:
             for k in range(3):
