@@ -14,6 +14,26 @@ _inline = numba.njit(cache=True, nogil=True, inline="always")
 
 
 @_inline
+def _negligible(app, aqq, apq):
+    """Whether the off-diagonal ``apq`` is below the rounding of both diagonal entries."""
+    g = 100.0 * abs(apq)
+    return abs(app) + g == abs(app) and abs(aqq) + g == abs(aqq)
+
+
+@_inline
+def _rotation(app, aqq, apq):
+    """The sine ``s``, ``tau = s / (1 + cos)`` and diagonal shift ``h`` of the Jacobi
+    rotation that zeroes ``apq`` (the smaller angle)."""
+    theta = (aqq - app) / (2.0 * apq)
+    t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+    if theta < 0.0:
+        t = -t
+    c = 1.0 / math.sqrt(t * t + 1.0)
+    s = t * c
+    return s, s / (1.0 + c), t * apq
+
+
+@_inline
 def jacobi3(a, v):
     """Diagonalise the symmetric float64 (3, 3) ``a`` in place by cyclic Jacobi rotations;
     the eigenvectors go to the columns of ``v``."""
@@ -30,18 +50,10 @@ def jacobi3(a, v):
             if apq == 0.0:
                 continue
             app, aqq = a[p, p], a[q, q]
-            g = 100.0 * abs(apq)
-            if abs(app) + g == abs(app) and abs(aqq) + g == abs(aqq):
-                a[p, q] = a[q, p] = 0.0  # below the rounding of both diagonal entries
+            if _negligible(app, aqq, apq):
+                a[p, q] = a[q, p] = 0.0
                 continue
-            theta = (aqq - app) / (2.0 * apq)
-            t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-            if theta < 0.0:
-                t = -t
-            c = 1.0 / math.sqrt(t * t + 1.0)
-            s = t * c
-            tau = s / (1.0 + c)
-            h = t * apq
+            s, tau, h = _rotation(app, aqq, apq)
             a[p, p] = app - h
             a[q, q] = aqq + h
             a[p, q] = a[q, p] = 0.0
@@ -62,17 +74,9 @@ def _rotate_pair(app, aqq, apq, arp, arq, vp0, vp1, vp2, vq0, vq1, vq2):
     eigenvector columns p and q. Returns the same 11 values, updated."""
     if apq == 0.0:
         return app, aqq, apq, arp, arq, vp0, vp1, vp2, vq0, vq1, vq2
-    g = 100.0 * abs(apq)
-    if abs(app) + g == abs(app) and abs(aqq) + g == abs(aqq):
+    if _negligible(app, aqq, apq):
         return app, aqq, 0.0, arp, arq, vp0, vp1, vp2, vq0, vq1, vq2
-    theta = (aqq - app) / (2.0 * apq)
-    t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-    if theta < 0.0:
-        t = -t
-    c = 1.0 / math.sqrt(t * t + 1.0)
-    s = t * c
-    tau = s / (1.0 + c)
-    h = t * apq
+    s, tau, h = _rotation(app, aqq, apq)
     return (
         app - h, aqq + h, 0.0,
         arp - s * (arq + arp * tau), arq + s * (arp - arq * tau),
