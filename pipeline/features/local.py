@@ -64,24 +64,15 @@ LINE_VARIANCE_RATIO = 1e-12
 
 
 @_inline
-def _plane_basis(rel, n, basis):
+def _plane_basis(rel, n, mx, my, mz, basis):
     """Unit vectors of the two largest principal axes of rel[:n] into basis[0], basis[1].
 
     Covariance about the mean, diagonalised by cyclic Jacobi rotations (at most 50 sweeps;
     3 to 5 in practice), held in registers. Ties between eigenvalues keep the lower axis
     index. Returns False when the points lie on a line up to rounding (see
-    ``LINE_VARIANCE_RATIO``).
+    ``LINE_VARIANCE_RATIO``). ``mx``, ``my``, ``mz``: the mean of rel[:n], which the
+    gather of the points computes on the way.
     """
-    mx = 0.0
-    my = 0.0
-    mz = 0.0
-    for k in range(n):
-        mx += rel[k, 0]
-        my += rel[k, 1]
-        mz += rel[k, 2]
-    mx /= n
-    my /= n
-    mz /= n
     sxx = sxy = sxz = syy = syz = szz = 0.0
     for k in range(n):
         dx = rel[k, 0] - mx
@@ -109,21 +100,15 @@ def _plane_basis(rel, n, basis):
 
 
 @_inline
-def _radial_order(xy, n, order, bucket, key, d2):
+def _radial_order(xy, n, cx, cy, order, bucket, key, d2):
     """order[:n] = the points by distance from their centroid, roughly (n buckets, stable).
 
     The triangulation inserts points fastest from the centre outwards (each new point then
     lies outside the current hull); exact order does not matter, so a counting sort will do.
     ``key`` (int64) and ``d2`` (float64) are work arrays of at least n entries: each point's
-    squared distance and bucket are computed once.
+    squared distance and bucket are computed once. ``cx``, ``cy``: the centroid of xy[:n],
+    which the projection computes on the way.
     """
-    cx = 0.0
-    cy = 0.0
-    for k in range(n):
-        cx += xy[k, 0]
-        cy += xy[k, 1]
-    cx /= n
-    cy /= n
     far = 0.0
     for k in range(n):
         d2[k] = (xy[k, 0] - cx) ** 2 + (xy[k, 1] - cy) ** 2
@@ -169,21 +154,28 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, horizontal, out):
         if n < 3:
             continue
         q = query[row]
+        mx = my = mz = 0.0  # sums taken while gathering: one pass less over the points
         for k in range(n):
             j = nbr_idx[start + k]
             rel[k, 0] = xyz[j, 0] - xyz[q, 0]
             rel[k, 1] = xyz[j, 1] - xyz[q, 1]
             rel[k, 2] = xyz[j, 2] - xyz[q, 2]
-        if not _plane_basis(rel, n, basis):
+            mx += rel[k, 0]
+            my += rel[k, 1]
+            mz += rel[k, 2]
+        if not _plane_basis(rel, n, mx / n, my / n, mz / n, basis):
             continue
         if horizontal:
             for k in range(3):
                 basis[0, k] = 1.0 if k == 0 else 0.0
                 basis[1, k] = 1.0 if k == 1 else 0.0
+        cx = cy = 0.0
         for k in range(n):
             xy[k, 0] = rel[k, 0] * basis[0, 0] + rel[k, 1] * basis[0, 1] + rel[k, 2] * basis[0, 2]
             xy[k, 1] = rel[k, 0] * basis[1, 0] + rel[k, 1] * basis[1, 1] + rel[k, 2] * basis[1, 2]
-        _radial_order(xy, n, order, bucket, key, d2)
+            cx += xy[k, 0]
+            cy += xy[k, 1]
+        _radial_order(xy, n, cx / n, cy / n, order, bucket, key, d2)
         m = triangulate_into(xy, order, n, workspace)
         add_mesh_moments_into(rel, tri, m, out[row], corners, terms)
 
