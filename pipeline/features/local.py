@@ -32,7 +32,7 @@ import numpy as np
 
 from pipeline.features.delaunay import TRIANGLES, make_workspace, triangulate_into
 from pipeline.features.density import neighbourhood_members
-from pipeline.features.eigen import jacobi3
+from pipeline.features.eigen import jacobi3_registers
 from pipeline.features.invariants import INVARIANT_NAMES, moment_invariants
 from pipeline.features.moments import N_MOMENTS, add_mesh_moments_into, mesh_workspace
 from pipeline.features.neighbors import (
@@ -64,84 +64,66 @@ LINE_VARIANCE_RATIO = 1e-12
 
 
 @_inline
-def _plane_basis(rel, n, basis, a, v):
+def _plane_basis(rel, n, mx, my, mz, basis):
     """Unit vectors of the two largest principal axes of rel[:n] into basis[0], basis[1].
 
     Covariance about the mean, diagonalised by cyclic Jacobi rotations (at most 50 sweeps;
-    3 to 5 in practice). Ties between eigenvalues keep the lower axis index. Returns False
-    when the points lie on a line up to rounding (see ``LINE_VARIANCE_RATIO``). ``a`` and
-    ``v`` are float64 (3, 3) work arrays.
+    3 to 5 in practice), held in registers. Ties between eigenvalues keep the lower axis
+    index. Returns False when the points lie on a line up to rounding (see
+    ``LINE_VARIANCE_RATIO``). ``mx``, ``my``, ``mz``: the mean of rel[:n], which the
+    gather of the points computes on the way.
     """
-    mx = 0.0
-    my = 0.0
-    mz = 0.0
-    for k in range(n):
-        mx += rel[k, 0]
-        my += rel[k, 1]
-        mz += rel[k, 2]
-    mx /= n
-    my /= n
-    mz /= n
-    for i in range(3):
-        for j in range(3):
-            a[i, j] = 0.0
+    sxx = sxy = sxz = syy = syz = szz = 0.0
     for k in range(n):
         dx = rel[k, 0] - mx
         dy = rel[k, 1] - my
         dz = rel[k, 2] - mz
-        a[0, 0] += dx * dx
-        a[0, 1] += dx * dy
-        a[0, 2] += dx * dz
-        a[1, 1] += dy * dy
-        a[1, 2] += dy * dz
-        a[2, 2] += dz * dz
-    a[1, 0] = a[0, 1]
-    a[2, 0] = a[0, 2]
-    a[2, 1] = a[1, 2]
-    jacobi3(a, v)
+        sxx += dx * dx
+        sxy += dx * dy
+        sxz += dx * dz
+        syy += dy * dy
+        syz += dy * dz
+        szz += dz * dz
+    values, vectors = jacobi3_registers(sxx, sxy, sxz, syy, syz, szz)
     # axes by decreasing eigenvalue
     i0, i1, i2 = 0, 1, 2
-    if a[i1, i1] > a[i0, i0]:
+    if values[i1] > values[i0]:
         i0, i1 = i1, i0
-    if a[i2, i2] > a[i1, i1]:
+    if values[i2] > values[i1]:
         i1, i2 = i2, i1
-        if a[i1, i1] > a[i0, i0]:
+        if values[i1] > values[i0]:
             i0, i1 = i1, i0
     for k in range(3):
-        basis[0, k] = v[k, i0]
-        basis[1, k] = v[k, i1]
-    return a[i1, i1] > LINE_VARIANCE_RATIO * a[i0, i0]
+        basis[0, k] = vectors[i0][k]
+        basis[1, k] = vectors[i1][k]
+    return values[i1] > LINE_VARIANCE_RATIO * values[i0]
 
 
 @_inline
-def _radial_order(xy, n, order, bucket):
+def _radial_order(xy, n, cx, cy, order, bucket, key, d2):
     """order[:n] = the points by distance from their centroid, roughly (n buckets, stable).
 
     The triangulation inserts points fastest from the centre outwards (each new point then
     lies outside the current hull); exact order does not matter, so a counting sort will do.
+    ``key`` (int64) and ``d2`` (float64) are work arrays of at least n entries: each point's
+    squared distance and bucket are computed once. ``cx``, ``cy``: the centroid of xy[:n],
+    which the projection computes on the way.
     """
-    cx = 0.0
-    cy = 0.0
-    for k in range(n):
-        cx += xy[k, 0]
-        cy += xy[k, 1]
-    cx /= n
-    cy /= n
     far = 0.0
     for k in range(n):
-        far = max(far, (xy[k, 0] - cx) ** 2 + (xy[k, 1] - cy) ** 2)
+        d2[k] = (xy[k, 0] - cx) ** 2 + (xy[k, 1] - cy) ** 2
+        far = max(far, d2[k])
     scale = (n - 1) / far if far > 0.0 else 0.0
     for k in range(n + 1):
         bucket[k] = 0
     for k in range(n):
-        key = int(((xy[k, 0] - cx) ** 2 + (xy[k, 1] - cy) ** 2) * scale)
-        bucket[key + 1] += 1
+        key[k] = int(d2[k] * scale)
+        bucket[key[k] + 1] += 1
     for k in range(n):
         bucket[k + 1] += bucket[k]
     for k in range(n):
-        key = int(((xy[k, 0] - cx) ** 2 + (xy[k, 1] - cy) ** 2) * scale)
-        order[bucket[key]] = k
-        bucket[key] += 1
+        order[bucket[key[k]]] = k
+        bucket[key[k]] += 1
 
 
 @_jit
@@ -160,9 +142,9 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, horizontal, out):
     xy = np.empty((max_n, 2))
     order = np.empty(max_n, dtype=np.int64)
     bucket = np.empty(max_n + 1, dtype=np.int64)
+    key = np.empty(max_n, dtype=np.int64)
+    d2 = np.empty(max_n)
     basis = np.empty((2, 3))
-    cov = np.empty((3, 3))
-    axes = np.empty((3, 3))
     corners, terms = mesh_workspace()
     for row in range(n_query):
         for col in range(out.shape[1]):
@@ -172,21 +154,28 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, horizontal, out):
         if n < 3:
             continue
         q = query[row]
+        mx = my = mz = 0.0  # sums taken while gathering: one pass less over the points
         for k in range(n):
             j = nbr_idx[start + k]
             rel[k, 0] = xyz[j, 0] - xyz[q, 0]
             rel[k, 1] = xyz[j, 1] - xyz[q, 1]
             rel[k, 2] = xyz[j, 2] - xyz[q, 2]
-        if not _plane_basis(rel, n, basis, cov, axes):
+            mx += rel[k, 0]
+            my += rel[k, 1]
+            mz += rel[k, 2]
+        if not _plane_basis(rel, n, mx / n, my / n, mz / n, basis):
             continue
         if horizontal:
             for k in range(3):
                 basis[0, k] = 1.0 if k == 0 else 0.0
                 basis[1, k] = 1.0 if k == 1 else 0.0
+        cx = cy = 0.0
         for k in range(n):
             xy[k, 0] = rel[k, 0] * basis[0, 0] + rel[k, 1] * basis[0, 1] + rel[k, 2] * basis[0, 2]
             xy[k, 1] = rel[k, 0] * basis[1, 0] + rel[k, 1] * basis[1, 1] + rel[k, 2] * basis[1, 2]
-        _radial_order(xy, n, order, bucket)
+            cx += xy[k, 0]
+            cy += xy[k, 1]
+        _radial_order(xy, n, cx / n, cy / n, order, bucket, key, d2)
         m = triangulate_into(xy, order, n, workspace)
         add_mesh_moments_into(rel, tri, m, out[row], corners, terms)
 
