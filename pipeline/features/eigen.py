@@ -35,36 +35,13 @@ def _rotation(app, aqq, apq):
 
 @_inline
 def jacobi3(a, v):
-    """Diagonalise the symmetric float64 (3, 3) ``a`` in place by cyclic Jacobi rotations;
-    the eigenvectors go to the columns of ``v``."""
-    for i in range(3):
-        for j in range(3):
-            v[i, j] = 1.0 if i == j else 0.0
-    for _ in range(50):
-        if a[0, 1] == 0.0 and a[0, 2] == 0.0 and a[1, 2] == 0.0:
-            break
-        for pq in range(3):
-            p = 0 if pq < 2 else 1
-            q = 1 if pq == 0 else 2
-            apq = a[p, q]
-            if apq == 0.0:
-                continue
-            app, aqq = a[p, p], a[q, q]
-            if _negligible(app, aqq, apq):
-                a[p, q] = a[q, p] = 0.0
-                continue
-            s, tau, h = _rotation(app, aqq, apq)
-            a[p, p] = app - h
-            a[q, q] = aqq + h
-            a[p, q] = a[q, p] = 0.0
-            r = 3 - p - q
-            g_rp, h_rq = a[r, p], a[r, q]
-            a[r, p] = a[p, r] = g_rp - s * (h_rq + g_rp * tau)
-            a[r, q] = a[q, r] = h_rq + s * (g_rp - h_rq * tau)
-            for k in range(3):
-                g_kp, h_kq = v[k, p], v[k, q]
-                v[k, p] = g_kp - s * (h_kq + g_kp * tau)
-                v[k, q] = h_kq + s * (g_kp - h_kq * tau)
+    """Diagonalise the symmetric float64 (3, 3) ``a`` in place by cyclic Jacobi rotations
+    (:func:`jacobi3_registers`); the eigenvectors go to the columns of ``v``."""
+    values, columns = jacobi3_registers(a[0, 0], a[0, 1], a[0, 2], a[1, 1], a[1, 2], a[2, 2])
+    for k in range(3):
+        for r in range(3):
+            a[k, r] = values[k] if k == r else 0.0
+            v[r, k] = columns[k][r]
 
 
 @_inline

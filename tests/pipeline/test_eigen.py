@@ -1,4 +1,4 @@
-"""The register Jacobi solver against the array one: the same rotations, so the same bits."""
+"""The Jacobi solver in both forms (registers, and the arrays the covariance features pass): the same bits, and eigenpairs."""
 
 import numba
 import numpy as np
