@@ -1,4 +1,5 @@
-"""The Jacobi solver in both forms (registers, and the arrays the covariance features pass): the same bits, and eigenpairs."""
+"""The Jacobi solver in both forms, on registers and on the arrays the covariance features
+pass: the same bits, and eigenpairs."""
 
 import numba
 import numpy as np
