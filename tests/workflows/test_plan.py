@@ -25,6 +25,8 @@ def test_plan_prints_scenes_grid_and_estimates_and_writes_nothing(tmp_path, surv
         "halo 0.555 m (stage by stage)", "halo 1.12 m (one pass)"]
     assert any(line.startswith("memory: about ") for line in lines)
     assert any(line.startswith("time: about ") for line in lines)
+    disk = next(line for line in lines if line.startswith("disk: about "))
+    assert "work/" not in disk  # a grid: no counting pass, no points kept for ingest
     assert picture.stat().st_size > 5_000 and sorted(p.name for p in tmp_path.iterdir()) == [
         "c.yaml", "grid.png"]  # no output directory, no store
 
@@ -99,6 +101,8 @@ def test_plan_of_a_predict_run_shows_the_terrain_blocks_and_refuses_what_will_no
     assert any(line.startswith("terrain: 1 block of ") for line in lines), lines
     memory = next(line for line in lines if line.startswith("memory: "))
     assert "GiB for a terrain block" in memory
+    disk = next(line for line in lines if line.startswith("disk: "))  # balanced chunks
+    assert "GiB more in work/ while ingest runs" in disk, disk
     for overrides, key in ((["terrain.block=30000"], "terrain.block"),
                            (["output.trees=true", "trees.resolution=50"], "trees.resolution"),
                            (["output.trees=true", "trees.block=10000"], "trees.block")):

@@ -31,6 +31,7 @@ from workflows.steps.copies import copy_lines
 from workflows.steps.ingest import plan_scenes, plan_tiles, scene_chunk_size, scene_target
 from workflows.steps.table import STEPS
 from workflows.store.scenes import SceneLayout
+from workflows.store.staged import staged_bytes
 
 log = logging.getLogger(__name__)
 
@@ -264,7 +265,7 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
     lines = [f"features: set {params.set} ({columns} columns), r1 {params.r1:g} m, "
              f"halo {run.halo:g} m" + (f", voxels of {params.voxel:.3g} m" if params.voxel
                                        else "") + f", {echoes_text(params.echoes)}"]
-    largest, disk = 0.0, 0.0
+    largest, disk, kept = 0.0, 0.0, 0
     copied = sum(info.thinning.expected for info in scenes.values() if info.thinning)
     outputs = {scene: info for scene, info in scenes.items() if info.thinning is None}
     for scene, info in outputs.items():
@@ -272,8 +273,11 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
         line, per_chunk = _scene_line(scene, info, members)
         lines.append(line)
         largest = max(largest, per_chunk)
-        disk += sum(t.n_points for t in members) * (
+        n_points = sum(t.n_points for t in members)
+        disk += n_points * (
             ONE_PASS_BYTES_PER_POINT if info.one_pass else STORE_BYTES_PER_POINT + 4 * columns)
+        if info.estimate is not None:  # counted: its points kept until ingest stores them
+            kept += staged_bytes(n_points)
     disk += copied * (STORE_BYTES_PER_POINT + 4 * columns)  # the thinned copies
     lines += copy_lines(scenes, run.cfg.data.densities, run.cfg.cascade.seed,
                         run.model is not None)
@@ -288,7 +292,9 @@ def plan(run: Run, workers: int, picture: Path | None = None) -> list[str]:
             " at the mean density (dense parts of a chunk hold more; tiling.target_points "
             "bounds it)" if any(info.estimate is None for info in outputs.values()) else "")
         + f", {terrain_bytes(footprint) / 2**30:.2f} GiB for a terrain block",
-        f"disk: about {disk / 2**30:.2f} GiB for store.zarr",
+        f"disk: about {disk / 2**30:.2f} GiB for store.zarr" + (
+            f", {kept / 2**30:.2f} GiB more in work/ while ingest runs (the points counted "
+            "for the balanced chunks, kept for it)" if kept else ""),
         f"time: about {clock(seconds + training)} on {counted(workers, 'worker')}: "
         f"{clock(seconds)} for the terrain, features, context and predictions, "
         f"{clock(training)} for the forests' training"

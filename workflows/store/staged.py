@@ -22,9 +22,16 @@ import numpy as np
 
 from pipeline.io import PointBatch
 
-#: Points of a scene kept between the two reads at most (24 bytes each on disk, and the
-#: fields ingest reads).
+#: Points of a scene kept between the two reads at most.
 MAX_STAGED_POINTS = 50_000_000
+
+#: Bytes a kept point takes on disk, about: its coordinates (24) and the fields ingest reads.
+STAGED_BYTES_PER_POINT = 28
+
+
+def staged_bytes(n_points: int) -> int:
+    """Disk that the points kept of a scene of ``n_points`` take at most, about."""
+    return min(n_points, MAX_STAGED_POINTS) * STAGED_BYTES_PER_POINT
 
 
 def staged_file(folder: str | Path, tile: int, span: tuple[int, int] | None) -> Path:
