@@ -34,7 +34,7 @@ import numpy as np
 
 from pipeline.checks import finite_number, finite_numbers
 from pipeline.errors import InputError
-from pipeline.features.eigen import jacobi3
+from pipeline.features.eigen import descending, jacobi3
 from pipeline.features.neighbors import (_Grid, _cell_keys, _check_cloud, _check_ids,
                                         _check_query, _column_run, _query_cell, _select,
                                         squared_distance)  # fmt: skip
@@ -75,13 +75,7 @@ def _features(src, rows, origin, mean, a, v, out):
                 total += (p[i] - origin[i] - mean[i]) * (p[j] - origin[j] - mean[j])
             a[i, j] = a[j, i] = total / n
     jacobi3(a, v)
-    i0, i1, i2 = 0, 1, 2  # by decreasing eigenvalue; ties keep the lower index
-    if a[i1, i1] > a[i0, i0]:
-        i0, i1 = i1, i0
-    if a[i2, i2] > a[i1, i1]:
-        i1, i2 = i2, i1
-        if a[i1, i1] > a[i0, i0]:
-            i0, i1 = i1, i0
+    i0, i1, i2 = descending((a[0, 0], a[1, 1], a[2, 2]))
     l1, l2, l3 = max(a[i0, i0], 0.0), max(a[i1, i1], 0.0), max(a[i2, i2], 0.0)
     total = l1 + l2 + l3
     if not total > 0.0:  # coincident points

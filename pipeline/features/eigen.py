@@ -64,9 +64,8 @@ def _rotate_pair(app, aqq, apq, arp, arq, vp0, vp1, vp2, vq0, vq1, vq2):
 
 @_inline
 def jacobi3_registers(a00, a01, a02, a11, a12, a22):
-    """:func:`jacobi3` on the six entries of a symmetric 3x3 matrix held in registers
-    rather than in arrays: the same rotations in the same order, so the same bits, in
-    about half the time.
+    """Cyclic Jacobi rotations on the six entries of a symmetric 3x3 matrix held in
+    registers rather than in arrays (about half the time of rotating an array's entries).
 
     Returns the eigenvalues ``(l0, l1, l2)`` and the eigenvectors as a 3-tuple of columns,
     ``(v0, v1, v2)``, each a 3-tuple; column i belongs to eigenvalue ``li``.
@@ -84,3 +83,17 @@ def jacobi3_registers(a00, a01, a02, a11, a12, a22):
         a11, a22, a12, a01, a02, v01, v11, v21, v02, v12, v22 = _rotate_pair(
             a11, a22, a12, a01, a02, v01, v11, v21, v02, v12, v22)  # (1, 2), third row 0
     return (a00, a11, a22), ((v00, v10, v20), (v01, v11, v21), (v02, v12, v22))
+
+
+@_inline
+def descending(values):
+    """The indices (i0, i1, i2) of three eigenvalues by decreasing value; ties keep the
+    lower index."""
+    i0, i1, i2 = 0, 1, 2
+    if values[i1] > values[i0]:
+        i0, i1 = i1, i0
+    if values[i2] > values[i1]:
+        i1, i2 = i2, i1
+        if values[i1] > values[i0]:
+            i0, i1 = i1, i0
+    return i0, i1, i2

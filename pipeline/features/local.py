@@ -32,7 +32,7 @@ import numpy as np
 
 from pipeline.features.delaunay import TRIANGLES, make_workspace, triangulate_into
 from pipeline.features.density import neighbourhood_members
-from pipeline.features.eigen import jacobi3_registers
+from pipeline.features.eigen import descending, jacobi3_registers
 from pipeline.features.invariants import INVARIANT_NAMES, moment_invariants
 from pipeline.features.moments import N_MOMENTS, add_mesh_moments_into, mesh_workspace
 from pipeline.features.neighbors import (
@@ -85,14 +85,7 @@ def _plane_basis(rel, n, mx, my, mz, basis):
         syz += dy * dz
         szz += dz * dz
     values, vectors = jacobi3_registers(sxx, sxy, sxz, syy, syz, szz)
-    # axes by decreasing eigenvalue
-    i0, i1, i2 = 0, 1, 2
-    if values[i1] > values[i0]:
-        i0, i1 = i1, i0
-    if values[i2] > values[i1]:
-        i1, i2 = i2, i1
-        if values[i1] > values[i0]:
-            i0, i1 = i1, i0
+    i0, i1, _ = descending(values)
     for k in range(3):
         basis[0, k] = vectors[i0][k]
         basis[1, k] = vectors[i1][k]
