@@ -285,10 +285,9 @@ def staging(folder: Path):
 
     def targets(tiles: list[Tile], span) -> dict:
         nonlocal left
-        start, stop = span or (0, None)
         staged = []
         for tile in tiles:
-            n_points = (tile.n_points if stop is None else stop) - start
+            n_points = points_in(tile, span)
             kept = n_points <= left
             left -= n_points if kept else 0
             staged.append((str(staged_file(folder, tile.index, span)), n_points) if kept
@@ -466,7 +465,6 @@ def ingest_tile(task: IngestTask) -> dict:
     restart_unit(root, scene, marker)  # done only when a copy is not: written again with it
     writer = with_copies(_PartWriter(marker, grid, task.halo), root, task.key, task.copies,
                          task.seed, fingerprint, lambda part: _PartWriter(part, grid, task.halo))
-    start, stop = task.span or (0, None)
     labelled = scene != "predict"
     fields = read_fields(scene, task.points_filter, task.label_field, task.echoes)
     excluded: dict[str, int] = {}
@@ -489,7 +487,7 @@ def ingest_tile(task: IngestTask) -> dict:
             if held >= read_batch:
                 writer.write(*(np.concatenate(column) for column in zip(*pending)))
                 pending, held = [], 0
-        if n_read != (tile.n_points if stop is None else stop - start):
+        if n_read != points_in(tile, task.span):
             raise InputError(f"tile {tile.path}: its header announces {tile.n_points} "
                              f"points but {n_read} were read; the file is truncated or its "
                              "header is wrong: repair or re-export it")
@@ -506,6 +504,13 @@ def ingest_tile(task: IngestTask) -> dict:
             "returns": returns, **copy_counts(root, task.key, task.copies)}
 
 
+def points_in(tile: Tile, span) -> int:
+    """How many points of ``tile`` its point range ``span`` ((start, stop); None: all)
+    holds."""
+    start, stop = span or (0, tile.n_points)
+    return stop - start
+
+
 def _read(task: IngestTask, tile: Tile, fields: tuple[str, ...]):
     """The read batches of ``tile`` (of the task's point range): those the counting pass
     kept (:mod:`workflows.store.staged`) when it kept them whole, else from the tile."""
@@ -513,7 +518,7 @@ def _read(task: IngestTask, tile: Tile, fields: tuple[str, ...]):
     if task.staged is not None:
         batches = staged_batches(
             staged_file(task.staged, tile.index, task.span), fields,
-            (tile.n_points if stop is None else stop) - start, start, task.read_batch)
+            points_in(tile, task.span), start, task.read_batch)
         if batches is not None:
             return batches
     return iter_points(tile.path, batch_size=task.read_batch, fields=fields, start=start,
