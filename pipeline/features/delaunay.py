@@ -438,12 +438,12 @@ def _incircle_grid_exact(ax, ay, bx, by, cx, cy, px, py):
 def _orient_idx(xy, a, b, c):
     """orient2d of points a, b, c of xy, which lie on the predicates' grid: a static error
     bound decides almost every call, then the adaptive filter, then the exact evaluation."""
-    ax = xy[a, 0]
-    ay = xy[a, 1]
-    bx = xy[b, 0]
-    by = xy[b, 1]
-    cx = xy[c, 0]
-    cy = xy[c, 1]
+    ax = xy[2 * a]
+    ay = xy[2 * a + 1]
+    bx = xy[2 * b]
+    by = xy[2 * b + 1]
+    cx = xy[2 * c]
+    cy = xy[2 * c + 1]
     det = (ax - cx) * (by - cy) - (ay - cy) * (bx - cx)
     if abs(det) > _CCW_STATIC:
         return det
@@ -485,12 +485,12 @@ def _incircle_lifted(xy, lift, a, b, c, dx, dy, dz):
     """incircle of points a, b, c of xy and d = (dx, dy), all on the predicates' grid, with
     lift[i] = fl(fl(x_i^2) + fl(y_i^2)) and dz d's: a static error bound decides almost every
     call, then the adaptive filter, then the exact evaluation."""
-    ax = xy[a, 0]
-    ay = xy[a, 1]
-    bx = xy[b, 0]
-    by = xy[b, 1]
-    cx = xy[c, 0]
-    cy = xy[c, 1]
+    ax = xy[2 * a]
+    ay = xy[2 * a + 1]
+    bx = xy[2 * b]
+    by = xy[2 * b + 1]
+    cx = xy[2 * c]
+    cy = xy[2 * c + 1]
     det = _lifted_determinant(ax, ay, lift[a], bx, by, lift[b], cx, cy, lift[c], dx, dy, dz)
     if abs(det) > _ICC_LIFTED_STATIC:
         return det
@@ -506,7 +506,7 @@ def _snap_to_grid(xy, order, n):
     largest = 0.0
     for i in range(n):
         p = order[i]
-        largest = max(largest, abs(xy[p, 0]), abs(xy[p, 1]))
+        largest = max(largest, abs(xy[2 * p]), abs(xy[2 * p + 1]))
     if largest == 0.0:
         return
     exponent = math.frexp(largest)[1]  # largest < 2**exponent
@@ -515,15 +515,15 @@ def _snap_to_grid(xy, order, n):
             p = order[i]
             for k in range(2):
                 # both multiplications by powers of two are exact; so is the rounding
-                xy[p, k] = np.round(math.ldexp(xy[p, k], -exponent) * _GRID) / _GRID
+                xy[2 * p + k] = np.round(math.ldexp(xy[2 * p + k], -exponent) * _GRID) / _GRID
         return
     # the same in one multiplication by a power of two: exact where ldexp is, and where
     # ldexp would lose bits to a subnormal result both round to a zero of the same sign
     scale = math.ldexp(_GRID, -exponent)
     for i in range(n):
         p = order[i]
-        xy[p, 0] = np.round(xy[p, 0] * scale) * _CELL
-        xy[p, 1] = np.round(xy[p, 1] * scale) * _CELL
+        xy[2 * p] = np.round(xy[2 * p] * scale) * _CELL
+        xy[2 * p + 1] = np.round(xy[2 * p + 1] * scale) * _CELL
 
 
 def snap_to_grid(xy: np.ndarray) -> np.ndarray:
@@ -532,14 +532,17 @@ def snap_to_grid(xy: np.ndarray) -> np.ndarray:
     Exposed so tests can check the triangulation in exact arithmetic against its real input.
     """
     arr = np.array(xy, dtype=np.float64, order="C")
-    _snap_to_grid(arr, np.arange(len(arr)), len(arr))
+    _snap_to_grid(arr.ravel(), np.arange(len(arr)), len(arr))
     return arr
 
 
 # --- triangle mesh ------------------------------------------------------------------------
-# ver[t] = 3 vertices counter-clockwise; nbr[t, i] = triangle across the edge opposite
-# ver[t, i] (from ver[t, i + 1] to ver[t, i + 2]), -1 on the hull. Triangles are only ever
-# added or changed, never removed, so ver[:m] is the result. The hull is a counter-clockwise
+# ver[3t:3t+3] = triangle t's 3 vertices counter-clockwise; nbr[3t+i] = the triangle across
+# the edge opposite ver[3t+i] (from its next vertex to the one after), -1 on the hull. Flat
+# arrays (and the flip stack's pairs, and the points' x, y) so that every index is a multiple
+# of a constant: with 2D arrays numba multiplies by a stride loaded at run time, 3-4 % of the
+# kernel. Triangles are only ever added or changed, never removed, so the first m rows are
+# the result. The hull is a counter-clockwise
 # doubly linked list (hull_next, hull_prev; hull_next[v] = -1 for a vertex not on it) and
 # hull_tri[v] is the triangle holding the hull edge v -> hull_next[v].
 
@@ -547,27 +550,27 @@ def snap_to_grid(xy: np.ndarray) -> np.ndarray:
 @_inline
 def _index_in_row(table, t, x):
     """Position of x in row t of ver or nbr (2 when it is not among the first two)."""
-    if table[t, 0] == x:
+    if table[3 * t] == x:
         return 0
-    if table[t, 1] == x:
+    if table[3 * t + 1] == x:
         return 1
     return 2
 
 
 @_inline
 def _replace_neighbor(nbr, t, old, new):
-    nbr[t, _index_in_row(nbr, t, old)] = new
+    nbr[3 * t + _index_in_row(nbr, t, old)] = new
 
 
 @_inline
 def _set_triangle(ver, nbr, t, a, b, c, na, nb, nc):
     """Triangle t = (a, b, c), with na across b-c, nb across c-a and nc across a-b."""
-    ver[t, 0] = a
-    ver[t, 1] = b
-    ver[t, 2] = c
-    nbr[t, 0] = na
-    nbr[t, 1] = nb
-    nbr[t, 2] = nc
+    ver[3 * t] = a
+    ver[3 * t + 1] = b
+    ver[3 * t + 2] = c
+    nbr[3 * t] = na
+    nbr[3 * t + 1] = nb
+    nbr[3 * t + 2] = nc
 
 
 @_inline
@@ -607,19 +610,19 @@ def _push(stack, k, t, across):
     across its opposite edge (-1 on the hull), known when t is made: testing t then starts
     from a load fewer. It stays valid until t is popped: the flips rewrite only triangles
     holding the new point and the one across the edge they flip."""
-    stack[k, 0] = t
-    stack[k, 1] = across
+    stack[2 * k] = t
+    stack[2 * k + 1] = across
 
 
 @_jit
 def _insert_inside(ver, nbr, hull_tri, n_tri, t, p, stack):
     """Split triangle t = (a, b, c) at p into (p, b, c), (p, c, a), (p, a, b)."""
-    a = ver[t, 0]
-    b = ver[t, 1]
-    c = ver[t, 2]
-    na = nbr[t, 0]
-    nb = nbr[t, 1]
-    nc = nbr[t, 2]
+    a = ver[3 * t]
+    b = ver[3 * t + 1]
+    c = ver[3 * t + 2]
+    na = nbr[3 * t]
+    nb = nbr[3 * t + 1]
+    nc = nbr[3 * t + 2]
     t1 = n_tri
     t2 = n_tri + 1
     _set_triangle(ver, nbr, t, p, b, c, na, t1, t2)
@@ -635,14 +638,14 @@ def _insert_inside(ver, nbr, hull_tri, n_tri, t, p, stack):
 
 @_jit
 def _insert_on_edge(ver, nbr, hull_next, hull_prev, hull_tri, n_tri, t, e, p, stack):
-    """Split the edge b-c of t = (a, b, c) (opposite ver[t, e]) at p, and its other triangle
+    """Split the edge b-c of t = (a, b, c) (opposite its vertex e) at p, and its other triangle
     u = (d, c, b) if any; on a hull edge p joins the hull between b and c."""
-    a = ver[t, e]
-    b = ver[t, (e + 1) % 3]
-    c = ver[t, (e + 2) % 3]
-    u = nbr[t, e]
-    nb = nbr[t, (e + 1) % 3]
-    nc = nbr[t, (e + 2) % 3]
+    a = ver[3 * t + e]
+    b = ver[3 * t + (e + 1) % 3]
+    c = ver[3 * t + (e + 2) % 3]
+    u = nbr[3 * t + e]
+    nb = nbr[3 * t + (e + 1) % 3]
+    nc = nbr[3 * t + (e + 2) % 3]
     t1 = n_tri
     u1 = n_tri + 1 if u >= 0 else -1  # no u on the hull: -1 across b -> p and p -> c
     _set_triangle(ver, nbr, t, p, a, b, nc, u, t1)
@@ -657,9 +660,9 @@ def _insert_on_edge(ver, nbr, hull_next, hull_prev, hull_tri, n_tri, t, e, p, st
         hull_tri[p] = t1
         return n_tri + 1, 2
     j = _index_in_row(nbr, u, t)
-    d = ver[u, j]
-    u_bd = nbr[u, (j + 1) % 3]
-    u_dc = nbr[u, (j + 2) % 3]
+    d = ver[3 * u + j]
+    u_bd = nbr[3 * u + (j + 1) % 3]
+    u_dc = nbr[3 * u + (j + 2) % 3]
     _set_triangle(ver, nbr, u, p, b, d, u_bd, u1, t)
     _set_triangle(ver, nbr, u1, p, d, c, u_dc, t1, u)
     _hand_over_edge(nbr, hull_tri, u_dc, u, u1, d)
@@ -673,7 +676,7 @@ def _locate(xy, ver, nbr, n_tri, start, p):
     """Triangle holding p (inside or on the hull) and where: returns (t, e, on_edge).
 
     ``on_edge`` is 0 when p is strictly inside t, 1 when it lies on the edge opposite
-    ver[t, e], 2 when it coincides with a vertex. Visibility walk from ``start``, then a full
+    vertex e of t, 2 when it coincides with a vertex. Visibility walk from ``start``, then a full
     scan as a guard (the walk cannot loop on a Delaunay mesh with exact predicates).
     """
     t = start
@@ -683,9 +686,9 @@ def _locate(xy, ver, nbr, n_tri, start, p):
         zero_edge = 0
         for k in range(3):
             e = (k + step) % 3
-            o = _orient_idx(xy, ver[t, (e + 1) % 3], ver[t, (e + 2) % 3], p)
+            o = _orient_idx(xy, ver[3 * t + (e + 1) % 3], ver[3 * t + (e + 2) % 3], p)
             if o < 0.0:
-                u = nbr[t, e]
+                u = nbr[3 * t + e]
                 if u >= 0:
                     t = u
                     moved = True
@@ -702,7 +705,7 @@ def _locate(xy, ver, nbr, n_tri, start, p):
         zero_edge = 0
         inside = True
         for e in range(3):
-            o = _orient_idx(xy, ver[t, (e + 1) % 3], ver[t, (e + 2) % 3], p)
+            o = _orient_idx(xy, ver[3 * t + (e + 1) % 3], ver[3 * t + (e + 2) % 3], p)
             if o < 0.0:
                 inside = False
                 break
@@ -724,11 +727,11 @@ def _triangulate_core(xy, order, n, workspace):
     for i in range(n):
         q = order[i]
         hull_next[q] = -1
-        lift[q] = xy[q, 0] * xy[q, 0] + xy[q, 1] * xy[q, 1]
+        lift[q] = xy[2 * q] * xy[2 * q] + xy[2 * q + 1] * xy[2 * q + 1]
     # seeds: the first point, the first one distinct from it, the first one off their line
     a = order[0]
     ib = 1
-    while ib < n and xy[order[ib], 0] == xy[a, 0] and xy[order[ib], 1] == xy[a, 1]:
+    while ib < n and xy[2 * order[ib]] == xy[2 * a] and xy[2 * order[ib] + 1] == xy[2 * a + 1]:
         ib += 1
     if ib >= n - 1:
         return 0
@@ -751,20 +754,20 @@ def _triangulate_core(xy, order, n, workspace):
     hull_tri[b] = 0
     hull_tri[c] = 0
     n_tri = np.int64(1)  # not a literal: numba would compile the callees for it too
-    hx = (xy[a, 0] + xy[b, 0] + xy[c, 0]) / 3.0
-    hy = (xy[a, 1] + xy[b, 1] + xy[c, 1]) / 3.0
+    hx = (xy[2 * a] + xy[2 * b] + xy[2 * c]) / 3.0
+    hy = (xy[2 * a + 1] + xy[2 * b + 1] + xy[2 * c + 1]) / 3.0
     n_hash = hull_hash.shape[0]
     for i in range(n_hash):
         hull_hash[i] = -1
-    hull_hash[_hash_key(xy[a, 0], xy[a, 1], hx, hy, n_hash)] = a
-    hull_hash[_hash_key(xy[b, 0], xy[b, 1], hx, hy, n_hash)] = b
-    hull_hash[_hash_key(xy[c, 0], xy[c, 1], hx, hy, n_hash)] = c
+    hull_hash[_hash_key(xy[2 * a], xy[2 * a + 1], hx, hy, n_hash)] = a
+    hull_hash[_hash_key(xy[2 * b], xy[2 * b + 1], hx, hy, n_hash)] = b
+    hull_hash[_hash_key(xy[2 * c], xy[2 * c + 1], hx, hy, n_hash)] = c
     for i in range(1, n):
         if i == ib or i == ic:
             continue
         p = order[i]
-        px = xy[p, 0]
-        py = xy[p, 1]
+        px = xy[2 * p]
+        py = xy[2 * p + 1]
         pz = lift[p]
         h = _hash_key(px, py, hx, hy, n_hash)
         start = a
@@ -812,9 +815,10 @@ def _triangulate_core(xy, order, n, workspace):
                 n_tri += 1
                 old = hull_tri[v]  # holds the edge v -> w
                 _set_triangle(ver, nbr, t, p, w, v, old, previous, -1)
-                nbr[old, (_index_in_row(ver, old, w) + 1) % 3] = t  # across v -> w, ending at w
+                # across v -> w, ending at w
+                nbr[3 * old + (_index_in_row(ver, old, w) + 1) % 3] = t
                 if previous >= 0:
-                    nbr[previous, 2] = t
+                    nbr[3 * previous + 2] = t
                     hull_next[v] = -1  # v leaves the hull
                 else:
                     hull_tri[v] = t  # new hull edge first -> p
@@ -836,24 +840,25 @@ def _triangulate_core(xy, order, n, workspace):
         # its five arrays at every insertion, a fifth of the triangulation's time.)
         while sp > 0:
             sp -= 1
-            t = stack[sp, 0]
-            u = stack[sp, 1]
+            t = stack[2 * sp]
+            u = stack[2 * sp + 1]
             if u < 0:
                 continue
             # d inside the circle through (p, b, c) <=> p inside the one through u = (d, c, b)
             # (the same 4 x 4 determinant, rows permuted evenly): u's vertices need no search
-            if not _incircle_lifted(xy, lift, ver[u, 0], ver[u, 1], ver[u, 2], px, py, pz) > 0.0:
+            u0 = 3 * u
+            if not _incircle_lifted(xy, lift, ver[u0], ver[u0 + 1], ver[u0 + 2], px, py, pz) > 0.0:
                 continue
             j = _index_in_row(nbr, u, t)
-            b = ver[t, 1]
-            c = ver[t, 2]
-            d = ver[u, j]
-            n_pb = nbr[t, 2]
-            n_cp = nbr[t, 1]
+            b = ver[3 * t + 1]
+            c = ver[3 * t + 2]
+            d = ver[3 * u + j]
+            n_pb = nbr[3 * t + 2]
+            n_cp = nbr[3 * t + 1]
             j1 = j + 1 if j < 2 else 0
             j2 = j1 + 1 if j1 < 2 else 0
-            n_bd = nbr[u, j1]
-            n_dc = nbr[u, j2]
+            n_bd = nbr[3 * u + j1]
+            n_dc = nbr[3 * u + j2]
             _set_triangle(ver, nbr, t, p, b, d, n_bd, u, n_pb)
             _set_triangle(ver, nbr, u, p, d, c, n_dc, n_cp, t)
             # the edges c -> p and b -> d changed triangle
@@ -881,29 +886,35 @@ def make_workspace(n):
         np.empty(cap, dtype=np.int64),  # hull_prev
         np.empty(cap, dtype=np.int64),  # hull_tri
         np.empty(n_hash, dtype=np.int64),  # hull hash
-        np.empty((2 * cap, 3), dtype=np.int64),  # triangles
-        np.empty((2 * cap, 3), dtype=np.int64),  # neighbours
-        np.empty((4 * cap + 16, 2), dtype=np.int64),  # flip stack
+        np.empty(6 * cap, dtype=np.int64),  # triangles, 3 vertices each
+        np.empty(6 * cap, dtype=np.int64),  # neighbours
+        np.empty(8 * cap + 32, dtype=np.int64),  # flip stack
         np.empty(cap),  # lifts x^2 + y^2 of the incircle tests
     )
 
 
-#: Index of the triangle array in the workspace tuple.
-TRIANGLES = 4
+@_inline
+def triangle_rows(workspace):
+    """The workspace's triangles as rows of 3 vertex indices (a view): after
+    :func:`triangulate_into` returned m, the first m are the triangulation."""
+    flat = workspace[4]
+    return flat.reshape((flat.shape[0] // 3, 3))
 
 
 @_inline
 def triangulate_into(xy, order, n, workspace):
-    """Delaunay triangulation of the points xy[order[:n]]; returns the number of triangles m.
+    """Delaunay triangulation of the points (xy[2 * i], xy[2 * i + 1]) for i in order[:n];
+    returns the number of triangles m.
 
     ``order`` (int64) is the insertion order: any order of the points to triangulate gives a
     Delaunay triangulation, but increasing distance from their centre is the fast one (from a
     point at the edge, or in random order, most insertions need a walk: 1.3 to 2 times
     slower); of exact duplicates the first in this order is kept. The points are first rounded
-    in place to the predicates' grid (module docstring), so xy must be a scratch array.
-    ``workspace`` comes from
-    :func:`make_workspace` (capacity >= n). On return ``workspace[TRIANGLES][:m]`` holds the
-    triangles as counter-clockwise indices into xy. See the module docstring for the method.
+    in place to the predicates' grid (module docstring), so xy must be a scratch array; it is
+    flat (x0, y0, x1, ...) because constant strides make the triangulation 3-4 % faster than
+    an (n, 2) array. ``workspace`` comes from :func:`make_workspace` (capacity >= n). On
+    return ``triangle_rows(workspace)[:m]`` holds the triangles as counter-clockwise point
+    indices. See the module docstring for the method.
     """
     _snap_to_grid(xy, order, n)
     return _triangulate_core(xy, order, n, workspace)
@@ -911,23 +922,23 @@ def triangulate_into(xy, order, n, workspace):
 
 @_jit
 def _triangulate(xy):
-    n = xy.shape[0]
+    n = xy.shape[0] // 2
     _snap_to_grid(xy, np.arange(n), n)  # first, so the order below is scale-invariant too
     # by distance from the mean, stable: the fast insertion order, duplicates in input order
     cx = 0.0
     cy = 0.0
     for i in range(n):
-        cx += xy[i, 0]
-        cy += xy[i, 1]
+        cx += xy[2 * i]
+        cy += xy[2 * i + 1]
     cx /= max(n, 1)
     cy /= max(n, 1)
     key = np.empty(n)
     for i in range(n):
-        key[i] = (xy[i, 0] - cx) ** 2 + (xy[i, 1] - cy) ** 2
+        key[i] = (xy[2 * i] - cx) ** 2 + (xy[2 * i + 1] - cy) ** 2
     order = np.argsort(key, kind="mergesort")
     workspace = make_workspace(n)
     m = triangulate_into(xy, order, n, workspace)
-    return workspace[TRIANGLES][:m].copy()
+    return triangle_rows(workspace)[:m].copy()
 
 
 def triangulate(xy: np.ndarray) -> np.ndarray:
@@ -954,4 +965,4 @@ def triangulate(xy: np.ndarray) -> np.ndarray:
         raise InputError(f"xy must have shape (n, 2), got {arr.shape}")
     if not np.isfinite(arr).all():
         raise InputError("xy holds NaN or infinite coordinates; remove those points first")
-    return _triangulate(arr)
+    return _triangulate(arr.ravel())

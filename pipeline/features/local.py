@@ -30,7 +30,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
-from pipeline.features.delaunay import TRIANGLES, make_workspace, triangulate_into
+from pipeline.features.delaunay import make_workspace, triangle_rows, triangulate_into
 from pipeline.features.density import neighbourhood_members
 from pipeline.features.eigen import descending, jacobi3_registers
 from pipeline.features.invariants import INVARIANT_NAMES, moment_invariants
@@ -104,7 +104,7 @@ def _radial_order(xy, n, cx, cy, order, bucket, key, d2):
     """
     far = 0.0
     for k in range(n):
-        d2[k] = (xy[k, 0] - cx) ** 2 + (xy[k, 1] - cy) ** 2
+        d2[k] = (xy[2 * k] - cx) ** 2 + (xy[2 * k + 1] - cy) ** 2
         far = max(far, d2[k])
     scale = (n - 1) / far if far > 0.0 else 0.0
     for k in range(n + 1):
@@ -130,9 +130,9 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, horizontal, out):
     for row in range(n_query):
         max_n = max(max_n, nbr_ptr[row + 1] - nbr_ptr[row])
     workspace = make_workspace(max_n)
-    tri = workspace[TRIANGLES]
+    tri = triangle_rows(workspace)
     rel = np.empty((max_n, 3))
-    xy = np.empty((max_n, 2))
+    xy = np.empty(2 * max_n)  # x0, y0, x1, ...: constant strides for the triangulation
     order = np.empty(max_n, dtype=np.int64)
     bucket = np.empty(max_n + 1, dtype=np.int64)
     key = np.empty(max_n, dtype=np.int64)
@@ -164,10 +164,12 @@ def _local_moments_kernel(xyz, nbr_idx, nbr_ptr, query, horizontal, out):
                 basis[1, k] = 1.0 if k == 1 else 0.0
         cx = cy = 0.0
         for k in range(n):
-            xy[k, 0] = rel[k, 0] * basis[0, 0] + rel[k, 1] * basis[0, 1] + rel[k, 2] * basis[0, 2]
-            xy[k, 1] = rel[k, 0] * basis[1, 0] + rel[k, 1] * basis[1, 1] + rel[k, 2] * basis[1, 2]
-            cx += xy[k, 0]
-            cy += xy[k, 1]
+            x = rel[k, 0] * basis[0, 0] + rel[k, 1] * basis[0, 1] + rel[k, 2] * basis[0, 2]
+            y = rel[k, 0] * basis[1, 0] + rel[k, 1] * basis[1, 1] + rel[k, 2] * basis[1, 2]
+            xy[2 * k] = x
+            xy[2 * k + 1] = y
+            cx += x
+            cy += y
         _radial_order(xy, n, cx / n, cy / n, order, bucket, key, d2)
         m = triangulate_into(xy, order, n, workspace)
         add_mesh_moments_into(rel, tri, m, out[row], corners, terms)

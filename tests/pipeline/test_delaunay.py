@@ -11,7 +11,6 @@ from scipy.spatial import Delaunay
 from pipeline.errors import InputError
 from pipeline.features.delaunay import (
     _ICC_LIFTED_STATIC,
-    TRIANGLES,
     _incircle_grid_exact,
     _incircle_lifted,
     _lifted_determinant,
@@ -21,6 +20,7 @@ from pipeline.features.delaunay import (
     make_workspace,
     orient2d,
     snap_to_grid,
+    triangle_rows,
     triangulate,
     triangulate_into,
 )
@@ -205,13 +205,14 @@ def test_grid_predicates_give_exact_signs():
     rng = np.random.default_rng(7)
     for xy in grid_quadruples(rng, 3000):
         a, b, c, d = xy
-        assert sign(_orient_idx(xy, 0, 1, 2)) == sign(exact_orient(a, b, c))
-        assert sign(_orient_idx(xy, 3, 1, 0)) == sign(exact_orient(d, b, a))
+        flat = xy.ravel()  # x0, y0, x1, ...: the layout the triangulation keeps its points in
+        assert sign(_orient_idx(flat, 0, 1, 2)) == sign(exact_orient(a, b, c))
+        assert sign(_orient_idx(flat, 3, 1, 0)) == sign(exact_orient(d, b, a))
         if exact_orient(a, b, c) < 0:
             xy = xy[[0, 2, 1, 3]]
             a, b, c, d = xy
         lift = xy[:, 0] * xy[:, 0] + xy[:, 1] * xy[:, 1]
-        assert sign(_incircle_lifted(xy, lift, 0, 1, 2, *d, lift[3])) == sign(
+        assert sign(_incircle_lifted(xy.ravel(), lift, 0, 1, 2, *d, lift[3])) == sign(
             exact_incircle(a, b, c, d))
 
 
@@ -411,8 +412,8 @@ def test_collinear_then_off_line_point():
     xy = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [-1.0, 0.0], [3.0, 0.0], [1.0, 1.0]])
     for order in ([0, 1, 2, 3, 4, 5], [5, 0, 1, 2, 3, 4], [2, 0, 1, 3, 4, 5], [0, 3, 1, 4, 2, 5]):
         workspace = make_workspace(6)
-        m = triangulate_into(xy.copy(), np.array(order, dtype=np.int64), 6, workspace)
-        check_triangulation(xy, workspace[TRIANGLES][:m].copy())
+        m = triangulate_into(xy.ravel().copy(), np.array(order, dtype=np.int64), 6, workspace)
+        check_triangulation(xy, triangle_rows(workspace)[:m].copy())
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -421,8 +422,8 @@ def test_any_insertion_order_gives_a_delaunay_mesh(seed):
     xy = np.round(rng.uniform(0, 1, size=(40, 2)), 1)  # many duplicates and co-circular sets
     for order in (np.arange(40), rng.permutation(40), np.argsort(-xy[:, 0], kind="stable")):
         workspace = make_workspace(40)
-        m = triangulate_into(xy.copy(), order.astype(np.int64), 40, workspace)
-        tri = workspace[TRIANGLES][:m].copy()
+        m = triangulate_into(xy.ravel().copy(), order.astype(np.int64), 40, workspace)
+        tri = triangle_rows(workspace)[:m].copy()
         xy = snap_to_grid(xy)  # the coordinates the triangulation saw
         doubled = [exact_orient(*xy[t]) for t in tri]
         assert all(d > 0 for d in doubled) and sum(doubled) / 2 == exact_hull_area(xy)
