@@ -501,29 +501,25 @@ def _incircle_lifted(xy, lift, a, b, c, dx, dy, dz):
 
 
 @_inline
-def _snap_to_grid(xy, order, n):
-    """Round xy[order[:n]] in place to the predicates' grid (module docstring)."""
+def _snap_to_grid(xy, n):
+    """Round the n points of the flat xy[:2n] in place to the predicates' grid (module
+    docstring)."""
     largest = 0.0
-    for i in range(n):
-        p = order[i]
-        largest = max(largest, abs(xy[2 * p]), abs(xy[2 * p + 1]))
+    for i in range(2 * n):
+        largest = max(largest, abs(xy[i]))
     if largest == 0.0:
         return
     exponent = math.frexp(largest)[1]  # largest < 2**exponent
     if exponent < _SMALLEST_EXPONENT:  # 2**-exponent * _GRID would overflow
-        for i in range(n):
-            p = order[i]
-            for k in range(2):
-                # both multiplications by powers of two are exact; so is the rounding
-                xy[2 * p + k] = np.round(math.ldexp(xy[2 * p + k], -exponent) * _GRID) / _GRID
+        for i in range(2 * n):
+            # both multiplications by powers of two are exact; so is the rounding
+            xy[i] = np.round(math.ldexp(xy[i], -exponent) * _GRID) / _GRID
         return
     # the same in one multiplication by a power of two: exact where ldexp is, and where
     # ldexp would lose bits to a subnormal result both round to a zero of the same sign
     scale = math.ldexp(_GRID, -exponent)
-    for i in range(n):
-        p = order[i]
-        xy[2 * p] = np.round(xy[2 * p] * scale) * _CELL
-        xy[2 * p + 1] = np.round(xy[2 * p + 1] * scale) * _CELL
+    for i in range(2 * n):
+        xy[i] = np.round(xy[i] * scale) * _CELL
 
 
 def snap_to_grid(xy: np.ndarray) -> np.ndarray:
@@ -532,7 +528,7 @@ def snap_to_grid(xy: np.ndarray) -> np.ndarray:
     Exposed so tests can check the triangulation in exact arithmetic against its real input.
     """
     arr = np.array(xy, dtype=np.float64, order="C")
-    _snap_to_grid(arr.ravel(), np.arange(len(arr)), len(arr))
+    _snap_to_grid(arr.ravel(), len(arr))
     return arr
 
 
@@ -719,7 +715,7 @@ def _locate(xy, ver, nbr, n_tri, start, p):
 
 @_jit
 def _triangulate_core(xy, order, n, workspace):
-    """See :func:`triangulate_into`; xy[order[:n]] must already be on the predicates' grid
+    """See :func:`triangulate_into`; the points must already be on the predicates' grid
     (:func:`_snap_to_grid`), which the static error bounds of the predicates rely on."""
     hull_next, hull_prev, hull_tri, hull_hash, ver, nbr, stack, lift = workspace
     if n < 3:
@@ -903,10 +899,10 @@ def triangle_rows(workspace):
 
 @_inline
 def triangulate_into(xy, order, n, workspace):
-    """Delaunay triangulation of the points (xy[2 * i], xy[2 * i + 1]) for i in order[:n];
-    returns the number of triangles m.
+    """Delaunay triangulation of the n points (xy[2 * i], xy[2 * i + 1]), i < n; returns the
+    number of triangles m.
 
-    ``order`` (int64) is the insertion order: any order of the points to triangulate gives a
+    ``order`` (int64) is the insertion order, a permutation of 0 .. n-1: any order gives a
     Delaunay triangulation, but increasing distance from their centre is the fast one (from a
     point at the edge, or in random order, most insertions need a walk: 1.3 to 2 times
     slower); of exact duplicates the first in this order is kept. The points are first rounded
@@ -916,14 +912,14 @@ def triangulate_into(xy, order, n, workspace):
     return ``triangle_rows(workspace)[:m]`` holds the triangles as counter-clockwise point
     indices. See the module docstring for the method.
     """
-    _snap_to_grid(xy, order, n)
+    _snap_to_grid(xy, n)
     return _triangulate_core(xy, order, n, workspace)
 
 
 @_jit
 def _triangulate(xy):
     n = xy.shape[0] // 2
-    _snap_to_grid(xy, np.arange(n), n)  # first, so the order below is scale-invariant too
+    _snap_to_grid(xy, n)  # first, so the order below is scale-invariant too
     # by distance from the mean, stable: the fast insertion order, duplicates in input order
     cx = 0.0
     cy = 0.0
