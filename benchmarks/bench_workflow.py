@@ -46,11 +46,11 @@ ONE_CHUNK = (*ONE_WORKER, "tiling.chunk_size=auto", "tiling.layout=balanced",
 WARM_POINTS = 20_000
 
 
-def cpu_seconds() -> float:
+def cpu_seconds() -> tuple[float, float]:
     """User and system CPU seconds of this process and its waited-for children."""
-    return sum(getattr(resource.getrusage(who), field)
-               for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
-               for field in ("ru_utime", "ru_stime"))
+    return tuple(sum(getattr(resource.getrusage(who), field)
+                     for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+                 for field in ("ru_utime", "ru_stime"))  # fmt: skip
 
 
 def predict(tile: Path, model: str, out: Path, sets, profile: Path | None = None) -> dict:
@@ -70,10 +70,11 @@ def predict(tile: Path, model: str, out: Path, sets, profile: Path | None = None
         if profiler:
             profiler.disable()
             profiler.dump_stats(profile)
-    cpu, wall = cpu_seconds() - cpu, time.perf_counter() - wall
+    (user, system), wall = [b - a for a, b in zip(cpu, cpu_seconds())], time.perf_counter() - wall
     chunks = len(list((out / "store.zarr" / "scenes").glob("*/chunks/*/zarr.json")))
     shutil.rmtree(out, ignore_errors=True)
-    return {"cpu_seconds": round(cpu, 2), "seconds": round(wall, 1), "chunks": chunks}
+    return {"cpu_seconds": round(user + system, 2), "user": round(user, 2),
+            "system": round(system, 2), "seconds": round(wall, 1), "chunks": chunks}
 
 
 def warm_tile(tile: Path, dst: Path) -> Path:

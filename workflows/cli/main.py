@@ -14,6 +14,7 @@ from pipeline.errors import SilvaError
 from workflows.cli.bench import bench
 from workflows.cli.commands import COMMANDS, error_line
 from workflows.cli.sweep import sweep  # it runs its runs through commands: registered here
+from workflows.exec.pages import ordinary_pages
 
 
 def _usage_error(err: click.UsageError):
@@ -62,6 +63,7 @@ def main():
       silva run survey.yaml --out results/
       silva <command> --help                # each command's options and examples
     """
+    ordinary_pages()  # before the workers start: they inherit the environment
 
 
 for _command in [*COMMANDS, sweep, bench]:

@@ -24,7 +24,10 @@ from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from multiprocessing import resource_tracker
 
+from distributed.diagnostics.plugin import WorkerPlugin
+
 from pipeline.errors import ConfigError, SilvaError
+from workflows.exec.pages import ordinary_pages
 
 log = logging.getLogger(__name__)
 
@@ -83,11 +86,23 @@ def open_client(
         else:  # the config model admits no other kind
             raise ConfigError(f"config error: cluster.kind must be 'local', 'address' or "
                               f"'slurm', got {kind!r}")
+        client.register_plugin(OrdinaryPages())
         link = _link_of(client) if wanted else None
         _LINKS[client] = link
         if link:
             log.info("dask dashboard: %s", link)
         yield client
+
+
+class OrdinaryPages(WorkerPlugin):
+    """NumPy's arrays on ordinary memory pages in every worker of the cluster, also those
+    started later (:mod:`workflows.exec.pages`)."""
+
+    name = "silva-ordinary-pages"
+    idempotent = True  # one registration per scheduler, whoever connects
+
+    def setup(self, worker):
+        ordinary_pages()
 
 
 def dashboard_link(client) -> str | None:
