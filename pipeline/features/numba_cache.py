@@ -302,13 +302,15 @@ class Warming:
     """Kernel groups compiling in new Python processes, in the background.
 
     Each process compiles its share of ``groups`` into numba's cache directory (the same
-    ``NUMBA_CACHE_DIR`` and this copy of the package). :meth:`wait` collects them and records
-    the groups that compiled (:func:`kernels_cold`); :meth:`stop` (also on leaving a
-    ``with`` block) kills those still running, so an error or Ctrl-C leaves none behind.
+    ``NUMBA_CACHE_DIR`` and this copy of the package), at the scheduling priority
+    ``nice`` more than this process's (10: mostly with what the processes beside it leave
+    of the cores). :meth:`wait` collects them and records the groups that compiled
+    (:func:`kernels_cold`); :meth:`stop` (also on leaving a ``with`` block) kills those
+    still running, so an error or Ctrl-C leaves none behind.
     A killed compilation loses nothing: numba replaces a cache file only once it is whole.
     """
 
-    def __init__(self, groups, processes: int | None = None):
+    def __init__(self, groups, processes: int | None = None, nice: int = 0):
         self.groups = list(GROUPS if groups is None else groups)
         self.folder = numba.config.CACHE_DIR
         self.started = time.perf_counter()
@@ -318,11 +320,12 @@ class Warming:
         self._spawned = []
         try:
             for share in _shares(self.groups, processes or os.cpu_count() or 1):
-                calls = "; ".join(f"GROUPS[{name!r}]()" for name in share)
+                calls = "; ".join([*([f"os.nice({nice})"] if nice else []),
+                                   *(f"GROUPS[{name!r}]()" for name in share)])
                 # stderr to a file: a pipe nobody reads while the run goes on could fill
                 err = tempfile.TemporaryFile(mode="w+")
                 self._spawned.append((share, err, subprocess.Popen(
-                    [sys.executable, "-c", f"from {__name__} import GROUPS; {calls}"],
+                    [sys.executable, "-c", f"import os; from {__name__} import GROUPS; {calls}"],
                     env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err)))
         except BaseException:
             self.stop()

@@ -1,6 +1,8 @@
 """The compiled kernels are cached under a digest of their sources, so no stale kernel runs."""
 
+import os
 import signal
+import time
 from pathlib import Path
 
 import numba
@@ -143,3 +145,16 @@ def test_stopping_a_warming_kills_its_processes_and_records_nothing(tmp_path, mo
     warming.stop()
     assert all(p.returncode == -signal.SIGKILL for p in processes)
     assert numba_cache.kernels_cold(["surface"], folder)
+
+
+def test_a_warming_at_a_lower_priority_compiles_niced(tmp_path, monkeypatch):
+    _private_cache(tmp_path, monkeypatch)
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    with numba_cache.Warming(["surface"], nice=10) as warming:  # seconds before it ends
+        (process,) = warming.processes
+        deadline = time.monotonic() + 20
+        while process.poll() is None and time.monotonic() < deadline:
+            if os.getpriority(os.PRIO_PROCESS, process.pid) == min(base + 10, 19):
+                break
+            time.sleep(0.02)
+        assert os.getpriority(os.PRIO_PROCESS, process.pid) == min(base + 10, 19)

@@ -17,8 +17,10 @@ from workflows.exec.kernels import prepare_kernels
 from tests.workflows.conftest import silva, write_config
 
 
-#: Every kernel group: those of any shipped model or template, compiled by the first command.
+#: Every kernel group: those of any shipped model or template, compiled by the first command:
+#: a run of the paper's set needs the first two, the others compile at a lower priority.
 ALL = ("surface", "search", "covariance", "voxel")
+OWN, OTHERS = ALL[:2], ALL[2:]
 
 
 @pytest.fixture
@@ -32,22 +34,23 @@ def cold(tmp_path, monkeypatch):
 class FakeWarming:
     """Stands in for numba_cache.Warming: records what it was asked, compiles nothing."""
 
-    def __init__(self, groups, events, running=True):
+    def __init__(self, groups, events, running=True, nice=0):
         self.groups, self.events, self.running = list(groups), events, running
         self.seconds = 0.0
-        events.append(("start", tuple(groups)))
+        self.kind = "later" if nice else "start"
+        events.append((self.kind, tuple(groups)))
 
     def done(self):
         return not self.running
 
     def wait(self):
-        self.events.append("wait")
+        self.events.append("wait" if self.kind == "start" else "wait later")
         self.running = False
         return self.groups
 
     def stop(self):
         if self.running:
-            self.events.append("stop")  # the real one kills what still runs
+            self.events.append("stop" if self.kind == "start" else "stop later")  # kills
             self.running = False
 
     def __enter__(self):
@@ -60,7 +63,8 @@ class FakeWarming:
 @pytest.fixture
 def events(monkeypatch):
     found = []
-    monkeypatch.setattr(numba_cache, "Warming", lambda groups: FakeWarming(groups, found))
+    monkeypatch.setattr(numba_cache, "Warming",
+                        lambda groups, nice=0: FakeWarming(groups, found, nice=nice))
     return found
 
 
@@ -70,23 +74,30 @@ def test_a_cold_cache_starts_compiling_with_one_line_and_a_warm_one_does_not(
         err = capsys.readouterr().err
         assert err.startswith("compiling the feature kernels (numba) in the background")
         assert err.count("\n") == 1 and str(cold) in err
-        # started, not waited for: the run's groups and those of every shipped model
-        assert events == [("start", ALL)]
-        assert kernels.groups == ("surface", "search")
+        # started, not waited for: the run's groups, and those of every other shipped
+        # model at a lower priority
+        assert events == [("start", OWN), ("later", OTHERS)]
+        assert kernels.groups == OWN
         kernels.wait()
         assert "waiting for the feature kernels" in capsys.readouterr().err
         kernels.wait()  # once only
-    assert events[1:] == ["wait"]  # nothing left to stop
-    mark_warm(("surface", "search"), cold)
-    with prepare_kernels(False, FeatureParams(set="paper")):
-        pass  # the run's groups are warm, another shipped one is not; leaving stops it
-    assert events[2:] == [("start", ALL), "stop"]
+        assert events[2:] == ["wait"]  # the run goes on while the others compile
+    # leaving the block waits for the others, so that no later run compiles them
+    assert events[3:] == ["wait later"]
+    assert "finishing the compilation of the other shipped models'" in capsys.readouterr().err
     mark_warm(ALL, cold)
     for feature_set in ("paper", "covariance"):
         with prepare_kernels(False, FeatureParams(set=feature_set)) as kernels:
             kernels.wait()
-    assert capsys.readouterr().err.count("compiling") == 1 and len(events) == 4
+    assert capsys.readouterr().err.count("compiling") == 0 and len(events) == 4
     # warm: no line, no compile
+
+
+def test_an_error_stops_both_compilations(cold, events):
+    with pytest.raises(RuntimeError, match="boom"):
+        with prepare_kernels(False, FeatureParams(set="paper")):
+            raise RuntimeError("boom")
+    assert events == [("start", OWN), ("later", OTHERS), "stop", "stop later"]
 
 
 def _record_steps(events, monkeypatch):
@@ -105,7 +116,8 @@ def test_the_run_waits_for_the_kernels_only_before_the_features_step(
     config = write_config(tmp_path / "c.yaml", survey)
     result = silva("features", config, "--out", tmp_path / "out", "--in-process")
     assert result.exit_code == 0, result.output
-    assert events == [("start", ALL), "ingest", "wait", "features"]
+    assert events == [("start", OWN), ("later", OTHERS), "ingest", "wait", "features",
+                      "wait later"]
     lines = result.stderr.splitlines()
     assert lines[0].startswith("compiling the feature kernels (numba) in the background")
     assert sum(line.startswith("waiting for the feature kernels") for line in lines) == 1
@@ -134,8 +146,8 @@ def test_the_demo_compiles_while_it_synthesises_its_plots(events, tmp_path, monk
     monkeypatch.setattr(commands, "start_run", start_run)
     result = silva("demo", "--out", tmp_path / "demo")
     assert result.exit_code == 0, result.output
-    assert events == [("start", ALL), "synthesise", "synthesise", "run",
-                      "stop"]  # start_run did not wait: leaving the demo stops it
+    assert events == [("start", OWN), ("later", OTHERS), "synthesise", "synthesise", "run",
+                      "wait", "wait later"]  # a demo that ends well leaves every group compiled
     assert given["kernels"].groups == ("surface", "search")
 
 
@@ -161,7 +173,8 @@ def test_an_error_or_ctrl_c_kills_the_compiling_processes(error, cold, survey, t
     seen = []
 
     def execute(run, engine, target, *, kernels=None, **kwargs):
-        seen.extend(kernels._warming.processes)  # compiling surface into an empty cache
+        # compiling surface and search into an empty cache, the others at a lower priority
+        seen.extend([*kernels._warming.processes, *kernels._later.processes])
         assert seen and all(process.poll() is None for process in seen)
         raise error
 

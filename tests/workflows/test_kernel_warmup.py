@@ -69,13 +69,24 @@ def test_the_demo_compiles_the_kernels_of_every_shipped_model(tmp_path, monkeypa
     started = []
 
     class Recorded:
-        def __init__(self, groups):
+        seconds = 0.0
+
+        def __init__(self, groups, nice=0):
             started.extend(groups)
+
+        def done(self):
+            return True
 
         def wait(self):
             return []
 
         def stop(self):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
             pass
 
     monkeypatch.setattr(numba_cache, "Warming", Recorded)

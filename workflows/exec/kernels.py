@@ -20,6 +20,10 @@ log = logging.getLogger(__name__)
 #: their echo features and context: compiled by the first command that compiles any.
 SHIPPED_GROUPS = ("surface", "search", "covariance", "voxel")
 
+#: The scheduling priority (nice) of the compilation of the shipped groups a run does not
+#: use: below the run's own work, which it would otherwise slow on a machine with few cores.
+LATER_NICE = 10
+
 
 def announce_compilation(quiet: bool, groups=None) -> bool:
     """Say so when numba has not compiled the kernel ``groups`` (default all) for this
@@ -39,21 +43,36 @@ def announce_compilation(quiet: bool, groups=None) -> bool:
 
 class Kernels:
     """The feature kernels of a run: ``groups`` (numba_cache kernel groups) and their
-    compilation, when one was started. :meth:`wait` returns once they are compiled."""
+    compilation, when one was started: ``warming`` compiles the run's own groups, ``later``
+    those of the other shipped models and templates (at a lower priority). :meth:`wait`
+    returns once the run's groups are compiled, :meth:`finish` once all are."""
 
-    def __init__(self, groups: tuple[str, ...], warming=None, quiet: bool = False):
+    def __init__(self, groups: tuple[str, ...], warming=None, quiet: bool = False,
+                 later=None):
         self.groups, self.quiet = groups, quiet
-        self._warming = warming
+        self._warming, self._later = warming, later
 
     def wait(self) -> None:
-        """Wait for the compilation (with a line when it is still running); at once when
-        none runs. A compilation that failed is logged: the workers then compile."""
+        """Wait for the compilation of the run's groups (with a line when it is still
+        running); at once when none runs. A compilation that failed is logged: the workers
+        then compile."""
         warming, self._warming = self._warming, None
+        self._collect(warming, "waiting for the feature kernels to finish compiling")
+
+    def finish(self) -> None:
+        """:meth:`wait`, then wait for the other shipped models' kernels too, so that a
+        later run of one of them compiles nothing."""
+        self.wait()
+        later, self._later = self._later, None
+        self._collect(later, "finishing the compilation of the other shipped models' "
+                             "kernels, once for this version of Silva")
+
+    def _collect(self, warming, line: str) -> None:
         if warming is None:
             return
         if not warming.done():
-            report_finished_step()  # ingest's line first, then why the run stands still
-            say("waiting for the feature kernels to finish compiling", quiet=self.quiet)
+            report_finished_step()  # the last step's line first, then why the run waits
+            say(line, quiet=self.quiet)
         with warming, uncounted():  # Ctrl-C while waiting stops it; no ETA counts the wait
             done = warming.wait()
         log.info("compiled the feature kernels (%s) in %.1f s", ", ".join(done) or "none",
@@ -61,9 +80,11 @@ class Kernels:
 
     def stop(self) -> None:
         """Stop a compilation still running (an error, Ctrl-C, or a run that needed none)."""
-        warming, self._warming = self._warming, None
-        if warming is not None:
-            warming.stop()
+        for name in ("_warming", "_later"):
+            warming = getattr(self, name)
+            setattr(self, name, None)
+            if warming is not None:
+                warming.stop()
 
 
 def compiled_groups(groups) -> tuple[str, ...]:
@@ -83,21 +104,26 @@ def prepare_kernels(quiet: bool, features=None):
     shipped model and template (:func:`compiled_groups`), when they are not cached yet;
     yields the :class:`Kernels` (``groups``: the run's own), whose ``wait()`` comes before
     the features step: the workers then load the kernels instead of each compiling them.
-    Leaving the block stops a compilation still running; one that cannot start leaves it to
-    the workers."""
+    The other shipped groups compile at a lower priority, on what the run leaves of the
+    cores, and a block left normally waits for them (:meth:`Kernels.finish`); leaving it
+    on an error stops every compilation still running. One that cannot start leaves the
+    kernels to the workers."""
     from pipeline.features.numba_cache import Warming, kernel_groups
 
     groups = kernel_groups(*(() if features is None else (features.set,
                                                           features.voxel is not None)))
     compiled = compiled_groups(groups)
-    warming = None
+    warming = later = None
     if announce_compilation(quiet, compiled):
+        others = [name for name in compiled if name not in groups]
         try:
-            warming = Warming(compiled)
+            warming = Warming([name for name in compiled if name in groups])
+            later = Warming(others, nice=LATER_NICE) if others else None
         except OSError as err:  # no new process: each worker compiles what it uses
             log.warning("cannot start compiling the feature kernels: %s", err)
-    kernels = Kernels(groups, warming, quiet)
+    kernels = Kernels(groups, warming, quiet, later)
     try:
         yield kernels
+        kernels.finish()
     finally:
         kernels.stop()
