@@ -74,15 +74,15 @@ def test_a_cold_cache_starts_compiling_with_one_line_and_a_warm_one_does_not(
         err = capsys.readouterr().err
         assert err.startswith("compiling the feature kernels (numba) in the background")
         assert err.count("\n") == 1 and str(cold) in err
-        # started, not waited for: the run's groups, and those of every other shipped
-        # model at a lower priority
-        assert events == [("start", OWN), ("later", OTHERS)]
+        # started, not waited for: the run's groups
+        assert events == [("start", OWN)]
         assert kernels.groups == OWN
         kernels.wait()
         assert "waiting for the feature kernels" in capsys.readouterr().err
         kernels.wait()  # once only
-        assert events[2:] == ["wait"]  # the run goes on while the others compile
-    # leaving the block waits for the others, so that no later run compiles them
+        # then those of every other shipped model, at a lower priority beside the run
+        assert events[1:] == ["wait", ("later", OTHERS)]
+    # leaving the block waits for them, so that no later run compiles them
     assert events[3:] == ["wait later"]
     assert "finishing the compilation of the other shipped models'" in capsys.readouterr().err
     mark_warm(ALL, cold)
@@ -93,11 +93,17 @@ def test_a_cold_cache_starts_compiling_with_one_line_and_a_warm_one_does_not(
     # warm: no line, no compile
 
 
-def test_an_error_stops_both_compilations(cold, events):
+def test_an_error_stops_every_compilation(cold, events):
     with pytest.raises(RuntimeError, match="boom"):
         with prepare_kernels(False, FeatureParams(set="paper")):
-            raise RuntimeError("boom")
-    assert events == [("start", OWN), ("later", OTHERS), "stop", "stop later"]
+            raise RuntimeError("boom")  # before the run's own groups were waited for
+    assert events == [("start", OWN), "stop"]
+    events.clear()
+    with pytest.raises(RuntimeError, match="boom"):
+        with prepare_kernels(False, FeatureParams(set="paper")) as kernels:
+            kernels.wait()
+            raise RuntimeError("boom")  # while the other groups compile
+    assert events == [("start", OWN), "wait", ("later", OTHERS), "stop later"]
 
 
 def _record_steps(events, monkeypatch):
@@ -116,7 +122,7 @@ def test_the_run_waits_for_the_kernels_only_before_the_features_step(
     config = write_config(tmp_path / "c.yaml", survey)
     result = silva("features", config, "--out", tmp_path / "out", "--in-process")
     assert result.exit_code == 0, result.output
-    assert events == [("start", OWN), ("later", OTHERS), "ingest", "wait", "features",
+    assert events == [("start", OWN), "ingest", "wait", ("later", OTHERS), "features",
                       "wait later"]
     lines = result.stderr.splitlines()
     assert lines[0].startswith("compiling the feature kernels (numba) in the background")
@@ -146,8 +152,8 @@ def test_the_demo_compiles_while_it_synthesises_its_plots(events, tmp_path, monk
     monkeypatch.setattr(commands, "start_run", start_run)
     result = silva("demo", "--out", tmp_path / "demo")
     assert result.exit_code == 0, result.output
-    assert events == [("start", OWN), ("later", OTHERS), "synthesise", "synthesise", "run",
-                      "wait", "wait later"]  # a demo that ends well leaves every group compiled
+    assert events == [("start", OWN), "synthesise", "synthesise", "run", "wait",
+                      ("later", OTHERS), "wait later"]  # a demo that ends well compiled all
     assert given["kernels"].groups == ("surface", "search")
 
 
@@ -173,8 +179,7 @@ def test_an_error_or_ctrl_c_kills_the_compiling_processes(error, cold, survey, t
     seen = []
 
     def execute(run, engine, target, *, kernels=None, **kwargs):
-        # compiling surface and search into an empty cache, the others at a lower priority
-        seen.extend([*kernels._warming.processes, *kernels._later.processes])
+        seen.extend(kernels._warming.processes)  # compiling surface into an empty cache
         assert seen and all(process.poll() is None for process in seen)
         raise error
 

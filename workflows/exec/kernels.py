@@ -43,14 +43,15 @@ def announce_compilation(quiet: bool, groups=None) -> bool:
 
 class Kernels:
     """The feature kernels of a run: ``groups`` (numba_cache kernel groups) and their
-    compilation, when one was started: ``warming`` compiles the run's own groups, ``later``
-    those of the other shipped models and templates (at a lower priority). :meth:`wait`
-    returns once the run's groups are compiled, :meth:`finish` once all are."""
+    compilation, when one was started: ``warming`` compiles the run's own groups, and
+    ``later()`` starts compiling those of the other shipped models and templates (at a lower
+    priority) once they are. :meth:`wait` returns once the run's groups are compiled,
+    :meth:`finish` once all are."""
 
     def __init__(self, groups: tuple[str, ...], warming=None, quiet: bool = False,
                  later=None):
         self.groups, self.quiet = groups, quiet
-        self._warming, self._later = warming, later
+        self._warming, self._start_later, self._later = warming, later, None
 
     def wait(self) -> None:
         """Wait for the compilation of the run's groups (with a line when it is still
@@ -58,6 +59,12 @@ class Kernels:
         then compile."""
         warming, self._warming = self._warming, None
         self._collect(warming, "waiting for the feature kernels to finish compiling")
+        start, self._start_later = self._start_later, None
+        if start is not None:  # the others now, beside the run and below it in priority
+            try:
+                self._later = start()
+            except OSError as err:  # no new process: a later run compiles them
+                log.warning("cannot start compiling the other models' kernels: %s", err)
 
     def finish(self) -> None:
         """:meth:`wait`, then wait for the other shipped models' kernels too, so that a
@@ -80,6 +87,7 @@ class Kernels:
 
     def stop(self) -> None:
         """Stop a compilation still running (an error, Ctrl-C, or a run that needed none)."""
+        self._start_later = None
         for name in ("_warming", "_later"):
             warming = getattr(self, name)
             setattr(self, name, None)
@@ -104,10 +112,10 @@ def prepare_kernels(quiet: bool, features=None):
     shipped model and template (:func:`compiled_groups`), when they are not cached yet;
     yields the :class:`Kernels` (``groups``: the run's own), whose ``wait()`` comes before
     the features step: the workers then load the kernels instead of each compiling them.
-    The other shipped groups compile at a lower priority, on what the run leaves of the
-    cores, and a block left normally waits for them (:meth:`Kernels.finish`); leaving it
-    on an error stops every compilation still running. One that cannot start leaves the
-    kernels to the workers."""
+    The other shipped groups compile once the run's own are compiled, at a lower priority, on
+    what the run leaves of the cores, and a block left normally waits for them
+    (:meth:`Kernels.finish`); leaving it on an error stops every compilation still running.
+    One that cannot start leaves the kernels to the workers."""
     from pipeline.features.numba_cache import Warming, kernel_groups
 
     groups = kernel_groups(*(() if features is None else (features.set,
@@ -118,7 +126,7 @@ def prepare_kernels(quiet: bool, features=None):
         others = [name for name in compiled if name not in groups]
         try:
             warming = Warming([name for name in compiled if name in groups])
-            later = Warming(others, nice=LATER_NICE) if others else None
+            later = (lambda: Warming(others, nice=LATER_NICE)) if others else None
         except OSError as err:  # no new process: each worker compiles what it uses
             log.warning("cannot start compiling the feature kernels: %s", err)
     kernels = Kernels(groups, warming, quiet, later)
