@@ -435,15 +435,16 @@ def _incircle_grid_exact(ax, ay, bx, by, cx, cy, px, py):
 
 
 @_inline
+def _coordinates(xy, a, b, c):
+    """x and y of points a, b and c of the flat xy."""
+    return xy[2 * a], xy[2 * a + 1], xy[2 * b], xy[2 * b + 1], xy[2 * c], xy[2 * c + 1]
+
+
+@_inline
 def _orient_idx(xy, a, b, c):
     """orient2d of points a, b, c of xy, which lie on the predicates' grid: a static error
     bound decides almost every call, then the adaptive filter, then the exact evaluation."""
-    ax = xy[2 * a]
-    ay = xy[2 * a + 1]
-    bx = xy[2 * b]
-    by = xy[2 * b + 1]
-    cx = xy[2 * c]
-    cy = xy[2 * c + 1]
+    ax, ay, bx, by, cx, cy = _coordinates(xy, a, b, c)
     det = (ax - cx) * (by - cy) - (ay - cy) * (bx - cx)
     if abs(det) > _CCW_STATIC:
         return det
@@ -485,12 +486,7 @@ def _incircle_lifted(xy, lift, a, b, c, dx, dy, dz):
     """incircle of points a, b, c of xy and d = (dx, dy), all on the predicates' grid, with
     lift[i] = fl(fl(x_i^2) + fl(y_i^2)) and dz d's: a static error bound decides almost every
     call, then the adaptive filter, then the exact evaluation."""
-    ax = xy[2 * a]
-    ay = xy[2 * a + 1]
-    bx = xy[2 * b]
-    by = xy[2 * b + 1]
-    cx = xy[2 * c]
-    cy = xy[2 * c + 1]
+    ax, ay, bx, by, cx, cy = _coordinates(xy, a, b, c)
     det = _lifted_determinant(ax, ay, lift[a], bx, by, lift[b], cx, cy, lift[c], dx, dy, dz)
     if abs(det) > _ICC_LIFTED_STATIC:
         return det
