@@ -461,7 +461,8 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
                         *overrides, "cluster.kind=local", f"cluster.n_workers={n}",
                         "cluster.threads_per_worker=1", "cluster.dashboard=false"]).cluster
                     with open_client(cluster, quiet=True, local_directory=work / "dask") as client:
-                        kernels.finish()  # compiled while the cluster started; none beside a timed run
+                        # compiled while the cluster started, and no compiler beside a timed run
+                        kernels.finish()
                         client.run(prime_worker, kernels.groups)
                         pids = _worker_pids(client)
                         if n > 1:
