@@ -155,8 +155,9 @@ def _merge_sort(perm, lo, hi, scratch, d2, ids, rows):
         src, dst = dst, src
         swapped = not swapped
         width *= 2
-    if swapped:  # the last pass wrote to scratch
-        perm[lo:hi] = scratch[:n]
+    if swapped:  # the last pass wrote to scratch; copied in a loop, as numba took 1.7 s
+        for k in range(n):  # to compile a slice assignment (broadcasting, error messages)
+            perm[lo + k] = scratch[k]
 
 
 @_jit
@@ -274,8 +275,9 @@ def _search_block(
                             capacity *= 2
                         new_d2 = np.empty(capacity)
                         new_s = np.empty(capacity, dtype=np.int64)
-                        new_d2[:n] = cd2[:n]
-                        new_s[:n] = cs[:n]
+                        for k in range(n):  # not a slice assignment: see _merge_sort
+                            new_d2[k] = cd2[k]
+                            new_s[k] = cs[k]
                         cd2, cs = new_d2, new_s
                         cid = np.empty(capacity, dtype=np.int64)
                         crow = np.empty(capacity, dtype=np.int64)
