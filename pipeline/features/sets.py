@@ -391,9 +391,9 @@ ECHO_SETS = ("covariance", "default")
 #: features call, compiled while a run ingests; every run also calls the neighbour search and
 #: the context, and with ``voxel`` the voxel kernels
 KERNEL_GROUPS: dict[str, tuple[str, ...]] = {
-    "paper": ("surface",),
+    "paper": ("surface", "invariants"),
     "covariance": ("covariance",),
-    "default": ("covariance", "surface"),
+    "default": ("covariance", "surface", "invariants"),
 }
 
 

@@ -53,7 +53,7 @@ def test_cold_until_every_wanted_group_is_marked_warm(tmp_path):
     assert not numba_cache.kernels_cold(["search", "surface"], folder)
     assert numba_cache.kernels_cold(["covariance"], folder)
     assert numba_cache.kernels_cold(folder=folder)  # default: every group
-    numba_cache.mark_warm(["covariance", "voxel"], folder)  # adds to what was recorded
+    numba_cache.mark_warm(["invariants", "covariance", "voxel"], folder)  # adds to them
     assert not numba_cache.kernels_cold(folder=folder)
 
 
@@ -74,10 +74,10 @@ def test_an_unreadable_marker_means_cold(tmp_path):
 
 
 def test_kernel_groups_follow_the_feature_set():
-    assert numba_cache.kernel_groups("paper") == ("surface", "search")
+    assert numba_cache.kernel_groups("paper") == ("surface", "search", "invariants")
     assert numba_cache.kernel_groups("covariance") == ("search", "covariance")
     assert numba_cache.kernel_groups("default", voxel=True) == (
-        "surface", "search", "covariance", "voxel")
+        "surface", "search", "invariants", "covariance", "voxel")
     assert set(numba_cache.kernel_groups()) == set(numba_cache.GROUPS)
 
 
@@ -90,8 +90,11 @@ def test_every_feature_set_declares_known_kernel_groups():
 
 
 def test_the_triangulation_gets_a_process_of_its_own():
-    shares = numba_cache._shares(["surface", "search", "covariance", "voxel"], 2)
-    assert shares == [["surface"], ["search", "covariance", "voxel"]]
+    shares = numba_cache._shares(["surface", "search", "invariants", "covariance", "voxel"], 2)
+    assert shares == [["surface"], ["search", "invariants", "covariance", "voxel"]]
+    # the paper's set: the invariants compile after the search, beside the triangulation
+    shares = numba_cache._shares(["surface", "search", "invariants"], 2)
+    assert shares == [["surface"], ["search", "invariants"]]
     assert numba_cache._shares(["search", "covariance"], 4) == [["search"], ["covariance"]]
     assert numba_cache._shares(["surface", "search"], 1) == [["surface", "search"]]
 

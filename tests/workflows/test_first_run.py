@@ -19,8 +19,8 @@ from tests.workflows.conftest import silva, write_config
 
 #: Every kernel group: those of any shipped model or template, compiled by the first command:
 #: a run of the paper's set needs the first two, the others compile at a lower priority.
-ALL = ("surface", "search", "covariance", "voxel")
-OWN, OTHERS = ALL[:2], ALL[2:]
+ALL = ("surface", "search", "invariants", "covariance", "voxel")
+OWN, OTHERS = ALL[:3], ALL[3:]
 
 
 @pytest.fixture
@@ -154,7 +154,7 @@ def test_the_demo_compiles_while_it_synthesises_its_plots(events, tmp_path, monk
     assert result.exit_code == 0, result.output
     assert events == [("start", OWN), "synthesise", "synthesise", "run", "wait",
                       ("later", OTHERS), "wait later"]  # a demo that ends well compiled all
-    assert given["kernels"].groups == ("surface", "search")
+    assert given["kernels"].groups == OWN
 
 
 def test_a_failed_compilation_does_not_fail_the_run(cold, survey, tmp_path, monkeypatch,
@@ -188,4 +188,4 @@ def test_an_error_or_ctrl_c_kills_the_compiling_processes(error, cold, survey, t
     result = silva("run", config, "--out", tmp_path / "out", "--in-process")
     assert result.exit_code != 0
     assert all(process.returncode == -signal.SIGKILL for process in seen)
-    assert kernels_cold(("surface", "search"), cold)
+    assert kernels_cold(OWN, cold)

@@ -18,7 +18,7 @@ log = logging.getLogger(__name__)
 #: The kernel groups (:data:`pipeline.features.numba_cache.GROUPS`) that the models
 #: installed with Silva (workflows/models/*) and the templates (configs/*.yaml) use, with
 #: their echo features and context: compiled by the first command that compiles any.
-SHIPPED_GROUPS = ("surface", "search", "covariance", "voxel")
+SHIPPED_GROUPS = ("surface", "search", "invariants", "covariance", "voxel")
 
 #: The scheduling priority (nice) of the compilation of the shipped groups a run does not
 #: use: below the run's own work, which it would otherwise slow on a machine with few cores.
