@@ -889,8 +889,8 @@ def make_workspace(n):
 def triangle_rows(workspace):
     """The workspace's triangles as rows of 3 vertex indices (a view): after
     :func:`triangulate_into` returned m, the first m are the triangulation."""
-    flat = workspace[4]
-    return flat.reshape((flat.shape[0] // 3, 3))
+    _, _, _, _, ver, _, _, _ = workspace  # the order of make_workspace and the core
+    return ver.reshape((ver.shape[0] // 3, 3))
 
 
 @_inline
