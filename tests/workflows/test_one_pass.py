@@ -163,11 +163,16 @@ def test_the_default_set_in_one_pass_over_many_chunks_equals_one_stored_chunk(su
         result = silva("run", config, "--out", runs[name], "--quiet", "--in-process",
                        "--set", f"output.keep_features={keep}")
         assert result.exit_code == 0, result.output
-    layout = open_store(runs["one_pass"] / "store.zarr", mode="r").attrs["layout"]
-    test = layout["scenes"]["test"]
+    root = open_store(runs["one_pass"] / "store.zarr", mode="r")
+    test = root.attrs["layout"]["scenes"]["test"]
     assert len(test["chunks"]) >= 8 and test["grid"]["nx"] >= 3 and test["one_pass"]
     assert test["halo"] > test["grid"]["size"]  # a chunk's window reaches past its neighbours
     assert len(read_predictions(runs["stored"])) == 4  # two tiles of each plot
+    # the chunks, one after the other, read their borders' features from the chunks before
+    shared = [root[f"scenes/test/chunks/{chunk}"].attrs["results"]["apply"]["shared_features"]
+              for chunk in test["chunks"]]
+    assert shared[0] == 0 and sum(shared) > 0, shared
+    assert "borders" not in root["scenes/test"]  # scratch, removed with the step
     assert_same_predictions(runs["one_pass"], runs["stored"])
 
 

@@ -9,7 +9,9 @@ LAZ input instead of some forty. Scenes that train the forests, and every scene 
 ``output.keep_features: true`` or exported feature columns (with ``auto``, also a scene cut
 into chunks so small that their borders would be computed twice too often), go stage by
 stage over stored features instead (:mod:`workflows.steps.cascade`); both ways give the
-same bits.
+same bits. A chunk reads the features of its borders that the chunks before it kept
+(:mod:`workflows.steps.borders`), so that chunks run one after the other compute each
+point's features once.
 """
 
 from dataclasses import dataclass
@@ -17,11 +19,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.cascade import labels_from_proba, one_pass, one_pass_halo
+from pipeline.cascade.one_pass import ring_width
 from pipeline.features.sets import FeatureParams, feature_set
-from pipeline.store import write_arrays
+from pipeline.store import open_store, write_arrays
 from pipeline.tiling import BalancedLayout, Grid
 from workflows.exec.engine import chunk_tasks, chunk_window_returns
 from workflows.run.directory import Run
+from workflows.steps.borders import Borders, remove_borders
 from workflows.steps.cascade import cached_forest
 from workflows.steps.features import neighbourhood_checks, warn_neighbourhoods
 from workflows.steps.terrain import GroundRule, ground_under
@@ -40,6 +44,7 @@ class OnePassTask:
     tiles: tuple[int, ...]  # the tiles with points in this scene
     grid: Grid | BalancedLayout
     forest_paths: tuple[str, ...]  # the fitted stages, in order
+    borders: Borders  # the features shared with the chunks beside
     ground: GroundRule = GroundRule()
 
 
@@ -60,8 +65,13 @@ def chunk_one_pass(view, task: OnePassTask):
     # neighbours of a column and leaves out those far under it
     ground = ground_under(view, xyz) if compute.uses_ground else None
 
+    shared = 0
+
     def features_of(rows):
-        return compute(xyz, rows, ids, ground, returns)
+        nonlocal shared
+        features, shared = task.borders.features(
+            view, rows, ids, xyz, lambda todo: compute(xyz, todo, ids, ground, returns))
+        return features
 
     probas, undefined = one_pass(
         xyz, ids, n_core, chunk_box(task.grid, view.chunk), features_of,
@@ -73,7 +83,8 @@ def chunk_one_pass(view, task: OnePassTask):
     write_arrays(view.group, {"undefined": undefined, proba_array(last): probas[last],
                               **{labels_array(t): labels_from_proba(p)
                                  for t, p in enumerate(probas[:last])}}, pack=PACK)
-    return neighbourhood_checks(xyz, ids, np.arange(n_core, dtype=np.int64), params.r1)
+    return {**neighbourhood_checks(xyz, ids, np.arange(n_core, dtype=np.int64), params.r1),
+            "shared_features": shared}
 
 
 #: With ``output.keep_features: auto``, a scene goes stage by stage instead when its chunks'
@@ -129,9 +140,13 @@ def classify_in_one_pass(run: Run, engine, layout: RunLayout, stages: list[dict]
     """Classify every chunk of ``layout`` with the saved forests of ``stages``."""
     forests = tuple(str(run.model_path / stage["file"]) for stage in stages)
     fingerprint = "-".join([run.fingerprint("features"), *(s["fingerprint"] for s in stages)])
+    width = ring_width(run.r1, run.n_stages)
     tasks = chunk_tasks(
         run, layout, "apply", chunk_one_pass,
         lambda info: OnePassTask(run.features, run.cfg.cascade.context, run.n_classes,
-                                 info.tiles, info.grid, forests, GroundRule.of(run)),
+                                 info.tiles, info.grid, forests,
+                                 Borders(info.grid, info.chunks, width, "apply", fingerprint),
+                                 GroundRule.of(run)),
         fingerprint, "train" if run.model_dir is None else "predict", only=only)
     warn_neighbourhoods(run, engine.map("apply", tasks).values())
+    remove_borders(open_store(run.store_path), layout.scenes)

@@ -23,6 +23,10 @@ Layout::
                           of each terrain cell (pipeline.terrain.cell_minima)
           stage<t>_context (n, 2C) f4, stage<t>_proba (n, C) f4     (t = 1, 2, ...)
         attrs: done = {step: fingerprint}, results, assembled, arrays = {array: pack}
+      scenes/<scene>/borders/<fingerprint>/<chunk>/   scratch of the one pass, removed when
+          band/     pack: gid, features     it ends: the features of a chunk's rows by the
+                                            borders of the chunks still to come
+                                            (workflows.steps.borders)
       scenes/<scene>/terrain/        the scene's terrain model: blocks (B, 2) i8, the occupied
         blocks of its grid; attrs cell, size, buffer, reach, done = {"terrain": fingerprint},
         interpolated (the share of the cells with points where no ground was seen)
