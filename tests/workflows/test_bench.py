@@ -139,3 +139,17 @@ def test_the_machines_scaling_is_what_its_workers_do_side_by_side(capsys, dask_c
     assert figures["machine_scaling"] == 1.8
     assert figures["speedup_of_machine_scaling"] == 1.0  # the median of 1.0, 1.11, 1.0
     assert "the machine allowed 1.80x on 2 workers" in capsys.readouterr().out
+
+
+def test_the_one_chunk_run_plans_one_chunk_whatever_the_workers(tiny, tmp_path):
+    """A balanced scene is shared out among the workers its configuration plans for: the
+    one-chunk run plans for one, or a 2-worker configuration cut its 2 chunks again."""
+    from workflows.config import load_config
+    from workflows.run.autoparams import resolve_run
+    from workflows.run.directory import Run
+    from workflows.steps.ingest import scene_target
+
+    config = write_config(tmp_path / "c.yaml", tiny, cluster={"n_workers": 4})
+    run = Run(resolve_run(load_config(config, bench_module.ONE_CHUNK)), tmp_path / "out",
+              quiet=True)
+    assert scene_target(run, 1_000_000) == 1_000_000

@@ -428,9 +428,10 @@ def one_run(config: Path, overrides, out: Path, model: Path | None, client) -> d
 
 
 #: the overrides that put each scene in one chunk (a regular grid is anchored at multiples
-#: of its size, so even a huge one can cut a scene that straddles the origin)
+#: of its size, so even a huge one can cut a scene that straddles the origin; a balanced
+#: layout shares a scene out among the workers the configuration plans for)
 ONE_CHUNK = ("tiling.chunk_size=auto", "tiling.layout=balanced",
-             "tiling.target_points=1000000000000")
+             "tiling.target_points=1000000000000", "cluster.kind=local", "cluster.n_workers=1")
 
 
 def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(), *,
