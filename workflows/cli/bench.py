@@ -470,7 +470,9 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
                             allowed = machine_scaling(client, params)
                             say(f"the machine allows {allowed:.2f}x on {n} workers",
                                 quiet=quiet)
-                        for label, extra in items:
+                        # which goes first alternates: a fresh worker's first run pays
+                        # once for what later ones reuse (the forests loaded, its memory)
+                        for label, extra in items[::-1] if turn % 2 else items:
                             say(f"run on {label}" + (f" (round {turn + 1} of {repeat})"
                                                      if repeat > 1 else ""), quiet=quiet)
                             out = work / f"run{turn}-{len(runs)}"
