@@ -153,3 +153,21 @@ def test_the_one_chunk_run_plans_one_chunk_whatever_the_workers(tiny, tmp_path):
     run = Run(resolve_run(load_config(config, bench_module.ONE_CHUNK)), tmp_path / "out",
               quiet=True)
     assert scene_target(run, 1_000_000) == 1_000_000
+
+
+def test_a_primed_worker_holds_the_models_forests():
+    """The bench loads a saved model's forests on its workers before timing anything: the
+    first timed run finds them loaded."""
+    from pathlib import Path
+
+    import workflows
+    from pipeline.model import read_model_file
+    from workflows.steps import cascade
+
+    model = Path(workflows.__file__).parent / "models" / "forest-tls-synthetic"
+    paths = [str(model / stage["file"]) for stage in read_model_file(model)[0]["stages"]]
+    cascade._loaded_forest.cache_clear()
+    bench_module.prime_worker((), paths)
+    assert cascade._loaded_forest.cache_info().currsize == len(paths) == 2
+    cascade.cached_forest(paths[0])
+    assert cascade._loaded_forest.cache_info().hits == 1

@@ -355,14 +355,17 @@ def _worker_pids(client) -> list[int]:
     return list(client.run(os.getpid).values())
 
 
-def prime_worker(groups) -> None:
-    """Runs on each worker before anything is timed: imports the steps' modules and loads
-    the kernels of ``groups`` from the cache, so no run pays for what only the first would."""
+def prime_worker(groups, forests=()) -> None:
+    """Runs on each worker before anything is timed: imports the steps' modules, loads the
+    kernels of ``groups`` from the cache and the ``forests`` (paths of a saved model's
+    stages), so no run pays for what only the first would."""
     from pipeline.features import numba_cache
-    from workflows.steps import cascade, export, features, ingest  # noqa: F401
+    from workflows.steps import cascade, export, features, ingest, one_pass  # noqa: F401
 
     for name in groups:
         numba_cache.GROUPS[name]()
+    for path in forests:
+        cascade.cached_forest(path)
 
 
 #: Points of the fixed cloud that measures the machine's scaling: about a second of the
@@ -438,6 +441,7 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
                    quiet: bool = False, repeat: int = 1) -> dict:
     """Time the runs of ``config`` (see module) ``repeat`` times, the kinds of run taking
     turns; return the figures: medians over the rounds, each ratio taken within a round."""
+    from pipeline.model import read_model_file
     from workflows.config import load_config
     from workflows.exec.cluster import open_client
     from workflows.exec.kernels import prepare_kernels
@@ -447,6 +451,8 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
     cfg = load_config(config, overrides)  # a bad config or a missing input: now, not later
     read_paths(cfg, config, model)
     params = Run(resolve_run(cfg), Path("."), quiet=True).features
+    forests = ([] if model is None else
+               [str(model / stage["file"]) for stage in read_model_file(model)[0]["stages"]])
     # (label, workers, extra overrides), grouped by cluster: the 1-worker runs share one
     plan = {1: [("1 worker", ()), ("1 worker, one chunk per scene", ONE_CHUNK)]}
     if workers > 1:
@@ -464,7 +470,7 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
                     with open_client(cluster, quiet=True, local_directory=work / "dask") as client:
                         # compiled while the cluster started, and no compiler beside a timed run
                         kernels.finish()
-                        client.run(prime_worker, kernels.groups)
+                        client.run(prime_worker, kernels.groups, forests)
                         pids = _worker_pids(client)
                         if n > 1:
                             allowed = machine_scaling(client, params)
