@@ -39,8 +39,7 @@ def _window(xyz, box, halo):
 def _run_chunk(root, borders, chunk, xyz, ids):
     """The features of one chunk's rows (its core and ring), as the one pass asks for them:
     the rows computed, and how many were read."""
-    box = dict(zip(("0_0", "1_0"), borders.grid.boxes()))[chunk]
-    window = _window(xyz, box, WIDTH)
+    window = _window(xyz, borders.boxes[chunk], WIDTH)
     view = SimpleNamespace(root=root, scene="predict", chunk=chunk)
     computed = []
 
@@ -59,7 +58,8 @@ def _run_chunk(root, borders, chunk, xyz, ids):
 def _setup(tmp_path):
     root = open_store(tmp_path / "store.zarr")
     grid = Grid(0.0, 0.0, 4.0, 2, 1)
-    return root, Borders(grid, ("0_0", "1_0"), WIDTH, "apply", "f" * 16)
+    boxes = {grid.chunk_name(i): tuple(box) for i, box in enumerate(grid.boxes())}
+    return root, Borders(boxes, WIDTH, "apply", "f" * 16)
 
 
 def test_the_second_chunk_reads_its_border_and_the_band_is_removed(tmp_path):
@@ -70,7 +70,7 @@ def test_the_second_chunk_reads_its_border_and_the_band_is_removed(tmp_path):
     assert shared == 0
     second, shared = _run_chunk(root, borders, "1_0", xyz, ids)
     # the second chunk's rows within the ring of the first's box came from its band
-    window = _window(xyz, borders.grid.boxes()[1], WIDTH)
+    window = _window(xyz, borders.boxes["1_0"], WIDTH)
     near = np.count_nonzero(xyz[window, 0] <= 4.0 + WIDTH)
     assert shared == near > 0 and len(second) == len(window) - near
     # the second kept nothing: its only neighbour was done
@@ -83,7 +83,7 @@ def test_bands_of_another_fingerprint_or_damaged_are_not_read(tmp_path):
     root, borders = _setup(tmp_path)
     xyz, ids = _cloud()
     _run_chunk(root, borders, "0_0", xyz, ids)
-    other = Borders(borders.grid, borders.chunks, WIDTH, "apply", "e" * 16)
+    other = Borders(borders.boxes, WIDTH, "apply", "e" * 16)
     _, shared = _run_chunk(root, other, "1_0", xyz, ids)
     assert shared == 0
 

@@ -22,7 +22,7 @@ import numpy as np
 import zarr
 
 from pipeline.store import DamagedArrayError, has_array, read_array, rows_of, write_arrays
-from pipeline.tiling import BalancedLayout, Grid, box_distance
+from pipeline.tiling import box_distance
 from workflows.store.layout import chunk_path
 from workflows.store.marks import is_done
 
@@ -34,7 +34,7 @@ def borders_path(scene: str) -> str:
     return f"scenes/{scene}/{FOLDER}"
 
 
-def box_gap(a: np.ndarray, b: np.ndarray) -> float:
+def box_gap(a, b) -> float:
     """How far apart two boxes (xmin, ymin, xmax, ymax) lie along the farther axis, the
     measure of :func:`pipeline.tiling.box_distance` (zero when they touch)."""
     dx = max(a[0] - b[2], b[0] - a[2], 0.0)
@@ -44,23 +44,21 @@ def box_gap(a: np.ndarray, b: np.ndarray) -> float:
 
 @dataclass(frozen=True)
 class Borders:
-    """The bands a scene's chunks share: ``width``, the one pass's ring beyond a core;
-    ``chunks``, the scene's chunks; ``step`` and ``fingerprint``, the step whose done-mark
-    says a chunk needs no band any more, and the fingerprint its bands are kept under."""
+    """The bands a scene's chunks share: ``boxes``, the core box of each of its chunks
+    (:attr:`workflows.store.scenes.SceneLayout.chunk_boxes`); ``width``, the one pass's
+    ring beyond a core; ``step`` and ``fingerprint``, the step whose done-mark says a chunk
+    needs no band any more, and the fingerprint its bands are kept under."""
 
-    grid: Grid | BalancedLayout
-    chunks: tuple[str, ...]
+    boxes: dict[str, tuple[float, float, float, float]]
     width: float
     step: str
     fingerprint: str
 
-    def neighbours(self, chunk: str) -> dict[str, np.ndarray]:
+    def neighbours(self, chunk: str) -> dict[str, tuple]:
         """The other chunks whose boxes lie within ``width`` of ``chunk``'s: name -> box."""
-        names = [self.grid.chunk_name(i) for i in range(self.grid.n_chunks)]
-        boxes = dict(zip(names, self.grid.boxes()))
-        own = boxes[chunk]
-        return {name: boxes[name] for name in self.chunks
-                if name != chunk and box_gap(own, boxes[name]) <= self.width}
+        own = self.boxes[chunk]
+        return {name: box for name, box in self.boxes.items()
+                if name != chunk and box_gap(own, box) <= self.width}
 
     def features(self, view, rows: np.ndarray, ids: np.ndarray, xyz: np.ndarray, compute
                  ) -> tuple[np.ndarray, int]:
@@ -106,13 +104,13 @@ class Borders:
         group = view.root.get(chunk_path(view.scene, chunk))
         return group is None or not is_done(group, self.step, self.fingerprint)
 
-    def _keep(self, view, neighbours: dict, gids: np.ndarray, xy: np.ndarray,
+    def _keep(self, view, neighbours: dict, gids: np.ndarray, xyz: np.ndarray,
               features: np.ndarray) -> None:
         """Keep the features of the rows within ``width`` of a neighbour still to come."""
         near = np.zeros(len(gids), dtype=bool)
         for chunk, box in neighbours.items():
             if self._pending(view, chunk):
-                near |= box_distance(xy, box) <= self.width
+                near |= box_distance(xyz, box) <= self.width
         if not near.any():
             return
         group = view.root.require_group(self._path(view.scene, view.chunk))

@@ -22,7 +22,6 @@ from pipeline.cascade import labels_from_proba, one_pass, one_pass_halo
 from pipeline.cascade.one_pass import ring_width
 from pipeline.features.sets import FeatureParams, feature_set
 from pipeline.store import open_store, write_arrays
-from pipeline.tiling import BalancedLayout, Grid
 from workflows.exec.engine import chunk_tasks, chunk_window_returns
 from workflows.run.directory import Run
 from workflows.steps.borders import Borders, remove_borders
@@ -42,16 +41,11 @@ class OnePassTask:
     context: str  # "hard" or "soft"
     n_classes: int
     tiles: tuple[int, ...]  # the tiles with points in this scene
-    grid: Grid | BalancedLayout
     forest_paths: tuple[str, ...]  # the fitted stages, in order
-    borders: Borders  # the features shared with the chunks beside
+    borders: Borders  # the chunks' boxes, and the features shared with those beside
     ground: GroundRule = GroundRule()
 
 
-def chunk_box(grid, name: str) -> np.ndarray:
-    """The XY box (xmin, ymin, xmax, ymax) of the chunk called ``name``."""
-    names = [grid.chunk_name(i) for i in range(grid.n_chunks)]
-    return grid.boxes()[names.index(name)]
 
 
 def chunk_one_pass(view, task: OnePassTask):
@@ -74,7 +68,7 @@ def chunk_one_pass(view, task: OnePassTask):
         return features
 
     probas, undefined = one_pass(
-        xyz, ids, n_core, chunk_box(task.grid, view.chunk), features_of,
+        xyz, ids, n_core, task.borders.boxes[view.chunk], features_of,
         [cached_forest(p) for p in task.forest_paths],
         n_classes=task.n_classes, mode=task.context, r1=params.r1, r2=params.r2,
         max_neighbors=params.context_max_neighbors,
@@ -144,8 +138,8 @@ def classify_in_one_pass(run: Run, engine, layout: RunLayout, stages: list[dict]
     tasks = chunk_tasks(
         run, layout, "apply", chunk_one_pass,
         lambda info: OnePassTask(run.features, run.cfg.cascade.context, run.n_classes,
-                                 info.tiles, info.grid, forests,
-                                 Borders(info.grid, info.chunks, width, "apply", fingerprint),
+                                 info.tiles, forests,
+                                 Borders(info.chunk_boxes, width, "apply", fingerprint),
                                  GroundRule.of(run)),
         fingerprint, "train" if run.model_dir is None else "predict", only=only)
     warn_neighbourhoods(run, engine.map("apply", tasks).values())
