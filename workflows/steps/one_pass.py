@@ -46,8 +46,6 @@ class OnePassTask:
     ground: GroundRule = GroundRule()
 
 
-
-
 def chunk_one_pass(view, task: OnePassTask):
     """Worker task: every stage's probabilities of one chunk's core points."""
     params = task.features
