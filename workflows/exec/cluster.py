@@ -27,6 +27,7 @@ from multiprocessing import resource_tracker
 from distributed.diagnostics.plugin import WorkerPlugin
 
 from pipeline.errors import ConfigError, SilvaError
+from workflows.exec.heap import heap_for_arrays
 from workflows.exec.pages import ordinary_pages
 
 log = logging.getLogger(__name__)
@@ -86,7 +87,7 @@ def open_client(
         else:  # the config model admits no other kind
             raise ConfigError(f"config error: cluster.kind must be 'local', 'address' or "
                               f"'slurm', got {kind!r}")
-        client.register_plugin(OrdinaryPages())
+        client.register_plugin(ArrayMemory())
         link = _link_of(client) if wanted else None
         _LINKS[client] = link
         if link:
@@ -94,15 +95,17 @@ def open_client(
         yield client
 
 
-class OrdinaryPages(WorkerPlugin):
-    """NumPy's arrays on ordinary memory pages in every worker of the cluster, also those
-    started later (:mod:`workflows.exec.pages`)."""
+class ArrayMemory(WorkerPlugin):
+    """NumPy's arrays on ordinary memory pages (:mod:`workflows.exec.pages`) and from a heap
+    that keeps them (:mod:`workflows.exec.heap`) in every worker of the cluster, also those
+    started later."""
 
-    name = "silva-ordinary-pages"
+    name = "silva-array-memory"
     idempotent = True  # one registration per scheduler, whoever connects
 
     def setup(self, worker):
         ordinary_pages()
+        heap_for_arrays()
 
 
 def dashboard_link(client) -> str | None:

@@ -9,7 +9,7 @@ runs took 3.6 and 9.6 system seconds, and 48 s instead of 60 s and 38 s instead 
 wall time, with the same user time and peak memory (docs/PERFORMANCE.md). So every command
 turns NumPy's request off in its own process and, through the environment, in the local
 workers and helpers it starts; a worker plugin does it on every worker of any cluster
-(:class:`workflows.exec.cluster.OrdinaryPages`). ``NUMPY_MADVISE_HUGEPAGE=1`` in the
+(:class:`workflows.exec.cluster.ArrayMemory`). ``NUMPY_MADVISE_HUGEPAGE=1`` in the
 environment keeps NumPy's default.
 """
 
