@@ -7,7 +7,8 @@
   parts in between, a slow per-point reference and the peak memory.
 - ``silva bench pipeline CONFIG``: ``silva run`` of CONFIG (with ``--model``, the
   classification that ``silva predict`` does) on a local cluster of 1 worker, of N workers,
-  and of 1 worker with one chunk per scene, each into a fresh temporary directory: points per
+  and of 1 worker with one chunk per scene, each run on a cluster of its own started for it
+  (as a user's command starts one) and into a fresh temporary directory: points per
   second, the speed-up of N workers, what cutting the scene into chunks costs, and the peak
   resident memory of a worker; and, in every round, the speed-up the machine itself allows
   (its N workers running the same fixed feature computation side by side against one alone),
@@ -453,17 +454,20 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
     params = Run(resolve_run(cfg), Path("."), quiet=True).features
     forests = ([] if model is None else
                [str(model / stage["file"]) for stage in read_model_file(model)[0]["stages"]])
-    # (label, workers, extra overrides), grouped by cluster: the 1-worker runs share one
-    plan = {1: [("1 worker", ()), ("1 worker, one chunk per scene", ONE_CHUNK)]}
+    # (label, workers, extra overrides), each run on a fresh cluster of its own, as every
+    # command starts one: a worker's first run pays for what a later one would reuse (the
+    # heap it grows, the forests it loads), and a run after another would not pay it
+    plan = [("1 worker", 1, ()), ("1 worker, one chunk per scene", 1, ONE_CHUNK)]
     if workers > 1:
-        plan[workers] = [(f"{workers} workers", ())]
+        plan.append((f"{workers} workers", workers, ()))
     rounds, peaks = [], []
     with prepare_kernels(quiet, params) as kernels:
         work = Path(tempfile.mkdtemp(prefix="silva-bench-"))
         try:
             for turn in range(repeat):
                 runs = {}
-                for n, items in plan.items():
+                # the 1-worker runs take turns going first: the machine's speed drifts
+                for label, n, extra in [plan[1], plan[0], *plan[2:]] if turn % 2 else plan:
                     cluster = load_config(config, [
                         *overrides, "cluster.kind=local", f"cluster.n_workers={n}",
                         "cluster.threads_per_worker=1", "cluster.dashboard=false"]).cluster
@@ -476,24 +480,21 @@ def bench_pipeline(config: Path, model: Path | None, workers: int, overrides=(),
                             allowed = machine_scaling(client, params)
                             say(f"the machine allows {allowed:.2f}x on {n} workers",
                                 quiet=quiet)
-                        # which goes first alternates: a fresh worker's first run pays
-                        # once for what later ones reuse (the forests loaded, its memory)
-                        for label, extra in items[::-1] if turn % 2 else items:
-                            say(f"run on {label}" + (f" (round {turn + 1} of {repeat})"
-                                                     if repeat > 1 else ""), quiet=quiet)
-                            out = work / f"run{turn}-{len(runs)}"
-                            with RssSampler(pids) as memory:
-                                runs[label] = summary = one_run(
-                                    config, [*overrides, *extra], out, model, client)
-                            shutil.rmtree(out, ignore_errors=True)
-                            summary["cpu_seconds"] = memory.cpu_seconds
-                            if n > 1:
-                                summary["machine_scaling"] = allowed
-                            peaks += memory.peaks.values()
-                            say(f"  {summary['points']:,} points, {summary['chunks']} chunks: "
-                                f"{summary['seconds']:.1f} s, workers' CPU "
-                                f"{summary['cpu_seconds']:.1f} s", quiet=quiet)
-                rounds.append(runs)
+                        say(f"run on {label}" + (f" (round {turn + 1} of {repeat})"
+                                                 if repeat > 1 else ""), quiet=quiet)
+                        out = work / f"run{turn}-{len(runs)}"
+                        with RssSampler(pids) as memory:
+                            runs[label] = summary = one_run(
+                                config, [*overrides, *extra], out, model, client)
+                        shutil.rmtree(out, ignore_errors=True)
+                        summary["cpu_seconds"] = memory.cpu_seconds
+                        if n > 1:
+                            summary["machine_scaling"] = allowed
+                        peaks += memory.peaks.values()
+                        say(f"  {summary['points']:,} points, {summary['chunks']} chunks: "
+                            f"{summary['seconds']:.1f} s, workers' CPU "
+                            f"{summary['cpu_seconds']:.1f} s", quiet=quiet)
+                rounds.append({label: runs[label] for label, _, _ in plan})
         finally:
             shutil.rmtree(work, ignore_errors=True)
     return _pipeline_figures(config, model, workers, rounds, peaks)
