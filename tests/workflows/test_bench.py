@@ -87,11 +87,20 @@ def test_bench_features_of_a_missing_file_is_one_line(tmp_path):
 
 
 # -- pipeline ----------------------------------------------------------------------------------
-def test_bench_pipeline_gives_every_figure(tiny, tmp_path):
+def test_bench_pipeline_gives_every_figure(tiny, tmp_path, monkeypatch):
     config = write_config(tmp_path / "tiny.yaml", tiny, tiling={"chunk_size": 4.0},
                           cascade={"stages": 1, "n_estimators": 4, "max_train_points": 2000})
+    workers_of_runs, one_run = [], bench_module.one_run
+
+    def recording(config, overrides, out, model, client):
+        workers_of_runs.append(frozenset(bench_module._worker_pids(client)))
+        return one_run(config, overrides, out, model, client)
+
+    monkeypatch.setattr(bench_module, "one_run", recording)
     result = silva("bench", "pipeline", config, "--workers", 1, "--repeat", 2, "--json", "-q")
     figures = _last_json(result)
+    # every run on fresh workers, as a user's command: none pays or skips another's first run
+    assert len(workers_of_runs) == 4 and len(set(workers_of_runs)) == 4
     assert set(PIPELINE_KEYS) <= figures.keys()
     assert figures["workers"] == 1 and figures["speedup"] == 1.0
     # two rounds, each ratio within its round, the figures their medians
