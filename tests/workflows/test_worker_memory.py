@@ -70,7 +70,8 @@ def test_an_explicit_setting_is_kept(numpy_default, monkeypatch):
 
 def test_workers_started_elsewhere_get_them_off_and_keep_their_arrays(numpy_default):
     """A scheduler and worker someone else started (cluster.kind: address): the plugin
-    turns the worker's NumPy setting off when Silva connects."""
+    turns the worker's NumPy setting off and gives it a heap that keeps arrays when Silva
+    connects."""
     from distributed import LocalCluster
 
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
@@ -107,13 +108,14 @@ def test_the_workers_start_with_them_requested_without_silva(numpy_default):
         assert list(client.run(page_faults_of_arrays).values())[0] > FAULTS_OF_ARRAYS_MAPPED_ANEW
 
 
-def faults_in_a_new_process(trim_threshold: str | None, silva: bool) -> int:
-    """:func:`page_faults_of_arrays` in a new Python with ``MALLOC_TRIM_THRESHOLD_`` set to
-    ``trim_threshold`` (None: unset), after :func:`heap_for_arrays` when ``silva``."""
+def faults_in_a_new_process(trim_threshold: str | None, silva: bool) -> tuple[bool, int]:
+    """In a new Python with ``MALLOC_TRIM_THRESHOLD_`` set to ``trim_threshold`` (None:
+    unset): whether :func:`heap_for_arrays` (called when ``silva``) set its thresholds, and
+    :func:`page_faults_of_arrays` after it."""
     env = {k: v for k, v in os.environ.items() if k != "MALLOC_TRIM_THRESHOLD_"}
     if trim_threshold is not None:
         env["MALLOC_TRIM_THRESHOLD_"] = trim_threshold
-    code = ("import sys; from workflows.exec.heap import heap_for_arrays; "
+    code = ("from workflows.exec.heap import heap_for_arrays; "
             "from tests.workflows.test_worker_memory import page_faults_of_arrays; "
             f"set_ = heap_for_arrays() if {silva} else None; "
             "print(set_, page_faults_of_arrays())")
