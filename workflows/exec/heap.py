@@ -7,9 +7,9 @@ otherwise raises (up to 32 MiB) as a process frees large blocks: on such a worke
 of more than 128 KiB is mapped anew, its pages are faulted in and zeroed by the kernel as it
 is first written, and it is unmapped when freed. A chunk's arrays of a few MiB (a column of a
 million points) are made and dropped thousands of times in a run, so on the TLS plot a
-worker spent 10-16 system seconds of 65-85 s on those page faults, against 2.5-5 with
-glibc's own thresholds, and a run cut into 2 chunks (more arrays of that size) took 8-14 %
-longer than one chunk instead of the same time (docs/PERFORMANCE.md).
+worker spent 10-16 system seconds of 60-81 s on those page faults, against 2.5-5 with
+glibc's own thresholds, and a run cut into 2 chunks (more arrays of that size) took 8-27 %
+longer than one chunk instead of about the same time (docs/PERFORMANCE.md).
 
 So every worker on which Dask's setting is in effect gets thresholds of its own: arrays up to
 16 MiB come from the heap and are reused, and the heap gives back what is free above 32 MiB at
