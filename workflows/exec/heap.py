@@ -11,11 +11,12 @@ worker spent 10-16 system seconds of 60-81 s on those page faults, against 2.5-5
 glibc's own thresholds, and a run cut into 2 chunks (more arrays of that size) took 8-27 %
 longer than one chunk instead of about the same time (docs/PERFORMANCE.md).
 
-So every worker on which Dask's setting is in effect gets thresholds of its own: arrays up to
-16 MiB come from the heap and are reused, and the heap gives back what is free above 32 MiB at
-its top. Measured, these thresholds are as fast as glibc's own and hold the worker's peak
-resident memory within 2 % of them. A worker started with another value (the user's own), or
-on a C library without ``mallopt``, is left alone.
+So every worker on which Dask's setting is in effect gets the thresholds that glibc's own rule
+reaches at most (on 64 bits: mmap 32 MiB, trim twice that): arrays up to 32 MiB come from the
+heap and are reused, and the heap gives back what is free above 64 MiB at its top. Measured,
+they are as fast as glibc's own; 16 MiB left a 2-chunk run's columns of 16-32 MiB to be mapped
+anew (1-3 system seconds more, docs/PERFORMANCE.md). A worker started with another value (the
+user's own), or on a C library without ``mallopt``, is left alone.
 """
 
 import ctypes
@@ -25,8 +26,8 @@ import os
 DASK_TRIM_THRESHOLD = "65536"
 #: ``mallopt`` parameters (malloc.h) and Silva's values.
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
-MMAP_THRESHOLD = 16 * 2**20
-TRIM_THRESHOLD = 32 * 2**20
+MMAP_THRESHOLD = 32 * 2**20  # glibc's DEFAULT_MMAP_THRESHOLD_MAX on 64 bits
+TRIM_THRESHOLD = 2 * MMAP_THRESHOLD  # what glibc's own rule pairs with it
 
 
 def heap_for_arrays() -> bool:
