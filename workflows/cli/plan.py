@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 #: 1,627 MiB, the paper set (11) 823 MiB; 400,000 points of the default set 784 MiB. Since
 #: the feature columns go straight into float32 the default set's peak is about 5 % lower
 #: (1,765 MiB in the bench). A worker also keeps freed arrays in its heap for the next
-#: (:mod:`workflows.exec.heap`): 120 MiB more in the base, for the 1,987-2,069 MiB the
+#: (:mod:`workflows.exec.heap`): 120 MiB more in the base, for the 1,987-2,081 MiB the
 #: bench's worker then peaked at on the whole plot in one chunk.
 WORKER_BASE_BYTES = 570 * 2**20
 WORKER_BYTES_PER_POINT = 180
