@@ -108,17 +108,19 @@ def test_the_workers_start_with_them_requested_without_silva(numpy_default):
         assert list(client.run(page_faults_of_arrays).values())[0] > FAULTS_OF_ARRAYS_MAPPED_ANEW
 
 
-def faults_in_a_new_process(trim_threshold: str | None, silva: bool) -> tuple[bool, int]:
+def faults_in_a_new_process(trim_threshold: str | None, silva: bool, size: int = 1_000_000
+                            ) -> tuple[bool, int]:
     """In a new Python with ``MALLOC_TRIM_THRESHOLD_`` set to ``trim_threshold`` (None:
     unset): whether :func:`heap_for_arrays` (called when ``silva``) set its thresholds, and
-    :func:`page_faults_of_arrays` after it."""
+    :func:`page_faults_of_arrays` of arrays of ``size`` float64 after it."""
     env = {k: v for k, v in os.environ.items() if k != "MALLOC_TRIM_THRESHOLD_"}
+    env[VARIABLE] = "0"  # counted on ordinary pages, whatever ran before in this process
     if trim_threshold is not None:
         env["MALLOC_TRIM_THRESHOLD_"] = trim_threshold
     code = ("from workflows.exec.heap import heap_for_arrays; "
             "from tests.workflows.test_worker_memory import page_faults_of_arrays; "
             f"set_ = heap_for_arrays() if {silva} else None; "
-            "print(set_, page_faults_of_arrays())")
+            f"print(set_, page_faults_of_arrays(size={size}))")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
                          text=True, check=True).stdout.split()
     return out[0] == "True", int(out[1])
@@ -129,6 +131,17 @@ def test_the_heap_keeps_arrays_where_dasks_threshold_would_map_them_anew():
         FAULTS_OF_ARRAYS_MAPPED_ANEW
     set_, faults = faults_in_a_new_process(DASK_TRIM_THRESHOLD, silva=True)
     assert set_ and faults < FAULTS_OF_ARRAYS_MAPPED_ANEW / 10
+
+
+def test_the_heap_keeps_the_coordinates_of_a_chunk():
+    """A chunk of 770,000 points has columns of 16-32 MiB (its coordinates: 18 MiB), which a
+    heap that maps arrays above 16 MiB anew made slower in 2 chunks than in one."""
+    coordinates = 770_000 * 3
+    mapped_anew = 20 * coordinates * 8 // 4096
+    assert faults_in_a_new_process(DASK_TRIM_THRESHOLD, silva=False, size=coordinates)[1] > \
+        mapped_anew / 2
+    set_, faults = faults_in_a_new_process(DASK_TRIM_THRESHOLD, silva=True, size=coordinates)
+    assert set_ and faults < mapped_anew / 20
 
 
 def test_glibcs_own_thresholds_and_someone_elses_choice_are_left_alone():
