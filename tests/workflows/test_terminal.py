@@ -159,10 +159,17 @@ def test_a_line_announces_the_first_compilation(tmp_path, monkeypatch, capsys):
 
 # -- a real cluster: no Dask warnings, and Ctrl-C --------------------------------------------------
 def _silva_process(args, cwd):
+    """``silva ARGS`` as started from a terminal. Its SIGINT is Python's default even when
+    the tests run as a background job, whose shell ignores SIGINT for it and its children:
+    an ignored signal stays ignored across exec, a handled one starts as the default."""
     env = {**os.environ, "COLUMNS": "120"}
-    return subprocess.Popen([sys.executable, "-m", "workflows", *map(str, args)], cwd=cwd,
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return subprocess.Popen([sys.executable, "-m", "workflows", *map(str, args)], cwd=cwd,
+                                env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True, start_new_session=True)
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 @pytest.mark.slow
