@@ -21,7 +21,11 @@ except ImportError:  # NumPy 1.26
     from numpy.core.multiarray import _set_madvise_hugepage
 
 
-def page_faults_of_arrays(n: int = 20, size: int = 1_000_000) -> int:
+#: Arrays each measure makes and drops.
+ARRAYS = 20
+
+
+def page_faults_of_arrays(n: int = ARRAYS, size: int = 1_000_000) -> int:
     """The page faults of making and dropping ``n`` arrays of ``size`` float64 (8 MB, a
     column of a chunk): some 2,000 each when every array is mapped anew, none when the heap
     keeps them (one array first, so that a heap that can keep it has it)."""
@@ -36,7 +40,15 @@ def page_faults_of_arrays(n: int = 20, size: int = 1_000_000) -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
 
 
-FAULTS_OF_ARRAYS_MAPPED_ANEW = 20 * 1_000  # at least half of the 20 x 1,953 pages
+FAULTS_OF_ARRAYS_MAPPED_ANEW = ARRAYS * 1_000  # at least half of the 20 x 1,953 pages
+
+
+def pages_of_arrays(size: int) -> int:
+    """The pages that :data:`ARRAYS` arrays of ``size`` float64 take: their page faults when
+    each is mapped anew."""
+    import resource
+
+    return ARRAYS * size * 8 // resource.getpagesize()
 
 
 def huge_pages_requested() -> bool:
@@ -137,7 +149,7 @@ def test_the_heap_keeps_the_coordinates_of_a_chunk():
     """A chunk of 770,000 points has columns of 16-32 MiB (its coordinates: 18 MiB), which a
     heap that maps arrays above 16 MiB anew made slower in 2 chunks than in one."""
     coordinates = 770_000 * 3
-    mapped_anew = 20 * coordinates * 8 // 4096
+    mapped_anew = pages_of_arrays(coordinates)
     assert faults_in_a_new_process(DASK_TRIM_THRESHOLD, silva=False, size=coordinates)[1] > \
         mapped_anew / 2
     set_, faults = faults_in_a_new_process(DASK_TRIM_THRESHOLD, silva=True, size=coordinates)
